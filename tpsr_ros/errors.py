@@ -1,0 +1,46 @@
+"""Errors of tpsr-ros, catchable by name.
+
+Every error a user can cause (bad file, bad parameter, bad message) is a ``TpsrError``
+subclass whose message is one sentence naming the problem; command-line entry points
+print it on one line and exit non-zero.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "BagError",
+    "ConfigError",
+    "DataError",
+    "MessageError",
+    "ModelFormatError",
+    "NotFittedError",
+    "TpsrError",
+]
+
+
+class TpsrError(Exception):
+    """Base class of every error tpsr-ros raises on purpose."""
+
+
+class ConfigError(TpsrError, ValueError):
+    """A configuration value or parameter is invalid."""
+
+
+class BagError(TpsrError):
+    """A bag cannot be read or written (missing, foreign format, existing path...)."""
+
+
+class MessageError(TpsrError, ValueError):
+    """A message has the wrong type, size, encoding or frame."""
+
+
+class DataError(TpsrError, ValueError):
+    """Training or evaluation data are unusable (too few episodes, non-finite values...)."""
+
+
+class ModelFormatError(TpsrError):
+    """A model or policy file is truncated, foreign, or of another format version."""
+
+
+class NotFittedError(TpsrError, RuntimeError):
+    """A learner was used before ``fit``."""

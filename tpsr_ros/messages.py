@@ -1,0 +1,235 @@
+"""ROS 2 message construction, validation and CDR (de)serialisation.
+
+One source for every message layout: the ``rosbags`` ROS 2 Jazzy typestore. The bag
+writer, the learner and every transport build and read messages through these
+functions, so a field is spelled in one place. Stamps are integer nanoseconds.
+
+Message choices (see msgs_doc/topics.md):
+- reward: ``sensor_msgs/msg/JointState``, the stock stamped, self-describing float vector
+  (names ``reward``, ``wall_contact``, ``goal_zone``);
+- predictive state: ``sensor_msgs/msg/JointState`` too (names ``b0``..``b{r-1}``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+import numpy as np
+from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys.store import Typestore
+
+from tpsr_ros.errors import MessageError
+
+__all__ = [
+    "ACTION_TYPE",
+    "CLOCK_TYPE",
+    "IMAGE_TYPE",
+    "POSE_TYPE",
+    "REWARD_NAMES",
+    "REWARD_TYPE",
+    "STATE_TYPE",
+    "TWIST_TYPE",
+    "RewardSample",
+    "clock_msg",
+    "deserialize",
+    "image_msg",
+    "image_to_array",
+    "jazzy_typestore",
+    "pose_msg",
+    "pose_to_xy",
+    "reward_msg",
+    "reward_to_sample",
+    "serialize",
+    "split_stamp",
+    "stamp_of",
+    "state_msg",
+    "state_to_array",
+    "twist_msg",
+    "twist_stamped_msg",
+    "twist_to_xy",
+]
+
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+ACTION_TYPE = "geometry_msgs/msg/TwistStamped"
+TWIST_TYPE = "geometry_msgs/msg/Twist"
+POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+REWARD_TYPE = "sensor_msgs/msg/JointState"
+STATE_TYPE = "sensor_msgs/msg/JointState"
+CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
+
+REWARD_NAMES = ("reward", "wall_contact", "goal_zone")
+_NS = 1_000_000_000
+
+
+@cache
+def jazzy_typestore() -> Typestore:
+    """Return the ROS 2 Jazzy typestore (built once; it is immutable in use)."""
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def _t(name: str) -> Any:
+    return jazzy_typestore().types[name]
+
+
+def split_stamp(stamp_ns: int) -> tuple[int, int]:
+    """Split integer nanoseconds into ROS ``(sec, nanosec)``; negative stamps are refused."""
+    stamp_ns = int(stamp_ns)
+    if stamp_ns < 0:
+        raise MessageError(f"negative stamp {stamp_ns} ns cannot be a ROS time")
+    return stamp_ns // _NS, stamp_ns % _NS
+
+
+def _header(stamp_ns: int, frame_id: str) -> Any:
+    sec, nanosec = split_stamp(stamp_ns)
+    return _t("std_msgs/msg/Header")(
+        stamp=_t("builtin_interfaces/msg/Time")(sec=sec, nanosec=nanosec), frame_id=frame_id
+    )
+
+
+def stamp_of(msg: Any) -> int:
+    """Stamp of a message with a ``header`` (or a Clock) in integer nanoseconds."""
+    stamp = msg.clock if hasattr(msg, "clock") else msg.header.stamp
+    return int(stamp.sec) * _NS + int(stamp.nanosec)
+
+
+def serialize(msg: Any, msgtype: str) -> bytes:
+    """Serialise to ROS 2 CDR (little endian, with the 4-byte encapsulation header)."""
+    return bytes(jazzy_typestore().serialize_cdr(msg, msgtype))
+
+
+def deserialize(data: bytes | memoryview, msgtype: str) -> Any:
+    """Deserialise ROS 2 CDR bytes; malformed bytes raise ``MessageError``."""
+    try:
+        return jazzy_typestore().deserialize_cdr(data, msgtype)
+    except Exception as exc:  # rosbags raises assorted low-level errors on garbage
+        raise MessageError(f"cannot decode {msgtype}: {exc}") from None
+
+
+def image_msg(stamp_ns: int, rgb: np.ndarray, frame_id: str = "camera") -> Any:
+    """Build an rgb8 ``sensor_msgs/msg/Image`` from an ``(H, W, 3)`` uint8 array."""
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise MessageError(f"image must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    height, width, _ = rgb.shape
+    return _t(IMAGE_TYPE)(
+        header=_header(stamp_ns, frame_id),
+        height=height,
+        width=width,
+        encoding="rgb8",
+        is_bigendian=0,
+        step=3 * width,
+        data=np.ascontiguousarray(rgb).reshape(-1),
+    )
+
+
+def image_to_array(
+    msg: Any, shape: tuple[int, int] | None = (16, 16), frame_id: str | None = None
+) -> np.ndarray:
+    """Validate an rgb8 image message and return it as an ``(H, W, 3)`` uint8 array.
+
+    ``shape`` and ``frame_id``, when given, must match; anything else raises
+    ``MessageError`` naming the mismatch.
+    """
+    if msg.encoding != "rgb8":
+        raise MessageError(f"image encoding {msg.encoding!r} is not rgb8")
+    height, width = int(msg.height), int(msg.width)
+    if shape is not None and (height, width) != tuple(shape):
+        raise MessageError(f"image is {height}x{width}, expected {shape[0]}x{shape[1]}")
+    if int(msg.step) != 3 * width:
+        raise MessageError(f"image step {msg.step} does not match width {width} x 3 bytes")
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if data.size != height * width * 3:
+        raise MessageError(f"image holds {data.size} bytes, expected {height * width * 3}")
+    if frame_id is not None and msg.header.frame_id != frame_id:
+        raise MessageError(f"image frame {msg.header.frame_id!r} is not {frame_id!r}")
+    return data.reshape(height, width, 3)
+
+
+def _vector3(x: float, y: float, z: float = 0.0) -> Any:
+    return _t("geometry_msgs/msg/Vector3")(x=float(x), y=float(y), z=float(z))
+
+
+def twist_msg(vx: float, vy: float) -> Any:
+    """Planar velocity command as ``geometry_msgs/msg/Twist`` (m/s)."""
+    return _t(TWIST_TYPE)(linear=_vector3(vx, vy), angular=_vector3(0.0, 0.0))
+
+
+def twist_stamped_msg(stamp_ns: int, vx: float, vy: float, frame_id: str = "base_link") -> Any:
+    """Executed action as ``geometry_msgs/msg/TwistStamped`` (m/s, commanded, pre-noise)."""
+    return _t(ACTION_TYPE)(header=_header(stamp_ns, frame_id), twist=twist_msg(vx, vy))
+
+
+def twist_to_xy(msg: Any) -> tuple[float, float]:
+    """Planar linear velocity of a Twist or TwistStamped; non-finite values are refused."""
+    twist = msg.twist if hasattr(msg, "twist") else msg
+    vx, vy = float(twist.linear.x), float(twist.linear.y)
+    if not (np.isfinite(vx) and np.isfinite(vy)):
+        raise MessageError(f"velocity ({vx}, {vy}) is not finite")
+    return vx, vy
+
+
+def pose_msg(stamp_ns: int, x: float, y: float, frame_id: str = "map") -> Any:
+    """Ground-truth planar position as ``geometry_msgs/msg/PoseStamped`` (fixed heading)."""
+    pose = _t("geometry_msgs/msg/Pose")(
+        position=_t("geometry_msgs/msg/Point")(x=float(x), y=float(y), z=0.0),
+        orientation=_t("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0),
+    )
+    return _t(POSE_TYPE)(header=_header(stamp_ns, frame_id), pose=pose)
+
+
+def pose_to_xy(msg: Any) -> tuple[float, float]:
+    """Planar position of a PoseStamped."""
+    return float(msg.pose.position.x), float(msg.pose.position.y)
+
+
+@dataclass(frozen=True)
+class RewardSample:
+    """One step's reward and its two causes."""
+
+    reward: float
+    wall_contact: bool
+    goal_zone: bool
+
+
+def _named_vector(stamp_ns: int, names: list[str], values: np.ndarray, frame_id: str) -> Any:
+    empty = np.zeros(0, dtype=np.float64)
+    return _t(REWARD_TYPE)(
+        header=_header(stamp_ns, frame_id),
+        name=names,
+        position=np.asarray(values, dtype=np.float64),
+        velocity=empty,
+        effort=empty,
+    )
+
+
+def reward_msg(stamp_ns: int, sample: RewardSample, frame_id: str = "map") -> Any:
+    """Reward of a step as a stamped, named ``sensor_msgs/msg/JointState``."""
+    values = np.array([sample.reward, float(sample.wall_contact), float(sample.goal_zone)])
+    return _named_vector(stamp_ns, list(REWARD_NAMES), values, frame_id)
+
+
+def reward_to_sample(msg: Any) -> RewardSample:
+    """Inverse of :func:`reward_msg`; a message with other names raises ``MessageError``."""
+    if tuple(msg.name) != REWARD_NAMES or len(msg.position) != len(REWARD_NAMES):
+        raise MessageError(f"reward message names {list(msg.name)} are not {list(REWARD_NAMES)}")
+    reward, contact, goal = (float(v) for v in msg.position)
+    return RewardSample(reward=reward, wall_contact=contact > 0.5, goal_zone=goal > 0.5)
+
+
+def state_msg(stamp_ns: int, state: np.ndarray, frame_id: str = "tpsr") -> Any:
+    """Predictive state b_k as a stamped JointState with names ``b0``..``b{r-1}``."""
+    state = np.asarray(state, dtype=np.float64).reshape(-1)
+    names = [f"b{i}" for i in range(state.size)]
+    return _named_vector(stamp_ns, names, state, frame_id)
+
+
+def state_to_array(msg: Any) -> np.ndarray:
+    """Predictive state carried by a :func:`state_msg` message."""
+    return np.asarray(msg.position, dtype=np.float64).copy()
+
+
+def clock_msg(stamp_ns: int) -> Any:
+    """Simulation time as ``rosgraph_msgs/msg/Clock``."""
+    sec, nanosec = split_stamp(stamp_ns)
+    return _t(CLOCK_TYPE)(clock=_t("builtin_interfaces/msg/Time")(sec=sec, nanosec=nanosec))
