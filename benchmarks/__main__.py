@@ -14,8 +14,10 @@ import benchmarks
 def main() -> int:
     names = sorted(m.name for m in pkgutil.iter_modules(benchmarks.__path__) if m.name.startswith("bench_"))
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
-    parser.add_argument("only", nargs="*", choices=[*names, []], help="benchmarks to run (default: all)")
+    parser.add_argument("only", nargs="*", help=f"benchmarks to run (default: all of {names})")
     args = parser.parse_args()
+    if unknown := sorted(set(args.only) - set(names)):
+        parser.error(f"unknown benchmark(s) {unknown}; choose from {names}")
     for name in args.only or names:
         print(f"== {name} ==", flush=True)
         start = time.perf_counter()
