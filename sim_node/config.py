@@ -1,0 +1,112 @@
+"""Simulator configuration: the guide's section 4.1 environment as frozen dataclasses.
+
+Units are metres and seconds; one step lasts 1 s, so a velocity of 3 m/s moves 3 m.
+The room spans ``[0, room_size]`` in x (west to east) and y (south to north); the goal is
+the north-east (top right) corner.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+
+from tpsr_ros.errors import ConfigError
+
+__all__ = ["DistractorConfig", "Environment", "SimConfig"]
+
+STEP_SECONDS = 1.0
+
+
+class Environment(str, Enum):
+    """The three environments of the guide's chapter 4."""
+
+    FULL = "full"
+    PARTIAL = "partial"
+    DISTRACTORS = "distractors"
+
+    @classmethod
+    def parse(cls, name: str | Environment) -> Environment:
+        """Environment from its name; unknown names raise ``ConfigError``."""
+        try:
+            return cls(name)
+        except ValueError:
+            choices = ", ".join(e.value for e in cls)
+            raise ConfigError(f"unknown environment {name!r}; choose one of {choices}") from None
+
+
+@dataclass(frozen=True)
+class DistractorConfig:
+    """Randomly moving distractors (guide figure 4.6): three disks on the floor and one
+    rectangle on each wall, differing from their background only in the red channel.
+
+    Each moves as a reflected Gaussian random walk with ``step_std`` metres per step.
+    """
+
+    floor_count: int = 3
+    floor_radius: float = 3.0
+    wall_half_width: float = 4.0
+    wall_bottom: float = 0.5
+    wall_top: float = 3.5
+    step_std: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.floor_count < 0:
+            raise ConfigError("floor_count must be >= 0")
+        if self.floor_radius <= 0 or self.wall_half_width <= 0 or self.step_std < 0:
+            raise ConfigError("distractor sizes must be positive and step_std >= 0")
+        if not 0 <= self.wall_bottom < self.wall_top:
+            raise ConfigError("wall distractor needs 0 <= wall_bottom < wall_top")
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything that defines a simulated environment; validated on construction."""
+
+    environment: Environment = Environment.FULL
+    room_size: float = 45.0
+    wall_height: float = 4.0
+    robot_radius: float = 1.0
+    robot_height: float = 2.0
+    image_size: int = 16
+    field_of_view_deg: float | None = None
+    vertical_half_extent: float = 1.0
+    rays_per_column: int = 8
+    noise_fraction: float = 0.1
+    goal_radius: float = 15.0
+    goal_reward: float = 10.0
+    wall_reward: float = -1.0
+    physics_substeps: int = 10
+    start_time_ns: int = 0
+    distractors: DistractorConfig = field(default_factory=DistractorConfig)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "environment", Environment.parse(self.environment))
+        if self.room_size <= 2 * self.robot_radius or self.robot_radius <= 0:
+            raise ConfigError("room must be wider than the robot and the radius positive")
+        if not 0 < self.robot_height < self.wall_height:
+            raise ConfigError("the camera (robot_height) must sit below the top of the walls")
+        if self.image_size < 1 or self.rays_per_column < 1 or self.physics_substeps < 1:
+            raise ConfigError("image_size, rays_per_column and physics_substeps must be >= 1")
+        if not 0 < self.fov_deg <= 360:
+            raise ConfigError(f"field of view {self.fov_deg} deg must be in (0, 360]")
+        if self.vertical_half_extent <= 0 or self.noise_fraction < 0 or self.goal_radius <= 0:
+            raise ConfigError("vertical_half_extent and goal_radius > 0, noise_fraction >= 0")
+        if self.start_time_ns < 0:
+            raise ConfigError("start_time_ns must be >= 0")
+
+    @property
+    def fov_deg(self) -> float:
+        """Horizontal field of view: 300 deg (full, distractors) or 60 deg (partial)."""
+        if self.field_of_view_deg is not None:
+            return float(self.field_of_view_deg)
+        return 60.0 if self.environment is Environment.PARTIAL else 300.0
+
+    @property
+    def has_distractors(self) -> bool:
+        """Whether the camera sees the moving distractors."""
+        return self.environment is Environment.DISTRACTORS
+
+    @property
+    def step_seconds(self) -> float:
+        """Duration of one step (fixed by the design: 1 s)."""
+        return STEP_SECONDS
