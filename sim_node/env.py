@@ -1,0 +1,155 @@
+"""The simulated robot as a seeded environment with Gymnasium's reset/step conventions.
+
+One step: the robot executes action a_k (its commanded velocity plus Gaussian noise with
+a standard deviation of ``noise_fraction`` of each commanded component) for 1 s, then
+the camera sees o_k. Step k is stamped ``start_time_ns + k * 1 s``; reset is step 0.
+
+Reward of a step: ``goal_reward`` (+10) when the robot centre ends the step closer than
+``goal_radius`` (15 m) to the north-east corner, plus ``wall_reward`` (-1) when a wall
+blocked the robot during the step. The two add: a blocked step inside the goal zone
+earns +9.
+
+Randomness comes from four independent streams spawned from one seed: start position,
+exploration actions, execution noise and distractors. With the same seed and actions
+all three environments therefore follow exactly the same trajectory.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from sim_node.actions import ACTIONS, NUM_ACTIONS
+from sim_node.camera import Camera
+from sim_node.config import SimConfig
+from sim_node.distractors import Distractors
+from sim_node.world import RoomWorld
+from tpsr_ros.errors import ConfigError
+
+__all__ = ["RobotEnv", "Streams", "spawn_streams", "step_reward"]
+
+_NS = 1_000_000_000
+
+
+class Streams:
+    """The four named random generators of one seeded run."""
+
+    def __init__(self, seed: int) -> None:
+        if not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ConfigError(f"seed must be a non-negative integer, got {seed!r}")
+        start, actions, noise, distractors = np.random.SeedSequence(int(seed)).spawn(4)
+        self.start = np.random.default_rng(start)
+        self.actions = np.random.default_rng(actions)
+        self.noise = np.random.default_rng(noise)
+        self.distractors = np.random.default_rng(distractors)
+
+
+def spawn_streams(seed: int) -> Streams:
+    """Independent start, action, noise and distractor generators for ``seed``."""
+    return Streams(seed)
+
+
+def step_reward(config: SimConfig, position: np.ndarray, contact: np.ndarray) -> np.ndarray:
+    """Reward and goal-zone flag for positions ``(..., 2)`` and contact flags ``(...)``."""
+    corner = np.array([config.room_size, config.room_size])
+    goal = np.linalg.norm(np.asarray(position) - corner, axis=-1) < config.goal_radius
+    reward = config.goal_reward * goal + config.wall_reward * np.asarray(contact, dtype=bool)
+    return reward.astype(np.float64), goal
+
+
+class RobotEnv:
+    """Mobile robot in the guide's room; observations are ``(16, 16, 3)`` uint8 images."""
+
+    def __init__(self, config: SimConfig | None = None, seed: int = 0) -> None:
+        self.config = config or SimConfig()
+        self.camera = Camera(self.config)
+        self._world = RoomWorld(
+            self.config.room_size, self.config.robot_radius, self.config.physics_substeps
+        )
+        self._streams = Streams(seed)
+        self._distractors: Distractors | None = None
+        self._step = 0
+        self._ready = False
+
+    @property
+    def position(self) -> np.ndarray:
+        """True robot centre ``(x, y)`` in metres (ground truth, never a learning input)."""
+        return self._world.position
+
+    @property
+    def step_count(self) -> int:
+        """Steps since the last reset."""
+        return self._step
+
+    @property
+    def stamp_ns(self) -> int:
+        """Stamp of the current step: ``start_time_ns + k * 1 s``."""
+        return self.config.start_time_ns + self._step * _NS
+
+    def sample_action(self) -> int:
+        """A uniformly random action index from the exploration stream."""
+        return int(self._streams.actions.integers(0, NUM_ACTIONS))
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start a new run; ``seed`` re-seeds every stream, ``options["position"]`` places
+        the robot (otherwise uniformly at random). Returns ``(observation, info)``."""
+        if seed is not None:
+            self._streams = Streams(seed)
+        options = options or {}
+        low, high = self.config.robot_radius, self.config.room_size - self.config.robot_radius
+        start = self._streams.start.uniform(low, high, size=2)
+        if "position" in options:
+            start = np.asarray(options["position"], dtype=np.float64)
+            if start.shape != (2,) or not np.all(np.isfinite(start)):
+                raise ConfigError(f"start position must be two finite numbers, got {start}")
+        self._world.place(*start)
+        self._distractors = (
+            Distractors(self.config, self._streams.distractors)
+            if self.config.has_distractors
+            else None
+        )
+        self._step = 0
+        self._ready = True
+        info = {"position": self.position, "step": 0, "stamp_ns": self.stamp_ns}
+        return self._observe(), info
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Execute action ``action`` (0..24) for one step.
+
+        Returns ``(observation, reward, terminated, truncated, info)`` with info keys
+        ``position``, ``command``, ``executed_velocity``, ``wall_contact``,
+        ``goal_zone``, ``step`` and ``stamp_ns``. The task never terminates; time
+        limits belong to the caller.
+        """
+        if not self._ready:
+            raise ConfigError("call reset() before step()")
+        if not (isinstance(action, (int, np.integer)) and 0 <= action < NUM_ACTIONS):
+            raise ConfigError(f"action must be an integer in [0, {NUM_ACTIONS}), got {action!r}")
+        command = ACTIONS[int(action)]
+        noise = self._streams.noise.standard_normal(2)
+        executed = command + self.config.noise_fraction * np.abs(command) * noise
+        contact = self._world.move(executed[0], executed[1], self.config.step_seconds)
+        if self._distractors is not None:
+            self._distractors.advance()
+        self._step += 1
+        position = self.position
+        reward, goal = step_reward(self.config, position, contact)
+        info = {
+            "position": position,
+            "command": command.copy(),
+            "executed_velocity": executed,
+            "wall_contact": bool(contact),
+            "goal_zone": bool(goal),
+            "step": self._step,
+            "stamp_ns": self.stamp_ns,
+        }
+        return self._observe(), float(reward), False, False, info
+
+    def _observe(self) -> np.ndarray:
+        if self._distractors is None:
+            return self.camera.render(self.position[None])[0]
+        floor, walls = self._distractors.positions()
+        return self.camera.render(self.position[None], floor[None], walls[None])[0]
