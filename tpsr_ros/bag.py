@@ -98,6 +98,10 @@ class BagWriter:
         )
         self._types[topic] = msgtype
 
+    def set_custom_data(self, key: str, value: str) -> None:
+        """Store a string in ``metadata.yaml``'s ``custom_data`` (e.g. generator settings)."""
+        self._writer.set_custom_data(key, value)
+
     def has_topic(self, topic: str) -> bool:
         """Whether ``topic`` was declared."""
         return topic in self._types
@@ -186,6 +190,7 @@ class BagReader:
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
         info = _read_metadata(self.path)
+        self._custom_data = {str(k): str(v) for k, v in (info.get("custom_data") or {}).items()}
         storage = info.get("storage_identifier")
         if storage != "mcap":
             raise BagError(f"bag {str(self.path)!r} uses storage {storage!r}, not mcap")
@@ -227,6 +232,11 @@ class BagReader:
     def end_time_ns(self) -> int:
         """Log time just after the last message."""
         return int(self._reader.end_time)
+
+    @property
+    def custom_data(self) -> dict[str, str]:
+        """The ``custom_data`` strings of ``metadata.yaml`` (empty when absent)."""
+        return dict(self._custom_data)
 
     @property
     def qos_profiles(self) -> dict[str, list[Qos]]:

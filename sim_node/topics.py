@@ -1,0 +1,54 @@
+"""The messages of one simulator step, shared by the bag generator and the node.
+
+Every message of step k carries exactly the stamp t_k (DESIGN.md, "Time and steps").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from tpsr_ros import messages as m
+
+__all__ = ["SimTopics", "step_messages"]
+
+
+@dataclass(frozen=True)
+class SimTopics:
+    """Topic names of the simulator (defaults from DESIGN.md; remappable)."""
+
+    image: str = "/camera/image_raw"
+    action: str = "/action"
+    pose: str = "/ground_truth/pose"
+    reward: str = "/reward"
+    clock: str = "/clock"
+
+    def types(self) -> dict[str, str]:
+        """Topic name to ROS message type."""
+        return {
+            self.image: m.IMAGE_TYPE,
+            self.action: m.ACTION_TYPE,
+            self.pose: m.POSE_TYPE,
+            self.reward: m.REWARD_TYPE,
+            self.clock: m.CLOCK_TYPE,
+        }
+
+
+def step_messages(
+    topics: SimTopics,
+    stamp_ns: int,
+    image: np.ndarray,
+    command: np.ndarray,
+    position: np.ndarray,
+    reward: m.RewardSample,
+) -> list[tuple[str, str, Any]]:
+    """``(topic, type, message)`` for o_k, a_k (as commanded), true pose, r_k and clock."""
+    return [
+        (topics.image, m.IMAGE_TYPE, m.image_msg(stamp_ns, image)),
+        (topics.action, m.ACTION_TYPE, m.twist_stamped_msg(stamp_ns, command[0], command[1])),
+        (topics.pose, m.POSE_TYPE, m.pose_msg(stamp_ns, position[0], position[1])),
+        (topics.reward, m.REWARD_TYPE, m.reward_msg(stamp_ns, reward)),
+        (topics.clock, m.CLOCK_TYPE, m.clock_msg(stamp_ns)),
+    ]
