@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m learner demo
+	$(PY) -m learner.demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q

@@ -1,0 +1,1 @@
+"""Offline application: bags -> TPSR/PCA model -> fitted-Q policy -> evaluation and reports."""
