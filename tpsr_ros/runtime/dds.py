@@ -1,0 +1,378 @@
+"""Cyclone DDS transport (PyPI ``cyclonedds``) speaking ROS 2's conventions.
+
+Follows rmw_cyclonedds_cpp (Jazzy) so a real ROS 2 system on the same network sees and
+talks to our nodes:
+
+- DDS domain ``ROS_DOMAIN_ID`` (default 0); participant USER_DATA ``enclave=/;``;
+- topic ``rt/<fully qualified name>``; type ``pkg::msg::dds_::Name_`` as a keyless final
+  struct (XCDR1, i.e. plain ROS 2 CDR), derived from the rosbags typestore
+  (:mod:`tpsr_ros.runtime.dds_types`);
+- endpoint USER_DATA ``typehash=RIHS01_<hex>;`` (rosidl's type hash, so rclpy does not warn);
+- QoS as rmw_cyclonedds maps it: reliable with infinite blocking time, transient-local
+  with a durability-service history of the same depth, writers not auto-disposing;
+- ``ros_discovery_info`` (``rmw_dds_common/msg/ParticipantEntitiesInfo``, reliable,
+  transient-local, depth 1) announces the node and its endpoints, so ``ros2 node list``
+  and ``ros2 node info`` see it.
+
+Samples are written and taken as raw CDR bytes: no per-field conversion happens here.
+``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` (or the older ``ROS_LOCALHOST_ONLY=1``)
+restricts Cyclone to the loopback interface unless ``CYCLONEDDS_URI`` configures it.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from typing import Any, ClassVar
+
+from tpsr_ros.errors import ConfigError, MessageError, TpsrError
+from tpsr_ros.messages import jazzy_typestore
+from tpsr_ros.runtime.dds_types import idl_struct, ros_type_name
+from tpsr_ros.runtime.qos import Durability, History, QoSProfile, Reliability
+from tpsr_ros.runtime.transport import (
+    BytesCallback,
+    PublisherHandle,
+    SubscriptionHandle,
+    TopicEndpoint,
+    Transport,
+    pad_cdr,
+)
+
+__all__ = ["DdsTransport", "domain_id_from_env", "localhost_only_from_env"]
+
+_DISCOVERY_TOPIC = "ros_discovery_info"
+_DISCOVERY_TYPE = "rmw_dds_common/msg/ParticipantEntitiesInfo"
+_TAKE_BATCH = 256
+_LOCALHOST_CONFIG = (
+    "<CycloneDDS><Domain id='any'><General><Interfaces>"
+    "<NetworkInterface address='127.0.0.1' multicast='true'/>"
+    "</Interfaces></General></Domain></CycloneDDS>"
+)
+
+
+def domain_id_from_env() -> int:
+    """``ROS_DOMAIN_ID`` as an integer in 0..232 (default 0)."""
+    text = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if not text:
+        return 0
+    try:
+        value = int(text)
+    except ValueError:
+        raise ConfigError(f"ROS_DOMAIN_ID={text!r} is not an integer") from None
+    if not 0 <= value <= 232:
+        raise ConfigError(f"ROS_DOMAIN_ID={value} is outside 0..232")
+    return value
+
+
+def localhost_only_from_env() -> bool:
+    """Whether ROS 2's environment asks for loopback-only discovery."""
+    if os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "").upper() == "LOCALHOST":
+        return True
+    return os.environ.get("ROS_LOCALHOST_ONLY", "") == "1"
+
+
+def _typehash(msgtype: str) -> bytes:
+    return f"typehash={jazzy_typestore().hash_rihs01(msgtype)};".encode()
+
+
+def _dds_qos(profile: QoSProfile, userdata: bytes, *, writer: bool) -> Any:
+    from cyclonedds.core import Policy, Qos
+    from cyclonedds.util import duration
+
+    policies: list[Any] = []
+    if profile.reliability is Reliability.RELIABLE:
+        policies.append(Policy.Reliability.Reliable(max_blocking_time=duration(infinite=True)))
+    else:
+        policies.append(Policy.Reliability.BestEffort)
+    history = (
+        Policy.History.KeepLast(profile.depth)
+        if profile.history is History.KEEP_LAST
+        else Policy.History.KeepAll
+    )
+    policies.append(history)
+    if profile.durability is Durability.TRANSIENT_LOCAL:
+        policies.append(Policy.Durability.TransientLocal)
+        policies.append(
+            Policy.DurabilityService(
+                cleanup_delay=0,
+                history=history,
+                max_samples=-1,
+                max_instances=-1,
+                max_samples_per_instance=-1,
+            )
+        )
+    else:
+        policies.append(Policy.Durability.Volatile)
+    policies.append(Policy.Userdata(data=userdata))
+    if writer:
+        policies.append(Policy.WriterDataLifecycle(autodispose=False))
+    return Qos(*policies)
+
+
+def _profile_from_dds(qos: Any) -> QoSProfile:
+    from cyclonedds.core import Policy
+
+    reliability = Reliability.BEST_EFFORT
+    durability = Durability.VOLATILE
+    history, depth = History.KEEP_LAST, 1
+    for policy in qos:
+        if isinstance(policy, Policy.Reliability.Reliable):
+            reliability = Reliability.RELIABLE
+        elif policy is Policy.Durability.TransientLocal:
+            durability = Durability.TRANSIENT_LOCAL
+        elif isinstance(policy, Policy.History.KeepLast):
+            depth = int(policy.depth)
+        elif policy is Policy.History.KeepAll:
+            history, depth = History.KEEP_ALL, 0
+    return QoSProfile(reliability, durability, history, depth)
+
+
+class _Writer(PublisherHandle):
+    def __init__(self, owner: DdsTransport, topic: str, writer: Any) -> None:
+        self.owner, self.topic, self.writer = owner, topic, writer
+        from cyclonedds._clayer import ddspy_write
+
+        self._write = ddspy_write
+        self.closed = False
+
+    def write(self, data: bytes) -> None:
+        ret = self._write(self.writer._ref, pad_cdr(data))
+        if ret < 0:
+            raise TpsrError(f"DDS write on {self.topic} failed (code {ret})")
+
+    def matched_count(self) -> int:
+        return int(self.writer.get_publication_matched_status().current_count)
+
+    def wait_for_acks(self, timeout_s: float) -> bool:
+        return bool(self.writer.wait_for_acks(int(timeout_s * 1e9)))
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self.owner._forget(self)
+            self.writer.__del__()
+
+
+class _Reader(SubscriptionHandle):
+    def __init__(
+        self, owner: DdsTransport, topic: str, reader: Any, condition: Any, cb: BytesCallback
+    ) -> None:
+        self.owner, self.topic, self.reader, self.condition = owner, topic, reader, condition
+        self.callback = cb
+        self.closed = False
+
+    def matched_count(self) -> int:
+        return int(self.reader.get_subscription_matched_status().current_count)
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self.owner._forget(self)
+            self.owner._waitset.detach(self.condition)
+            self.condition.__del__()
+            self.reader.__del__()
+
+
+class DdsTransport(Transport):
+    """One DDS participant per node, as rmw_cyclonedds creates one per context."""
+
+    kind: ClassVar[str] = "dds"
+
+    def __init__(
+        self,
+        node_name: str = "node",
+        namespace: str = "/",
+        *,
+        domain_id: int | None = None,
+        enclave: str = "/",
+    ) -> None:
+        try:
+            import cyclonedds  # noqa: F401
+        except ImportError:
+            raise TpsrError(
+                "the dds transport needs Cyclone DDS: pip install 'tpsr-ros[dds]'"
+            ) from None
+        from cyclonedds._clayer import ddspy_take
+        from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
+        from cyclonedds.core import (
+            GuardCondition,
+            InstanceState,
+            Policy,
+            Qos,
+            ReadCondition,
+            SampleState,
+            ViewState,
+            WaitSet,
+        )
+        from cyclonedds.domain import Domain, DomainParticipant
+
+        self._take = ddspy_take
+        self._any = SampleState.Any | ViewState.Any | InstanceState.Any
+        self._ReadCondition = ReadCondition
+        self.node_name, self.namespace = node_name, namespace
+        self.domain_id = domain_id_from_env() if domain_id is None else domain_id
+        self._domain = None
+        if localhost_only_from_env() and not os.environ.get("CYCLONEDDS_URI"):
+            self._domain = Domain(self.domain_id, _LOCALHOST_CONFIG)
+        userdata = f"enclave={enclave};".encode()
+        try:
+            self._dp = DomainParticipant(self.domain_id, qos=Qos(Policy.Userdata(data=userdata)))
+        except Exception as exc:
+            raise TpsrError(f"cannot join DDS domain {self.domain_id}: {exc}") from None
+        self._waitset = WaitSet(self._dp)
+        self._guard = GuardCondition(self._dp)
+        self._waitset.attach(self._guard)
+        self._lock = threading.Lock()
+        self._topics: dict[str, tuple[str, Any]] = {}
+        self._writers: list[_Writer] = []
+        self._readers: list[_Reader] = []
+        self._graph = BuiltinDataReader(self._dp, BuiltinTopicDcpsPublication)
+        self._graph_alive = ReadCondition(
+            self._graph, SampleState.Any | ViewState.Any | InstanceState.Alive
+        )
+        self._discovery_writer = self._make_writer(
+            _DISCOVERY_TOPIC,
+            _DISCOVERY_TYPE,
+            QoSProfile(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, History.KEEP_LAST, 1),
+        )
+        self._closed = False
+        self._announce()
+
+    # -- entities -------------------------------------------------------------------
+
+    def _topic(self, dds_name: str, msgtype: str) -> Any:
+        from cyclonedds.topic import Topic
+
+        known = self._topics.get(dds_name)
+        if known is not None:
+            if known[0] != msgtype:
+                raise MessageError(
+                    f"topic {dds_name[2:] if dds_name.startswith('rt/') else dds_name!r} "
+                    f"already has type {known[0]} in this node, not {msgtype}"
+                )
+            return known[1]
+        topic = Topic(self._dp, dds_name, idl_struct(msgtype))
+        self._topics[dds_name] = (msgtype, topic)
+        return topic
+
+    def _make_writer(self, dds_name: str, msgtype: str, qos: QoSProfile) -> Any:
+        from cyclonedds.pub import DataWriter
+
+        topic = self._topic(dds_name, msgtype)
+        return DataWriter(self._dp, topic, _dds_qos(qos, _typehash(msgtype), writer=True))
+
+    def create_publisher(self, topic: str, msgtype: str, qos: QoSProfile) -> PublisherHandle:
+        writer = _Writer(self, topic, self._make_writer("rt" + topic, msgtype, qos))
+        self._writers.append(writer)
+        self._announce()
+        return writer
+
+    def create_subscription(
+        self, topic: str, msgtype: str, qos: QoSProfile, callback: BytesCallback
+    ) -> SubscriptionHandle:
+        from cyclonedds.sub import DataReader
+
+        dds_topic = self._topic("rt" + topic, msgtype)
+        reader = DataReader(self._dp, dds_topic, _dds_qos(qos, _typehash(msgtype), writer=False))
+        condition = self._ReadCondition(reader, self._any)
+        self._waitset.attach(condition)
+        handle = _Reader(self, topic, reader, condition, callback)
+        self._readers.append(handle)
+        self._announce()
+        return handle
+
+    def _forget(self, handle: _Writer | _Reader) -> None:
+        if isinstance(handle, _Writer) and handle in self._writers:
+            self._writers.remove(handle)
+        elif isinstance(handle, _Reader) and handle in self._readers:
+            self._readers.remove(handle)
+        if not self._closed:
+            self._announce()
+
+    # -- ros_discovery_info -----------------------------------------------------------
+
+    def _announce(self, *, leaving: bool = False) -> None:
+        store = jazzy_typestore()
+        gid_t = store.types["rmw_dds_common/msg/Gid"]
+        node_t = store.types["rmw_dds_common/msg/NodeEntitiesInfo"]
+        info_t = store.types[_DISCOVERY_TYPE]
+        import numpy as np
+
+        def gid(entity: Any) -> Any:
+            return gid_t(data=np.frombuffer(entity.get_guid().bytes, dtype=np.uint8).copy())
+
+        nodes = []
+        if not leaving:
+            nodes.append(
+                node_t(
+                    node_namespace=self.namespace,
+                    node_name=self.node_name,
+                    reader_gid_seq=[gid(r.reader) for r in self._readers],
+                    writer_gid_seq=[gid(w.writer) for w in self._writers],
+                )
+            )
+        msg = info_t(gid=gid(self._dp), node_entities_info_seq=nodes)
+        data = bytes(store.serialize_cdr(msg, _DISCOVERY_TYPE))
+        from cyclonedds._clayer import ddspy_write
+
+        ddspy_write(self._discovery_writer._ref, pad_cdr(data))
+
+    # -- executor ---------------------------------------------------------------------
+
+    def spin_once(self, timeout_s: float) -> int:
+        self._waitset.wait(max(0, int(timeout_s * 1e9)))
+        self._guard.take()
+        count = 0
+        for handle in list(self._readers):
+            while not handle.closed:
+                samples = self._take(handle.reader._ref, self._any, _TAKE_BATCH)
+                if isinstance(samples, int):
+                    raise TpsrError(f"DDS take on {handle.topic} failed (code {samples})")
+                if not samples:
+                    break
+                for data, info in samples:
+                    if info.valid_data and not handle.closed:
+                        handle.callback(data)
+                        count += 1
+                if len(samples) < _TAKE_BATCH:
+                    break
+        return count
+
+    def wake(self) -> None:
+        self._guard.set(True)
+
+    # -- graph ------------------------------------------------------------------------
+
+    def publishers(self) -> list[TopicEndpoint]:
+        found = []
+        for sample in self._graph.read(N=4096, condition=self._graph_alive):
+            name = sample.topic_name
+            if not name.startswith("rt/"):
+                continue
+            msgtype = ros_type_name(sample.type_name)
+            if msgtype is None:
+                continue
+            found.append(TopicEndpoint(name[2:], msgtype, _profile_from_dds(sample.qos)))
+        return found
+
+    # -- teardown ---------------------------------------------------------------------
+
+    def close(self, ack_timeout_s: float = 2.0) -> None:
+        if self._closed:
+            return
+        deadline = time.monotonic() + ack_timeout_s
+        for writer in list(self._writers):
+            writer.wait_for_acks(max(0.0, deadline - time.monotonic()))
+        self._closed = True
+        try:
+            self._announce(leaving=True)
+            self._discovery_writer.wait_for_acks(int(0.2e9))
+        except Exception:
+            pass
+        self._writers.clear()
+        self._readers.clear()
+        self._dp.__del__()
+        if self._domain is not None:
+            self._domain.__del__()
+

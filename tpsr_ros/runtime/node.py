@@ -1,0 +1,550 @@
+"""The node base class and the ``python -m <node>`` boilerplate shared by every node.
+
+A node subclasses :class:`Node`, names its parameter dataclass in ``Params`` and creates
+its publishers, subscriptions and timers in :meth:`Node.setup`::
+
+    class Talker(Node):
+        default_name = "talker"
+        Params = TalkerParams
+
+        def setup(self) -> None:
+            self.pub = self.create_publisher("/chatter", "std_msgs/msg/String")
+            self.create_timer(1.0 / self.params.rate, self.tick)
+
+    if __name__ == "__main__":
+        run_node(Talker, prog="python -m talker")
+
+:func:`run_node` parses ROS 2's command line (``--ros-args -p/-r/--params-file/
+--log-level``; ``--help`` lists the parameters), opens the transport chosen by
+``TPSR_TRANSPORT``, installs SIGINT/SIGTERM handlers that stop :meth:`Node.spin`
+gracefully, and closes the node (which waits for reliable data to be acknowledged).
+Usage errors exit with status 2, runtime errors with 1, each as one line on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import signal
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, NoReturn, TextIO
+
+from tpsr_ros.cli import ArgumentParser
+from tpsr_ros.errors import MessageError, TpsrError
+from tpsr_ros.messages import deserialize, serialize
+from tpsr_ros.runtime.backend import choose_backend, open_transport
+from tpsr_ros.runtime.params import (
+    NoParameters,
+    format_parameter_help,
+    param_specs,
+    resolve_parameters,
+)
+from tpsr_ros.runtime.qos import DEFAULT_QOS, QoSProfile
+from tpsr_ros.runtime.ros_args import (
+    LOG_LEVELS,
+    RosArgs,
+    UsageError,
+    parse_ros_args,
+    split_ros_args,
+)
+from tpsr_ros.runtime.transport import PublisherHandle, SubscriptionHandle, Transport
+
+__all__ = [
+    "EndpointInfo",
+    "Logger",
+    "Node",
+    "NodeOptions",
+    "Publisher",
+    "Subscription",
+    "Timer",
+    "parse_node_args",
+    "run_node",
+]
+
+_MAX_WAIT_S = 0.1  # bound on one blocking wait, so signals are handled promptly
+_NS = 1_000_000_000
+
+ROS_ARGS_HELP = """\
+ROS arguments (after --ros-args):
+  -p NAME:=VALUE          set a parameter (YAML value: 3, 3.0, true, text, [1, 2])
+  --params-file FILE      ROS 2 parameters file (node_name: ros__parameters: {...})
+  -r FROM:=TO             remap a topic; -r __node:=NAME renames the node,
+                          -r __ns:=/NS sets its namespace
+  --log-level LEVEL       debug, info, warn, error or fatal (or LOGGER:=LEVEL)
+Middleware: TPSR_TRANSPORT=rclpy|dds|inproc (default: rclpy if importable, else dds);
+ROS_DOMAIN_ID selects the DDS domain.
+"""
+
+
+class Logger:
+    """ROS-style console logger: ``[INFO] [1700000000.123456789] [node]: message``."""
+
+    def __init__(
+        self,
+        name: str,
+        level: str = "info",
+        *,
+        stream: TextIO | None = None,
+        enabled: bool = True,
+    ) -> None:
+        self.name = name
+        self.level = level
+        self.enabled = enabled
+        self.stream = stream
+        self.transport: Transport | None = None
+
+    def is_enabled_for(self, level: str) -> bool:
+        """Whether a message of ``level`` is printed."""
+        return LOG_LEVELS.index(level) >= LOG_LEVELS.index(self.level)
+
+    def _log(self, level: str, message: str) -> None:
+        if not self.is_enabled_for(level):
+            return
+        if self.transport is not None and self.transport.log(level, message):
+            return
+        if not self.enabled:
+            return
+        now = time.time_ns()
+        stream = self.stream or sys.stderr
+        stream.write(
+            f"[{level.upper()}] [{now // _NS}.{now % _NS:09d}] [{self.name}]: {message}\n"
+        )
+        stream.flush()
+
+    def debug(self, message: str) -> None:
+        """Log at debug level."""
+        self._log("debug", message)
+
+    def info(self, message: str) -> None:
+        """Log at info level."""
+        self._log("info", message)
+
+    def warning(self, message: str) -> None:
+        """Log at warn level."""
+        self._log("warn", message)
+
+    warn = warning
+
+    def error(self, message: str) -> None:
+        """Log at error level."""
+        self._log("error", message)
+
+    def fatal(self, message: str) -> None:
+        """Log at fatal level."""
+        self._log("fatal", message)
+
+
+@dataclass(frozen=True)
+class EndpointInfo:
+    """A publisher or subscription a node created (for msgs_doc checks and tools)."""
+
+    kind: str  # "publisher" | "subscription"
+    topic: str
+    msgtype: str
+    qos: QoSProfile
+
+
+@dataclass(frozen=True)
+class NodeOptions:
+    """Everything a node is started with: name, namespace, parameters, remaps, logging."""
+
+    name: str
+    namespace: str = "/"
+    params: Any = dataclasses.field(default_factory=NoParameters)
+    ros_args: RosArgs = dataclasses.field(default_factory=RosArgs)
+    log_level: str = "info"
+    transport: str | None = None
+    args: argparse.Namespace | None = None
+
+    @classmethod
+    def for_node(
+        cls,
+        node_cls: type[Node],
+        ros_args: RosArgs | None = None,
+        *,
+        args: argparse.Namespace | None = None,
+        transport: str | None = None,
+        **params: Any,
+    ) -> NodeOptions:
+        """Options of ``node_cls`` from parsed ROS arguments (plus ``params`` overrides)."""
+        ros_args = ros_args or RosArgs()
+        name = ros_args.node_name(node_cls.default_name)
+        namespace = ros_args.namespace(name)
+        fqn = namespace.rstrip("/") + "/" + name
+        values = resolve_parameters(node_cls.Params, ros_args, fqn)
+        if params:
+            values = dataclasses.replace(values, **params)
+        logger = fqn.strip("/").replace("/", ".")
+        return cls(
+            name=name,
+            namespace=namespace,
+            params=values,
+            ros_args=ros_args,
+            log_level=ros_args.log_level(logger),
+            transport=transport,
+            args=args,
+        )
+
+
+class Publisher:
+    """Publishes messages (rosbags objects, serialised here) or raw CDR bytes."""
+
+    def __init__(self, handle: PublisherHandle, topic: str, msgtype: str, qos: QoSProfile):
+        self._handle, self.topic, self.msgtype, self.qos = handle, topic, msgtype, qos
+
+    def publish(self, msg: Any) -> None:
+        """Serialise ``msg`` (a rosbags message of ``msgtype``) and publish it."""
+        self._handle.write(serialize(msg, self.msgtype))
+
+    def publish_raw(self, data: bytes | bytearray | memoryview) -> None:
+        """Publish CDR bytes unchanged (e.g. read from a bag)."""
+        self._handle.write(bytes(data))
+
+    def get_subscription_count(self) -> int:
+        """Subscriptions currently matched, in any process."""
+        return self._handle.matched_count()
+
+    def destroy(self) -> None:
+        """Remove the publisher from the graph."""
+        self._handle.close()
+
+
+class Subscription:
+    """A subscription; its callback runs inside :meth:`Node.spin`."""
+
+    def __init__(self, topic: str, msgtype: str, qos: QoSProfile, raw: bool) -> None:
+        self.topic, self.msgtype, self.qos, self.raw = topic, msgtype, qos, raw
+        self._handle: SubscriptionHandle | None = None
+
+    def get_publisher_count(self) -> int:
+        """Publishers currently matched, in any process."""
+        return self._handle.matched_count() if self._handle is not None else 0
+
+    def destroy(self) -> None:
+        """Remove the subscription; its callback is not called again."""
+        if self._handle is not None:
+            self._handle.close()
+
+
+class Timer:
+    """A periodic callback on the node's (monotonic) wall clock; missed ticks are skipped."""
+
+    def __init__(self, period_s: float, callback: Callable[[], None]) -> None:
+        if not period_s > 0:
+            raise TpsrError(f"timer period must be positive, got {period_s}")
+        self.period_ns = round(period_s * _NS)
+        self.callback = callback
+        self.next_ns = time.monotonic_ns() + self.period_ns
+        self.cancelled = False
+
+    def cancel(self) -> None:
+        """Stop calling the callback."""
+        self.cancelled = True
+
+    def _fire(self, now_ns: int) -> None:
+        self.callback()
+        self.next_ns += self.period_ns
+        if self.next_ns <= now_ns:  # fell behind: skip missed ticks, never burst
+            missed = (now_ns - self.next_ns) // self.period_ns + 1
+            self.next_ns += missed * self.period_ns
+
+
+class Node:
+    """Base of every tpsr-ros node; subclasses override :meth:`setup` and hooks."""
+
+    default_name: ClassVar[str] = "node"
+    Params: ClassVar[type] = NoParameters
+    description: ClassVar[str] = ""
+
+    def __init__(
+        self, options: NodeOptions | None = None, *, transport: Transport | None = None
+    ) -> None:
+        self.options = options or NodeOptions.for_node(type(self))
+        self.params: Any = self.options.params
+        self.name = self.options.name
+        self.namespace = self.options.namespace
+        self.logger = Logger(
+            self.fully_qualified_name.strip("/").replace("/", "."),
+            self.options.log_level,
+            enabled="--disable-stdout-logs" not in self.options.ros_args.flags,
+        )
+        self._endpoints: list[EndpointInfo] = []
+        self._timers: list[Timer] = []
+        self._shutdown_reason: str | None = None
+        self._closed = False
+        if transport is None:
+            backend, note = choose_backend(self.options.transport)
+            transport = open_transport(
+                backend, self.name, self.namespace, enclave=self.options.ros_args.enclave or "/"
+            )
+            if note:
+                self.logger.info(note)
+            if backend == "inproc":
+                self.logger.info("inproc transport: only nodes in this process can talk to it")
+        self.transport = transport
+        if transport.kind == "rclpy":
+            self.logger.transport = transport
+            getattr(transport, "set_log_level", lambda level: None)(self.options.log_level)
+        try:
+            self.transport.declare_parameters(
+                [
+                    (spec.name, getattr(self.params, spec.name), spec.help)
+                    for spec in param_specs(type(self.params))
+                ]
+            )
+            self.setup()
+        except BaseException:
+            self.transport.close()
+            self._closed = True
+            raise
+
+    # -- to override -----------------------------------------------------------------
+
+    def setup(self) -> None:
+        """Create publishers, subscriptions and timers (called once by ``__init__``)."""
+
+    def on_shutdown(self) -> None:
+        """Called once by :meth:`close` before the transport closes (log totals, close files)."""
+
+    @classmethod
+    def preflight(cls, options: NodeOptions) -> None:
+        """Checks before joining the graph (e.g. an output path); raise a TpsrError."""
+
+    @classmethod
+    def argument_parser(cls, prog: str) -> ArgumentParser:
+        """Parser of the node's own (non-ROS) options; nodes with options override it."""
+        return ArgumentParser(prog=prog, description=cls.description, add_help=False)
+
+    # -- names -----------------------------------------------------------------------
+
+    @property
+    def fully_qualified_name(self) -> str:
+        """``/namespace/name``."""
+        return self.namespace.rstrip("/") + "/" + self.name
+
+    def _expand(self, name: str) -> str:
+        if name.startswith("~"):
+            name = self.fully_qualified_name + "/" + name[1:].lstrip("/")
+        elif not name.startswith("/"):
+            name = self.namespace.rstrip("/") + "/" + name
+        return name.rstrip("/") or "/"
+
+    def resolve_topic(self, name: str) -> str:
+        """Fully qualified topic name after namespace expansion and ``-r`` remapping."""
+        if not name or any(c.isspace() for c in name) or "//" in name:
+            raise TpsrError(f"invalid topic name {name!r}")
+        full = self._expand(name)
+        for rule in self.options.ros_args.topic_remaps(self.name):
+            if self._expand(rule.source) == full:
+                return self._expand(rule.target)
+        return full
+
+    # -- endpoints -------------------------------------------------------------------
+
+    def create_publisher(
+        self, topic: str, msgtype: str, qos: QoSProfile = DEFAULT_QOS
+    ) -> Publisher:
+        """Publisher of ``msgtype`` (e.g. ``sensor_msgs/msg/Image``) on ``topic``."""
+        resolved = self.resolve_topic(topic)
+        handle = self.transport.create_publisher(resolved, msgtype, qos)
+        self._endpoints.append(EndpointInfo("publisher", resolved, msgtype, qos))
+        return Publisher(handle, resolved, msgtype, qos)
+
+    def create_subscription(
+        self,
+        topic: str,
+        msgtype: str,
+        callback: Callable[[Any], None],
+        qos: QoSProfile = DEFAULT_QOS,
+        *,
+        raw: bool = False,
+    ) -> Subscription:
+        """Subscription calling ``callback(msg)``, or ``callback(cdr_bytes)`` when ``raw``.
+
+        A message that cannot be decoded is logged and dropped; the node keeps running.
+        """
+        resolved = self.resolve_topic(topic)
+        sub = Subscription(resolved, msgtype, qos, raw)
+
+        if raw:
+            on_bytes: Callable[[bytes], None] = callback
+        else:
+
+            def on_bytes(data: bytes) -> None:
+                try:
+                    msg = deserialize(data, msgtype)
+                except MessageError as exc:
+                    self.logger.warning(f"dropped a message on {resolved}: {exc}")
+                    return
+                callback(msg)
+
+        sub._handle = self.transport.create_subscription(resolved, msgtype, qos, on_bytes)
+        self._endpoints.append(EndpointInfo("subscription", resolved, msgtype, qos))
+        return sub
+
+    def create_timer(self, period_s: float, callback: Callable[[], None]) -> Timer:
+        """Call ``callback`` every ``period_s`` seconds while spinning."""
+        timer = Timer(period_s, callback)
+        self._timers.append(timer)
+        return timer
+
+    def endpoints(self) -> list[EndpointInfo]:
+        """Publishers and subscriptions created so far."""
+        return list(self._endpoints)
+
+    # -- executing -------------------------------------------------------------------
+
+    def ok(self) -> bool:
+        """False once shutdown was requested."""
+        return self._shutdown_reason is None
+
+    def request_shutdown(self, reason: str = "shutdown requested") -> None:
+        """Make :meth:`spin` return (safe from signal handlers and other threads)."""
+        if self._shutdown_reason is None:
+            self._shutdown_reason = reason
+        self.transport.wake()
+
+    @property
+    def shutdown_reason(self) -> str | None:
+        """Why the node is shutting down, or None."""
+        return self._shutdown_reason
+
+    def _run_timers(self) -> float:
+        """Run due timers; seconds until the next one (inf if none)."""
+        now = time.monotonic_ns()
+        self._timers = [t for t in self._timers if not t.cancelled]
+        for timer in list(self._timers):
+            if not timer.cancelled and timer.next_ns <= now and self.ok():
+                timer._fire(now)
+        if not self._timers:
+            return float("inf")
+        return max(0.0, (min(t.next_ns for t in self._timers) - time.monotonic_ns()) / _NS)
+
+    def spin_once(self, timeout_s: float = 0.0) -> None:
+        """Run due timers, wait for data and run the callbacks of what arrived.
+
+        Waits up to ``timeout_s`` (less if a timer is due, at most 0.1 s).
+        """
+        until_timer = self._run_timers()
+        if self.ok():
+            self.transport.spin_once(min(timeout_s, until_timer, _MAX_WAIT_S))
+        self._run_timers()
+
+    def spin(
+        self, until: Callable[[], bool] | None = None, timeout_s: float | None = None
+    ) -> bool:
+        """Run callbacks and timers until shutdown, ``until()`` is true or the timeout.
+
+        Returns whether ``until()`` became true (True when spinning until shutdown).
+        """
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while self.ok():
+            if until is not None and until():
+                return True
+            remaining = _MAX_WAIT_S if deadline is None else deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            self.spin_once(min(remaining, _MAX_WAIT_S))
+        return until() if until is not None else True
+
+    def wait_for(self, condition: Callable[[], bool], timeout_s: float) -> bool:
+        """Spin until ``condition()`` (e.g. the graph connected) or ``timeout_s`` elapses."""
+        return self.spin(until=condition, timeout_s=timeout_s)
+
+    def close(self) -> None:
+        """Run :meth:`on_shutdown`, then close the transport (bounded wait for acks)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._shutdown_reason is None:
+            self._shutdown_reason = "closed"
+        try:
+            self.on_shutdown()
+        finally:
+            self.transport.close()
+
+    def __enter__(self) -> Node:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _help_text(node_cls: type[Node], parser: ArgumentParser) -> str:
+    return (
+        parser.format_help().rstrip()
+        + "\n\n"
+        + format_parameter_help(node_cls.Params)
+        + "\n"
+        + ROS_ARGS_HELP
+    )
+
+
+def parse_node_args(
+    node_cls: type[Node], argv: Sequence[str], prog: str
+) -> NodeOptions | None:
+    """Parse a node's command line; None after printing ``--help``.
+
+    Raises UsageError for a bad ``--ros-args`` section or parameter; the node's own
+    options are parsed by its ``argument_parser`` (which exits 2 on errors).
+    """
+    own, ros_tokens, _ = split_ros_args(argv)
+    parser = node_cls.argument_parser(prog)
+    if "-h" in own or "--help" in own:
+        sys.stdout.write(_help_text(node_cls, parser))
+        return None
+    args = parser.parse_args(own)
+    ros_args = parse_ros_args(ros_tokens)
+    return NodeOptions.for_node(node_cls, ros_args, args=args)
+
+
+def _install_signal_handlers(node: Node) -> None:
+    def handler(signum: int, frame: object) -> None:
+        name = signal.Signals(signum).name
+        if not node.ok():  # second signal: stop waiting for a graceful exit
+            raise KeyboardInterrupt
+        node.request_shutdown(f"{name} received")
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+def run_node(
+    node_cls: type[Node], *, prog: str, argv: Sequence[str] | None = None
+) -> NoReturn:
+    """Parse the command line, run the node until SIGINT/SIGTERM, close it and exit."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        options = parse_node_args(node_cls, argv, prog)
+    except UsageError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    if options is None:
+        sys.exit(0)
+    node: Node | None = None
+    try:
+        node_cls.preflight(options)
+        node = node_cls(options)
+        _install_signal_handlers(node)
+        node.spin()
+        code = getattr(node, "exit_code", 0)
+    except UsageError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        code = 2
+    except TpsrError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        code = 1
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        code = 130
+    finally:
+        if node is not None:
+            try:
+                node.close()
+            except TpsrError as exc:
+                print(f"{prog}: error: {exc}", file=sys.stderr)
+                code = 1
+    sys.exit(code)

@@ -1,0 +1,235 @@
+"""rclpy transport, written to rclpy's documented Jazzy API.
+
+Used when a sourced ROS 2 makes ``rclpy`` importable. Each node gets its own
+``rclpy.Context`` (initialised without rclpy's signal handlers: the runtime installs its
+own), one ``rclpy`` node and a ``SingleThreadedExecutor``.
+
+Message classes come from rosidl (``rosidl_runtime_py.utilities.get_message``). Data
+crosses the boundary only as CDR bytes: publishers publish serialised bytes
+(``Publisher.publish`` accepts ``bytes``) and subscriptions are created with
+``raw=True``, so a node sees exactly the bytes the DDS backend would give it.
+:func:`to_rclpy` and :func:`from_rclpy` convert between our rosbags messages and
+rclpy's through ``rclpy.serialization`` for code that needs rclpy objects.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any, ClassVar
+
+from tpsr_ros.errors import MessageError, TpsrError
+from tpsr_ros.messages import deserialize, serialize
+from tpsr_ros.runtime.qos import Durability, History, QoSProfile, Reliability
+from tpsr_ros.runtime.transport import (
+    BytesCallback,
+    PublisherHandle,
+    SubscriptionHandle,
+    TopicEndpoint,
+    Transport,
+    pad_cdr,
+)
+
+__all__ = ["RclpyTransport", "from_rclpy", "message_class", "to_rclpy", "to_rclpy_qos"]
+
+_SEVERITY = {"debug": "DEBUG", "info": "INFO", "warn": "WARN", "error": "ERROR", "fatal": "FATAL"}
+
+
+def message_class(msgtype: str) -> Any:
+    """The rclpy message class of ``pkg/msg/Name`` (via rosidl)."""
+    from rosidl_runtime_py.utilities import get_message
+
+    try:
+        return get_message(msgtype)
+    except (AttributeError, ModuleNotFoundError, ValueError) as exc:
+        raise MessageError(f"ROS 2 has no message type {msgtype!r}: {exc}") from None
+
+
+def to_rclpy(msg: Any, msgtype: str) -> Any:
+    """A rosbags message as an rclpy message, through CDR bytes."""
+    from rclpy.serialization import deserialize_message
+
+    return deserialize_message(serialize(msg, msgtype), message_class(msgtype))
+
+
+def from_rclpy(msg: Any, msgtype: str) -> Any:
+    """An rclpy message as a rosbags message, through CDR bytes."""
+    from rclpy.serialization import serialize_message
+
+    return deserialize(serialize_message(msg), msgtype)
+
+
+def to_rclpy_qos(profile: QoSProfile) -> Any:
+    """``rclpy.qos.QoSProfile`` of ``profile``."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST
+        if profile.history is History.KEEP_LAST
+        else HistoryPolicy.KEEP_ALL,
+        depth=max(profile.depth, 1) if profile.history is History.KEEP_LAST else 0,
+        reliability=ReliabilityPolicy.RELIABLE
+        if profile.reliability is Reliability.RELIABLE
+        else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL
+        if profile.durability is Durability.TRANSIENT_LOCAL
+        else DurabilityPolicy.VOLATILE,
+    )
+
+
+def from_rclpy_qos(qos: Any) -> QoSProfile:
+    """Our profile of an ``rclpy.qos.QoSProfile`` (unknown policies map to ROS defaults)."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
+
+    reliability = (
+        Reliability.BEST_EFFORT
+        if qos.reliability == ReliabilityPolicy.BEST_EFFORT
+        else Reliability.RELIABLE
+    )
+    durability = (
+        Durability.TRANSIENT_LOCAL
+        if qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        else Durability.VOLATILE
+    )
+    if qos.history == HistoryPolicy.KEEP_ALL:
+        return QoSProfile(reliability, durability, History.KEEP_ALL, 0)
+    return QoSProfile(reliability, durability, History.KEEP_LAST, max(int(qos.depth), 1))
+
+
+class _Publisher(PublisherHandle):
+    def __init__(self, owner: RclpyTransport, publisher: Any) -> None:
+        self.owner, self.publisher = owner, publisher
+
+    def write(self, data: bytes) -> None:
+        self.publisher.publish(pad_cdr(data))
+
+    def matched_count(self) -> int:
+        return int(self.publisher.get_subscription_count())
+
+    def close(self) -> None:
+        if self.publisher is not None:
+            self.owner.node.destroy_publisher(self.publisher)
+            self.publisher = None
+
+
+class _Subscription(SubscriptionHandle):
+    def __init__(self, owner: RclpyTransport) -> None:
+        self.owner = owner
+        self.subscription: Any = None
+
+    def matched_count(self) -> int:
+        return int(self.subscription.get_publisher_count()) if self.subscription else 0
+
+    def close(self) -> None:
+        if self.subscription is not None:
+            self.owner.node.destroy_subscription(self.subscription)
+            self.subscription = None
+
+
+class RclpyTransport(Transport):
+    """One rclpy node in its own context, executed by a ``SingleThreadedExecutor``."""
+
+    kind: ClassVar[str] = "rclpy"
+
+    def __init__(self, node_name: str, namespace: str = "/") -> None:
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
+
+        self._rclpy = rclpy
+        self.context = rclpy.Context()
+        try:
+            rclpy.init(
+                args=[], context=self.context, signal_handler_options=SignalHandlerOptions.NO
+            )
+            self.node = rclpy.create_node(
+                node_name,
+                namespace=namespace,
+                context=self.context,
+                use_global_arguments=False,
+            )
+        except Exception as exc:
+            self.context.try_shutdown()
+            raise TpsrError(f"rclpy could not start node {node_name!r}: {exc}") from None
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self._guard = self.node.create_guard_condition(lambda: None)
+        self._dispatched = 0
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def create_publisher(self, topic: str, msgtype: str, qos: QoSProfile) -> PublisherHandle:
+        publisher = self.node.create_publisher(message_class(msgtype), topic, to_rclpy_qos(qos))
+        return _Publisher(self, publisher)
+
+    def create_subscription(
+        self, topic: str, msgtype: str, qos: QoSProfile, callback: BytesCallback
+    ) -> SubscriptionHandle:
+        handle = _Subscription(self)
+
+        def on_raw(data: bytes) -> None:
+            self._dispatched += 1
+            callback(bytes(data))
+
+        handle.subscription = self.node.create_subscription(
+            message_class(msgtype), topic, on_raw, to_rclpy_qos(qos), raw=True
+        )
+        return handle
+
+    def spin_once(self, timeout_s: float) -> int:
+        start = self._dispatched
+        self.executor.spin_once(timeout_sec=max(0.0, timeout_s))
+        while True:  # run whatever else is ready without waiting
+            before = self._dispatched
+            self.executor.spin_once(timeout_sec=0.0)
+            if self._dispatched == before:
+                break
+        return self._dispatched - start
+
+    def wake(self) -> None:
+        if not self._closed:
+            self._guard.trigger()
+
+    def publishers(self) -> list[TopicEndpoint]:
+        found = []
+        for topic, _types in self.node.get_topic_names_and_types():
+            for info in self.node.get_publishers_info_by_topic(topic):
+                node = info.node_namespace.rstrip("/") + "/" + info.node_name
+                found.append(
+                    TopicEndpoint(topic, info.topic_type, from_rclpy_qos(info.qos_profile), node)
+                )
+        return found
+
+    def declare_parameters(self, params: list[tuple[str, object, str]]) -> None:
+        from rcl_interfaces.msg import ParameterDescriptor
+
+        for name, value, description in params:
+            if isinstance(value, tuple):
+                value = list(value)
+            self.node.declare_parameter(
+                name, value, ParameterDescriptor(description=description, read_only=True)
+            )
+
+    def log(self, level: str, message: str) -> bool:
+        logger = self.node.get_logger()
+        {
+            "debug": logger.debug,
+            "info": logger.info,
+            "warn": logger.warning,
+            "error": logger.error,
+            "fatal": logger.fatal,
+        }[level](message)
+        return True
+
+    def set_log_level(self, level: str) -> None:
+        """Set the rclpy logger's severity (debug, info, warn, error, fatal)."""
+        from rclpy.logging import LoggingSeverity
+
+        self.node.get_logger().set_level(getattr(LoggingSeverity, _SEVERITY[level]))
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.context.try_shutdown()

@@ -1,0 +1,124 @@
+"""The middleware interface every backend implements (inproc, dds, rclpy).
+
+A transport moves CDR bytes (ROS 2 serialisation with its 4-byte encapsulation header)
+between endpoints named by fully qualified ROS topic names. It knows nothing about
+message classes, parameters or remapping: ``tpsr_ros.runtime.node.Node`` adds those.
+
+Threading: callbacks run only inside :meth:`Transport.spin_once`, on the calling
+thread, so a node is single-threaded like rclpy's ``SingleThreadedExecutor``.
+:meth:`Transport.wake` may be called from any thread or a signal handler.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import ClassVar
+
+from tpsr_ros.runtime.qos import QoSProfile
+
+__all__ = [
+    "PublisherHandle",
+    "SubscriptionHandle",
+    "TopicEndpoint",
+    "Transport",
+    "pad_cdr",
+]
+
+BytesCallback = Callable[[bytes], None]
+
+
+def pad_cdr(data: bytes | bytearray | memoryview) -> bytes:
+    """CDR bytes padded with zeros to a multiple of 4, as they travel on the DDS wire.
+
+    rmw_cyclonedds_cpp and Cyclone DDS pad every serialised sample to 4 bytes, so a
+    subscriber sees the padded length; every backend pads on publish so that all of
+    them deliver identical bytes. Deserialisers ignore the trailing zeros.
+    """
+    data = bytes(data)
+    extra = -len(data) % 4
+    return data + b"\0" * extra if extra else data
+
+
+@dataclass(frozen=True)
+class TopicEndpoint:
+    """A publisher or subscription seen in the graph."""
+
+    topic: str
+    msgtype: str
+    qos: QoSProfile
+    node: str | None = None
+
+
+class PublisherHandle(ABC):
+    """Backend publisher: writes CDR bytes."""
+
+    @abstractmethod
+    def write(self, data: bytes) -> None:
+        """Publish one serialised message."""
+
+    @abstractmethod
+    def matched_count(self) -> int:
+        """Number of subscriptions currently matched (any process)."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Destroy the endpoint."""
+
+
+class SubscriptionHandle(ABC):
+    """Backend subscription: its callback receives CDR bytes inside ``spin_once``."""
+
+    @abstractmethod
+    def matched_count(self) -> int:
+        """Number of publishers currently matched (any process)."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Destroy the endpoint; no callback runs after this returns."""
+
+
+class Transport(ABC):
+    """One node's connection to the middleware."""
+
+    kind: ClassVar[str] = "abstract"
+
+    @abstractmethod
+    def create_publisher(self, topic: str, msgtype: str, qos: QoSProfile) -> PublisherHandle:
+        """Publisher on fully qualified ``topic`` of ROS type ``msgtype``."""
+
+    @abstractmethod
+    def create_subscription(
+        self, topic: str, msgtype: str, qos: QoSProfile, callback: BytesCallback
+    ) -> SubscriptionHandle:
+        """Subscription delivering CDR bytes to ``callback``."""
+
+    @abstractmethod
+    def spin_once(self, timeout_s: float) -> int:
+        """Wait up to ``timeout_s`` for data, then run the callbacks of what has arrived.
+
+        Returns the number of callbacks run; returns early after :meth:`wake`.
+        """
+
+    @abstractmethod
+    def wake(self) -> None:
+        """Make a blocked or the next :meth:`spin_once` return promptly (thread-safe)."""
+
+    @abstractmethod
+    def publishers(self) -> list[TopicEndpoint]:
+        """Every publisher currently visible in the graph (remote and local)."""
+
+    def declare_parameters(self, params: list[tuple[str, object, str]]) -> None:  # noqa: B027
+        """Expose ``(name, value, description)`` triples to the middleware.
+
+        rclpy declares them read-only; other backends keep parameters to the node.
+        """
+
+    def log(self, level: str, message: str) -> bool:
+        """Log through the middleware's logger; False if the backend has none."""
+        return False
+
+    @abstractmethod
+    def close(self) -> None:
+        """Flush reliable data to matched readers (bounded wait) and leave the graph."""
