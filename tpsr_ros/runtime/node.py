@@ -529,6 +529,7 @@ def run_node(
         node_cls.preflight(options)
         node = node_cls(options)
         _install_signal_handlers(node)
+        node.logger.debug(f"{node.transport.kind} transport ready; spinning until SIGINT/SIGTERM")
         node.spin()
         code = getattr(node, "exit_code", 0)
     except UsageError as exc:

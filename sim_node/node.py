@@ -1,0 +1,204 @@
+"""The simulator as a ROS 2 node: boilerplate around ``RobotEnv`` (see msgs_doc/sim_node.md).
+
+Time: simulation time advances 1 s per event and never jumps back. Start-up performs a
+reset at t_0 (random start from the seed); every step and every later reset takes the
+next stamp, so after a step at t_k a reset happens at t_{k+1} and the next step is
+t_{k+2}. A step publishes exactly ``sim_node.topics.step_messages`` (image, action,
+ground truth, reward, clock), all stamped t_k; a reset publishes ``/sim/episode_start``
+(latched) and ``/clock``, and no image or action, so images and actions stay paired 1:1.
+
+Modes: ``explore`` takes a uniformly random action every 1/rate s (until ``steps`` steps,
+if set); ``command`` takes one step per ``/cmd_vel`` Twist, snapped to the nearest of
+the 25 actions. ``/sim/reset`` (PoseStamped, frame ``map``) restarts at a position.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from sim_node.actions import action_index
+from sim_node.config import Environment, SimConfig
+from sim_node.env import RobotEnv
+from sim_node.topics import SimTopics, step_messages
+from tpsr_ros import messages as m
+from tpsr_ros.errors import ConfigError, MessageError
+from tpsr_ros.runtime import LATCHED_QOS, Node, param
+
+__all__ = ["EPISODE_START_TOPIC", "RESET_TOPIC", "SimNode", "SimNodeParams"]
+
+RESET_TOPIC = "/sim/reset"
+EPISODE_START_TOPIC = "/sim/episode_start"
+CMD_VEL_TOPIC = "/cmd_vel"
+_NS = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class SimNodeParams:
+    """Parameters of ``python -m sim_node``."""
+
+    environment: str = param(
+        "full",
+        "camera of the guide's chapter 4: full (300 deg), partial (60 deg) or distractors",
+        choices=tuple(e.value for e in Environment),
+    )
+    seed: int = param(0, "seed of every random stream (start, actions, noise, distractors)")
+    mode: str = param(
+        "explore",
+        "explore: a uniformly random action every 1/rate s; command: one step per /cmd_vel",
+        choices=("explore", "command"),
+    )
+    rate: float = param(10.0, "explore mode: steps per second of wall-clock time")
+    steps: int = param(0, "explore mode: stop stepping after this many steps (0 = never)")
+    wait_for_subscribers: int = param(
+        0,
+        "before the first reset, wait until every step topic has this many subscriptions",
+    )
+    command_tolerance: float = param(
+        3.0,
+        "command mode: reject a /cmd_vel component farther than this (m/s) from 0, ±3, ±6",
+    )
+
+    def __post_init__(self) -> None:
+        if self.seed < 0:
+            raise ConfigError(f"seed must be >= 0, got {self.seed}")
+        if not (math.isfinite(self.rate) and self.rate > 0):
+            raise ConfigError(f"rate must be a positive number of Hz, got {self.rate}")
+        if self.steps < 0 or self.wait_for_subscribers < 0:
+            raise ConfigError("steps and wait_for_subscribers must be >= 0")
+        if not (math.isfinite(self.command_tolerance) and self.command_tolerance > 0):
+            raise ConfigError(f"command_tolerance must be > 0, got {self.command_tolerance}")
+
+
+class SimNode(Node):
+    """Publishes each simulator step's messages; executes /cmd_vel or random actions."""
+
+    default_name = "sim_node"
+    Params = SimNodeParams
+    description = "The simulated robot (guide section 4.1) as a ROS 2 node."
+
+    def setup(self) -> None:
+        """Create the environment, publishers, subscriptions and the explore timer."""
+        p: SimNodeParams = self.params
+        self.config = SimConfig(environment=p.environment)
+        self.env = RobotEnv(self.config, seed=p.seed)
+        self.topics = SimTopics()
+        self.step_publishers = {
+            name: self.create_publisher(name, msgtype)
+            for name, msgtype in self.topics.types().items()
+        }
+        self.episode_publisher = self.create_publisher(
+            EPISODE_START_TOPIC, m.POSE_TYPE, LATCHED_QOS
+        )
+        self.create_subscription(RESET_TOPIC, m.POSE_TYPE, self.on_reset)
+        if p.mode == "command":
+            self.create_subscription(CMD_VEL_TOPIC, m.TWIST_TYPE, self.on_cmd_vel)
+        self.steps_published = 0
+        self.resets = 0
+        self._time_index = -1
+        self.started = False
+        self._explore_done = False
+        if p.wait_for_subscribers:
+            self.logger.info(
+                f"waiting for {p.wait_for_subscribers} subscription(s) on every step topic"
+            )
+            self._wait_timer = self.create_timer(0.01, self._check_subscribers)
+        else:
+            self._begin()
+        if p.mode == "explore":
+            self.create_timer(1.0 / p.rate, self._explore_tick)
+
+    # -- time ------------------------------------------------------------------------
+
+    @property
+    def last_stamp_ns(self) -> int | None:
+        """Stamp of the last step or reset (None before the first reset)."""
+        if self._time_index < 0:
+            return None
+        return self.config.start_time_ns + self._time_index * _NS
+
+    def _next_stamp(self) -> int:
+        self._time_index += 1
+        return self.config.start_time_ns + self._time_index * _NS
+
+    # -- events ----------------------------------------------------------------------
+
+    def _check_subscribers(self) -> None:
+        needed = self.params.wait_for_subscribers
+        if all(p.get_subscription_count() >= needed for p in self.step_publishers.values()):
+            self._wait_timer.cancel()
+            self._begin()
+
+    def _begin(self) -> None:
+        self.started = True
+        self.reset(None)
+
+    def reset(self, position: tuple[float, float] | None) -> None:
+        """Reset at the next stamp; publish /sim/episode_start and /clock."""
+        options: dict[str, Any] = {} if position is None else {"position": position}
+        self.env.reset(options=options)
+        stamp = self._next_stamp()
+        x, y = (float(v) for v in self.env.position)
+        self.episode_publisher.publish(m.pose_msg(stamp, x, y))
+        self.step_publishers[self.topics.clock].publish(m.clock_msg(stamp))
+        self.resets += 1
+        self.logger.info(f"episode starts at ({x:.2f}, {y:.2f}), t = {stamp / _NS:.0f} s")
+
+    def step(self, action: int) -> None:
+        """Execute ``action`` at the next stamp and publish that step's messages."""
+        image, reward, _, _, info = self.env.step(action)
+        stamp = self._next_stamp()
+        sample = m.RewardSample(reward, info["wall_contact"], info["goal_zone"])
+        for topic, _, msg in step_messages(
+            self.topics, stamp, image, info["command"], info["position"], sample
+        ):
+            self.step_publishers[topic].publish(msg)
+        self.steps_published += 1
+
+    def _explore_tick(self) -> None:
+        if not self.started or self._explore_done:
+            return
+        self.step(self.env.sample_action())
+        if self.params.steps and self.steps_published >= self.params.steps:
+            self._explore_done = True
+            self.logger.info(f"explore finished: {self.steps_published} steps published")
+
+    def on_cmd_vel(self, msg: Any) -> None:
+        """Command mode: one step per Twist, snapped to the nearest of the 25 actions."""
+        if not self.started:
+            self.logger.warning("/cmd_vel ignored: waiting for subscribers before the start")
+            return
+        try:
+            vx, vy = m.twist_to_xy(msg)
+            action = action_index(vx, vy, self.params.command_tolerance)
+        except (MessageError, ConfigError) as exc:
+            self.logger.warning(f"/cmd_vel rejected: {exc}")
+            return
+        self.step(action)
+
+    def on_reset(self, msg: Any) -> None:
+        """Reset to the PoseStamped position (frame ``map``, inside the room)."""
+        if msg.header.frame_id != "map":
+            self.logger.warning(f"reset rejected: frame {msg.header.frame_id!r} is not 'map'")
+            return
+        x, y = m.pose_to_xy(msg)
+        low = self.config.robot_radius
+        high = self.config.room_size - self.config.robot_radius
+        if not (math.isfinite(x) and math.isfinite(y) and low <= x <= high and low <= y <= high):
+            self.logger.warning(
+                f"reset rejected: ({x}, {y}) is outside the room [{low:g}, {high:g}]^2"
+            )
+            return
+        if not self.started:
+            self.logger.warning("reset ignored: waiting for subscribers before the start")
+            return
+        self.reset((x, y))
+
+    def on_shutdown(self) -> None:
+        """Log what was published."""
+        last = self.last_stamp_ns
+        until = "" if last is None else f", last stamp t = {last / _NS:.0f} s"
+        self.logger.info(
+            f"published {self.steps_published} steps and {self.resets} resets{until}"
+        )
