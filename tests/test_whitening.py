@@ -1,0 +1,98 @@
+"""Whitening (guide Algorithm 1): planted spectra, identity covariance, signs, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tpsr_ros.errors import ConfigError, DataError
+from tpsr_ros.whitening import Whitening
+
+
+def planted(n: int = 4000, b: int = 30, seed: int = 0):
+    """Data whose covariance has eigenvalues 100, 50, 20, 10, 5 and 0.01 for the rest."""
+    rng = np.random.default_rng(seed)
+    basis, _ = np.linalg.qr(rng.standard_normal((b, b)))
+    variances = np.r_[100.0, 50.0, 20.0, 10.0, 5.0, np.full(b - 5, 0.01)]
+    latent = rng.standard_normal((n, b))
+    latent -= latent.mean(axis=0)
+    # make the latent sample covariance exactly the identity, so the spectrum is exact
+    cov = latent.T @ latent / (n - 1)
+    latent = latent @ np.linalg.inv(np.linalg.cholesky(cov)).T
+    x = (latent * np.sqrt(variances)) @ basis.T + rng.standard_normal(b) * 3
+    return x, basis, variances
+
+
+def test_planted_spectrum_and_directions_are_recovered():
+    x, basis, variances = planted()
+    w = Whitening.fit(x, 5)
+    np.testing.assert_allclose(w.eigenvalues_, variances[:5], rtol=1e-10)
+    np.testing.assert_allclose(
+        w.explained_variance_ratio_, variances[:5] / variances.sum(), rtol=1e-10
+    )
+    # same directions up to sign
+    np.testing.assert_allclose(np.abs(w.components_.T @ basis[:, :5]), np.eye(5), atol=1e-9)
+    np.testing.assert_allclose(w.mean_, x.mean(axis=0), atol=1e-12)
+
+
+def test_whitened_data_have_zero_mean_and_identity_covariance():
+    x, _, _ = planted(seed=1)
+    w, white = Whitening.fit_transform(x, 7)
+    assert white.shape == (x.shape[0], 7)
+    np.testing.assert_allclose(white.mean(axis=0), 0, atol=1e-10)
+    np.testing.assert_allclose(np.cov(white, rowvar=False), np.eye(7), atol=1e-9)
+    np.testing.assert_array_equal(white, w.transform(x))
+    np.testing.assert_allclose(w.matrix_, w.components_ / np.sqrt(w.eigenvalues_))
+
+
+def test_matches_the_literal_algorithm_with_numpy_pca():
+    x, _, _ = planted(n=500, b=12, seed=2)
+    centred = x - x.mean(axis=0)
+    values, vectors = np.linalg.eigh(np.cov(centred, rowvar=False))
+    values, vectors = values[::-1][:4], vectors[:, ::-1][:, :4]
+    vectors *= np.sign(vectors[np.argmax(np.abs(vectors), axis=0), range(4)])
+    literal = centred @ (vectors @ np.diag(1 / np.sqrt(values)))
+    np.testing.assert_allclose(Whitening.fit(x, 4).transform(x), literal, atol=1e-9)
+
+
+def test_signs_are_deterministic_and_independent_of_row_order():
+    x, _, _ = planted(seed=3)
+    a = Whitening.fit(x, 5)
+    b = Whitening.fit(x[::-1].copy(), 5)
+    idx = np.argmax(np.abs(a.components_), axis=0)
+    assert (a.components_[idx, range(5)] > 0).all()
+    np.testing.assert_allclose(a.components_, b.components_, atol=1e-10)
+
+
+def test_single_row_transform():
+    x, _, _ = planted(seed=4)
+    w = Whitening.fit(x, 3)
+    np.testing.assert_allclose(w.transform(x[5]), w.transform(x)[5], atol=1e-12)
+
+
+def test_more_dimensions_than_the_data_rank_is_refused():
+    rng = np.random.default_rng(5)
+    x = rng.standard_normal((200, 3)) @ rng.standard_normal((3, 10))  # rank 3
+    Whitening.fit(x, 3)
+    with pytest.raises(DataError, match="numerical rank 3"):
+        Whitening.fit(x, 4)
+    with pytest.raises(DataError, match="numerical rank 0"):
+        Whitening.fit(np.ones((50, 4)), 1)
+
+
+@pytest.mark.parametrize("d", [0, 11])
+def test_bad_dimension_counts(d):
+    with pytest.raises(ConfigError):
+        Whitening.fit(np.random.default_rng(0).standard_normal((50, 10)), d)
+
+
+def test_non_finite_and_mismatched_data():
+    x = np.random.default_rng(0).standard_normal((50, 4))
+    x[3, 2] = np.nan
+    with pytest.raises(DataError, match="non-finite"):
+        Whitening.fit(x, 2, what="histories")
+    w = Whitening.fit(np.random.default_rng(0).standard_normal((50, 4)), 2)
+    with pytest.raises(DataError, match="dimension 5"):
+        w.transform(np.zeros((3, 5)))
+    with pytest.raises(DataError, match="at least 2"):
+        Whitening.fit(np.zeros((1, 4)), 1)

@@ -1,0 +1,149 @@
+"""PCA whitening of observation data: guide Algorithm 1 (section 3.1).
+
+``X_white = (X - mean^X) W^X`` with ``W^X = U diag(1 / sqrt(eigenvalues))``, keeping the ``d``
+principal directions of largest variance, so the kept dimensions of the training data have
+zero mean, unit variance and no covariance. The RBF kernel widths of the guide (table 3.5)
+are expressed in these whitened units.
+
+Implementation: the ``b x b`` sample covariance (``1 / (r - 1)``, the convention of
+``numpy.cov``) is formed with one BLAS product and only its ``d`` largest eigenpairs are
+computed (``scipy.linalg.eigh(subset_by_index=...)``), which is exact to numerical precision
+and much cheaper than an SVD of the data. Eigenvector signs are made deterministic as
+scikit-learn's ``svd_flip`` does: the entry of largest magnitude of every direction is
+positive. A direction whose eigenvalue is negligible
+(at most ``max(r, b) * eps`` times the largest) would blow up under ``1 / sqrt``; asking
+for more dimensions than the data's numerical rank is therefore refused with a ``DataError``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from tpsr_ros.errors import ConfigError, DataError
+
+__all__ = ["Whitening", "check_finite_matrix", "flip_signs"]
+
+
+def check_finite_matrix(x: np.ndarray, what: str) -> np.ndarray:
+    """Return ``x`` as a 2-D float64 array; refuse other ranks, emptiness and non-finite values."""
+    arr = np.asarray(x, dtype=np.float64)
+    if arr.ndim != 2:
+        raise DataError(f"{what} must be a 2-D array (samples x dimensions), got shape {arr.shape}")
+    if arr.shape[0] == 0 or arr.shape[1] == 0:
+        raise DataError(f"{what} is empty (shape {arr.shape})")
+    if not np.isfinite(arr).all():
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        raise DataError(f"{bad} non-finite values (NaN or infinity) in the {what}")
+    return arr
+
+
+def flip_signs(vectors: np.ndarray, other: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """Make column signs deterministic: the largest-magnitude entry of each column is positive.
+
+    ``vectors`` is ``(n, k)``; ``other`` (``(m, k)``, e.g. the right singular vectors) gets
+    the same flips so that products such as ``U S V^T`` are unchanged.
+    """
+    idx = np.argmax(np.abs(vectors), axis=0)
+    signs = np.sign(vectors[idx, np.arange(vectors.shape[1])])
+    signs[signs == 0] = 1.0
+    if other is None:
+        return (vectors * signs,)
+    return vectors * signs, other * signs
+
+
+@dataclass(frozen=True, eq=False)
+class Whitening:
+    """A fitted whitening transform (Algorithm 1); build it with :meth:`fit`.
+
+    Attributes:
+        mean_: ``(b,)`` mean of the training rows (``mean^X``).
+        components_: ``(b, d)`` orthonormal principal directions, largest variance first.
+        eigenvalues_: ``(d,)`` variances along ``components_`` (sample covariance, ``1/(r-1)``).
+        explained_variance_ratio_: ``(d,)`` each eigenvalue over the total variance.
+        matrix_: ``(b, d)`` the whitening matrix ``W^X = components_ / sqrt(eigenvalues_)``.
+
+    """
+
+    mean_: np.ndarray
+    components_: np.ndarray
+    eigenvalues_: np.ndarray
+    explained_variance_ratio_: np.ndarray
+
+    @property
+    def matrix_(self) -> np.ndarray:
+        """The whitening matrix ``W^X``, ``(b, d)``."""
+        matrix: np.ndarray = self.components_ / np.sqrt(self.eigenvalues_)
+        return matrix
+
+    @property
+    def n_features_in(self) -> int:
+        """Dimension ``b`` of the raw data."""
+        return int(self.mean_.shape[0])
+
+    @property
+    def n_components(self) -> int:
+        """Number ``d`` of kept (whitened) dimensions."""
+        return int(self.eigenvalues_.shape[0])
+
+    @classmethod
+    def fit(cls, x: np.ndarray, n_components: int, *, what: str = "data") -> Whitening:
+        """Fit on ``x`` (``(r, b)``, one data point per row), keeping ``n_components`` dims.
+
+        ``what`` names the data in error messages (e.g. ``"history observations"``).
+        """
+        x = check_finite_matrix(x, what)
+        n, b = x.shape
+        d = int(n_components)
+        if d < 1:
+            raise ConfigError(f"whitening of {what} must keep at least 1 dimension, not {d}")
+        if d > b:
+            raise ConfigError(
+                f"whitening of {what} cannot keep {d} dimensions: the data have only {b}"
+            )
+        if n < 2:
+            raise DataError(f"whitening of {what} needs at least 2 data points, got {n}")
+        mean = x.mean(axis=0)
+        centred = x - mean
+        cov = centred.T @ centred
+        cov /= n - 1
+        total = float(np.trace(cov))
+        values, vectors = scipy.linalg.eigh(cov, subset_by_index=[b - d, b - 1])
+        values, vectors = values[::-1], vectors[:, ::-1]
+        largest = float(values[0]) if values.size else 0.0
+        tol = max(b, n) * np.finfo(np.float64).eps * max(largest, 0.0)
+        usable = int(np.count_nonzero(values > tol)) if largest > 0 else 0
+        if usable < d:
+            raise DataError(
+                f"whitening of {what} asks for {d} dimensions but the data have numerical rank "
+                f"{usable} among their top {d} directions (eigenvalues {values.tolist()}); "
+                "lower the whitening dimension or provide more varied data"
+            )
+        (vectors,) = flip_signs(vectors)
+        return cls(
+            mean_=mean,
+            components_=np.ascontiguousarray(vectors),
+            eigenvalues_=values.copy(),
+            explained_variance_ratio_=values / total,
+        )
+
+    def transform(self, x: np.ndarray) -> np.ndarray:
+        """Whiten ``x``: ``(n, b) -> (n, d)``; a single row ``(b,)`` gives ``(d,)``."""
+        arr = np.asarray(x, dtype=np.float64)
+        if arr.shape[-1] != self.n_features_in:
+            raise DataError(
+                f"data of dimension {arr.shape[-1]} do not match the whitening fitted on "
+                f"dimension {self.n_features_in}"
+            )
+        white: np.ndarray = (arr - self.mean_) @ self.matrix_
+        return white
+
+    @classmethod
+    def fit_transform(
+        cls, x: np.ndarray, n_components: int, *, what: str = "data"
+    ) -> tuple[Whitening, np.ndarray]:
+        """Fit on ``x`` and return the transform with the whitened ``x`` (``(r, d)``)."""
+        fitted = cls.fit(x, n_components, what=what)
+        return fitted, fitted.transform(x)
