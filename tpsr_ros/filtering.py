@@ -1,0 +1,182 @@
+"""TPSR state tracking: guide Algorithm 4 (section 3.3), eqs. 3.8 and 3.9.
+
+One update incorporates the pair ``(a, o)``:
+
+1. whiten the observation with the model's ``mean^O`` and ``W^O``,
+2. normalised RBF features ``phi(o)`` over the observation kernel centres,
+3. ``B_ao = sum_o' phi_o'(o) B_ao'`` (eq. 3.9),
+4. ``b' = B_ao b / (b_inf^T B_ao b)`` (eq. 3.8).
+
+:func:`update` is stateless (model and state in, state and diagnostics out), so the offline
+tracker and the filter node share it. :func:`track` does the same for a whole trajectory:
+steps 1-3 for all observations at once (one call per stage, one per action group), then a
+loop over the tiny ``r x r`` products of step 4. All per-observation products are computed
+row by row inside single stacked matmuls, so every step is bitwise what :func:`update`
+computes: batch tracking *equals* a loop of updates.
+
+The normaliser guard
+--------------------
+``z = b_inf^T B_ao b`` is the model's (unnormalised) probability of the observation given the
+state. A learned TPSR is not constrained to keep it positive; when it is not finite, or
+``z <= NORMALIZER_RTOL * ||b_inf|| * ||B_ao b||`` (zero, negative, or so small relative to
+the largest value the two vectors allow that dividing would blow the state up by more than
+``1 / NORMALIZER_RTOL``), or ``||B_ao b||`` itself overflows, the state has left the region
+where the model means anything.
+On the full environment the cosine ``z / (||b_inf|| ||B_ao b||)`` of valid steps was above
+0.2 and the few failures were negative, so any threshold between ``1e-6`` and ``0.1``
+behaves the same; ``1e-3`` caps the blow-up of a step at a thousandfold.
+The filter then *restarts*: it treats the step as the first one after a reset, i.e. applies
+the same update to ``b_*`` (the guide's base case); if even that cannot be normalised the
+state becomes ``b_*``. ``UpdateInfo.recovered`` is set either way.
+
+Why restart rather than keep the previous state: the previous state is what produced the
+degenerate prediction, so keeping it would ignore the new observation and fail again on the
+next step; restarting from the stationary state ``b_*`` and applying the current pair
+re-localises at once when observations are informative, and otherwise forgets a past that
+the guide found TPSRs remember for only a few steps anyway (section 4.4).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from tpsr_ros.errors import DataError
+from tpsr_ros.features import rbf_features
+from tpsr_ros.state_model import Track, UpdateInfo
+
+if TYPE_CHECKING:
+    from tpsr_ros.tpsr import TPSRModel
+
+__all__ = [
+    "NORMALIZER_RTOL",
+    "observation_weights",
+    "track",
+    "update",
+    "update_matrices",
+]
+
+NORMALIZER_RTOL = 1e-3
+"""Relative threshold of the normaliser guard (see the module docstring)."""
+
+
+def _check_observations(model: TPSRModel, observations: np.ndarray) -> np.ndarray:
+    obs = np.asarray(observations, dtype=np.float64)
+    if obs.ndim != 2 or obs.shape[1] != model.obs_size:
+        raise DataError(
+            f"observations of shape {obs.shape} do not match the model's observation size "
+            f"{model.obs_size}"
+        )
+    if not np.isfinite(obs).all():
+        raise DataError("observations contain non-finite values (NaN or infinity)")
+    return obs
+
+
+def _check_actions(model: TPSRModel, actions: np.ndarray, n_steps: int) -> np.ndarray:
+    arr = np.asarray(actions)
+    if arr.shape != (n_steps,) or (arr.size and arr.dtype.kind not in "iu"):
+        raise DataError(
+            f"expected {n_steps} integer action indices, got {arr.dtype} array of shape {arr.shape}"
+        )
+    arr = arr.astype(np.int64, copy=False)
+    if arr.size and (arr.min() < 0 or arr.max() >= model.n_actions):
+        raise DataError(
+            f"action indices must lie in 0..{model.n_actions - 1}, found {arr.min()}..{arr.max()}"
+        )
+    return arr
+
+
+def observation_weights(model: TPSRModel, observations: np.ndarray) -> np.ndarray:
+    """Compute steps 1-2: normalised kernel weights ``(T, l_O)`` of observations ``(T, k)``."""
+    obs = _check_observations(model, observations)
+    white = np.matmul((obs - model.obs_mean)[:, None, :], model.obs_whitening)[:, 0, :]
+    return rbf_features(
+        white, model.obs_centers, model.config.sigma_obs, normalize=True, rowwise=True
+    )
+
+
+def update_matrices(model: TPSRModel, actions: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Compute step 3 (eq. 3.9): ``B_{a_s o_s}`` of all steps ``(T, r, r)``, a matmul per action."""
+    r = model.state_dim
+    n_steps = weights.shape[0]
+    out = np.empty((n_steps, r * r))
+    flat = model.B.reshape(model.n_actions, -1, r * r)
+    for a in np.unique(actions):
+        rows = np.flatnonzero(actions == a)
+        out[rows] = np.matmul(weights[rows, None, :], flat[a])[:, 0, :]
+    return out.reshape(n_steps, r, r)
+
+
+def _normalise(
+    b_ao: np.ndarray, state: np.ndarray, b_inf: np.ndarray
+) -> tuple[np.ndarray | None, float]:
+    """Eq. 3.8 with the guard: ``(new state or None if degenerate, normaliser)``."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        v = b_ao @ state
+        z = float(b_inf @ v)
+        scale = float(np.linalg.norm(b_inf) * np.linalg.norm(v))
+    if not (np.isfinite(z) and np.isfinite(scale)) or z <= NORMALIZER_RTOL * scale:
+        return None, z
+    return v / z, z
+
+
+def _step(
+    b_ao: np.ndarray, state: np.ndarray, b_star: np.ndarray, b_inf: np.ndarray
+) -> tuple[np.ndarray, float, bool]:
+    new, z = _normalise(b_ao, state, b_inf)
+    if new is not None:
+        return new, z, False
+    restarted, _ = _normalise(b_ao, b_star, b_inf)
+    return (restarted if restarted is not None else b_star.copy()), z, True
+
+
+def _check_state(model: TPSRModel, state: np.ndarray) -> np.ndarray:
+    arr = np.asarray(state, dtype=np.float64)
+    if arr.shape != (model.state_dim,):
+        raise DataError(f"state of shape {arr.shape} is not ({model.state_dim},)")
+    if not np.isfinite(arr).all():
+        raise DataError("state contains non-finite values")
+    return arr
+
+
+def update(
+    model: TPSRModel, state: np.ndarray, action: int, observation: np.ndarray
+) -> tuple[np.ndarray, UpdateInfo]:
+    """Algorithm 4: incorporate action ``action`` and observation ``(k,)`` into ``state (r,)``.
+
+    Returns the new state ``(r,)`` and its :class:`UpdateInfo`.
+    """
+    state = _check_state(model, state)
+    actions = _check_actions(model, np.asarray([action]), 1)
+    weights = observation_weights(model, np.asarray(observation, dtype=np.float64)[None, :])
+    b_ao = update_matrices(model, actions, weights)[0]
+    new, z, recovered = _step(b_ao, state, model.b_star, model.b_inf)
+    return new, UpdateInfo(normalizer=z, recovered=recovered)
+
+
+def track(
+    model: TPSRModel,
+    actions: np.ndarray,
+    observations: np.ndarray,
+    initial: np.ndarray | None = None,
+) -> Track:
+    """Algorithm 4 over ``T`` steps: ``actions (T,)``, ``observations (T, k)`` -> :class:`Track`.
+
+    Starts at ``initial`` (default ``b_*``); row ``s`` of the states is the state after step
+    ``s``. Equal, bit for bit, to a loop of :func:`update`.
+    """
+    obs = _check_observations(model, observations)
+    acts = _check_actions(model, actions, obs.shape[0])
+    state = model.initial_state() if initial is None else _check_state(model, initial)
+    weights = observation_weights(model, obs)
+    b_aos = update_matrices(model, acts, weights)
+    n_steps, r = obs.shape[0], model.state_dim
+    states = np.empty((n_steps, r))
+    normalizers = np.empty(n_steps)
+    recovered = np.zeros(n_steps, dtype=bool)
+    b_star, b_inf = model.b_star, model.b_inf
+    for s in range(n_steps):
+        state, normalizers[s], recovered[s] = _step(b_aos[s], state, b_star, b_inf)
+        states[s] = state
+    return Track(states=states, normalizers=normalizers, recovered=recovered)

@@ -1,0 +1,108 @@
+"""The interface every state model (TPSR, PCA baseline) offers to what comes downstream.
+
+Fitted Q-iteration, evaluation, plots and the filter node only need: the state of a model
+that has seen nothing yet, a one-step update ``(state, action, observation) -> state`` and a
+batch version over a trajectory, the state dimension, and the data needed to save the model.
+Both :class:`tpsr_ros.tpsr.TPSRModel` and :class:`tpsr_ros.pca_baseline.PCAModel` satisfy
+:class:`StateModel`, so code written against it treats them alike.
+
+Conventions: an observation is a float64 vector of ``obs_size`` values produced by
+:func:`tpsr_ros.episodes.image_to_observation` (pixel values / 255); an action is an integer
+index ``0 .. n_actions - 1``. ``track`` returns, for step ``s``, the state *after* the pair
+``(a_s, o_s)`` has been incorporated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
+
+import numpy as np
+
+__all__ = ["StateModel", "Track", "UpdateInfo"]
+
+
+@dataclass(frozen=True)
+class UpdateInfo:
+    """Diagnostics of one state update.
+
+    Attributes:
+        normalizer: ``b_inf^T B_ao b`` for a TPSR (the model's prediction of the observation
+            given the state, before the guard); ``nan`` for models without one (PCA).
+        recovered: the update could not be normalised and the filter restarted (see
+            :mod:`tpsr_ros.filtering`); a filter node counts these.
+
+    """
+
+    normalizer: float
+    recovered: bool
+
+
+class Track(NamedTuple):
+    """States tracked over a trajectory of ``T`` steps, with per-step diagnostics.
+
+    Attributes:
+        states: ``(T, state_dim)``; row ``s`` is the state after step ``s``.
+        normalizers: ``(T,)`` as :attr:`UpdateInfo.normalizer`.
+        recovered: ``(T,)`` bool, as :attr:`UpdateInfo.recovered`.
+
+    """
+
+    states: np.ndarray
+    normalizers: np.ndarray
+    recovered: np.ndarray
+
+
+@runtime_checkable
+class StateModel(Protocol):
+    """A fitted state representation: TPSR or a baseline."""
+
+    method: ClassVar[str]
+    """Short method name stored in model files: ``"tpsr"`` or ``"pca"``."""
+
+    @property
+    def state_dim(self) -> int:
+        """Dimension of a state vector."""
+        ...
+
+    @property
+    def n_actions(self) -> int:
+        """Number of discrete actions; actions are indices ``0 .. n_actions - 1``."""
+        ...
+
+    @property
+    def obs_size(self) -> int:
+        """Length ``k`` of an observation vector."""
+        ...
+
+    def initial_state(self) -> np.ndarray:
+        """State before any action-observation pair, ``(state_dim,)``."""
+        ...
+
+    def update(
+        self, state: np.ndarray, action: int, observation: np.ndarray
+    ) -> tuple[np.ndarray, UpdateInfo]:
+        """Incorporate one pair: ``state (state_dim,)``, ``observation (obs_size,)``."""
+        ...
+
+    def track(
+        self, actions: np.ndarray, observations: np.ndarray, initial: np.ndarray | None = None
+    ) -> Track:
+        """Track ``actions (T,)`` and ``observations (T, obs_size)`` from ``initial``.
+
+        Equal to a loop of :meth:`update` starting at ``initial`` (default
+        :meth:`initial_state`).
+        """
+        ...
+
+    def parameters(self) -> dict[str, Any]:
+        """Every parameter of the method, JSON-serialisable (stored in model files)."""
+        ...
+
+    def summary(self) -> dict[str, Any]:
+        """Fit diagnostics, JSON-serialisable (singular values, explained variance, timing)."""
+        ...
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Return the numeric content, for :mod:`tpsr_ros.model_io` (no object arrays)."""
+        ...

@@ -1,0 +1,542 @@
+"""TPSR batch learning with RBF features: guide Algorithm 3 (section 3.2), eqs. 3.1-3.7.
+
+From episodes (history, current action-observation pair, test; guide section 3.1) the fit
+
+1. whitens histories, tests and current observations (Algorithm 1, :mod:`tpsr_ros.whitening`),
+2. chooses kernel centres and computes the feature matrices (Algorithm 2,
+   :mod:`tpsr_ros.features`): ``phi_H`` and ``phi_T`` with the constant feature, ``phi_O``
+   normalised,
+3. estimates ``P_H`` (eq. 3.1) and ``P_TH`` (eq. 3.2), normalised by ``1/t``,
+4. takes the compact rank-``r`` SVD ``P_TH ~ U S V^T``,
+5. computes ``b_* = S V^T e`` (eq. 3.5), ``b_inf^T = P_H^T V S^-1`` (eq. 3.6) and every
+   ``B_ao' = U^T P_{T,ao',H} V S^-1`` (eqs. 3.3 and 3.7).
+
+Step 5 never forms a ``(l_T + 1) x (l_H + 1)`` matrix per sample as line 14 of the literal
+Algorithm 3 does. Since ``U^T phi_T phi_H^T V S^-1`` factorises, each sample is projected
+first: ``A_T = phi_T U`` (``t x r``) and ``A_H = phi_H V S^-1`` (``t x r``), and for each
+action ``a`` with samples ``Y_a``::
+
+    B_a[o', :, :] = 1/t_a * sum_{i in Y_a} phi_O[i, o'] * outer(A_T[i], A_H[i])
+
+is one ``(l_O x t_a) @ (t_a x r^2)`` matrix product. The cost is ``O(t (l_T + l_H) r +
+t l_O r^2)`` instead of ``O(t l_T l_H l_O)``.
+
+The SVD: ``P_TH`` is at most ``(l_T + 1) x (l_H + 1)`` and only its top singular triplets are
+needed, so for matrices larger than :data:`DENSE_SVD_LIMIT` they come from Lanczos iteration
+(``scipy.sparse.linalg.svds``, ARPACK, tolerance 0 = machine precision, fixed start vector);
+smaller ones use a full LAPACK SVD. Signs follow ``svd_flip`` (largest entry of each left
+singular vector positive), so fits are reproducible.
+
+One choice the guide leaves implicit is exposed as :attr:`TPSRConfig.p_th_tests`: which
+test window ``P_TH`` correlates with the history. The guide (eq. 3.2 with the same
+``phi_T`` as eq. 3.3) uses the test *after* the current pair (``"after-current"``); Boots et
+al. (2011) use the test *starting at* the current pair (``"from-current"``: the current
+observation followed by the first ``n - 1`` test observations). Only the latter makes
+``B_ao`` map a state to the state one step later under the same definition, so that
+repeated updates stay exact; with the guide's choice one-step predictions from ``b_*`` are
+exact but later updates carry a bias (``tests/test_tpsr_known_answer.py`` shows both).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse.linalg
+
+from tpsr_ros.errors import ConfigError, DataError
+from tpsr_ros.features import CONSTANT_SCALE, rbf_features, select_centers
+from tpsr_ros.state_model import Track, UpdateInfo
+from tpsr_ros.whitening import Whitening, check_finite_matrix, flip_signs
+
+__all__ = [
+    "DENSE_SVD_LIMIT",
+    "TPSRConfig",
+    "TPSRModel",
+    "fit_tpsr",
+    "top_singular_triplets",
+]
+
+DENSE_SVD_LIMIT = 200
+"""Matrices with a side at most this long get a full LAPACK SVD instead of ARPACK."""
+
+EXTRA_SINGULAR_VALUES = 5
+"""Singular values beyond the rank reported in the fit summary (to show the spectral gap)."""
+
+Progress = Callable[[str], None]
+
+
+def _param(default: Any, help: str, **cli: Any) -> Any:
+    """Dataclass field with its command-line help (``learner fit`` builds options from it)."""
+    return field(default=default, metadata={"help": help, **cli})
+
+
+@dataclass(frozen=True)
+class TPSRConfig:
+    """Parameters of a TPSR fit (guide table 3.5); defaults: figure 4.5, rank 5 (section 4.3).
+
+    History and test whitening dimensions, kernel centres and widths are coupled (``ht_*``),
+    as in the guide's experiments.
+    """
+
+    history_length: int = _param(1, "m: observations per history (guide h/t-length)")
+    test_length: int = _param(1, "n: observations per test (guide h/t-length)")
+    obs_dim: int = _param(10, "d^O: dimensions kept when whitening current observations")
+    ht_dim: int = _param(10, "d^H = d^T: dimensions kept when whitening histories and tests")
+    obs_centers: int = _param(500, "l^O: number of observation kernel centres")
+    ht_centers: int = _param(1000, "l^H = l^T: number of history and test kernel centres")
+    sigma_obs: float = _param(1.0, "sigma^O: kernel width of observation features")
+    sigma_ht: float = _param(2.0, "sigma^H = sigma^T: kernel width of history/test features")
+    rank: int = _param(5, "r: dimension of the TPSR state (singular values kept; guide dim)")
+    center_selection: Literal["first", "kmeans"] = _param(
+        "first",
+        "kernel centres: the first episodes (guide) or k-means centroids",
+        cli="--centers",
+        choices=("first", "kmeans"),
+    )
+    normalize_ht_features: bool = _param(
+        False, "normalise history/test features to sum 1 (Boots et al.; the guide does not)"
+    )
+    p_th_tests: Literal["after-current", "from-current"] = _param(
+        "after-current",
+        "test window of P_TH: after the current pair (guide eq. 3.2) or starting at it "
+        "(Boots et al. 2011)",
+        choices=("after-current", "from-current"),
+    )
+    seed: int = _param(0, "seed of k-means and of the SVD start vector")
+
+    def __post_init__(self) -> None:
+        for name in (
+            "history_length",
+            "test_length",
+            "obs_dim",
+            "ht_dim",
+            "obs_centers",
+            "ht_centers",
+            "rank",
+        ):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ConfigError(f"{name} must be a positive integer, not {value!r}")
+        for name in ("sigma_obs", "sigma_ht"):
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float, np.floating))
+                or not (np.isfinite(value) and value > 0)
+            ):
+                raise ConfigError(f"{name} must be a positive finite number, not {value!r}")
+        for f in fields(self):
+            allowed = f.metadata.get("choices")
+            if allowed is not None and getattr(self, f.name) not in allowed:
+                raise ConfigError(
+                    f"{f.name} must be one of {list(allowed)}, not {getattr(self, f.name)!r}"
+                )
+        if not isinstance(self.normalize_ht_features, bool):
+            raise ConfigError(
+                f"normalize_ht_features must be true or false, not {self.normalize_ht_features!r}"
+            )
+        if (
+            isinstance(self.seed, bool)
+            or not isinstance(self.seed, (int, np.integer))
+            or self.seed < 0
+        ):
+            raise ConfigError(f"seed must be a non-negative integer, not {self.seed!r}")
+        if self.rank > self.ht_centers + 1:
+            raise ConfigError(
+                f"rank {self.rank} exceeds the {self.ht_centers + 1} history/test features "
+                "(ht_centers + 1)"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        """Parameters as a JSON-serialisable dict."""
+        return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> TPSRConfig:
+        """Inverse of :meth:`to_dict`; unknown names are refused."""
+        known = {f.name for f in fields(cls)}
+        if unknown := sorted(set(values) - known):
+            raise ConfigError(f"unknown TPSR parameters {unknown}")
+        return cls(**values)
+
+
+def top_singular_triplets(
+    matrix: np.ndarray, k: int, *, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Compute the ``k`` largest singular triplets of ``matrix`` (``(p, q)``), exact to precision.
+
+    Returns ``U (p, k)``, ``s (k,)`` in decreasing order and ``V (q, k)`` with deterministic
+    signs. Uses ARPACK (``svds``, ``tol=0``) when the matrix exceeds :data:`DENSE_SVD_LIMIT`
+    and ``k`` is small enough, else a full LAPACK SVD.
+    """
+    p, q = matrix.shape
+    k = int(k)
+    if not 1 <= k <= min(p, q):
+        raise ConfigError(f"cannot take {k} singular values of a {p}x{q} matrix")
+    if min(p, q) <= DENSE_SVD_LIMIT or k >= min(p, q) - 1:
+        u, s, vt = scipy.linalg.svd(matrix, full_matrices=False)
+        u, s, v = u[:, :k], s[:k], vt[:k].T
+    else:
+        v0 = np.random.default_rng(seed).uniform(0.5, 1.5, size=min(p, q))
+        u, s, vt = scipy.sparse.linalg.svds(matrix, k=k, tol=0, v0=v0, solver="arpack")
+        order = np.argsort(s)[::-1]
+        u, s, v = u[:, order], s[order], vt[order].T
+    u, v = flip_signs(u, v)
+    return np.ascontiguousarray(u), s.copy(), np.ascontiguousarray(v)
+
+
+def _as_actions(actions: np.ndarray, n_rows: int, n_actions: int) -> np.ndarray:
+    arr = np.asarray(actions)
+    if arr.shape != (n_rows,):
+        raise DataError(f"expected {n_rows} actions, got an array of shape {arr.shape}")
+    if arr.dtype.kind == "f":
+        if not np.isfinite(arr).all() or not np.array_equal(arr, np.round(arr)):
+            raise DataError("actions must be integer indices")
+    elif arr.dtype.kind not in "iu":
+        raise DataError(f"actions must be integer indices, not {arr.dtype}")
+    arr = arr.astype(np.int64)
+    if arr.size and (arr.min() < 0 or arr.max() >= n_actions):
+        raise DataError(
+            f"action indices must lie in 0..{n_actions - 1}, found {arr.min()}..{arr.max()}"
+        )
+    return arr
+
+
+@dataclass(frozen=True, eq=False)
+class TPSRModel:
+    """A learned TPSR (guide table 3.4) plus what Algorithm 4 needs to track states.
+
+    Attributes:
+        config: the parameters of the fit.
+        obs_mean: ``(k,)`` whitening mean of current observations (``mean^O``).
+        obs_whitening: ``(k, d_O)`` whitening matrix of current observations (``W^O``).
+        obs_centers: ``(l_O, d_O)`` observation kernel centres (whitened).
+        b_star: ``(r,)`` starting state ``b_*``.
+        b_inf: ``(r,)`` normaliser ``b_inf``.
+        B: ``(n_actions, l_O, r, r)``; ``B[a, o']`` is ``B_ao'``.
+        singular_values: ``(>= r,)`` largest singular values of ``P_TH`` (first ``r`` kept).
+        explained_variance: whitening explained-variance ratios, keys ``obs``, ``history``,
+            ``test``, each ``(d,)``.
+        fit_info: JSON-serialisable diagnostics (sample counts, timings in seconds).
+
+    """
+
+    method: ClassVar[str] = "tpsr"
+
+    config: TPSRConfig
+    obs_mean: np.ndarray
+    obs_whitening: np.ndarray
+    obs_centers: np.ndarray
+    b_star: np.ndarray
+    b_inf: np.ndarray
+    B: np.ndarray
+    singular_values: np.ndarray
+    explained_variance: dict[str, np.ndarray]
+    fit_info: dict[str, Any] = field(default_factory=dict)
+
+    ARRAY_NAMES: ClassVar[tuple[str, ...]] = (
+        "obs_mean",
+        "obs_whitening",
+        "obs_centers",
+        "b_star",
+        "b_inf",
+        "B",
+        "singular_values",
+        "explained_variance_obs",
+        "explained_variance_history",
+        "explained_variance_test",
+    )
+
+    def __post_init__(self) -> None:
+        r, k = self.config.rank, self.obs_mean.shape[0]
+        d_o, l_o = self.config.obs_dim, self.config.obs_centers
+        n_act = self.B.shape[0] if self.B.ndim == 4 and self.B.shape[0] >= 1 else "n_actions>=1"
+        expected = {
+            "obs_mean": (k,),
+            "obs_whitening": (k, d_o),
+            "obs_centers": (l_o, d_o),
+            "b_star": (r,),
+            "b_inf": (r,),
+            "B": (n_act, l_o, r, r),
+        }
+        for name, shape in expected.items():
+            arr = getattr(self, name)
+            if arr.shape != shape:
+                raise DataError(f"TPSR array {name} has shape {arr.shape}, expected {shape}")
+        if self.singular_values.ndim != 1 or self.singular_values.shape[0] < r:
+            raise DataError(
+                f"TPSR singular_values has shape {self.singular_values.shape}, expected at "
+                f"least {r} values"
+            )
+
+    # --- StateModel interface -------------------------------------------------------------
+    @property
+    def state_dim(self) -> int:
+        """TPSR dimension ``r``."""
+        return int(self.config.rank)
+
+    @property
+    def n_actions(self) -> int:
+        """Number of actions (first axis of ``B``)."""
+        return int(self.B.shape[0])
+
+    @property
+    def obs_size(self) -> int:
+        """Observation length ``k``."""
+        return int(self.obs_mean.shape[0])
+
+    def initial_state(self) -> np.ndarray:
+        """``b_*`` (a copy)."""
+        return np.array(self.b_star)
+
+    def update(
+        self, state: np.ndarray, action: int, observation: np.ndarray
+    ) -> tuple[np.ndarray, UpdateInfo]:
+        """Algorithm 4; see :func:`tpsr_ros.filtering.update`."""
+        from tpsr_ros import filtering
+
+        return filtering.update(self, state, action, observation)
+
+    def track(
+        self, actions: np.ndarray, observations: np.ndarray, initial: np.ndarray | None = None
+    ) -> Track:
+        """Algorithm 4 over a trajectory; see :func:`tpsr_ros.filtering.track`."""
+        from tpsr_ros import filtering
+
+        return filtering.track(self, actions, observations, initial)
+
+    def parameters(self) -> dict[str, Any]:
+        """Return the :class:`TPSRConfig` as a dict."""
+        return self.config.to_dict()
+
+    def summary(self) -> dict[str, Any]:
+        """Singular values, whitening explained variance and fit diagnostics."""
+        return {
+            "singular_values": self.singular_values.tolist(),
+            "explained_variance": {
+                key: {"total": float(val.sum()), "per_dimension": val.tolist()}
+                for key, val in self.explained_variance.items()
+            },
+            **self.fit_info,
+        }
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Numeric content keyed by :attr:`ARRAY_NAMES`."""
+        arrays = {
+            name: getattr(self, name)
+            for name in (
+                "obs_mean",
+                "obs_whitening",
+                "obs_centers",
+                "b_star",
+                "b_inf",
+                "B",
+                "singular_values",
+            )
+        }
+        for key in ("obs", "history", "test"):
+            arrays[f"explained_variance_{key}"] = self.explained_variance[key]
+        return arrays
+
+    @classmethod
+    def from_arrays(
+        cls, arrays: dict[str, np.ndarray], parameters: dict[str, Any], summary: dict[str, Any]
+    ) -> TPSRModel:
+        """Rebuild a model from :meth:`to_arrays`, :meth:`parameters` and :meth:`summary`."""
+        config = TPSRConfig.from_dict(parameters)
+        info = {
+            k: v for k, v in summary.items() if k not in ("singular_values", "explained_variance")
+        }
+        return cls(
+            config=config,
+            obs_mean=arrays["obs_mean"],
+            obs_whitening=arrays["obs_whitening"],
+            obs_centers=arrays["obs_centers"],
+            b_star=arrays["b_star"],
+            b_inf=arrays["b_inf"],
+            B=arrays["B"],
+            singular_values=arrays["singular_values"],
+            explained_variance={
+                key: arrays[f"explained_variance_{key}"] for key in ("obs", "history", "test")
+            },
+            fit_info=info,
+        )
+
+
+class _Stopwatch:
+    """Records the duration of named stages and announces each one."""
+
+    def __init__(self, progress: Progress | None) -> None:
+        self.progress = progress
+        self.timings: dict[str, float] = {}
+        self._stage: str | None = None
+        self._start = 0.0
+
+    def stage(self, name: str) -> None:
+        self.stop()
+        if self.progress is not None:
+            self.progress(name)
+        self._stage, self._start = name, time.perf_counter()
+
+    def stop(self) -> None:
+        if self._stage is not None:
+            self.timings[self._stage] = time.perf_counter() - self._start
+            self._stage = None
+
+
+def fit_tpsr(
+    history: np.ndarray,
+    observation: np.ndarray,
+    action: np.ndarray,
+    test: np.ndarray,
+    *,
+    n_actions: int,
+    config: TPSRConfig | None = None,
+    progress: Progress | None = None,
+) -> TPSRModel:
+    """Learn a TPSR from ``E`` episodes (guide Algorithms 1-3).
+
+    Args:
+        history: ``(E, m k)`` observations of each history, oldest first, concatenated.
+        observation: ``(E, k)`` current observation of each episode.
+        action: ``(E,)`` current action indices in ``0 .. n_actions - 1``.
+        test: ``(E, n k)`` observations of each test, concatenated.
+        n_actions: number of actions; every action must occur among the training episodes.
+        config: parameters (default :class:`TPSRConfig`).
+        progress: called with the name of each stage as it starts.
+
+    Raises:
+        DataError: non-finite or inconsistent data, too few episodes for the kernel
+            centres, rank above the usable singular values, an action without samples.
+
+    """
+    cfg = config if config is not None else TPSRConfig()
+    watch = _Stopwatch(progress)
+    watch.stage("checking data")
+    observation = check_finite_matrix(observation, "current observations")
+    n_episodes, k = observation.shape
+    history = check_finite_matrix(history, "histories")
+    test = check_finite_matrix(test, "tests")
+    if history.shape != (n_episodes, cfg.history_length * k):
+        raise DataError(
+            f"histories have shape {history.shape}, expected ({n_episodes}, "
+            f"{cfg.history_length} x {k}) for history_length {cfg.history_length}"
+        )
+    if test.shape != (n_episodes, cfg.test_length * k):
+        raise DataError(
+            f"tests have shape {test.shape}, expected ({n_episodes}, {cfg.test_length} x {k}) "
+            f"for test_length {cfg.test_length}"
+        )
+    if int(n_actions) < 1:
+        raise ConfigError(f"n_actions must be at least 1, not {n_actions}")
+    action = _as_actions(action, n_episodes, int(n_actions))
+    n_centres = max(cfg.ht_centers, cfg.obs_centers)
+    # 'first' centres are taken out of the data (t = |E| - max l); k-means centres are not.
+    needed = n_centres + cfg.rank if cfg.center_selection == "first" else n_centres
+    if n_episodes < needed:
+        raise DataError(
+            f"{n_episodes} episodes are too few for {n_centres} kernel centres: "
+            f"'{cfg.center_selection}' centres with rank {cfg.rank} need at least {needed} "
+            "(lower obs_centers/ht_centers or record more data)"
+        )
+
+    watch.stage("whitening")
+    wh_h, h_white = Whitening.fit_transform(history, cfg.ht_dim, what="histories")
+    wh_t, t_white = Whitening.fit_transform(test, cfg.ht_dim, what="tests")
+    wh_o, o_white = Whitening.fit_transform(observation, cfg.obs_dim, what="current observations")
+    if cfg.p_th_tests == "from-current":
+        window = np.concatenate([observation, test[:, : (cfg.test_length - 1) * k]], axis=1)
+        t0_white = wh_t.transform(window)
+    else:
+        t0_white = t_white
+
+    watch.stage("kernel centres")
+    select = cfg.center_selection
+    c_h = select_centers(h_white, cfg.ht_centers, select, seed=cfg.seed, what="history")
+    c_t = select_centers(t_white, cfg.ht_centers, select, seed=cfg.seed + 1, what="test")
+    c_o = select_centers(o_white, cfg.obs_centers, select, seed=cfg.seed + 2, what="observation")
+    train = slice(n_centres, None) if select == "first" else slice(None)
+    n_train = int(h_white[train].shape[0])
+    a_train = action[train]
+
+    watch.stage("features")
+    norm_ht = cfg.normalize_ht_features
+    phi_h = rbf_features(h_white[train], c_h, cfg.sigma_ht, normalize=norm_ht, add_constant=True)
+    phi_t = rbf_features(t_white[train], c_t, cfg.sigma_ht, normalize=norm_ht, add_constant=True)
+    if t0_white is t_white:
+        phi_t0 = phi_t
+    else:
+        phi_t0 = rbf_features(
+            t0_white[train], c_t, cfg.sigma_ht, normalize=norm_ht, add_constant=True
+        )
+    phi_o = rbf_features(o_white[train], c_o, cfg.sigma_obs, normalize=True)
+
+    watch.stage("P-statistics")
+    p_h = phi_h.mean(axis=0)  # eq. 3.1, (l_H + 1,)
+    p_th = phi_t0.T @ phi_h  # eq. 3.2, (l_T + 1, l_H + 1)
+    p_th /= n_train
+
+    watch.stage("SVD")
+    n_sv = min(cfg.rank + EXTRA_SINGULAR_VALUES, min(p_th.shape))
+    u, s_all, v = top_singular_triplets(p_th, n_sv, seed=cfg.seed)
+    tol = max(p_th.shape) * np.finfo(np.float64).eps * float(s_all[0])
+    usable = int(np.count_nonzero(s_all > tol))
+    if usable < cfg.rank:
+        raise DataError(
+            f"rank {cfg.rank} exceeds the {usable} usable singular values of P_TH (largest "
+            f"{s_all[: cfg.rank].tolist()}); lower the rank or widen the history/test kernels"
+        )
+    r = cfg.rank
+    u, s, v = u[:, :r], s_all[:r], v[:, :r]
+
+    watch.stage("parameters")
+    b_star = s * v[-1] * CONSTANT_SCALE  # eq. 3.5: S V^T e with e = (0, ..., 0, 1000)
+    b_inf = (p_h @ v) / s  # eq. 3.6
+    a_t = phi_t @ u  # (t, r): U^T phi_T, transposed
+    a_h = phi_h @ v
+    a_h /= s  # (t, r): phi_H^T V S^-1
+    outer = (a_t[:, :, None] * a_h[:, None, :]).reshape(n_train, r * r)
+    counts = np.bincount(a_train, minlength=int(n_actions))
+    if (missing := np.flatnonzero(counts == 0)).size:
+        raise DataError(
+            f"action(s) {missing.tolist()} never occur as the current action of a training "
+            "episode; record more data or check the action mapping"
+        )
+    big_b = np.empty((int(n_actions), phi_o.shape[1], r, r))
+    order = np.argsort(a_train, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    for a in range(int(n_actions)):
+        rows = order[bounds[a] : bounds[a + 1]]
+        block = phi_o[rows].T @ outer[rows]  # eqs. 3.3 and 3.7, (l_O, r^2)
+        block /= counts[a]
+        big_b[a] = block.reshape(-1, r, r)
+    watch.stop()
+
+    fit_info = {
+        "episodes": int(n_episodes),
+        "training_episodes": n_train,
+        "samples_per_action": counts.tolist(),
+        "usable_singular_values": usable,
+        "timings": {name: round(sec, 6) for name, sec in watch.timings.items()},
+    }
+    return TPSRModel(
+        config=cfg,
+        obs_mean=wh_o.mean_,
+        obs_whitening=np.ascontiguousarray(wh_o.matrix_),
+        obs_centers=c_o,
+        b_star=b_star,
+        b_inf=b_inf,
+        B=big_b,
+        singular_values=s_all,
+        explained_variance={
+            "obs": wh_o.explained_variance_ratio_,
+            "history": wh_h.explained_variance_ratio_,
+            "test": wh_t.explained_variance_ratio_,
+        },
+        fit_info=fit_info,
+    )
