@@ -1,0 +1,221 @@
+"""``learner fit BAG... -o MODEL``: learn a TPSR (or the PCA baseline) from bags.
+
+Every parameter of guide table 3.5 is an option generated from the fields of
+:class:`~tpsr_ros.tpsr.TPSRConfig` (name, default, help and choices spelled once, there);
+the PCA baseline's from :class:`~tpsr_ros.pca_baseline.PCAConfig` and the topic names from
+:class:`~tpsr_ros.episodes.Topics`. Stage lines go to stderr, the summary to stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from tpsr_ros.cli import positive_int
+from tpsr_ros.episodes import Topics, make_episodes, read_trajectory
+from tpsr_ros.model_io import check_output_path, save_model
+from tpsr_ros.pca_baseline import PCAConfig, PCAModel, fit_pca
+from tpsr_ros.state_model import StateModel
+from tpsr_ros.tpsr import TPSRConfig, TPSRModel, fit_tpsr
+
+__all__ = [
+    "add_config_options",
+    "add_topic_options",
+    "config_from_args",
+    "register",
+    "run",
+    "summary_lines",
+    "topics_from_args",
+]
+
+C = TypeVar("C")
+
+
+def _option_name(f: dataclasses.Field[Any], prefix: str = "", suffix: str = "") -> str:
+    return str(f.metadata.get("cli") or f"--{prefix}{f.name.replace('_', '-')}{suffix}")
+
+
+def add_config_options(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls: type[Any]
+) -> None:
+    """One option per field of the frozen config dataclass ``cls`` (dest = field name)."""
+    for f in dataclasses.fields(cls):
+        kwargs: dict[str, Any] = {
+            "dest": f.name,
+            "default": f.default,
+            "help": f"{f.metadata.get('help', '')} (default: %(default)s)",
+        }
+        if isinstance(f.default, bool):
+            kwargs["action"] = argparse.BooleanOptionalAction
+        else:
+            kwargs["type"] = type(f.default)
+            if "choices" in f.metadata:
+                kwargs["choices"] = f.metadata["choices"]
+            else:
+                kwargs["metavar"] = {int: "N", float: "X"}.get(type(f.default), "VALUE")
+        parser.add_argument(_option_name(f), **kwargs)
+
+
+def config_from_args(cls: type[C], args: argparse.Namespace) -> C:
+    """Build ``cls`` from the options :func:`add_config_options` added (validated there)."""
+    return cls(**{f.name: getattr(args, f.name) for f in dataclasses.fields(cls)})  # type: ignore[arg-type]
+
+
+def add_topic_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """``--image-topic`` etc. from :class:`Topics`."""
+    for f in dataclasses.fields(Topics):
+        parser.add_argument(
+            f"--{f.name}-topic",
+            dest=f"{f.name}_topic",
+            default=f.default,
+            metavar="TOPIC",
+            help=f"{f.metadata.get('help', '')} (default: %(default)s)",
+        )
+
+
+def topics_from_args(args: argparse.Namespace) -> Topics:
+    """Return the :class:`Topics` chosen with :func:`add_topic_options`."""
+    return Topics(**{f.name: getattr(args, f"{f.name}_topic") for f in dataclasses.fields(Topics)})
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``fit`` subcommand."""
+    doc = "learn a TPSR (guide chapter 3) or the PCA baseline from bags and write a model file"
+    parser = subparsers.add_parser("fit", help=doc, description=doc[0].upper() + doc[1:] + ".")
+    parser.add_argument("bags", nargs="+", type=Path, metavar="BAG", help="rosbag2 MCAP bag(s)")
+    parser.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        required=True,
+        metavar="MODEL",
+        help="model file to write (.npz)",
+    )
+    parser.add_argument(
+        "--method",
+        choices=("tpsr", "pca"),
+        default="tpsr",
+        help="state model to learn (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--episodes",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="use only the first N episodes (guide |E|; default: all)",
+    )
+    parser.add_argument("--force", action="store_true", help="overwrite an existing MODEL")
+    add_config_options(parser.add_argument_group("TPSR parameters (guide table 3.5)"), TPSRConfig)
+    add_config_options(parser.add_argument_group("PCA baseline"), PCAConfig)
+    add_topic_options(parser.add_argument_group("topics"))
+    parser.set_defaults(run=run)
+
+
+def _say(message: str) -> None:
+    print(f"learner fit: {message}", file=sys.stderr, flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Read bags, cut episodes, fit, write the model and print a summary."""
+    output = check_output_path(args.output, force=args.force)
+    tpsr_config = config_from_args(TPSRConfig, args)
+    pca_config = config_from_args(PCAConfig, args)
+    timings: dict[str, float] = {}
+
+    _say(f"reading {len(args.bags)} bag(s)")
+    start = time.perf_counter()
+    trajectory = read_trajectory(args.bags, topics=topics_from_args(args))
+    timings["reading bags"] = time.perf_counter() - start
+    episodes = make_episodes(
+        trajectory,
+        tpsr_config.history_length,
+        tpsr_config.test_length,
+        max_episodes=args.episodes,
+    )
+    _say(
+        f"{len(trajectory)} steps in {len(trajectory.segment_bounds())} segment(s) -> "
+        f"{len(episodes)} episodes"
+    )
+    start = time.perf_counter()
+    model: StateModel
+    if args.method == "tpsr":
+        model = fit_tpsr(
+            episodes.history,
+            episodes.observation,
+            episodes.action,
+            episodes.test,
+            n_actions=trajectory.n_actions,
+            config=tpsr_config,
+            progress=_say,
+        )
+    else:
+        _say("PCA")
+        model = fit_pca(episodes.steps(), n_actions=trajectory.n_actions, config=pca_config)
+    timings["fit"] = time.perf_counter() - start
+
+    training = {
+        **trajectory.summary(),
+        "episodes": len(episodes),
+        "max_episodes": args.episodes,
+        "history_length": episodes.history_length,
+        "test_length": episodes.test_length,
+        "reading_seconds": round(timings["reading bags"], 6),
+        "fit_seconds": round(timings["fit"], 6),
+    }
+    _say(f"writing {output}")
+    start = time.perf_counter()
+    save_model(model, output, training=training, force=args.force)
+    timings["writing"] = time.perf_counter() - start
+    for line in summary_lines(model, training, timings, output):
+        print(line)
+    return 0
+
+
+def _fmt(values: Any) -> str:
+    return " ".join(f"{v:.4g}" for v in np.asarray(values, dtype=float).ravel())
+
+
+def summary_lines(
+    model: StateModel, training: dict[str, Any], timings: dict[str, float], output: Path
+) -> list[str]:
+    """Human-readable summary of a fit."""
+    lines = [
+        f"model: {output} (method {model.method}, state dimension {model.state_dim}, "
+        f"{model.n_actions} actions)",
+        f"data: {len(training.get('bags', []))} bag(s), {training.get('steps')} steps, "
+        f"{training.get('segments')} segment(s), {training.get('episodes')} episodes, "
+        f"environment {training.get('environment')}",
+    ]
+    if isinstance(model, TPSRModel):
+        r = model.state_dim
+        sv = model.singular_values
+        lines.append(
+            f"training episodes after {max(model.config.obs_centers, model.config.ht_centers)} "
+            f"kernel centres: {model.fit_info.get('training_episodes')}"
+            if model.config.center_selection == "first"
+            else f"training episodes: {model.fit_info.get('training_episodes')}"
+        )
+        lines.append(f"singular values of P_TH: kept {_fmt(sv[:r])} | next {_fmt(sv[r:])}")
+        ev = model.explained_variance
+        lines.append(
+            "whitening explained variance: "
+            + ", ".join(f"{key} {val.sum():.3f} ({val.size} dims)" for key, val in ev.items())
+        )
+        stages = model.fit_info.get("timings", {})
+    elif isinstance(model, PCAModel):
+        ratio = model.explained_variance_ratio
+        lines.append(f"explained variance: {ratio.sum():.3f} ({_fmt(ratio)})")
+        stages = model.fit_info.get("timings", {})
+    else:  # pragma: no cover - future methods
+        stages = {}
+    parts = [f"reading bags {timings['reading bags']:.2f} s"]
+    parts += [f"{name} {sec:.3f} s" for name, sec in stages.items()]
+    parts += [f"fit total {timings['fit']:.2f} s", f"writing {timings['writing']:.2f} s"]
+    lines.append("timing: " + "; ".join(parts))
+    return lines

@@ -1,0 +1,134 @@
+"""``learner plot MODEL BAG -o states.png``: tracked states coloured by ground truth.
+
+States come from running the model's update over the bag (guide section 4.2: tracked with
+the learned parameters, not histories embedded with ``U``). The figure scatters pairs of
+the first state dimensions, one row per pair, coloured by reward, true x and true y, like
+the guide's figure 4.5 (a-c). The command also prints how linearly the states predict the
+true position (R^2 of an affine least-squares map), a one-number check of the topology.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from learner.fit import add_topic_options, topics_from_args
+from tpsr_ros.episodes import read_trajectory, track_trajectory
+from tpsr_ros.errors import DataError
+from tpsr_ros.model_io import check_output_path, load_model
+
+__all__ = ["affine_r2", "plot_states", "register", "run"]
+
+
+def affine_r2(states: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """R^2 per target column of the least-squares affine map ``states (T, r) -> targets (T, c)``."""
+    states = np.asarray(states, dtype=np.float64)
+    targets = np.asarray(targets, dtype=np.float64).reshape(states.shape[0], -1)
+    design = np.concatenate([states, np.ones((states.shape[0], 1))], axis=1)
+    coef, *_ = np.linalg.lstsq(design, targets, rcond=None)
+    residual = ((targets - design @ coef) ** 2).sum(axis=0)
+    total = ((targets - targets.mean(axis=0)) ** 2).sum(axis=0)
+    return np.asarray(1.0 - residual / total)
+
+
+def plot_states(
+    states: np.ndarray,
+    positions: np.ndarray,
+    rewards: np.ndarray,
+    output: Path,
+    *,
+    max_pairs: int = 3,
+    title: str = "",
+) -> None:
+    """Scatter dimension pairs of ``states (T, r)`` coloured by reward, x and y; write a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import TwoSlopeNorm
+
+    r = states.shape[1]
+    if r >= 2:
+        pairs = list(itertools.combinations(range(min(r, 3)), 2))[:max_pairs]
+    else:
+        pairs = [(-1, 0)]  # the single dimension against the step index
+    fig, axes = plt.subplots(len(pairs), 3, figsize=(12, 4 * len(pairs)), squeeze=False)
+    finite = np.isfinite(rewards)
+    low = min(float(np.nanmin(rewards)) if finite.any() else -1.0, -1e-9)
+    high = max(float(np.nanmax(rewards)) if finite.any() else 1.0, 1e-9)
+    colourings = [
+        ("reward", rewards, TwoSlopeNorm(vmin=low, vcenter=0.0, vmax=high)),
+        ("true x", positions[:, 0], None),
+        ("true y", positions[:, 1], None),
+    ]
+    steps = np.arange(states.shape[0])
+    for row, (i, j) in enumerate(pairs):
+        xs = steps if i < 0 else states[:, i]
+        for col, (name, colour, norm) in enumerate(colourings):
+            ax = axes[row, col]
+            sc = ax.scatter(
+                xs,
+                states[:, j],
+                c=colour,
+                s=2,
+                cmap="coolwarm",
+                norm=norm,
+                rasterized=True,
+                linewidths=0,
+            )
+            ax.set_xlabel("step" if i < 0 else f"state dim {i}")
+            ax.set_ylabel(f"state dim {j}")
+            ax.set_title(f"coloured by {name}")
+            fig.colorbar(sc, ax=ax, shrink=0.8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(output, dpi=80)
+    plt.close(fig)
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``plot`` subcommand."""
+    doc = "plot states tracked over a bag, coloured by reward and true position (guide fig. 4.5)"
+    parser = subparsers.add_parser("plot", help=doc, description=doc[0].upper() + doc[1:] + ".")
+    parser.add_argument("model", type=Path, metavar="MODEL", help="model file (.npz)")
+    parser.add_argument(
+        "bags",
+        type=Path,
+        nargs="+",
+        metavar="BAG",
+        help="bag(s) with images, actions, ground-truth pose and reward",
+    )
+    parser.add_argument("-o", "--output", type=Path, required=True, metavar="PNG")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing PNG")
+    add_topic_options(parser.add_argument_group("topics"))
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Track, plot, and print the R^2 of true position from the states."""
+    output = Path(args.output)
+    if output.exists() and not args.force:
+        raise DataError(f"output file {str(output)!r} already exists; use --force to overwrite it")
+    check_output_path(output, force=True)
+    model = load_model(args.model)
+    trajectory = read_trajectory(
+        args.bags, topics=topics_from_args(args), require_ground_truth=True
+    )
+    tracked = track_trajectory(model, trajectory)
+    r2 = affine_r2(tracked.states, trajectory.positions)
+    plot_states(
+        tracked.states,
+        trajectory.positions,
+        trajectory.rewards,
+        output,
+        title=f"{model.method} states over {len(trajectory)} steps "
+        f"(R^2 of x, y from an affine map: {r2[0]:.3f}, {r2[1]:.3f})",
+    )
+    print(f"wrote {output}: {len(trajectory)} steps, {int(tracked.recovered.sum())} recoveries")
+    print(f"R^2 of true position from states (affine least squares): x {r2[0]:.3f}, y {r2[1]:.3f}")
+    return 0

@@ -1,0 +1,196 @@
+"""``python -m learner fit | info | plot``: options, outputs, one-line errors, and the
+full-environment check that tracked states are linearly predictive of the true position."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from learner.cli import build_parser, entry, main
+from learner.plots import affine_r2
+from sim_node import SimConfig
+from sim_node.generate import generate_bag
+from tpsr_ros.episodes import read_trajectory, track_trajectory
+from tpsr_ros.model_io import load_model, read_metadata
+from tpsr_ros.pca_baseline import PCAModel
+from tpsr_ros.tpsr import TPSRConfig, TPSRModel
+
+SMALL_OPTIONS = ["--obs-centers", "40", "--ht-centers", "80", "--rank", "3"]
+
+
+@pytest.fixture(scope="module")
+def small_bag(tmp_path_factory):
+    path = tmp_path_factory.mktemp("bags") / "small"
+    generate_bag(path, SimConfig(environment="full"), 900, seed=3)
+    return path
+
+
+def run_entry(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        entry(argv)
+    out, err = capsys.readouterr()
+    return exc.value.code, out, err
+
+
+def test_every_table_3_5_parameter_is_an_option():
+    fit = build_parser()._subparsers._group_actions[0].choices["fit"]
+    options = {s for a in fit._actions for s in a.option_strings}
+    for name in (
+        "--history-length",
+        "--test-length",
+        "--obs-dim",
+        "--ht-dim",
+        "--obs-centers",
+        "--ht-centers",
+        "--sigma-obs",
+        "--sigma-ht",
+        "--rank",
+        "--centers",
+        "--seed",
+        "--episodes",
+        "--method",
+        "--force",
+        "--pca-dim",
+        "--image-topic",
+        "-o",
+    ):
+        assert name in options, name
+    dests = {a.dest: a.default for a in fit._actions}
+    for f in dataclasses.fields(TPSRConfig):
+        assert dests[f.name] == f.default, f.name
+
+
+def test_fit_info_plot(small_bag, tmp_path, capsys):
+    model_path = tmp_path / "m.npz"
+    assert (
+        main(
+            [
+                "fit",
+                str(small_bag),
+                "-o",
+                str(model_path),
+                *SMALL_OPTIONS,
+                "--sigma-ht",
+                "3.0",
+                "--episodes",
+                "250",
+            ]
+        )
+        == 0
+    )
+    out, err = capsys.readouterr()
+    assert "singular values of P_TH: kept" in out and "whitening explained variance" in out
+    assert "timing: reading bags" in out and "whitening" in out
+    for stage in ("reading 1 bag(s)", "whitening", "features", "SVD", "writing"):
+        assert stage in err
+    model = load_model(model_path)
+    assert isinstance(model, TPSRModel)
+    assert model.config == TPSRConfig(obs_centers=40, ht_centers=80, rank=3, sigma_ht=3.0)
+    meta = read_metadata(model_path)
+    assert meta["training"]["episodes"] == 250 and meta["training"]["steps"] == 900
+    assert meta["training"]["environment"] == "full"
+    assert meta["training"]["bags"][0]["topics"]["image"] == "/camera/image_raw"
+
+    assert main(["info", str(model_path)]) == 0
+    out, _ = capsys.readouterr()
+    assert "method: tpsr, state dimension 3, 25 actions" in out and "rank=3" in out
+
+    png = tmp_path / "states.png"
+    assert main(["plot", str(model_path), str(small_bag), "-o", str(png)]) == 0
+    out, _ = capsys.readouterr()
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    assert "R^2 of true position" in out
+
+
+def test_pca_method(small_bag, tmp_path, capsys):
+    path = tmp_path / "p.npz"
+    assert main(["fit", str(small_bag), "-o", str(path), "--method", "pca", "--pca-dim", "3"]) == 0
+    assert "explained variance" in capsys.readouterr().out
+    model = load_model(path)
+    assert isinstance(model, PCAModel) and model.state_dim == 3
+    assert main(["plot", str(path), str(small_bag), "-o", str(tmp_path / "p.png")]) == 0
+
+
+def test_errors_are_one_line_and_write_nothing(small_bag, tmp_path, capsys):
+    out_path = tmp_path / "m.npz"
+    code, _, err = run_entry(
+        ["fit", str(small_bag), "-o", str(out_path), *SMALL_OPTIONS, "--rank", "500"], capsys
+    )
+    assert code == 1 and err.count("\n") == 1 and err.startswith("learner: error: ")
+    assert "Traceback" not in err and not out_path.exists()
+    code, _, err = run_entry(
+        ["fit", str(small_bag), "-o", str(out_path), "--episodes", "100"], capsys
+    )
+    assert code == 1 and "too few for 1000 kernel centres" in err and not out_path.exists()
+    code, _, err = run_entry(["fit", str(tmp_path / "nope"), "-o", str(out_path)], capsys)
+    assert code == 1 and "not a rosbag2 directory" in err
+    code, _, err = run_entry(["fit", str(small_bag), "-o", str(out_path), "--rank", "abc"], capsys)
+    assert code == 2 and err.startswith("learner fit: error: ") and err.count("\n") == 1
+    out_path.write_bytes(b"keep me")
+    code, _, err = run_entry(["fit", str(small_bag), "-o", str(out_path)], capsys)
+    assert code == 1 and "use --force" in err and out_path.read_bytes() == b"keep me"
+    code, _, err = run_entry(["info", str(out_path)], capsys)
+    assert code == 1 and "truncated or foreign" in err
+
+
+def test_python_dash_m_entry_point(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "learner", "info", str(tmp_path / "x.npz")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert proc.returncode == 1
+    assert (
+        proc.stderr.strip()
+        == f"learner: error: model file {str(tmp_path / 'x.npz')!r} does not exist"
+    )
+
+
+# --- the full environment (guide figure 4.5 settings) -------------------------------------
+
+
+@pytest.fixture(scope="module")
+def full_bags(tmp_path_factory):
+    root = tmp_path_factory.mktemp("full")
+    train, rl = root / "train24000", root / "rl10000"
+    generate_bag(train, SimConfig(environment="full"), 24_000, seed=0)
+    generate_bag(rl, SimConfig(environment="full"), 10_000, seed=1)
+    return train, read_trajectory([rl], require_ground_truth=True)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("options", "minimum"),
+    [
+        ([], 0.6),  # guide defaults (sigma_h/t 2.0): x ~0.7, y ~0.8 on our simulator
+        (["--sigma-ht", "4.0"], 0.8),
+    ],  # inside the guide's working range 2-6 (section 4.3)
+    ids=["defaults", "sigma-ht-4"],
+)
+def test_full_environment_states_predict_position(full_bags, tmp_path, capsys, options, minimum):
+    train, rl = full_bags
+    model_path = tmp_path / "full.npz"
+    assert main(["fit", str(train), "-o", str(model_path), *options]) == 0
+    capsys.readouterr()
+    model = load_model(model_path)
+    assert model.fit_info["training_episodes"] == 7000
+    tracked = track_trajectory(model, rl)
+    r2 = affine_r2(tracked.states, rl.positions)
+    with capsys.disabled():
+        print(
+            f"\n[full environment, learner fit {' '.join(options) or 'defaults'}] R^2 of true "
+            f"(x, y) from tracked states: {r2.round(3).tolist()}, recoveries "
+            f"{int(tracked.recovered.sum())} of {len(rl)}"
+        )
+    assert (r2 >= minimum).all(), r2
+    assert tracked.recovered.mean() < 0.01
+    # the filter node's streaming update agrees with batch tracking on a recorded bag
+    state = model.initial_state()
+    for s in range(300):
+        state, _ = model.update(state, int(rl.actions[s]), rl.observations[s])
+        np.testing.assert_array_equal(state, tracked.states[s])
