@@ -14,20 +14,20 @@ import pytest
 
 pytest.importorskip("cyclonedds")
 
-from cyclonedds.builtin import (  # noqa: E402
+from cyclonedds.builtin import (
     BuiltinDataReader,
     BuiltinTopicDcpsParticipant,
     BuiltinTopicDcpsPublication,
     BuiltinTopicDcpsSubscription,
 )
-from cyclonedds.core import Policy  # noqa: E402
-from cyclonedds.domain import DomainParticipant  # noqa: E402
+from cyclonedds.core import Policy
+from cyclonedds.domain import DomainParticipant
 
-from tpsr_ros import messages as m  # noqa: E402
-from tpsr_ros.errors import ConfigError, MessageError  # noqa: E402
-from tpsr_ros.runtime import LATCHED_QOS, SENSOR_DATA_QOS, Node, NodeOptions  # noqa: E402
-from tpsr_ros.runtime.dds import DdsTransport, domain_id_from_env  # noqa: E402
-from tpsr_ros.runtime.dds_types import dds_type_name, idl_struct, ros_type_name  # noqa: E402
+from tpsr_ros import messages as m
+from tpsr_ros.errors import ConfigError, MessageError
+from tpsr_ros.runtime import LATCHED_QOS, SENSOR_DATA_QOS, Node, NodeOptions
+from tpsr_ros.runtime.dds import DdsTransport, domain_id_from_env
+from tpsr_ros.runtime.dds_types import dds_type_name, idl_struct, ros_type_name
 
 pytestmark = pytest.mark.dds
 _COUNTER = itertools.count()

@@ -44,6 +44,14 @@ __all__ = ["DdsTransport", "domain_id_from_env", "localhost_only_from_env"]
 _DISCOVERY_TOPIC = "ros_discovery_info"
 _DISCOVERY_TYPE = "rmw_dds_common/msg/ParticipantEntitiesInfo"
 _TAKE_BATCH = 256
+# close() waits (bounded) for reliable data to be acknowledged itself; lingering again in
+# every writer's deletion (Cyclone's default: up to 1 s each, one after the other) would
+# only delay the exit when a matched reader died without unsubscribing.
+_LINGER_CONFIG = (
+    "<CycloneDDS><Domain id='any'><Internal>"
+    "<WriterLingerDuration>10 ms</WriterLingerDuration>"
+    "</Internal></Domain></CycloneDDS>"
+)
 _LOCALHOST_CONFIG = (
     "<CycloneDDS><Domain id='any'><General><Interfaces>"
     "<NetworkInterface address='127.0.0.1' multicast='true'/>"
@@ -70,6 +78,29 @@ def localhost_only_from_env() -> bool:
     if os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "").upper() == "LOCALHOST":
         return True
     return os.environ.get("ROS_LOCALHOST_ONLY", "") == "1"
+
+
+_DOMAINS: dict[int, Any] = {}
+
+
+def _configure_domain(domain_id: int, domain_cls: Any) -> None:
+    """Create the process's Cyclone domain ``domain_id`` once, with our configuration.
+
+    The user's ``CYCLONEDDS_URI`` comes first (or the loopback interface when ROS asks for
+    localhost-only discovery), then our writer-linger setting. The domain lives until the
+    process exits: deleting it would delete every participant in it, ours or not. If the
+    domain already exists (a participant was created elsewhere first) it is left alone.
+    """
+    if domain_id in _DOMAINS:
+        return
+    fragments = [os.environ.get("CYCLONEDDS_URI", "").strip()]
+    if not fragments[0] and localhost_only_from_env():
+        fragments = [_LOCALHOST_CONFIG]
+    fragments.append(_LINGER_CONFIG)
+    try:
+        _DOMAINS[domain_id] = domain_cls(domain_id, ",".join(f for f in fragments if f))
+    except Exception:
+        _DOMAINS[domain_id] = None
 
 
 def _typehash(msgtype: str) -> bytes:
@@ -145,7 +176,9 @@ class _Writer(PublisherHandle):
         return int(self.writer.get_publication_matched_status().current_count)
 
     def wait_for_acks(self, timeout_s: float) -> bool:
-        return bool(self.writer.wait_for_acks(int(timeout_s * 1e9)))
+        # DataWriter.wait_for_acks raises AttributeError on timeout in cyclonedds 11.0.1
+        # (it compares with a missing constant); call the C function and read its code.
+        return bool(self.writer._wait_for_acks(self.writer._ref, int(timeout_s * 1e9)) == 0)
 
     def close(self) -> None:
         if not self.closed:
@@ -212,9 +245,7 @@ class DdsTransport(Transport):
         self._ReadCondition = ReadCondition
         self.node_name, self.namespace = node_name, namespace
         self.domain_id = domain_id_from_env() if domain_id is None else domain_id
-        self._domain = None
-        if localhost_only_from_env() and not os.environ.get("CYCLONEDDS_URI"):
-            self._domain = Domain(self.domain_id, _LOCALHOST_CONFIG)
+        _configure_domain(self.domain_id, Domain)
         userdata = f"enclave={enclave};".encode()
         try:
             self._dp = DomainParticipant(self.domain_id, qos=Qos(Policy.Userdata(data=userdata)))
@@ -367,12 +398,10 @@ class DdsTransport(Transport):
         self._closed = True
         try:
             self._announce(leaving=True)
-            self._discovery_writer.wait_for_acks(int(0.2e9))
+            self._discovery_writer._wait_for_acks(self._discovery_writer._ref, int(0.2e9))
         except Exception:
             pass
         self._writers.clear()
         self._readers.clear()
         self._dp.__del__()
-        if self._domain is not None:
-            self._domain.__del__()
 

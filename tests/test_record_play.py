@@ -1,0 +1,464 @@
+"""Recorder, player, bag_info and bag_recover: real processes over DDS (and rclpy if present).
+
+Each test gets its own ROS_DOMAIN_ID (derived from the pid) and restricts Cyclone DDS to
+the loopback interface with CYCLONEDDS_URI, so parallel runs and other machines never
+cross-talk. Waiting is on conditions (log lines, process exits, file contents), except
+the 5 s recording window the acceptance test asks for.
+"""
+
+import itertools
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from tpsr_ros import messages as m
+from tpsr_ros.bag import BagReader, BagWriter
+from tpsr_ros.errors import BagError
+
+S = 10**9
+LOOPBACK = (
+    "<CycloneDDS><Domain id='any'><General><Interfaces>"
+    "<NetworkInterface address='127.0.0.1' multicast='true'/>"
+    "</Interfaces></General></Domain></CycloneDDS>"
+)
+STEP_TOPICS = ("/camera/image_raw", "/action", "/ground_truth/pose", "/reward")
+_COUNTER = itertools.count()
+
+
+def _rclpy_available() -> bool:
+    try:
+        import rclpy  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+BACKENDS = [
+    pytest.param("dds", marks=pytest.mark.dds),
+    pytest.param(
+        "rclpy",
+        marks=[
+            pytest.mark.rclpy,
+            pytest.mark.skipif(not _rclpy_available(), reason="rclpy (ROS 2) not importable"),
+        ],
+    ),
+]
+
+
+@pytest.fixture
+def graph_env():
+    pytest.importorskip("cyclonedds")
+    domain = (os.getpid() * 11 + 3 * next(_COUNTER)) % 200 + 20
+    return {
+        **os.environ,
+        "ROS_DOMAIN_ID": str(domain),
+        "CYCLONEDDS_URI": LOOPBACK,
+        "TPSR_TRANSPORT": "dds",
+        "PYTHONUNBUFFERED": "1",
+    }
+
+
+@dataclass
+class Proc:
+    """A node process whose stderr goes to a file we can poll."""
+
+    popen: subprocess.Popen[bytes]
+    log: Path
+
+    @classmethod
+    def start(cls, tmp: Path, name: str, env: dict[str, str], *args: str) -> "Proc":
+        log = tmp / f"{name}.log"
+        with log.open("wb") as sink:
+            popen = subprocess.Popen(
+                [sys.executable, "-m", *args], stdout=sink, stderr=sink, env=env
+            )
+        return cls(popen, log)
+
+    def text(self) -> str:
+        return self.log.read_text(errors="replace")
+
+    def wait_for(self, needle: str, timeout: float = 30.0) -> str:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            text = self.text()
+            if needle in text:
+                return text
+            if self.popen.poll() is not None:
+                break
+            time.sleep(0.02)
+        raise AssertionError(f"{needle!r} never appeared; log:\n{self.text()}")
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 30.0) -> int:
+        if self.popen.poll() is None:
+            self.popen.send_signal(sig)
+        return self.popen.wait(timeout)
+
+    def kill(self) -> None:
+        if self.popen.poll() is None:
+            self.popen.kill()
+            self.popen.wait(10)
+
+
+READY = "spinning until SIGINT/SIGTERM"
+
+
+def start_recorder(tmp: Path, env: dict[str, str], bag: Path, *topics: str, name="rec"):
+    proc = Proc.start(
+        tmp, name, env, "tpsr_ros.record", "-o", str(bag), *topics,
+        "--ros-args", "--log-level", "debug",
+    )
+    proc.wait_for(READY)
+    return proc
+
+
+def start_sim(tmp: Path, env: dict[str, str], *params: str, name="sim"):
+    args = ["sim_node", "--ros-args", "--log-level", "debug"]
+    for p in params:
+        args += ["-p", p]
+    return Proc.start(tmp, name, env, *args)
+
+
+def published_steps(log: str) -> int:
+    line = next(x for x in log.splitlines() if "published" in x and "steps and" in x)
+    return int(line.split("published ")[1].split(" steps")[0])
+
+
+def decoded(bag: Path, topic: str) -> list:
+    with BagReader(bag) as reader:
+        return [msg.decode() for msg in reader.messages([topic])]
+
+
+def payloads(bag: Path) -> dict[str, list[bytes]]:
+    with BagReader(bag) as reader:
+        out: dict[str, list[bytes]] = {t: [] for t in reader.topics}
+        for msg in reader.messages():
+            out[msg.topic].append(msg.data)
+    return out
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_sim_recorded_for_5_s_then_replayed_into_a_second_recording(
+    tmp_path, graph_env, backend
+):
+    env = {**graph_env, "TPSR_TRANSPORT": backend}
+    bag1, bag2 = tmp_path / "run", tmp_path / "replay"
+    recorder = start_recorder(tmp_path, env, bag1)
+    sim = start_sim(tmp_path, env, "rate:=50", "mode:=explore", "wait_for_subscribers:=1")
+    try:
+        sim.wait_for("episode starts")
+        time.sleep(5.0)  # the acceptance test: record the running sim for 5 s
+        assert sim.stop() == 0
+        steps = published_steps(sim.text())
+        assert recorder.stop() == 0
+    finally:
+        sim.kill()
+        recorder.kill()
+    assert steps >= 100, sim.text()
+
+    with BagReader(bag1) as reader:
+        counts = reader.message_counts
+    assert {t: counts[t] for t in STEP_TOPICS} == dict.fromkeys(STEP_TOPICS, steps)
+    assert counts["/clock"] == steps + 1  # the reset at t_0 has a clock tick too
+    assert counts["/sim/episode_start"] == 1
+    images = {m.stamp_of(x): x for x in decoded(bag1, "/camera/image_raw")}
+    actions = {m.stamp_of(x): x for x in decoded(bag1, "/action")}
+    assert sorted(images) == [k * S for k in range(1, steps + 1)]  # consecutive stamps
+    assert images.keys() == actions.keys()  # images and actions paired by stamp
+    assert all(len(x.data) == 768 and x.encoding == "rgb8" for x in images.values())
+
+    # play it back (5x faster) while a second recorder runs: identical payloads
+    recorder2 = start_recorder(tmp_path, env, bag2, name="rec2")
+    player = Proc.start(
+        tmp_path, "play", env, "tpsr_ros.play", str(bag1), "--rate", "5",
+        "--wait-for-subscribers", "1",
+    )
+    try:
+        assert player.popen.wait(60) == 0, player.text()
+        assert f"played {sum(counts.values())} messages" in player.text()
+        assert recorder2.stop() == 0
+    finally:
+        player.kill()
+        recorder2.kill()
+    original, replayed = payloads(bag1), payloads(bag2)
+    assert replayed.keys() == original.keys()
+    for topic in original:
+        assert replayed[topic] == original[topic], topic
+
+
+@pytest.mark.slow
+def test_a_plain_cyclone_reader_receives_the_images(tmp_path, graph_env, monkeypatch):
+    """An independent check: IdlStructs written by hand here, none of our code.
+
+    (This module does not use ``from __future__ import annotations`` so that Cyclone can
+    resolve the annotations of these function-local classes.)
+    """
+    from dataclasses import dataclass as idl_dataclass
+
+    from cyclonedds.core import Policy, Qos
+    from cyclonedds.domain import DomainParticipant
+    from cyclonedds.idl import IdlStruct
+    from cyclonedds.idl.annotations import final
+    from cyclonedds.idl.types import int32, sequence, uint8, uint32
+    from cyclonedds.sub import DataReader
+    from cyclonedds.topic import Topic
+    from cyclonedds.util import duration
+
+    @final
+    @idl_dataclass
+    class Time_(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+        sec: int32
+        nanosec: uint32
+
+    @final
+    @idl_dataclass
+    class Header_(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+        stamp: Time_
+        frame_id: str
+
+    @final
+    @idl_dataclass
+    class Image_(IdlStruct, typename="sensor_msgs::msg::dds_::Image_"):
+        header: Header_
+        height: uint32
+        width: uint32
+        encoding: str
+        is_bigendian: uint8
+        step: uint32
+        data: sequence[uint8]
+
+    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
+    participant = DomainParticipant(int(graph_env["ROS_DOMAIN_ID"]))
+    topic = Topic(participant, "rt/camera/image_raw", Image_)
+    reader = DataReader(participant, topic, Qos(
+        Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(100)
+    ))
+    sim = start_sim(tmp_path, graph_env, "rate:=50", "wait_for_subscribers:=0")
+    images = []
+    try:
+        deadline = time.monotonic() + 30
+        while len(images) < 10 and time.monotonic() < deadline:
+            images.extend(reader.take(N=100))
+            time.sleep(0.02)
+        assert sim.stop() == 0
+    finally:
+        sim.kill()
+    assert len(images) >= 10, sim.text()
+    stamps = [i.header.stamp.sec * S + i.header.stamp.nanosec for i in images]
+    assert stamps == list(range(stamps[0], stamps[0] + S * len(stamps), S))
+    first = images[0]
+    assert (first.height, first.width, first.encoding, first.step) == (16, 16, "rgb8", 48)
+    assert first.header.frame_id == "camera" and len(first.data) == 768
+
+
+def _messages_in(mcap: Path, topic: str) -> int:
+    """Complete messages on ``topic`` in a possibly still growing MCAP file."""
+    from mcap.records import Channel, Message
+    from mcap.stream_reader import StreamReader
+
+    count, channel_ids = 0, set()
+    try:
+        with mcap.open("rb") as stream:
+            for record in StreamReader(stream).records:
+                if isinstance(record, Channel) and record.topic == topic:
+                    channel_ids.add(record.id)
+                elif isinstance(record, Message) and record.channel_id in channel_ids:
+                    count += 1
+    except Exception:
+        pass
+    return count
+
+
+@pytest.mark.slow
+def test_sigkill_leaves_a_bag_that_bag_recover_makes_readable(tmp_path, graph_env):
+    bag = tmp_path / "killed"
+    recorder = start_recorder(tmp_path, graph_env, bag)
+    sim = start_sim(tmp_path, graph_env, "rate:=50", "wait_for_subscribers:=1")
+    mcap = bag / "killed.mcap"
+    try:
+        deadline = time.monotonic() + 30
+        while _messages_in(mcap, "/camera/image_raw") < 60 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        flushed = _messages_in(mcap, "/camera/image_raw")
+        recorder.popen.kill()  # SIGKILL: no chance to close the bag
+        recorder.popen.wait(10)
+        assert sim.stop() == 0
+    finally:
+        sim.kill()
+        recorder.kill()
+    assert flushed >= 60
+    assert not (bag / "metadata.yaml").exists()
+    with pytest.raises(BagError, match="bag_recover"):
+        BagReader(bag)
+    result = subprocess.run(
+        [sys.executable, "-m", "tpsr_ros.bag_recover", str(bag)],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "recovered" in result.stdout
+    images = [m.stamp_of(x) for x in decoded(bag, "/camera/image_raw")]
+    actions = [m.stamp_of(x) for x in decoded(bag, "/action")]
+    assert len(images) >= flushed
+    assert images == [k * S for k in range(1, len(images) + 1)]
+    # a flush may split the last step: images and actions agree except at the very end
+    common = min(len(images), len(actions))
+    assert images[:common] == actions[:common] and abs(len(images) - len(actions)) <= 1
+    info = subprocess.run(
+        [sys.executable, "-m", "tpsr_ros.bag_info", str(bag)],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert info.returncode == 0 and "/camera/image_raw" in info.stdout
+
+
+# -- bad input and exit paths (in process, fast) ---------------------------------------
+
+
+def _run(main, argv, capsys) -> tuple[int, str]:
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    return int(info.value.code or 0), capsys.readouterr().err
+
+
+def test_recorder_refuses_existing_or_unwritable_paths(tmp_path, capsys, monkeypatch):
+    from tpsr_ros import record
+
+    monkeypatch.setenv("TPSR_TRANSPORT", "inproc")
+    existing = tmp_path / "exists"
+    existing.mkdir()
+    code, err = _run(record.main, ["-o", str(existing)], capsys)
+    assert code == 1 and "already exists" in err and err.count("\n") == 1
+    code, err = _run(record.main, ["-o", str(tmp_path / "no" / "such" / "bag")], capsys)
+    assert code == 1 and "does not exist" in err
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        if not os.access(locked, os.W_OK):  # root can write anywhere
+            code, err = _run(record.main, ["-o", str(locked / "bag")], capsys)
+            assert code == 1 and "not writable" in err
+    finally:
+        locked.chmod(0o700)
+    code, err = _run(record.main, [], capsys)
+    assert code == 2 and "-o/--output" in err
+
+
+def test_player_and_info_refuse_what_is_not_a_rosbag2_mcap_bag(tmp_path, capsys):
+    from tpsr_ros import bag_info, play
+
+    plain = tmp_path / "file.txt"
+    plain.write_text("hello")
+    sqlite = tmp_path / "sqlite_bag"
+    sqlite.mkdir()
+    (sqlite / "metadata.yaml").write_text(
+        "rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: sqlite3\n"
+    )
+    for path, fragment in [
+        (tmp_path / "missing", "not a rosbag2 directory"),
+        (plain, "not a rosbag2 directory"),
+        (sqlite, "not mcap"),
+    ]:
+        code, err = _run(play.main, [str(path)], capsys)
+        assert code == 1 and fragment in err and err.count("\n") == 1
+        with pytest.raises(SystemExit) as info:
+            from tpsr_ros.cli import run_cli
+
+            run_cli("python -m tpsr_ros.bag_info", lambda p=path: bag_info.main([str(p)]))
+        assert info.value.code == 1
+        err = capsys.readouterr().err
+        assert fragment in err and err.count("\n") == 1
+    code, err = _run(play.main, [str(tmp_path), "--rate", "0"], capsys)
+    assert code == 2 and "not positive" in err
+
+
+def _recorder(bus, bag: Path, *topics: str):
+    from tpsr_ros.record import RecorderNode
+    from tpsr_ros.runtime import NodeOptions
+    from tpsr_ros.runtime.inproc import InprocTransport
+
+    args = RecorderNode.argument_parser("record").parse_args(["-o", str(bag), *topics])
+    options = NodeOptions.for_node(RecorderNode, args=args)
+    return RecorderNode(options, transport=InprocTransport("/rec", bus))
+
+
+def _talker(bus, name="talker"):
+    from tpsr_ros.runtime import Node, NodeOptions
+    from tpsr_ros.runtime.inproc import InprocTransport
+
+    return Node(NodeOptions(name=name), transport=InprocTransport("/" + name, bus))
+
+
+def test_topic_type_clash_stops_the_recorder_and_the_bag_stays_readable(tmp_path):
+    from tpsr_ros.runtime.inproc import InprocBus
+
+    bus = InprocBus()
+    talker = _talker(bus)
+    clock = talker.create_publisher("/x", m.CLOCK_TYPE)
+    rec = _recorder(bus, tmp_path / "bag")
+    assert rec.wait_for(lambda: "/x" in rec.subscribed, 5)
+    clock.publish(m.clock_msg(5))
+    rec.spin(timeout_s=0.05)
+    _talker(bus, "other").create_publisher("/x", m.TWIST_TYPE)
+    with pytest.raises(BagError, match="topic type clash: /x"):
+        rec.spin(timeout_s=5)
+    rec.close()
+    with BagReader(tmp_path / "bag") as reader:
+        assert reader.topics == {"/x": m.CLOCK_TYPE}
+        assert reader.message_counts == {"/x": 1}
+
+
+def test_recorder_selects_topics_adapts_qos_and_records_late_publishers(tmp_path):
+    from tpsr_ros.runtime import SENSOR_DATA_QOS
+    from tpsr_ros.runtime.inproc import InprocBus
+
+    bus = InprocBus()
+    talker = _talker(bus)
+    scan = talker.create_publisher("/scan", m.CLOCK_TYPE, SENSOR_DATA_QOS)
+    ignored = talker.create_publisher("/ignored", m.CLOCK_TYPE)
+    rec = _recorder(bus, tmp_path / "bag", "/scan", "/late")
+    assert rec.wait_for(lambda: "/scan" in rec.subscribed, 5)
+    assert rec.qos["/scan"].reliability.value == "best_effort"
+    late = _talker(bus, "late").create_publisher("/late", m.POSE_TYPE)
+    assert rec.wait_for(lambda: "/late" in rec.subscribed, 5)
+    scan.publish(m.clock_msg(1))
+    ignored.publish(m.clock_msg(2))
+    late.publish(m.pose_msg(3, 1.0, 2.0))
+    rec.spin(timeout_s=0.05)
+    rec.close()
+    with BagReader(tmp_path / "bag") as reader:
+        assert reader.message_counts == {"/scan": 1, "/late": 1}
+        offered = reader.qos_profiles["/scan"]
+        assert offered[0].reliability.name == "BEST_EFFORT" and offered[0].depth == 5
+
+
+def test_player_publishes_clock_from_header_stamps_when_the_bag_has_none(tmp_path):
+    from tpsr_ros.play import PlayerNode
+    from tpsr_ros.runtime import NodeOptions
+    from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
+
+    bag = tmp_path / "bag"
+    with BagWriter(bag) as writer:
+        writer.add_topic("/action", m.ACTION_TYPE)
+        for k in range(1, 4):
+            writer.write_message("/action", 100 * S + k, m.twist_stamped_msg(k * S, 3.0, 0.0))
+    bus = InprocBus()
+    listener = _talker(bus, "listener")
+    clocks, actions = [], []
+    listener.create_subscription("/clock", m.CLOCK_TYPE, clocks.append)
+    listener.create_subscription("/action", m.ACTION_TYPE, actions.append)
+    args = PlayerNode.argument_parser("play").parse_args([str(bag), "--rate", "100"])
+    player = PlayerNode(NodeOptions.for_node(PlayerNode, args=args),
+                        transport=InprocTransport("/player", bus))
+    assert {(e.topic, e.msgtype) for e in player.endpoints()} == {
+        ("/action", m.ACTION_TYPE), ("/clock", m.CLOCK_TYPE)
+    }
+    player.spin()
+    player.close()
+    listener.spin_once(0.0)
+    assert [m.stamp_of(c) for c in clocks] == [S, 2 * S, 3 * S]
+    assert [m.stamp_of(a) for a in actions] == [S, 2 * S, 3 * S]

@@ -1,0 +1,209 @@
+"""Play a rosbag2 MCAP bag back onto the graph, like ``ros2 bag play``.
+
+    python -m tpsr_ros.play BAG [--rate R] [--loop] [--topics T ...]
+
+Messages are published in log-time order with their original spacing divided by
+``--rate``; their stored CDR bytes are published unchanged. Each topic is published with
+the QoS its recorded publishers offered (reliable unless one was best-effort,
+transient-local only if all were, the largest depth); bags without recorded QoS (e.g.
+from ``sim_node.generate``) use ROS 2's default (reliable, volatile, keep-last 10).
+
+``/clock``: when the bag contains ``/clock``, its recorded messages are replayed like any
+other topic. Otherwise the player publishes ``/clock`` itself before each message whose
+time is later than the last clock sent: the message's ``header.stamp`` when its type
+starts with a ``std_msgs/Header``, else its log time (``--no-clock`` disables this).
+
+``--wait-for-subscribers N`` holds playback until every played topic has N matched
+subscriptions (e.g. a recorder), so nothing is published into the void. Playback ends
+at the end of the bag (or on SIGINT/SIGTERM); the player then waits, up to 2 s, for
+reliable subscribers to acknowledge everything, and exits.
+"""
+
+from __future__ import annotations
+
+import argparse
+import struct
+import time
+from pathlib import Path
+from typing import Any
+
+from tpsr_ros.bag import BagReader
+from tpsr_ros.cli import ArgumentParser
+from tpsr_ros.errors import BagError, TpsrError
+from tpsr_ros.messages import CLOCK_TYPE, clock_msg, jazzy_typestore
+from tpsr_ros.runtime import DEFAULT_QOS, Node, NodeOptions, Publisher, run_node
+from tpsr_ros.runtime.qos import from_bag_qos
+
+__all__ = ["PlayerNode", "header_stamp_ns", "main"]
+
+PROG = "python -m tpsr_ros.play"
+CLOCK_TOPIC = "/clock"
+_NS = 1_000_000_000
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"{value} is not positive")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value} is negative")
+    return value
+
+
+def _starts_with_header(msgtype: str) -> bool:
+    defs = jazzy_typestore().fielddefs.get(msgtype)
+    if not defs or not defs[1]:
+        return False
+    _, node = defs[1][0]
+    return bool(node[0].name == "NAME" and node[1] == "std_msgs/msg/Header")
+
+
+def header_stamp_ns(data: bytes) -> int | None:
+    """``header.stamp`` of CDR bytes whose message starts with a std_msgs/Header."""
+    if len(data) < 12:
+        return None
+    fmt = "<iI" if data[1] == 1 else ">iI"
+    sec, nanosec = struct.unpack_from(fmt, data, 4)
+    return int(sec) * _NS + int(nanosec) if sec >= 0 else None
+
+
+class PlayerNode(Node):
+    """Publishes a bag's messages with their original timing."""
+
+    default_name = "tpsr_player"
+    description = "Play a rosbag2 MCAP bag, like `ros2 bag play`."
+
+    @classmethod
+    def argument_parser(cls, prog: str) -> ArgumentParser:
+        """``BAG [--rate R] [--loop] [--topics ...]``."""
+        parser = ArgumentParser(prog=prog, description=cls.description, add_help=False)
+        parser.add_argument("bag", type=Path, help="rosbag2 MCAP bag directory")
+        parser.add_argument(
+            "--rate", type=_positive_float, default=1.0, help="speed factor (default 1.0)"
+        )
+        parser.add_argument("--loop", action="store_true", help="replay until interrupted")
+        parser.add_argument(
+            "--topics", nargs="+", metavar="TOPIC", help="play only these topics"
+        )
+        parser.add_argument(
+            "--no-clock",
+            action="store_true",
+            help="do not publish /clock when the bag has none",
+        )
+        parser.add_argument(
+            "--wait-for-subscribers",
+            type=_non_negative_int,
+            default=0,
+            metavar="N",
+            help="start once every played topic has N subscriptions (default 0)",
+        )
+        return parser
+
+    @classmethod
+    def preflight(cls, options: NodeOptions) -> None:
+        """Refuse a path that is not a rosbag2 MCAP bag before joining the graph."""
+        assert options.args is not None
+        BagReader(options.args.bag).close()
+
+    def setup(self) -> None:
+        """Open the bag and create one publisher per played topic."""
+        args = self.options.args
+        if args is None:
+            raise TpsrError("the player needs its command-line options (BAG)")
+        self.args = args
+        self.reader = BagReader(args.bag)
+        topics = self.reader.topics
+        if args.topics:
+            missing = sorted(set(args.topics) - set(topics))
+            if missing:
+                raise BagError(f"bag {str(args.bag)!r} has no topic {', '.join(missing)}")
+            topics = {t: topics[t] for t in args.topics}
+        self.played = topics
+        qos = self.reader.qos_profiles
+        self.publishers: dict[str, Publisher] = {
+            topic: self.create_publisher(
+                topic, msgtype, from_bag_qos(qos.get(topic, [])) or DEFAULT_QOS
+            )
+            for topic, msgtype in topics.items()
+        }
+        self.clock: Publisher | None = None
+        if CLOCK_TOPIC not in self.reader.topics and not args.no_clock:
+            self.clock = self.create_publisher(CLOCK_TOPIC, CLOCK_TYPE)
+        self.header_first = {t: _starts_with_header(m) for t, m in topics.items()}
+        self.published = 0
+        self.exit_code = 0
+
+    def _wait_for_subscribers(self) -> None:
+        needed = self.args.wait_for_subscribers
+        if not needed:
+            return
+        self.logger.info(f"waiting for {needed} subscription(s) on every played topic")
+        pubs = list(self.publishers.values())
+        self.spin(until=lambda: all(p.get_subscription_count() >= needed for p in pubs))
+
+    def _play_once(self) -> None:
+        start_wall = time.monotonic_ns()
+        first_log: int | None = None
+        last_clock = -1
+        for message in self.reader.messages(self.played):
+            if not self.ok():
+                return
+            if first_log is None:
+                first_log = message.log_time_ns
+            due = start_wall + (message.log_time_ns - first_log) / self.args.rate
+            while self.ok():
+                wait_ns = due - time.monotonic_ns()
+                if wait_ns <= 0:
+                    break
+                self.spin_once(wait_ns / _NS)
+            if not self.ok():
+                return
+            if self.clock is not None:
+                stamp = (
+                    header_stamp_ns(message.data)
+                    if self.header_first[message.topic]
+                    else message.log_time_ns
+                )
+                stamp = message.log_time_ns if stamp is None else stamp
+                if stamp > last_clock:
+                    self.clock.publish(clock_msg(stamp))
+                    last_clock = stamp
+            self.publishers[message.topic].publish_raw(message.data)
+            self.published += 1
+
+    def spin(self, until: Any = None, timeout_s: float | None = None) -> bool:
+        """Play the bag (once, or until interrupted with ``--loop``); then request shutdown."""
+        if until is not None or timeout_s is not None:
+            return super().spin(until, timeout_s)
+        self._wait_for_subscribers()
+        while self.ok():
+            self._play_once()
+            if not self.args.loop:
+                break
+        self.logger.info(f"played {self.published} messages from {self.args.bag}")
+        self.request_shutdown("end of bag")
+        return True
+
+    def on_shutdown(self) -> None:
+        """Close the bag."""
+        self.reader.close()
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of ``python -m tpsr_ros.play``."""
+    run_node(PlayerNode, prog=PROG, argv=argv)
+
+
+if __name__ == "__main__":
+    main()
