@@ -51,11 +51,16 @@ def test_a_nearer_wall_looks_taller(environment):
         shares = np.linalg.lstsq(basis, target, rcond=None)[0]
         return float(shares[1].sum())
 
-    heights = [north_wall_rows(y) for y in (5.0, 15.0, 25.0, 35.0, 42.0)]
+    config = SimConfig(environment=environment)
+    row = 2.0 * config.vertical_half_extent / config.image_size  # rows are even in tan
+    # beyond the distance at which the wall fills the whole column
+    heights = [north_wall_rows(y) for y in (3.0, 10.0, 20.0, 25.0, 33.0)]
     assert all(a < b for a, b in zip(heights, heights[1:])), heights
-    # perspective: the apparent height (in rows of tan elevation) is 4 m / distance
-    distance = 45.0 - 25.0
-    assert heights[2] == pytest.approx(4.0 / distance * 8.0, rel=0.05)
+    # perspective: the apparent height in tan of elevation is wall height / distance
+    for y, height in zip((3.0, 10.0, 20.0, 25.0, 33.0), heights):
+        assert height == pytest.approx(config.wall_height / (45.0 - y) / row, rel=0.05)
+    close = north_wall_rows(42.0)
+    assert close == pytest.approx(config.image_size, abs=0.1)  # fills the column
 
 
 def test_300_degree_camera_sees_all_four_walls():
