@@ -92,8 +92,8 @@ class SimNode(Node):
             EPISODE_START_TOPIC, m.POSE_TYPE, LATCHED_QOS
         )
         self.create_subscription(RESET_TOPIC, m.POSE_TYPE, self.on_reset)
-        if p.mode == "command":
-            self.create_subscription(CMD_VEL_TOPIC, m.TWIST_TYPE, self.on_cmd_vel)
+        self.create_subscription(CMD_VEL_TOPIC, m.TWIST_TYPE, self.on_cmd_vel)
+        self._warned_explore = False
         self.steps_published = 0
         self.resets = 0
         self._time_index = -1
@@ -166,6 +166,11 @@ class SimNode(Node):
 
     def on_cmd_vel(self, msg: Any) -> None:
         """Command mode: one step per Twist, snapped to the nearest of the 25 actions."""
+        if self.params.mode != "command":
+            if not self._warned_explore:
+                self._warned_explore = True
+                self.logger.warning("/cmd_vel ignored in explore mode (use -p mode:=command)")
+            return
         if not self.started:
             self.logger.warning("/cmd_vel ignored: waiting for subscribers before the start")
             return
