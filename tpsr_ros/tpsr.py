@@ -51,7 +51,7 @@ import scipy.sparse.linalg
 from tpsr_ros.errors import ConfigError, DataError
 from tpsr_ros.features import CONSTANT_SCALE, rbf_features, select_centers
 from tpsr_ros.state_model import Track, UpdateInfo
-from tpsr_ros.whitening import Whitening, check_finite_matrix, flip_signs
+from tpsr_ros.whitening import Whitening, check_finite_matrix, flip_signs, single_blas_thread
 
 __all__ = [
     "DENSE_SVD_LIMIT",
@@ -183,7 +183,8 @@ def top_singular_triplets(
         u, s, v = u[:, :k], s[:k], vt[:k].T
     else:
         v0 = np.random.default_rng(seed).uniform(0.5, 1.5, size=min(p, q))
-        u, s, vt = scipy.sparse.linalg.svds(matrix, k=k, tol=0, v0=v0, solver="arpack")
+        with single_blas_thread():  # ARPACK: many small matrix-vector products
+            u, s, vt = scipy.sparse.linalg.svds(matrix, k=k, tol=0, v0=v0, solver="arpack")
         order = np.argsort(s)[::-1]
         u, s, v = u[:, order], s[order], vt[order].T
     u, v = flip_signs(u, v)
