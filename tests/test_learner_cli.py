@@ -93,6 +93,7 @@ def test_fit_info_plot(small_bag, tmp_path, capsys):
     meta = read_metadata(model_path)
     assert meta["training"]["episodes"] == 250 and meta["training"]["steps"] == 900
     assert meta["training"]["environment"] == "full"
+    assert meta["training"]["bags"][0]["generator"]["seed"] == 3
     assert meta["training"]["bags"][0]["topics"]["image"] == "/camera/image_raw"
 
     assert main(["info", str(model_path)]) == 0

@@ -24,6 +24,12 @@ def tpsr() -> TPSRModel:
 TRAINING = {"bags": [{"path": "bags/x", "steps": 600}], "steps": 600, "environment": "full"}
 
 
+def test_metadata_without_nan(tmp_path, tpsr):
+    training = {"gain": float("inf"), "offset": np.float64("nan"), "where": tmp_path}
+    meta = read_metadata(save_model(tpsr, tmp_path / "m.npz", training=training))
+    assert meta["training"] == {"gain": "inf", "offset": "nan", "where": str(tmp_path)}
+
+
 def rewrite(src, dst, *, metadata=None, arrays=None, drop=()):
     """Copy a model file changing its metadata or arrays."""
     with np.load(src, allow_pickle=False) as npz:

@@ -20,6 +20,7 @@ steps without it hold NaN.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -178,12 +179,17 @@ def _common(values: Iterable[Any]) -> Any:
     return distinct.pop() if len(distinct) == 1 else sorted(map(str, distinct))
 
 
-def _environment_of(reader: BagReader) -> str | None:
+def _bag_custom_data(reader: BagReader) -> tuple[str | None, Any]:
+    """Environment name and generator settings that ``sim_node.generate`` stores in a bag."""
     custom = getattr(reader, "custom_data", None)
-    if isinstance(custom, dict):
-        env = custom.get("tpsr_ros.environment")
-        return str(env) if env else None
-    return None
+    if not isinstance(custom, dict):
+        return None, None
+    env = custom.get("tpsr_ros.environment")
+    try:
+        generator = json.loads(custom["tpsr_ros.generator"])
+    except (KeyError, TypeError, ValueError):
+        generator = None
+    return (str(env) if env else None), generator
 
 
 def _read_bag(
@@ -232,8 +238,13 @@ def _read_bag(
                     f"bag {str(path)!r}, topic {bag_msg.topic!r} at stamp {stamp} ns: {exc}"
                 ) from None
             data[bag_msg.topic][stamp] = value
-        environment = _environment_of(reader)
-    return {"data": data, "environment": environment, "image_shape": image_shape}
+        environment, generator = _bag_custom_data(reader)
+    return {
+        "data": data,
+        "environment": environment,
+        "generator": generator,
+        "image_shape": image_shape,
+    }
 
 
 def read_trajectory(
@@ -300,6 +311,7 @@ def read_trajectory(
                 "unpaired_messages": int(len(images) + len(actions) - 2 * stamps.size),
                 "stamps_ns": [int(stamps[0]), int(stamps[-1])],
                 "environment": read["environment"],
+                "generator": read["generator"],
                 "topics": {
                     "image": topics.image,
                     "action": topics.action,
