@@ -11,8 +11,9 @@ pixel is the exact area-weighted mix of what its rows cover, which keeps images 
 functions of the robot's position.
 
 Distractors (environment ``distractors``) change only the red channel: disks on the
-floor and rectangles on the walls, whose red is the background red shifted by 0.5
-(modulo 1); where floor disks overlap the red saturates.
+floor and rectangles on the walls whose red is the opposite extreme of their background
+(1 where the background red is below 0.5, else 0), the strongest change the red channel
+allows; where floor disks overlap the red saturates.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ _HEADING = np.pi / 2  # north
 
 
 def _distractor_red(red: np.ndarray | float) -> np.ndarray:
-    return np.mod(np.asarray(red) + 0.5, 1.0)
+    return np.where(np.asarray(red) < 0.5, 1.0, 0.0)
 
 
 class Camera:

@@ -39,15 +39,18 @@ class DistractorConfig:
     """Randomly moving distractors (guide figure 4.6): three disks on the floor and one
     rectangle on each wall, differing from their background only in the red channel.
 
-    Each moves as a reflected Gaussian random walk with ``step_std`` metres per step.
+    Each moves as a reflected Gaussian random walk with ``step_std`` metres per step; the
+    default 15 m makes consecutive positions nearly independent, so the distractors are
+    task-irrelevant noise that history cannot predict. Sizes are ours (the guide gives
+    none): disks of radius 6 m and 16 m wide rectangles over the full wall height.
     """
 
     floor_count: int = 3
-    floor_radius: float = 3.0
-    wall_half_width: float = 4.0
-    wall_bottom: float = 0.5
-    wall_top: float = 3.5
-    step_std: float = 2.0
+    floor_radius: float = 6.0
+    wall_half_width: float = 8.0
+    wall_bottom: float = 0.0
+    wall_top: float = 4.0
+    step_std: float = 15.0
 
     def __post_init__(self) -> None:
         if self.floor_count < 0:
