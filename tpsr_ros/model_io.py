@@ -9,22 +9,16 @@ entry ``metadata``, a 0-d unicode array holding a JSON object::
      "training": {...bags, steps, episodes, stamps, environment, topics...},
      "created": "...", "software": {"tpsr_ros": "0.1.0", "numpy": "..."}}
 
-``load_model`` opens the file with ``allow_pickle=False`` and checks, naming the problem in
-a :class:`~tpsr_ros.errors.ModelFormatError`: that it is a zip of arrays, the metadata,
-the format name and version (both versions named on a mismatch), the method, that every
-required array is present with a real floating dtype, finite, and of consistent shape.
-``save_model`` writes a temporary file next to the target and renames it into place, so a
-reader never sees half a file and nothing is left behind on failure; an existing target is
-refused unless ``force``.
+The archive layer (atomic no-clobber writes, ``allow_pickle=False`` reads, format name and
+version checks) is :mod:`tpsr_ros.npz_archive`. ``load_model`` also checks the method and
+that every required array is present with a real floating dtype, finite, and of
+consistent shape, naming the problem in a :class:`~tpsr_ros.errors.ModelFormatError`.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
-import json
-import os
-import tempfile
-import zipfile
+import hashlib
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +26,7 @@ import numpy as np
 
 import tpsr_ros
 from tpsr_ros.errors import ModelFormatError, TpsrError
+from tpsr_ros.npz_archive import check_output_path, read_archive, write_archive
 from tpsr_ros.pca_baseline import PCAModel
 from tpsr_ros.state_model import StateModel
 from tpsr_ros.tpsr import TPSRModel
@@ -42,49 +37,19 @@ __all__ = [
     "METHODS",
     "check_output_path",
     "load_model",
+    "model_fingerprint",
     "read_metadata",
     "save_model",
 ]
 
 FORMAT_NAME = "tpsr-ros model"
 FORMAT_VERSION = 1
-METADATA_KEY = "metadata"
 METHODS: dict[str, type[TPSRModel] | type[PCAModel]] = {"tpsr": TPSRModel, "pca": PCAModel}
 _REQUIRED_ARRAYS = {
     "tpsr": TPSRModel.ARRAY_NAMES,
     "pca": ("mean", "components", "eigenvalues", "explained_variance_ratio", "n_actions"),
 }
 _INTEGER_ARRAYS = {"n_actions"}
-
-
-def check_output_path(path: Path | str, *, force: bool = False) -> Path:
-    """Refuse an existing output (unless ``force``) or a missing directory, before any work."""
-    path = Path(path)
-    if path.is_dir():
-        raise ModelFormatError(f"output path {str(path)!r} is a directory")
-    if path.exists() and not force:
-        raise ModelFormatError(
-            f"output file {str(path)!r} already exists; use --force to overwrite it"
-        )
-    if not path.resolve().parent.is_dir():
-        raise ModelFormatError(f"output directory {str(path.resolve().parent)!r} does not exist")
-    return path
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        return _jsonable(value.item())
-    if isinstance(value, float) and not np.isfinite(value):
-        return str(value)  # JSON has no NaN or infinity
-    if isinstance(value, Path):
-        return str(value)
-    return value
 
 
 def save_model(
@@ -95,7 +60,6 @@ def save_model(
     force: bool = False,
 ) -> Path:
     """Write ``model`` to ``path`` atomically; ``training`` describes the data (bags, stamps...)."""
-    path = check_output_path(path, force=force)
     metadata = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -112,74 +76,14 @@ def save_model(
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "software": {"tpsr_ros": tpsr_ros.__version__, "numpy": np.__version__},
     }
-    try:
-        text = json.dumps(_jsonable(metadata), allow_nan=False)
-    except ValueError as exc:
-        raise ModelFormatError(f"model metadata cannot be stored as JSON: {exc}") from None
-    arrays = {name: np.asarray(arr) for name, arr in model.to_arrays().items()}
-    if METADATA_KEY in arrays:
-        raise ModelFormatError(f"a model array may not be called {METADATA_KEY!r}")
-    if any(arr.dtype == object for arr in arrays.values()):
-        raise ModelFormatError("model arrays must be numeric, not Python objects")
-    arrays[METADATA_KEY] = np.array(text)
-    fd, tmp_name = tempfile.mkstemp(
-        prefix=f".{path.name}.", suffix=".tmp", dir=path.resolve().parent
-    )
-    tmp = Path(tmp_name)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            np.savez(handle, **arrays)  # type: ignore[arg-type]
-            handle.flush()
-            os.fsync(handle.fileno())
-        if path.exists() and not force:  # appeared while we were writing
-            raise ModelFormatError(f"output file {str(path)!r} already exists; use --force")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    return write_archive(path, model.to_arrays(), metadata, force=force)
 
 
 def _open_arrays(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    if not path.is_file():
-        raise ModelFormatError(f"model file {str(path)!r} does not exist")
-    try:
-        loaded = np.load(path, allow_pickle=False)
-        if isinstance(loaded, np.ndarray):
-            raise ModelFormatError(f"{str(path)!r} is a single array, not a tpsr-ros model")
-        with loaded as npz:
-            arrays = {name: npz[name] for name in npz.files}
-    except ModelFormatError:
-        raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, RuntimeError) as exc:
-        raise ModelFormatError(
-            f"{str(path)!r} is not a readable model file (truncated or foreign): {exc}"
-        ) from None
-    if METADATA_KEY not in arrays:
-        raise ModelFormatError(f"{str(path)!r} has no {METADATA_KEY!r} entry: not a tpsr-ros model")
-    raw = arrays.pop(METADATA_KEY)
-    if raw.shape != () or raw.dtype.kind != "U":
-        raise ModelFormatError(f"the metadata entry of {str(path)!r} is not a JSON string")
-    try:
-        metadata = json.loads(str(raw))
-    except json.JSONDecodeError as exc:
-        raise ModelFormatError(f"the metadata of {str(path)!r} is not valid JSON: {exc}") from None
-    if not isinstance(metadata, dict):
-        raise ModelFormatError(f"the metadata of {str(path)!r} is not a JSON object")
-    return metadata, arrays
+    return read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION)
 
 
 def _check_metadata(path: Path, metadata: dict[str, Any]) -> str:
-    if metadata.get("format") != FORMAT_NAME:
-        raise ModelFormatError(
-            f"{str(path)!r} is a {metadata.get('format')!r} file, not a {FORMAT_NAME!r} file"
-        )
-    version = metadata.get("format_version")
-    if version != FORMAT_VERSION:
-        raise ModelFormatError(
-            f"{str(path)!r} has model format version {version!r}; this tpsr-ros reads "
-            f"version {FORMAT_VERSION}"
-        )
     method = metadata.get("method")
     if method not in METHODS:
         raise ModelFormatError(
@@ -232,3 +136,13 @@ def load_model(path: Path | str) -> TPSRModel | PCAModel:
             f"{model.n_actions}"
         )
     return model
+
+
+def model_fingerprint(model: StateModel) -> str:
+    """SHA-256 of a model's arrays (names, dtypes, shapes, bytes): what a policy names."""
+    digest = hashlib.sha256()
+    for name, array in sorted(model.to_arrays().items()):
+        array = np.ascontiguousarray(array)
+        digest.update(f"{name}|{array.dtype.str}|{array.shape}|".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
