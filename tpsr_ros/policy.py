@@ -1,0 +1,161 @@
+"""Greedy fitted-Q policies and their files.
+
+A policy is a :class:`~tpsr_ros.fqi.QFunction` over the states of one representation,
+plus the name of that representation's model: its SHA-256 fingerprint
+(:func:`tpsr_ros.model_io.model_fingerprint`), or ``"true-position"`` for the
+ground-truth baseline. Whoever pairs a policy with a model (evaluation, filter node)
+checks the fingerprint and refuses a mismatch.
+
+File layout (:mod:`tpsr_ros.npz_archive`): arrays ``mean``, ``scale``, ``centers``,
+``width``, ``weights`` and JSON metadata ``{"format": "tpsr-ros policy",
+"format_version": 1, "representation", "model_fingerprint", "model_path",
+"environment", "fqi": {...}, "data": {...}, "state_dim", "n_actions", ...}``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import tpsr_ros
+from tpsr_ros.errors import ModelFormatError
+from tpsr_ros.fqi import QFunction
+from tpsr_ros.npz_archive import read_archive, write_archive
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "REPRESENTATIONS",
+    "TRUE_POSITION",
+    "Policy",
+    "load_policy",
+    "save_policy",
+]
+
+FORMAT_NAME = "tpsr-ros policy"
+FORMAT_VERSION = 1
+TRUE_POSITION = "true-position"
+REPRESENTATIONS = ("tpsr", "pca", TRUE_POSITION)
+_ARRAYS = ("mean", "scale", "centers", "width", "weights")
+
+
+@dataclass(frozen=True)
+class Policy:
+    """Greedy policy ``argmax_a Q(state, a)`` for one representation's states."""
+
+    q: QFunction
+    representation: str
+    model_fingerprint: str
+    environment: str | None = None
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.representation not in REPRESENTATIONS:
+            raise ModelFormatError(
+                f"unknown representation {self.representation!r}; one of {REPRESENTATIONS}"
+            )
+
+    @property
+    def state_dim(self) -> int:
+        """Dimension of the states the policy takes."""
+        return self.q.state_dim
+
+    @property
+    def n_actions(self) -> int:
+        """Number of actions."""
+        return self.q.n_actions
+
+    def action(self, state: np.ndarray) -> int:
+        """Greedy action index for one state ``(state_dim,)``."""
+        state = np.asarray(state, dtype=np.float64)
+        if state.shape != (self.state_dim,):
+            raise ModelFormatError(
+                f"the policy takes {self.state_dim}-dimensional states, got shape {state.shape}"
+            )
+        return int(self.q.greedy(state[None])[0])
+
+    def check_model(self, fingerprint: str, what: str = "the model") -> None:
+        """Refuse to pair this policy with a model of another fingerprint."""
+        if fingerprint != self.model_fingerprint:
+            raise ModelFormatError(
+                f"the policy was trained for model {self.model_fingerprint[:12]}, but "
+                f"{what} is {fingerprint[:12]}"
+            )
+
+    def check_environment(self, environment: str) -> None:
+        """Refuse an environment other than the one the policy was trained in (when known)."""
+        if self.environment is not None and environment != self.environment:
+            raise ModelFormatError(
+                f"the policy was trained in environment {self.environment!r}, "
+                f"not {environment!r}"
+            )
+
+
+def save_policy(policy: Policy, path: Path | str, *, force: bool = False) -> Path:
+    """Write ``policy`` atomically (refusing an existing ``path`` unless ``force``)."""
+    q = policy.q
+    arrays = {
+        "mean": q.mean,
+        "scale": q.scale,
+        "centers": q.centers,
+        "width": np.array(q.width, dtype=np.float64),
+        "weights": q.weights,
+    }
+    metadata = {
+        **policy.metadata,
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "representation": policy.representation,
+        "model_fingerprint": policy.model_fingerprint,
+        "environment": policy.environment,
+        "state_dim": policy.state_dim,
+        "n_actions": policy.n_actions,
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "software": {"tpsr_ros": tpsr_ros.__version__, "numpy": np.__version__},
+    }
+    return write_archive(path, arrays, metadata, force=force)
+
+
+def load_policy(path: Path | str) -> Policy:
+    """Load and validate a policy written by :func:`save_policy`."""
+    path = Path(path)
+    metadata, arrays = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION)
+    if sorted(arrays) != sorted(_ARRAYS):
+        raise ModelFormatError(f"{str(path)!r} holds arrays {sorted(arrays)}, expected {_ARRAYS}")
+    for name, array in arrays.items():
+        if array.dtype != np.float64 or not np.all(np.isfinite(array)):
+            raise ModelFormatError(f"array {name!r} of {str(path)!r} is not finite float64")
+    mean, scale, centers, weights = (arrays[k] for k in ("mean", "scale", "centers", "weights"))
+    dim = mean.shape[0] if mean.ndim == 1 else -1
+    consistent = (
+        mean.ndim == 1
+        and scale.shape == mean.shape
+        and np.all(scale > 0)
+        and centers.ndim == 2
+        and centers.shape[1] == dim
+        and weights.ndim == 2
+        and weights.shape[0] == centers.shape[0]
+        and arrays["width"].shape == ()
+        and float(arrays["width"]) > 0
+        and metadata.get("state_dim") == dim
+        and metadata.get("n_actions") == weights.shape[1]
+    )
+    if not consistent:
+        raise ModelFormatError(f"{str(path)!r} has inconsistent array shapes or metadata")
+    fingerprint = metadata.get("model_fingerprint")
+    if not isinstance(fingerprint, str) or not fingerprint:
+        raise ModelFormatError(f"{str(path)!r} does not name the model it belongs to")
+    q = QFunction(mean, scale, centers, float(arrays["width"]), weights)
+    known = {f.name for f in dataclasses.fields(Policy)} | {"format", "format_version"}
+    return Policy(
+        q=q,
+        representation=str(metadata.get("representation")),
+        model_fingerprint=fingerprint,
+        environment=metadata.get("environment"),
+        metadata={k: v for k, v in metadata.items() if k not in known},
+    )
