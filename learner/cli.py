@@ -26,6 +26,8 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "learner.fit",
     "learner.info",
     "learner.plots",
+    "learner.planning",
+    "learner.evaluate",
     "learner.demo",
 )
 

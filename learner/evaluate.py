@@ -1,0 +1,166 @@
+"""``learner evaluate POLICY --environment E``: the standard evaluation (guide 4.1-4.2).
+
+Protocol, fixed and documented so that every score is comparable and the closed loop over
+the nodes reproduces it exactly: one simulator seeded with ``EVALUATION_SEED``; its
+start-up reset (a random start, as ``sim_node`` does); then for each of the ten
+``START_POSITIONS`` a reset to that position and ``STEPS`` greedy steps, the state
+starting from the representation's initial state (``b_*`` for a TPSR). A trial's reward
+is the sum over its steps; the score is the mean over the ten trials (at most about 470:
+no start lies in the goal zone). Execution noise continues from trial to trial, exactly
+as in a ``sim_node`` that is reset ten times.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from learner.representations import Tracker, load_tracker
+from sim_node import Environment, RobotEnv, SimConfig
+from tpsr_ros.errors import ModelFormatError
+from tpsr_ros.policy import TRUE_POSITION, Policy, load_policy
+
+__all__ = [
+    "EVALUATION_SEED",
+    "START_POSITIONS",
+    "STEPS",
+    "Evaluation",
+    "Trial",
+    "evaluate",
+    "register",
+    "run",
+]
+
+EVALUATION_SEED = 2026
+STEPS = 50
+START_POSITIONS: tuple[tuple[float, float], ...] = (
+    (5.0, 5.0),
+    (5.0, 22.5),
+    (5.0, 40.0),
+    (22.5, 5.0),
+    (40.0, 5.0),
+    (15.0, 15.0),
+    (30.0, 10.0),
+    (10.0, 30.0),
+    (22.5, 22.5),
+    (28.0, 28.0),
+)
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One trial: where it started, its summed reward, when (if) it reached the goal zone."""
+
+    start: tuple[float, float]
+    reward: float
+    goal_step: int | None
+    wall_contacts: int
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """The trials of one evaluation and their mean reward (the score)."""
+
+    trials: tuple[Trial, ...]
+
+    @property
+    def score(self) -> float:
+        """Mean summed reward over the trials."""
+        return float(np.mean([t.reward for t in self.trials]))
+
+
+def evaluate(
+    policy: Policy,
+    tracker: Tracker,
+    environment: Environment | str,
+    *,
+    seed: int = EVALUATION_SEED,
+    starts: Sequence[tuple[float, float]] = START_POSITIONS,
+    steps: int = STEPS,
+    on_trial: Callable[[int, Trial], None] | None = None,
+) -> Evaluation:
+    """Run the standard protocol with ``policy`` choosing from ``tracker``'s states."""
+    policy.check_model(tracker.fingerprint)
+    env = RobotEnv(SimConfig(environment=environment), seed=seed)
+    env.reset()  # the start-up reset of a freshly started sim_node
+    trials = []
+    for index, start in enumerate(starts):
+        image, info = env.reset(options={"position": start})
+        state = tracker.start(image, info["position"])
+        total, goal_step, contacts = 0.0, None, 0
+        for k in range(1, steps + 1):
+            action = policy.action(state)
+            image, reward, _, _, info = env.step(action)
+            total += reward
+            contacts += info["wall_contact"]
+            if goal_step is None and info["goal_zone"]:
+                goal_step = k
+            state = tracker.step(state, action, image, info["position"])
+        trial = Trial(tuple(start), total, goal_step, contacts)
+        trials.append(trial)
+        if on_trial is not None:
+            on_trial(index, trial)
+    return Evaluation(tuple(trials))
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``evaluate`` subcommand."""
+    doc = "score a policy with the standard protocol (10 fixed starts, 50 greedy steps)"
+    parser = subparsers.add_parser(
+        "evaluate", help=doc, description=doc[0].upper() + doc[1:] + ". " + __doc__.split("\n\n")[1]
+    )
+    parser.add_argument("policy", type=Path, metavar="POLICY")
+    parser.add_argument(
+        "--environment", required=True, choices=[e.value for e in Environment]
+    )
+    parser.add_argument(
+        "--model",
+        default=None,
+        metavar="MODEL",
+        help="the policy's model file (default: the path recorded in the policy)",
+    )
+    parser.add_argument(
+        "--seed", type=int, default=EVALUATION_SEED, help="simulator seed (default: %(default)s)"
+    )
+    parser.set_defaults(run=run)
+
+
+def _tracker_for(policy: Policy, policy_path: Path, model: str | None) -> Tracker:
+    if policy.representation == TRUE_POSITION:
+        return load_tracker(TRUE_POSITION)
+    recorded = policy.metadata.get("model_path")
+    spec = model or recorded
+    if spec is None:
+        raise ModelFormatError(f"{policy_path} records no model path; pass --model MODEL")
+    if model is None and not Path(spec).exists():
+        raise ModelFormatError(
+            f"the policy's model {spec!r} does not exist (relative to the current directory); "
+            "pass --model MODEL"
+        )
+    return load_tracker(spec)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Evaluate; print each trial, then ``score: <mean>`` as the last line."""
+    if args.seed < 0:
+        raise ModelFormatError(f"--seed must be >= 0, got {args.seed}")
+    policy = load_policy(args.policy)
+    policy.check_environment(args.environment)
+    tracker = _tracker_for(policy, args.policy, args.model)
+
+    def show(index: int, trial: Trial) -> None:
+        goal = f"goal zone at step {trial.goal_step}" if trial.goal_step else "goal zone not reached"
+        print(
+            f"trial {index + 1:2d}: start ({trial.start[0]:4.1f}, {trial.start[1]:4.1f})  "
+            f"reward {trial.reward:7.1f}  {goal}, {trial.wall_contacts} wall contacts",
+            flush=True,
+        )
+
+    result = evaluate(policy, tracker, args.environment, seed=args.seed, on_trial=show)
+    print(f"score: {result.score:.1f}")
+    return 0

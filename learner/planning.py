@@ -1,0 +1,135 @@
+"""``learner policy MODEL BAG... -o POLICY``: fitted Q-iteration on states tracked over an RL bag.
+
+States come from the model's parameters tracked over a separate random RL trajectory
+(guide 4.2: never embedded histories); ``MODEL`` may also be ``true-position``, the
+ground-truth baseline. Transitions ``(s_k, a_{k+1}, r_{k+1}, s_{k+1})`` never cross a gap
+in the bag. The policy file names the model's fingerprint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from learner.fit import add_config_options, add_topic_options, config_from_args, topics_from_args
+from learner.representations import Tracker, load_tracker
+from tpsr_ros.cli import positive_int
+from tpsr_ros.episodes import Trajectory, read_trajectory
+from tpsr_ros.errors import DataError
+from tpsr_ros.fqi import FQIConfig, fit_q
+from tpsr_ros.npz_archive import check_output_path
+from tpsr_ros.policy import Policy, save_policy
+
+__all__ = ["fit_policy", "register", "run", "transitions"]
+
+
+def transitions(
+    states: np.ndarray, trajectory: Trajectory
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(s_k, a_{k+1}, r_{k+1}, s_{k+1})`` for consecutive steps of each segment."""
+    if len(states) != len(trajectory):
+        raise DataError(f"{len(states)} states for {len(trajectory)} steps")
+    current = np.concatenate(
+        [np.arange(a, b - 1) for a, b in trajectory.segment_bounds() if b - a > 1] or [[]]
+    ).astype(np.int64)
+    following = current + 1
+    rewards = trajectory.rewards[following]
+    if not np.all(np.isfinite(rewards)):
+        raise DataError("the RL bag lacks /reward for some steps; rewards are needed to plan")
+    return states[current], trajectory.actions[following], rewards, states[following]
+
+
+def fit_policy(
+    tracker: Tracker,
+    trajectory: Trajectory,
+    config: FQIConfig,
+    *,
+    environment: str | None,
+    model_path: str | None = None,
+) -> Policy:
+    """Track states over ``trajectory``, fit Q on its transitions, return the greedy policy."""
+    start = time.perf_counter()
+    states = tracker.track(trajectory)
+    tracked = time.perf_counter()
+    s, a, r, s_next = transitions(states, trajectory)
+    q = fit_q(s, a, r, s_next, trajectory.n_actions, config)
+    done = time.perf_counter()
+    return Policy(
+        q=q,
+        representation=tracker.representation,
+        model_fingerprint=tracker.fingerprint,
+        environment=environment,
+        metadata={
+            "model_path": model_path,
+            "fqi": config.to_dict(),
+            "data": {**trajectory.summary(), "transitions": len(a)},
+            "timing_s": {"tracking": tracked - start, "fitted_q": done - tracked},
+        },
+    )
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``policy`` subcommand."""
+    doc = "fit a greedy fitted-Q policy on states tracked with a model over an RL bag"
+    parser = subparsers.add_parser("policy", help=doc, description=doc[0].upper() + doc[1:] + ".")
+    parser.add_argument("model", metavar="MODEL", help="model file, or 'true-position'")
+    parser.add_argument("bags", nargs="+", type=Path, metavar="BAG", help="RL bag(s)")
+    parser.add_argument("-o", "--output", type=Path, required=True, metavar="POLICY")
+    parser.add_argument(
+        "--steps",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="use the first N RL steps and refuse a shorter bag (guide: 15000 full, "
+        "20000 partial and distractors; default: all)",
+    )
+    parser.add_argument("--force", action="store_true", help="overwrite an existing POLICY")
+    add_config_options(parser.add_argument_group("fitted Q-iteration"), FQIConfig)
+    add_topic_options(parser.add_argument_group("topics"))
+    parser.set_defaults(run=run)
+
+
+def _first_steps(trajectory: Trajectory, steps: int | None) -> Trajectory:
+    if steps is None:
+        return trajectory
+    if len(trajectory) < steps:
+        raise DataError(f"the RL bag has {len(trajectory)} steps, fewer than the {steps} requested")
+    fields = ("stamps", "observations", "actions", "velocities", "positions", "rewards")
+    return Trajectory(
+        **{name: getattr(trajectory, name)[:steps] for name in fields},
+        segments=trajectory.segments[:steps],
+        image_shape=trajectory.image_shape,
+        n_actions=trajectory.n_actions,
+        sources=trajectory.sources,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Fit and save a policy."""
+    output = check_output_path(args.output, force=args.force)
+    config = config_from_args(FQIConfig, args)
+    tracker = load_tracker(args.model)
+    trajectory = _first_steps(
+        read_trajectory(args.bags, topics=topics_from_args(args)), args.steps
+    )
+    environment = trajectory.summary()["environment"]
+    if not isinstance(environment, str):
+        environment = None  # unknown or mixed: evaluation will not check it
+    policy = fit_policy(
+        tracker, trajectory, config, environment=environment, model_path=str(args.model)
+    )
+    save_policy(policy, output, force=args.force)
+    timing = policy.metadata["timing_s"]
+    print(
+        f"wrote {output}: {policy.representation} policy over {policy.state_dim}-d states, "
+        f"{policy.metadata['data']['transitions']} transitions "
+        f"(tracking {timing['tracking']:.1f} s, fitted Q {timing['fitted_q']:.1f} s); "
+        f"environment {environment}",
+        file=sys.stderr,
+    )
+    return 0
