@@ -28,6 +28,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "learner.plots",
     "learner.planning",
     "learner.evaluate",
+    "learner.experiment",
     "learner.demo",
 )
 

@@ -1,0 +1,369 @@
+"""``learner experiment --environment E``: the guide's learning-planning loop (figure 4.2).
+
+For every data size (training episodes) and repetition: a fresh uniformly random training
+trajectory; a TPSR and the PCA baseline learned from it; states tracked with each
+model's parameters over one separate random RL trajectory (15000 steps in ``full``,
+20000 in ``partial`` and ``distractors``; the same for every run, as in the guide);
+fitted Q-iteration on them; the standard evaluation. The true-position baseline (the
+upper bound of the RL step) runs the same RL step on the ground truth.
+
+Every seed is derived from ``--seed``, the data size and the repetition and written to
+the CSV, so any row reruns alone (``--episodes N --first-repetition K --repetitions 1``).
+Repetitions run in parallel processes (one BLAS thread each). A fitted-Q fit that
+diverges is retried with ten times the ridge (up to 1.0); the ridge used is recorded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import os
+import sys
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from learner.evaluate import evaluate
+from learner.planning import transitions
+from learner.representations import ModelTracker, Tracker, TruePositionTracker
+from learner.simulated import random_trajectory
+from sim_node import Environment
+from tpsr_ros.cli import positive_int
+from tpsr_ros.episodes import Trajectory, make_episodes
+from tpsr_ros.errors import ConfigError, DataError, TpsrError
+from tpsr_ros.fqi import FQIConfig, fit_q
+from tpsr_ros.model_io import model_fingerprint
+from tpsr_ros.pca_baseline import PCAConfig, fit_pca
+from tpsr_ros.policy import TRUE_POSITION, Policy
+from tpsr_ros.tpsr import TPSRConfig, fit_tpsr
+
+__all__ = [
+    "METHODS",
+    "ExperimentConfig",
+    "Row",
+    "default_config",
+    "plot_summary",
+    "register",
+    "run",
+    "run_experiment",
+    "summarise",
+]
+
+METHODS = ("tpsr", "pca", TRUE_POSITION)
+RL_STEPS = {"full": 15000, "partial": 20000, "distractors": 20000}
+PCA_DIM = {"full": 2, "partial": 3, "distractors": 3}  # guide figure 4.5 / appendix A.2-A.3
+MAX_RIDGE = 1.0
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """One environment's experiment grid."""
+
+    environment: str
+    episodes: tuple[int, ...] = (2000, 4000, 6000, 8000)
+    repetitions: int = 10
+    first_repetition: int = 0
+    methods: tuple[str, ...] = METHODS
+    rl_steps: int = 15000
+    rl_seed: int = 100
+    seed: int = 0
+    tpsr: TPSRConfig = field(default_factory=TPSRConfig)
+    pca: PCAConfig = field(default_factory=PCAConfig)
+    fqi: FQIConfig = field(default_factory=FQIConfig)
+
+    def __post_init__(self) -> None:
+        Environment.parse(self.environment)
+        if not self.episodes or min(self.episodes) < 1:
+            raise ConfigError("data sizes (--episodes) must be positive")
+        if self.repetitions < 1 or self.first_repetition < 0:
+            raise ConfigError("--repetitions must be >= 1 and --first-repetition >= 0")
+        if unknown := sorted(set(self.methods) - set(METHODS)):
+            raise ConfigError(f"unknown methods {unknown}; choose from {list(METHODS)}")
+        if self.rl_steps < self.fqi.centers or self.rl_seed < 0 or self.seed < 0:
+            raise ConfigError("rl_steps must exceed the fitted-Q centres; seeds must be >= 0")
+
+    def train_seed(self, episodes: int, repetition: int) -> int:
+        """Seed of the training trajectory of one (data size, repetition) cell."""
+        sequence = np.random.SeedSequence([self.seed, episodes, repetition])
+        return int(sequence.generate_state(1)[0])
+
+    def steps_for(self, episodes: int) -> int:
+        """Training steps for ``episodes`` non-overlapping episodes (guide: 3 x episodes)."""
+        return episodes * (self.tpsr.history_length + 1 + self.tpsr.test_length)
+
+
+def default_config(environment: str, **overrides: Any) -> ExperimentConfig:
+    """The guide's settings for ``environment`` (RL steps, PCA dimension), then overrides."""
+    values: dict[str, Any] = {
+        "environment": environment,
+        "rl_steps": RL_STEPS[environment],
+        "pca": PCAConfig(dim=PCA_DIM[environment]),
+    }
+    values.update(overrides)
+    return ExperimentConfig(**values)
+
+
+@dataclass(frozen=True)
+class Row:
+    """One learning-planning run: a method at a data size and repetition."""
+
+    environment: str
+    method: str
+    episodes: int
+    repetition: int
+    train_seed: int
+    rl_seed: int
+    score: float
+    trial_rewards: str
+    fit_seconds: float
+    fqi_ridge: float
+    recoveries: int
+    r2_x: float
+    r2_y: float
+    status: str
+
+
+def _r2(states: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """R^2 of an affine least-squares map from states to true positions (a diagnostic)."""
+    design = np.column_stack([states, np.ones(len(states))])
+    coef, *_ = np.linalg.lstsq(design, positions, rcond=None)
+    residual = ((design @ coef - positions) ** 2).sum(axis=0)
+    return np.asarray(1.0 - residual / ((positions - positions.mean(axis=0)) ** 2).sum(axis=0))
+
+
+def _plan_and_score(
+    config: ExperimentConfig, tracker: Tracker, rl: Trajectory, states: np.ndarray
+) -> tuple[float, str, float, str]:
+    """Fitted Q on the tracked RL states (retrying a divergence), then the standard score."""
+    s, a, r, s_next = transitions(states, rl)
+    fqi = config.fqi
+    while True:
+        try:
+            q = fit_q(s, a, r, s_next, rl.n_actions, fqi)
+            break
+        except DataError:
+            if fqi.ridge * 10 > MAX_RIDGE:
+                return float("nan"), "", fqi.ridge, "fitted-q-diverged"
+            fqi = dataclasses.replace(fqi, ridge=fqi.ridge * 10)
+    policy = Policy(q, tracker.representation, tracker.fingerprint, config.environment)
+    result = evaluate(policy, tracker, config.environment)
+    trials = ";".join(f"{t.reward:g}" for t in result.trials)
+    return result.score, trials, fqi.ridge, "ok"
+
+
+@lru_cache(maxsize=1)
+def _rl_trajectory(environment: str, steps: int, seed: int) -> Trajectory:
+    """The RL trajectory shared by every run of an environment (built once per process)."""
+    return random_trajectory(environment, steps, seed)
+
+
+def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[Row]:
+    """Every method at one (data size, repetition): the unit of parallel work."""
+    train_seed = config.train_seed(episodes, repetition)
+    rl = _rl_trajectory(config.environment, config.rl_steps, config.rl_seed)
+    train = random_trajectory(config.environment, config.steps_for(episodes), train_seed)
+    rows = []
+    for method in config.methods:
+        start = time.perf_counter()
+        try:
+            tracker: Tracker
+            recoveries = 0
+            if method == "tpsr":
+                ep = make_episodes(train, config.tpsr.history_length, config.tpsr.test_length)
+                model = fit_tpsr(
+                    ep.history, ep.observation, ep.action, ep.test,
+                    n_actions=train.n_actions, config=config.tpsr,
+                )
+            elif method == "pca":
+                model = fit_pca(train.observations, n_actions=train.n_actions, config=config.pca)
+            if method == TRUE_POSITION:
+                tracker = TruePositionTracker()
+                states = tracker.track(rl)
+            else:
+                tracker = ModelTracker(model, model_fingerprint(model))
+                track = model.track(rl.actions, rl.observations)
+                states, recoveries = track.states, int(track.recovered.sum())
+            fit_seconds = time.perf_counter() - start
+            r2 = _r2(states, rl.positions)
+            score, trials, ridge, status = _plan_and_score(config, tracker, rl, states)
+        except TpsrError as exc:  # a failed fit is a result, not a crash
+            fit_seconds, recoveries, r2 = time.perf_counter() - start, 0, np.full(2, np.nan)
+            score, trials, ridge, status = float("nan"), "", config.fqi.ridge, f"error: {exc}"
+        rows.append(
+            Row(
+                config.environment, method, episodes, repetition, train_seed,
+                config.rl_seed, score, trials, round(fit_seconds, 3), ridge, recoveries,
+                round(float(r2[0]), 4), round(float(r2[1]), 4), status,
+            )
+        )
+    return rows
+
+
+def _limit_blas_threads() -> None:
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(1)
+
+
+def run_experiment(
+    config: ExperimentConfig, *, workers: int = 2, progress: bool = True
+) -> list[Row]:
+    """Every cell of the grid, in parallel over ``workers`` processes; rows in grid order."""
+    cells = [
+        (episodes, repetition)
+        for episodes in config.episodes
+        for repetition in range(
+            config.first_repetition, config.first_repetition + config.repetitions
+        )
+    ]
+    results: dict[tuple[int, int], list[Row]] = {}
+    bar = tqdm(total=len(cells), unit="run", disable=not progress, desc=config.environment)
+    if workers <= 1:
+        for cell in cells:
+            results[cell] = run_cell(config, *cell)
+            bar.update()
+    else:
+        with ProcessPoolExecutor(max_workers=workers, initializer=_limit_blas_threads) as pool:
+            futures = {pool.submit(run_cell, config, *cell): cell for cell in cells}
+            for future in as_completed(futures):
+                results[futures[future]] = future.result()
+                bar.update()
+    bar.close()
+    return [row for cell in cells for row in results[cell]]
+
+
+def summarise(rows: Sequence[Row]) -> list[dict[str, Any]]:
+    """Mean, median, standard error of the mean and failures per (method, data size)."""
+    table = []
+    keys = sorted({(r.method, r.episodes) for r in rows}, key=lambda k: (METHODS.index(k[0]), k[1]))
+    for method, episodes in keys:
+        scores = np.array([r.score for r in rows if (r.method, r.episodes) == (method, episodes)])
+        ok = scores[np.isfinite(scores)]
+        table.append(
+            {
+                "method": method,
+                "episodes": episodes,
+                "runs": len(scores),
+                "failed": int(len(scores) - len(ok)),
+                "mean": float(ok.mean()) if len(ok) else float("nan"),
+                "median": float(np.median(ok)) if len(ok) else float("nan"),
+                "sem": float(ok.std(ddof=1) / np.sqrt(len(ok))) if len(ok) > 1 else float("nan"),
+            }
+        )
+    return table
+
+
+def write_csv(rows: Sequence[Row], path: Path) -> None:
+    """All rows, one per run, with every seed."""
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=[f.name for f in dataclasses.fields(Row)])
+        writer.writeheader()
+        writer.writerows(dataclasses.asdict(r) for r in rows)
+
+
+def plot_summary(table: Sequence[dict[str, Any]], environment: str, path: Path) -> None:
+    """Mean (line), median (dashed) and SEM band per method over data size, like guide 4.5."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colours = {"tpsr": "tab:red", "pca": "tab:blue", TRUE_POSITION: "tab:gray"}
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for method in METHODS:
+        part = [t for t in table if t["method"] == method]
+        if not part:
+            continue
+        x = np.array([t["episodes"] for t in part])
+        mean = np.array([t["mean"] for t in part])
+        sem = np.nan_to_num(np.array([t["sem"] for t in part]))
+        ax.plot(x, mean, "-o", color=colours[method], label=f"{method} mean")
+        ax.plot(x, [t["median"] for t in part], "--", color=colours[method], label=f"{method} median")
+        ax.fill_between(x, mean - sem, mean + sem, color=colours[method], alpha=0.2)
+    ax.set_xlabel("training episodes")
+    ax.set_ylabel("mean reward of 10 trials (max ~470)")
+    ax.set_title(f"{environment}: learning-planning loop")
+    ax.set_ylim(-100, 500)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=3, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def format_table(table: Sequence[dict[str, Any]]) -> list[str]:
+    """The summary as aligned text lines."""
+    lines = [f"{'method':14s} {'episodes':>8s} {'runs':>4s} {'mean':>7s} {'median':>7s} "
+             f"{'sem':>6s} {'failed':>6s}"]
+    for t in table:
+        lines.append(
+            f"{t['method']:14s} {t['episodes']:8d} {t['runs']:4d} {t['mean']:7.1f} "
+            f"{t['median']:7.1f} {t['sem']:6.1f} {t['failed']:6d}"
+        )
+    return lines
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``experiment`` subcommand."""
+    doc = "run the guide's learning-planning loop (figure 4.2) for one environment"
+    parser = subparsers.add_parser(
+        "experiment", help=doc, description=doc[0].upper() + doc[1:] + ". " + __doc__.split("\n\n")[1]
+    )
+    parser.add_argument("--environment", required=True, choices=[e.value for e in Environment])
+    parser.add_argument("--episodes", type=positive_int, nargs="+", default=None, metavar="N",
+                        help="data sizes in training episodes (default: 2000 4000 6000 8000)")
+    parser.add_argument("--repetitions", type=positive_int, default=10)
+    parser.add_argument("--first-repetition", type=int, default=0, metavar="K",
+                        help="index of the first repetition (rerun rows alone)")
+    parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
+    parser.add_argument("--rl-steps", type=positive_int, default=None,
+                        help="RL trajectory length (default: 15000 full, 20000 otherwise)")
+    parser.add_argument("--rl-seed", type=int, default=100)
+    parser.add_argument("--seed", type=int, default=0, help="base of every training seed")
+    parser.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1)
+    parser.add_argument("-o", "--output", type=Path, default=Path("results"),
+                        help="directory for experiment_<env>.csv/.png (default: results)")
+    parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
+    parser.add_argument("--p-th-tests", choices=("after-current", "from-current"),
+                        default="after-current", help="TPSR P_TH test window (see learner fit)")
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the grid, write CSV and PNG, print the summary."""
+    overrides: dict[str, Any] = {
+        "repetitions": args.repetitions,
+        "first_repetition": args.first_repetition,
+        "methods": tuple(args.methods),
+        "rl_seed": args.rl_seed,
+        "seed": args.seed,
+        "tpsr": TPSRConfig(p_th_tests=args.p_th_tests),
+    }
+    if args.episodes:
+        overrides["episodes"] = tuple(args.episodes)
+    if args.rl_steps:
+        overrides["rl_steps"] = args.rl_steps
+    config = default_config(args.environment, **overrides)
+    csv_path = args.output / f"experiment_{args.environment}.csv"
+    png_path = args.output / f"experiment_{args.environment}.png"
+    for path in (csv_path, png_path):
+        if path.exists() and not args.force:
+            raise ConfigError(f"{path} already exists; use --force to overwrite it")
+    args.output.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    rows = run_experiment(config, workers=args.workers)
+    elapsed = time.perf_counter() - start
+    table = summarise(rows)
+    write_csv(rows, csv_path)
+    plot_summary(table, args.environment, png_path)
+    print("\n".join(format_table(table)))
+    print(f"{len(rows)} runs in {elapsed:.0f} s; wrote {csv_path} and {png_path}", file=sys.stderr)
+    return 0

@@ -1,0 +1,81 @@
+"""Fitted Q-iteration against a small continuous MDP whose optimal values are known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tpsr_ros.errors import ConfigError, DataError
+from tpsr_ros.fqi import FQIConfig, fit_q
+
+LEFT, STAY, RIGHT = 0, 1, 2
+
+
+def _line_world(n: int = 6000, seed: int = 0):
+    """States on [0, 10]; actions move -1, 0, +1; reward 1 for ending beyond 8."""
+    rng = np.random.default_rng(seed)
+    states = rng.uniform(0, 10, size=(n, 1))
+    actions = rng.integers(0, 3, size=n)
+    moved = np.clip(states[:, 0] + (actions - 1.0), 0, 10)
+    rewards = (moved > 8).astype(float)
+    return states, actions, rewards, moved[:, None]
+
+
+def _optimal_values(x: np.ndarray, gamma: float) -> np.ndarray:
+    """V*(x): walk right; steps needed to end beyond 8, then reward 1 forever."""
+    steps = np.maximum(np.ceil(8 - x + 1e-12), 1)  # at least one step to collect a reward
+    steps = np.where(x > 8, 1, steps)
+    return gamma ** (steps - 1) / (1 - gamma)
+
+
+def test_recovers_the_optimal_policy_and_values_of_a_line_world():
+    q = fit_q(*_line_world(), n_actions=3, config=FQIConfig(centers=40))
+    grid = np.linspace(0.5, 7.5, 15)[:, None]
+    assert np.all(q.greedy(grid) == RIGHT)  # left of the goal: always walk right
+    values = q.values(grid).max(axis=1)
+    truth = _optimal_values(grid[:, 0], 0.9)
+    assert np.abs(values - truth).max() < 0.1 * truth.max()
+    assert np.all(np.diff(values) > 0)  # closer to the goal is worth more
+
+
+def test_features_are_normalised_and_fall_back_to_the_nearest_centre():
+    q = fit_q(*_line_world(2000), n_actions=3, config=FQIConfig(centers=20))
+    phi = q.features(np.array([[3.0], [5.0], [1e6]]))
+    assert np.allclose(phi.sum(axis=1), 1.0)
+    far = phi[2]
+    nearest = np.argmax(q.centers[:, 0])  # a state far to the right is the rightmost centre
+    assert far[nearest] == pytest.approx(1.0)
+
+
+def test_bad_inputs_are_refused():
+    s, a, r, s2 = _line_world(500)
+    with pytest.raises(DataError, match="fewer than 100 RBF centres"):
+        fit_q(s[:50], a[:50], r[:50], s2[:50], n_actions=3)
+    bad = s.copy()
+    bad[3] = np.nan
+    with pytest.raises(DataError, match="non-finite"):
+        fit_q(bad, a, r, s2, n_actions=3, config=FQIConfig(centers=20))
+    with pytest.raises(DataError, match=r"actions \[3\] never occur"):
+        fit_q(s, a, r, s2, n_actions=4, config=FQIConfig(centers=20))
+    with pytest.raises(DataError, match="one entry per transition"):
+        fit_q(s, a[:-1], r, s2, n_actions=3, config=FQIConfig(centers=20))
+    with pytest.raises(ConfigError, match="discount"):
+        FQIConfig(discount=1.0)
+    q = fit_q(s, a, r, s2, n_actions=3, config=FQIConfig(centers=20))
+    with pytest.raises(DataError, match="non-finite state"):
+        q.greedy(np.array([[np.inf]]))
+
+
+def test_divergence_is_detected_not_returned(monkeypatch):
+    import tpsr_ros.fqi as fqi
+
+    monkeypatch.setattr(fqi, "_DIVERGED", 1e-3)  # any real fit now counts as diverged
+    with pytest.raises(DataError, match="diverged"):
+        fit_q(*_line_world(500), n_actions=3, config=FQIConfig(centers=20))
+
+
+def test_fit_is_deterministic_for_a_seed():
+    data = _line_world(1500)
+    a = fit_q(*data, n_actions=3, config=FQIConfig(centers=20, seed=3))
+    b = fit_q(*data, n_actions=3, config=FQIConfig(centers=20, seed=3))
+    assert np.array_equal(a.weights, b.weights) and np.array_equal(a.centers, b.centers)
