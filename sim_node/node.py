@@ -9,7 +9,10 @@ ground truth, reward, clock), all stamped t_k; a reset publishes ``/sim/episode_
 
 Modes: ``explore`` takes a uniformly random action every 1/rate s (until ``steps`` steps,
 if set); ``command`` takes one step per ``/cmd_vel`` Twist, snapped to the nearest of
-the 25 actions. ``/sim/reset`` (PoseStamped, frame ``map``) restarts at a position.
+the 25 actions, and with ``episode_steps`` N > 0 ignores further commands once N steps
+were taken since the last reset (a controller answering the last step of an episode in
+lockstep then takes no extra step). ``/sim/reset`` (PoseStamped, frame ``map``) restarts
+at a position.
 """
 
 from __future__ import annotations
@@ -59,14 +62,18 @@ class SimNodeParams:
         3.0,
         "command mode: reject a /cmd_vel component farther than this (m/s) from 0, ±3, ±6",
     )
+    episode_steps: int = param(
+        0,
+        "command mode: ignore /cmd_vel after this many steps since the last reset (0 = never)",
+    )
 
     def __post_init__(self) -> None:
         if self.seed < 0:
             raise ConfigError(f"seed must be >= 0, got {self.seed}")
         if not (math.isfinite(self.rate) and self.rate > 0):
             raise ConfigError(f"rate must be a positive number of Hz, got {self.rate}")
-        if self.steps < 0 or self.wait_for_subscribers < 0:
-            raise ConfigError("steps and wait_for_subscribers must be >= 0")
+        if self.steps < 0 or self.wait_for_subscribers < 0 or self.episode_steps < 0:
+            raise ConfigError("steps, wait_for_subscribers and episode_steps must be >= 0")
         if not (math.isfinite(self.command_tolerance) and self.command_tolerance > 0):
             raise ConfigError(f"command_tolerance must be > 0, got {self.command_tolerance}")
 
@@ -96,6 +103,8 @@ class SimNode(Node):
         self._warned_explore = False
         self.steps_published = 0
         self.resets = 0
+        self.episode_step_count = 0
+        self.ignored_commands = 0
         self._time_index = -1
         self.started = False
         self._explore_done = False
@@ -143,6 +152,7 @@ class SimNode(Node):
         self.episode_publisher.publish(m.pose_msg(stamp, x, y))
         self.step_publishers[self.topics.clock].publish(m.clock_msg(stamp))
         self.resets += 1
+        self.episode_step_count = 0
         self.logger.info(f"episode starts at ({x:.2f}, {y:.2f}), t = {stamp / _NS:.0f} s")
 
     def step(self, action: int) -> None:
@@ -155,6 +165,7 @@ class SimNode(Node):
         ):
             self.step_publishers[topic].publish(msg)
         self.steps_published += 1
+        self.episode_step_count += 1
 
     def _explore_tick(self) -> None:
         if not self.started or self._explore_done:
@@ -173,6 +184,14 @@ class SimNode(Node):
             return
         if not self.started:
             self.logger.warning("/cmd_vel ignored: waiting for subscribers before the start")
+            return
+        limit = self.params.episode_steps
+        if limit and self.episode_step_count >= limit:
+            self.ignored_commands += 1
+            self.logger.debug(
+                f"/cmd_vel ignored: episode_steps ({limit}) reached since the last reset "
+                f"({self.ignored_commands} ignored in all)"
+            )
             return
         try:
             vx, vy = m.twist_to_xy(msg)
@@ -204,6 +223,11 @@ class SimNode(Node):
         """Log what was published."""
         last = self.last_stamp_ns
         until = "" if last is None else f", last stamp t = {last / _NS:.0f} s"
+        ignored = (
+            f"; {self.ignored_commands} /cmd_vel ignored after episode_steps"
+            if self.ignored_commands
+            else ""
+        )
         self.logger.info(
-            f"published {self.steps_published} steps and {self.resets} resets{until}"
+            f"published {self.steps_published} steps and {self.resets} resets{until}{ignored}"
         )
