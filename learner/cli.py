@@ -28,7 +28,9 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "learner.plots",
     "learner.planning",
     "learner.evaluate",
+    "learner.closed_loop",
     "learner.experiment",
+    "learner.report",
     "learner.demo",
 )
 
