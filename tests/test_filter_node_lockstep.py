@@ -22,15 +22,19 @@ class Driver:
         self.starts: list[int] = []
         self.states: list[tuple[int, list[float]]] = []
         self.node.create_subscription(
-            "/reward", m.REWARD_TYPE,
+            "/reward",
+            m.REWARD_TYPE,
             lambda x: self.rewards.append((m.stamp_of(x), m.reward_to_sample(x).reward)),
         )
         self.node.create_subscription(
-            "/sim/episode_start", m.POSE_TYPE, lambda x: self.starts.append(m.stamp_of(x)),
+            "/sim/episode_start",
+            m.POSE_TYPE,
+            lambda x: self.starts.append(m.stamp_of(x)),
             LATCHED_QOS,
         )
         self.node.create_subscription(
-            "/tpsr/state", m.STATE_TYPE,
+            "/tpsr/state",
+            m.STATE_TYPE,
             lambda x: self.states.append((m.stamp_of(x), list(m.state_to_array(x)))),
         )
         self.reset = self.node.create_publisher("/sim/reset", m.POSE_TYPE)
@@ -89,4 +93,50 @@ def test_episode_steps_zero_never_ignores():
         assert sim.ignored_commands == 0
     finally:
         sim.close()
+        driver.node.close()
+
+
+def test_the_filter_drives_the_standard_protocol_exactly_like_the_headless_evaluation(
+    tmp_path,
+):
+    """Same trials as learner.evaluate for the same policy (seed 2026, 10 starts x 50)."""
+    from test_filter_node import fit_small_model, random_policy
+
+    from learner.evaluate import START_POSITIONS, STEPS, evaluate
+    from learner.representations import load_tracker
+    from tpsr_ros.filter_node import FilterNode
+    from tpsr_ros.policy import load_policy
+
+    model = fit_small_model(tmp_path)
+    policy = random_policy(model, tmp_path / "policy.npz", seed=5)
+    headless = evaluate(load_policy(policy), load_tracker(model), "full")
+
+    bus = InprocBus()
+    driver = Driver(bus)
+    sim = start_sim(bus, "mode:=command", "seed:=2026", f"episode_steps:={STEPS}")
+    nodes = [sim, driver.node]
+    spin(nodes, lambda: len(driver.starts) == 1)  # the start-up reset
+    try:
+        trials = []
+        for i, (x, y) in enumerate(START_POSITIONS):
+            driver.reset.publish(m.pose_msg(0, x, y))
+            spin(nodes, lambda i=i: len(driver.starts) == i + 2)
+            if i == 0:  # the filter joins after the first reset, as in the closed loop
+                options = NodeOptions.for_node(FilterNode, model=str(model), policy=str(policy))
+                nodes.append(FilterNode(options, transport=InprocTransport("/f", bus)))
+            before = len(driver.rewards)
+            spin(
+                nodes,
+                lambda i=i, b=before: (
+                    len(driver.rewards) == b + STEPS and sim.ignored_commands == i + 1
+                ),
+            )
+            got = driver.rewards[before:]
+            assert [s for s, _ in got] == [driver.starts[-1] + k * S for k in range(1, STEPS + 1)]
+            trials.append(sum(r for _, r in got))
+        assert trials == [t.reward for t in headless.trials]
+        assert len(driver.states) == len(START_POSITIONS) * STEPS
+    finally:
+        for node in nodes:
+            node.close()
         driver.node.close()

@@ -111,9 +111,21 @@ def _player(tmp: Path, bus: InprocBus) -> tuple[Node, set[str]]:
     return node, {"/action"}  # the bag's topics are the dynamic '*' rows
 
 
+def _filter(tmp: Path, bus: InprocBus) -> tuple[Node, set[str]]:
+    from test_filter_node import fit_small_model, random_policy
+
+    from tpsr_ros.filter_node import FilterNode
+
+    model = fit_small_model(tmp)
+    policy = random_policy(model, tmp / "policy.npz")  # with a policy: /cmd_vel exists too
+    options = NodeOptions.for_node(FilterNode, model=str(model), policy=str(policy))
+    return FilterNode(options, transport=InprocTransport("/filter", bus)), set()
+
+
 FACTORIES: dict[str, Callable[[Path, InprocBus], tuple[Node, set[str]]]] = {
     "tpsr_ros.record:RecorderNode": _recorder,
     "tpsr_ros.play:PlayerNode": _player,
+    "tpsr_ros.filter_node:FilterNode": _filter,
 }
 
 

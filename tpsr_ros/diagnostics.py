@@ -1,0 +1,105 @@
+"""``diagnostic_msgs/msg/DiagnosticArray`` messages and the statistics nodes report in them.
+
+ROS 2 nodes report their health on ``/diagnostics`` (robot_localization, drivers, the
+``diagnostic_updater`` library): an array of ``DiagnosticStatus`` entries, each with a
+level (OK, WARN, ERROR, STALE), a name (``"<node>: <task>"``), a one-line message, a
+hardware id and string key-value pairs. ``rqt_robot_monitor``, ``ros2 topic echo
+/diagnostics`` and the diagnostic aggregator read them. The layouts come from the rosbags
+Jazzy typestore like every other message (:mod:`tpsr_ros.messages`).
+
+:class:`RollingPercentiles` keeps the last N samples of a quantity (e.g. processing
+latency) for p50/p99 reports.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from tpsr_ros.messages import jazzy_typestore, split_stamp
+
+__all__ = [
+    "DIAGNOSTICS_TYPE",
+    "ERROR",
+    "LEVEL_NAMES",
+    "OK",
+    "STALE",
+    "WARN",
+    "RollingPercentiles",
+    "diagnostic_array",
+    "diagnostic_status",
+    "status_values",
+]
+
+DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR", STALE: "STALE"}
+
+
+def _t(name: str) -> Any:
+    return jazzy_typestore().types[name]
+
+
+def _text(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+def diagnostic_status(
+    level: int,
+    name: str,
+    message: str,
+    values: Mapping[str, Any],
+    hardware_id: str = "",
+) -> Any:
+    """One ``DiagnosticStatus``; values are written as text (floats with 6 significant digits)."""
+    if level not in LEVEL_NAMES:
+        raise ValueError(f"diagnostic level {level} is not one of {sorted(LEVEL_NAMES)}")
+    key_value = _t("diagnostic_msgs/msg/KeyValue")
+    return _t("diagnostic_msgs/msg/DiagnosticStatus")(
+        level=int(level),
+        name=name,
+        message=message,
+        hardware_id=hardware_id,
+        values=[key_value(key=str(k), value=_text(v)) for k, v in values.items()],
+    )
+
+
+def diagnostic_array(stamp_ns: int, statuses: list[Any]) -> Any:
+    """``DiagnosticArray`` stamped ``stamp_ns`` holding ``statuses``."""
+    sec, nanosec = split_stamp(stamp_ns)
+    header = _t("std_msgs/msg/Header")(
+        stamp=_t("builtin_interfaces/msg/Time")(sec=sec, nanosec=nanosec), frame_id=""
+    )
+    return _t(DIAGNOSTICS_TYPE)(header=header, status=list(statuses))
+
+
+def status_values(status: Any) -> dict[str, str]:
+    """Key-value pairs of a ``DiagnosticStatus`` as a dict."""
+    return {kv.key: kv.value for kv in status.values}
+
+
+class RollingPercentiles:
+    """The last ``size`` samples of a quantity, with percentiles over them."""
+
+    def __init__(self, size: int = 1000) -> None:
+        self._samples: deque[float] = deque(maxlen=size)
+
+    def add(self, value: float) -> None:
+        """Record one sample."""
+        self._samples.append(float(value))
+
+    def __len__(self) -> int:
+        return len(self._samples)
+
+    def percentiles(self, *qs: float) -> tuple[float, ...]:
+        """Percentiles ``qs`` (0-100) of the samples; NaN each when there are none."""
+        if not self._samples:
+            return tuple(float("nan") for _ in qs)
+        return tuple(float(v) for v in np.percentile(np.fromiter(self._samples, float), qs))

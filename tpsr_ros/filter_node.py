@@ -1,0 +1,607 @@
+"""The TPSR filter node: tracks the predictive state online and, with a policy, drives the robot.
+
+    python -m tpsr_ros.filter_node --ros-args -p model:=MODEL [-p policy:=POLICY]
+
+Boilerplate around three ROS-free parts (see msgs_doc/filter_node.md for the interface):
+
+- :class:`tpsr_ros.pairing.ExactTimeSynchronizer` pairs ``/camera/image_raw`` and ``/action``
+  by identical header stamp in a bounded buffer (like message_filters' ExactTime);
+- :class:`tpsr_ros.online.OnlineTracker` applies Algorithm 4 with the model's stateless
+  update, with the offline tracker's rules (start from ``b_*``, restart at gaps), so the
+  states published on ``/tpsr/state`` equal offline tracking of the same steps bit for bit;
+- the greedy policy (:func:`tpsr_ros.policy.load_policy`) turns each state into a
+  ``/cmd_vel`` command.
+
+Re-initialisation (state ``b_*``, next step starts a segment): on an episode start
+(``/sim/episode_start``, transient-local) newer than the last processed step, and on a
+backwards jump of time: a ``/clock``, episode-start, image or action stamp earlier than the
+last processed step by more than ``jump_threshold`` seconds. After a re-init the node
+publishes the command for ``b_*`` (in lockstep that commands the first step of an episode).
+An episode start at or before the last processed step (and not a jump) is stale and ignored.
+
+Faults never stop the node: undecodable messages, images of the wrong encoding, size,
+frame or data length, actions that are not finite or not one of the 25 actions are
+rejected (counted per reason, one warning per topic and reason every 5 s); incomplete,
+duplicated, late and out-of-order messages are counted by the synchroniser; degenerate
+normalisers are recovered by the guard of :mod:`tpsr_ros.filtering` and counted.
+``/diagnostics`` reports it all once a second.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from tpsr_ros import messages as m
+from tpsr_ros.diagnostics import (
+    DIAGNOSTICS_TYPE,
+    ERROR,
+    OK,
+    WARN,
+    RollingPercentiles,
+    diagnostic_array,
+    diagnostic_status,
+)
+from tpsr_ros.episodes import (
+    DEFAULT_ACTION_TOLERANCE,
+    DEFAULT_IMAGE_SHAPE,
+    image_to_observation,
+    velocities_to_actions,
+)
+from tpsr_ros.errors import ConfigError, MessageError, TpsrError
+from tpsr_ros.model_io import load_model, model_fingerprint, read_metadata
+from tpsr_ros.online import OnlineTracker
+from tpsr_ros.pairing import ExactTimeSynchronizer, Outcome
+from tpsr_ros.policy import TRUE_POSITION, Policy, load_policy
+from tpsr_ros.runtime import (
+    DEFAULT_QOS,
+    LATCHED_QOS,
+    Durability,
+    History,
+    Node,
+    NodeOptions,
+    QoSProfile,
+    Reliability,
+    param,
+    run_node,
+)
+from tpsr_ros.state_model import StateModel
+
+__all__ = [
+    "ACTION_TOPIC",
+    "CLOCK_TOPIC",
+    "CMD_VEL_TOPIC",
+    "DIAGNOSTICS_TOPIC",
+    "IMAGE_TOPIC",
+    "REJECT_REASONS",
+    "RESET_TOPIC",
+    "STATE_TOPIC",
+    "FilterInputs",
+    "FilterNode",
+    "FilterNodeParams",
+    "load_inputs",
+    "main",
+]
+
+PROG = "python -m tpsr_ros.filter_node"
+IMAGE_TOPIC = "/camera/image_raw"
+ACTION_TOPIC = "/action"
+RESET_TOPIC = "/sim/episode_start"
+CLOCK_TOPIC = "/clock"
+STATE_TOPIC = "/tpsr/state"
+CMD_VEL_TOPIC = "/cmd_vel"
+DIAGNOSTICS_TOPIC = "/diagnostics"
+REJECT_REASONS = ("undecodable", "encoding", "size", "data", "frame", "action")
+CLOCK_QOS = QoSProfile(Reliability.BEST_EFFORT, Durability.VOLATILE, History.KEEP_LAST, 10)
+"""Best effort, so /clock from any publisher matches (rosbag2 publishes it best-effort)."""
+WARN_PERIOD_S = 5.0
+"""At most one warning per topic and reason in this many seconds."""
+SETTLE_S = 0.25
+"""Once the command's subscribers are matched, time for their side of discovery to finish."""
+_NS = 1_000_000_000
+_RECOVERY_ERROR_RUN = 10
+
+
+@dataclass(frozen=True)
+class FilterNodeParams:
+    """Parameters of ``python -m tpsr_ros.filter_node``."""
+
+    model: str = param("", "model file (.npz) written by `learner fit` (required)")
+    policy: str = param(
+        "", "policy file written by `learner policy` for this model; empty: a pure filter"
+    )
+    queue_size: int = param(
+        10, "incomplete steps (image or action alone) buffered for pairing; the oldest go first"
+    )
+    step_period: float = param(
+        1.0, "s between consecutive steps; a step not one period after the last starts from b_*"
+    )
+    jump_threshold: float = param(
+        5.0, "s; a stamp earlier than the last step by more than this is a backwards time jump"
+    )
+    image_frame: str = param("camera", "required frame_id of images (empty: any)")
+    action_frame: str = param("base_link", "required frame_id of actions (empty: any)")
+    sensor_qos: str = param(
+        "reliable",
+        "reliability of the image and action subscriptions (best_effort also matches "
+        "sensor-data publishers)",
+        choices=("reliable", "best_effort"),
+    )
+    check_topics: bool = param(
+        True, "refuse a model trained on other image/action topics than the node subscribes"
+    )
+    wait_for_subscribers: int = param(
+        0, "hold the first command until /cmd_vel and /tpsr/state each have this many subscriptions"
+    )
+    diagnostics_period: float = param(1.0, "s between /diagnostics reports")
+
+    def __post_init__(self) -> None:
+        if self.queue_size < 1:
+            raise ConfigError(f"queue_size must be >= 1, got {self.queue_size}")
+        for name in ("step_period", "diagnostics_period"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"{name} must be a positive number of seconds, got {value}")
+        if not (math.isfinite(self.jump_threshold) and self.jump_threshold >= 0):
+            raise ConfigError(f"jump_threshold must be >= 0 s, got {self.jump_threshold}")
+        if self.wait_for_subscribers < 0:
+            raise ConfigError("wait_for_subscribers must be >= 0")
+
+
+# -- loading and the start-up checks ------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FilterInputs:
+    """The model and policy a filter node runs, checked against each other and its topics."""
+
+    model: StateModel
+    fingerprint: str
+    metadata: dict[str, Any]
+    image_shape: tuple[int, int]
+    policy: Policy | None
+
+
+def _training_topics(metadata: dict[str, Any]) -> set[tuple[str, str]]:
+    bags = metadata.get("training", {}).get("bags") or []
+    found = set()
+    for bag in bags:
+        topics = bag.get("topics") if isinstance(bag, dict) else None
+        if isinstance(topics, dict) and topics.get("image") and topics.get("action"):
+            found.add((str(topics["image"]), str(topics["action"])))
+    return found
+
+
+def load_inputs(
+    params: FilterNodeParams, image_topic: str = IMAGE_TOPIC, action_topic: str = ACTION_TOPIC
+) -> FilterInputs:
+    """Load the model (and policy) and refuse a combination the node cannot run.
+
+    Refused, each with a one-line :class:`~tpsr_ros.errors.TpsrError`: no model; an
+    unreadable model or policy; a true-position policy (it needs the ground truth); a policy
+    trained for another model (fingerprint), or for other state dimension or number of
+    actions, or another environment than the model's; a model whose images are not
+    ``H x W x 3``; and, unless ``check_topics`` is false, a model trained on other topics:
+    every training bag recorded in the model names its image and action topics, and each
+    pair must equal ``(image_topic, action_topic)``, the node's fully resolved subscription
+    names (after namespace and ``-r`` remapping). A model recording no topics is accepted.
+    """
+    if not params.model:
+        raise ConfigError("no model given: pass -p model:=MODEL (a file from `learner fit`)")
+    model = load_model(params.model)
+    metadata = read_metadata(params.model)
+    fingerprint = model_fingerprint(model)
+    training = metadata.get("training", {})
+    shape = tuple(training.get("image_shape") or DEFAULT_IMAGE_SHAPE)
+    if len(shape) != 2 or shape[0] * shape[1] * 3 != model.obs_size:
+        raise ConfigError(
+            f"model {params.model} takes {model.obs_size} observation values, not the rgb8 "
+            f"pixels of {shape} images"
+        )
+    if params.check_topics:
+        subscribed = (image_topic, action_topic)
+        for pair in sorted(_training_topics(metadata)):
+            if pair != subscribed:
+                raise ConfigError(
+                    f"model {params.model} was trained on {pair[0]} and {pair[1]}, but the "
+                    f"node subscribes {subscribed[0]} and {subscribed[1]} (remap with -r, or "
+                    "-p check_topics:=false to accept)"
+                )
+    policy = None
+    if params.policy:
+        policy = load_policy(params.policy)
+        if policy.representation == TRUE_POSITION:
+            raise ConfigError(
+                f"policy {params.policy} acts on the true position, which the filter node "
+                "does not have; use a policy fitted on this model's states"
+            )
+        policy.check_model(fingerprint, f"model {params.model}")
+        if policy.state_dim != model.state_dim or policy.n_actions != model.n_actions:
+            raise ConfigError(
+                f"policy {params.policy} takes {policy.state_dim}-dimensional states and "
+                f"{policy.n_actions} actions, the model has {model.state_dim} and "
+                f"{model.n_actions}"
+            )
+        environment = training.get("environment")
+        if isinstance(environment, str):
+            policy.check_environment(environment)
+    return FilterInputs(model, fingerprint, metadata, (int(shape[0]), int(shape[1])), policy)
+
+
+class _Rejected(Exception):
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
+def _image(msg: Any, shape: tuple[int, int], frame: str) -> np.ndarray:
+    if msg.encoding != "rgb8":
+        raise _Rejected("encoding", f"encoding {msg.encoding!r} is not rgb8")
+    if (int(msg.height), int(msg.width)) != shape or int(msg.step) != 3 * int(msg.width):
+        raise _Rejected(
+            "size",
+            f"image is {msg.height}x{msg.width} (step {msg.step}), expected "
+            f"{shape[0]}x{shape[1]} (step {3 * shape[1]})",
+        )
+    if len(msg.data) != shape[0] * shape[1] * 3:
+        raise _Rejected(
+            "data", f"image holds {len(msg.data)} bytes, expected {shape[0] * shape[1] * 3}"
+        )
+    if frame and msg.header.frame_id != frame:
+        raise _Rejected("frame", f"frame {msg.header.frame_id!r} is not {frame!r}")
+    return m.image_to_array(msg, shape=shape)
+
+
+def _action(msg: Any, frame: str) -> int:
+    if frame and msg.header.frame_id != frame:
+        raise _Rejected("frame", f"frame {msg.header.frame_id!r} is not {frame!r}")
+    try:
+        velocity = np.array([m.twist_to_xy(msg)])
+        return int(velocities_to_actions(velocity, DEFAULT_ACTION_TOLERANCE)[0])
+    except TpsrError as exc:
+        raise _Rejected("action", str(exc)) from None
+
+
+class _Throttle:
+    """True at most once per key every ``period_s`` (wall clock); counts what it held back."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self._last: dict[tuple[str, str], float] = {}
+        self.suppressed: dict[tuple[str, str], int] = {}
+
+    def __call__(self, key: tuple[str, str]) -> bool:
+        now = time.monotonic()
+        last = self._last.get(key)
+        if last is not None and now - last < self.period_s:
+            self.suppressed[key] = self.suppressed.get(key, 0) + 1
+            return False
+        self._last[key] = now
+        return True
+
+    def take_suppressed(self, key: tuple[str, str]) -> int:
+        return self.suppressed.pop(key, 0)
+
+
+# -- the node -----------------------------------------------------------------------------
+
+
+class FilterNode(Node):
+    """Tracks the TPSR state from images and actions; publishes it and the greedy command."""
+
+    default_name = "tpsr_filter"
+    Params = FilterNodeParams
+    description = (
+        "Track the predictive state online (guide Algorithm 4) and, with a policy, publish "
+        "the greedy fitted-Q command."
+    )
+
+    @classmethod
+    def _resolved_inputs(cls, options: NodeOptions) -> tuple[str, str]:
+        # Node.resolve_topic needs only the options, name and namespace: use it unbound
+        # so the check sees exactly the names setup() will subscribe.
+        probe = object.__new__(cls)
+        probe.options, probe.name, probe.namespace = options, options.name, options.namespace
+        return probe.resolve_topic(IMAGE_TOPIC), probe.resolve_topic(ACTION_TOPIC)
+
+    @classmethod
+    def preflight(cls, options: NodeOptions) -> None:
+        """Refuse a missing or mismatched model/policy before joining the graph."""
+        load_inputs(options.params, *cls._resolved_inputs(options))
+
+    def setup(self) -> None:
+        """Load and check the model and policy; create the endpoints and timers."""
+        p: FilterNodeParams = self.params
+        self.image_topic = self.resolve_topic(IMAGE_TOPIC)
+        self.action_topic = self.resolve_topic(ACTION_TOPIC)
+        self.inputs = load_inputs(p, self.image_topic, self.action_topic)
+        self.model = self.inputs.model
+        self.policy = self.inputs.policy
+        self.tracker = OnlineTracker(self.model, round(p.step_period * _NS))
+        self.sync = ExactTimeSynchronizer(
+            2, queue_size=p.queue_size, jump_threshold_ns=round(p.jump_threshold * _NS)
+        )
+        self.rejected = dict.fromkeys(REJECT_REASONS, 0)
+        self.resets = 0
+        self.stale_resets = 0
+        self.errors = 0
+        self.commands = 0
+        self.latency = RollingPercentiles(1000)
+        self._throttle = _Throttle(WARN_PERIOD_S)
+        self._recovery_run = 0
+        self._last_report = (time.monotonic(), 0, self._problem_counts())
+        self._pending_command: int | None = None
+        self._ready_since: float | None = None
+        self.commands_ready = self.policy is None
+
+        sensor = QoSProfile(
+            Reliability(p.sensor_qos), Durability.VOLATILE, History.KEEP_LAST, DEFAULT_QOS.depth
+        )
+        self.state_pub = self.create_publisher(STATE_TOPIC, m.STATE_TYPE)
+        self.cmd_pub = (
+            self.create_publisher(CMD_VEL_TOPIC, m.TWIST_TYPE) if self.policy is not None else None
+        )
+        self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
+        self.image_sub = self.create_subscription(
+            IMAGE_TOPIC, m.IMAGE_TYPE, self._on_image, sensor, raw=True
+        )
+        self.action_sub = self.create_subscription(
+            ACTION_TOPIC, m.ACTION_TYPE, self._on_action, sensor, raw=True
+        )
+        self.create_subscription(RESET_TOPIC, m.POSE_TYPE, self._on_reset, LATCHED_QOS, raw=True)
+        self.create_subscription(CLOCK_TOPIC, m.CLOCK_TYPE, self._on_clock, CLOCK_QOS, raw=True)
+        self.create_timer(p.diagnostics_period, self.publish_diagnostics)
+        if self.policy is not None:
+            self._ready_timer = self.create_timer(0.01, self._check_ready)
+        what = "pure filter" if self.policy is None else f"policy {p.policy}"
+        self.logger.info(
+            f"model {p.model} ({self.model.method}, {self.model.state_dim}-d states, "
+            f"{self.inputs.fingerprint[:12]}); {what}; pairing {self.image_topic} and "
+            f"{self.action_topic}"
+        )
+
+    # -- warnings and counters ------------------------------------------------------------
+
+    def _warn(self, topic: str, kind: str, message: str) -> None:
+        key = (topic, kind)
+        if self._throttle(key):
+            held = self._throttle.take_suppressed(key)
+            more = f" ({held} more since the last warning)" if held else ""
+            self.logger.warning(f"{topic}: {message}{more}")
+
+    def _reject(self, topic: str, reason: str, detail: str) -> None:
+        self.rejected[reason] += 1
+        self._warn(topic, reason, f"rejected ({reason}): {detail}")
+
+    def _problem_counts(self) -> dict[str, int]:
+        stats = self.sync.stats
+        counts = {
+            "dropped": stats.dropped,
+            "duplicates": stats.duplicates,
+            "late": stats.late,
+            "out_of_order": stats.out_of_order,
+            "time_jumps": stats.time_jumps,
+            "gaps": self.tracker.gaps,
+            "recoveries": self.tracker.recoveries,
+            "errors": self.errors,
+        }
+        counts.update({f"rejected_{reason}": n for reason, n in self.rejected.items()})
+        return counts
+
+    # -- callbacks ------------------------------------------------------------------------
+
+    def _decode(self, data: bytes, msgtype: str, topic: str) -> Any | None:
+        try:
+            return m.deserialize(data, msgtype)
+        except MessageError as exc:
+            self._reject(topic, "undecodable", str(exc))
+            return None
+
+    def _on_image(self, data: bytes) -> None:
+        start = time.perf_counter()
+        msg = self._decode(data, m.IMAGE_TYPE, self.image_topic)
+        if msg is None:
+            return
+        try:
+            image = _image(msg, self.inputs.image_shape, self.params.image_frame)
+        except _Rejected as exc:
+            self._reject(self.image_topic, exc.reason, str(exc))
+            return
+        self._add(0, m.stamp_of(msg), image, self.image_topic, start)
+
+    def _on_action(self, data: bytes) -> None:
+        start = time.perf_counter()
+        msg = self._decode(data, m.ACTION_TYPE, self.action_topic)
+        if msg is None:
+            return
+        try:
+            action = _action(msg, self.params.action_frame)
+        except _Rejected as exc:
+            self._reject(self.action_topic, exc.reason, str(exc))
+            return
+        self._add(1, m.stamp_of(msg), action, self.action_topic, start)
+
+    def _add(self, index: int, stamp: int, item: Any, topic: str, start: float) -> None:
+        dropped_before = self.sync.stats.dropped
+        result = self.sync.add(index, stamp, item)
+        if result.jumped:
+            self.tracker.reinit()
+            self.logger.info(f"time jumped back to {stamp / _NS:.3f} s: state re-initialised")
+        if self.sync.stats.dropped > dropped_before:
+            self._warn(topic, "dropped", "incomplete steps dropped (image or action missing)")
+        if result.outcome is Outcome.DUPLICATE:
+            self._warn(topic, "duplicate", f"duplicate message at {stamp / _NS:.3f} s ignored")
+        elif result.outcome is Outcome.LATE:
+            self._warn(topic, "late", f"late message at {stamp / _NS:.3f} s ignored")
+        elif result.outcome is Outcome.PAIRED:
+            assert result.items is not None
+            image, action = result.items
+            self._process(stamp, int(action), image, start)
+
+    def _process(self, stamp: int, action: int, image: np.ndarray, start: float) -> None:
+        try:
+            info = self.tracker.step(stamp, action, image_to_observation(image))
+        except Exception as exc:  # never let one step stop the node
+            self.errors += 1
+            self.tracker.reinit()
+            if self._throttle((STATE_TOPIC, "error")):
+                self.logger.error(f"update at {stamp / _NS:.3f} s failed ({exc}); state reset")
+            return
+        if info.recovered:
+            self._recovery_run += 1
+            self._warn(
+                STATE_TOPIC,
+                "recovery",
+                f"normaliser {info.normalizer:.3g} at {stamp / _NS:.3f} s: restarted from b_*",
+            )
+        else:
+            self._recovery_run = 0
+        self.state_pub.publish(m.state_msg(stamp, info.state))
+        if self.policy is not None:
+            self._command(info.state)
+        self.latency.add(time.perf_counter() - start)
+
+    def _on_reset(self, data: bytes) -> None:
+        msg = self._decode(data, m.POSE_TYPE, RESET_TOPIC)
+        if msg is None:
+            return
+        stamp = m.stamp_of(msg)
+        last = self.sync.last_stamp
+        if last is not None and stamp <= last and not self.sync.check_time(stamp):
+            self.stale_resets += 1
+            self.logger.debug(f"episode start at {stamp / _NS:.3f} s is not newer: ignored")
+            return
+        self.sync.start_after(stamp)
+        self._reinit(f"episode start at {stamp / _NS:.3f} s")
+        self.resets += 1
+
+    def _on_clock(self, data: bytes) -> None:
+        msg = self._decode(data, m.CLOCK_TYPE, CLOCK_TOPIC)
+        if msg is not None and self.sync.check_time(m.stamp_of(msg)):
+            self._reinit(f"/clock jumped back to {m.stamp_of(msg) / _NS:.3f} s")
+
+    def _reinit(self, why: str) -> None:
+        self.tracker.reinit()
+        self.logger.debug(f"{why}: state re-initialised to b_*")
+        if self.policy is not None:
+            self._command(self.tracker.state)
+
+    # -- commands -------------------------------------------------------------------------
+
+    def _command(self, state: np.ndarray) -> None:
+        assert self.policy is not None
+        self._pending_command = self.policy.action(state)
+        if self.commands_ready:
+            self._send_pending()
+
+    def _send_pending(self) -> None:
+        from sim_node.actions import ACTIONS
+
+        if self._pending_command is None or self.cmd_pub is None:
+            return
+        vx, vy = ACTIONS[self._pending_command]
+        self._pending_command = None
+        self.cmd_pub.publish(m.twist_msg(float(vx), float(vy)))
+        self.commands += 1
+
+    def _subscribers_matched(self) -> bool:
+        assert self.cmd_pub is not None
+        need = int(self.params.wait_for_subscribers)
+        return self.cmd_pub.get_subscription_count() >= max(1, need) and (
+            self.state_pub.get_subscription_count() >= need
+        )
+
+    def _check_ready(self) -> None:
+        if self.commands_ready:
+            self._ready_timer.cancel()
+            return
+        if not self._subscribers_matched():
+            self._ready_since = None
+            return
+        now = time.monotonic()
+        if self._ready_since is None:
+            self._ready_since = now
+        if now - self._ready_since >= SETTLE_S:
+            self.commands_ready = True
+            self._ready_timer.cancel()
+            self.logger.info("command subscribers matched: driving")
+            self._send_pending()
+
+    # -- diagnostics ----------------------------------------------------------------------
+
+    def diagnostics_values(self) -> dict[str, Any]:
+        """Every diagnostics key-value (also used by tests and the benchmark)."""
+        now = time.monotonic()
+        since, steps_then, _ = self._last_report
+        rate = (self.tracker.steps - steps_then) / max(now - since, 1e-9)
+        p50, p99 = self.latency.percentiles(50, 99)
+        last = (
+            self.tracker.last_stamp
+            if self.tracker.last_stamp is not None
+            else (self.sync.last_stamp)
+        )
+        values: dict[str, Any] = {
+            "update_rate_hz": rate,
+            "latency_p50_ms": p50 * 1e3,
+            "latency_p99_ms": p99 * 1e3,
+            "steps": self.tracker.steps,
+            "commands": self.commands,
+            "resets": self.resets,
+            "stale_resets": self.stale_resets,
+            **self._problem_counts(),
+            "last_stamp_s": "none" if last is None else f"{last / _NS:.9f}",
+            "state_dim": self.model.state_dim,
+            "model": self.inputs.fingerprint[:12],
+            "policy": "none" if self.policy is None else self.params.policy,
+        }
+        return values
+
+    def health(self, values: dict[str, Any]) -> tuple[int, str]:
+        """Level and message of the report: what got worse since the previous report."""
+        _, steps_then, problems_then = self._last_report
+        grown = [k for k, v in self._problem_counts().items() if v > problems_then.get(k, 0)]
+        rejected_now = sum(
+            v - problems_then.get(k, 0)
+            for k, v in self._problem_counts().items()
+            if k.startswith("rejected_")
+        )
+        if self._recovery_run >= _RECOVERY_ERROR_RUN:
+            return ERROR, f"the last {self._recovery_run} updates all needed recovery"
+        if rejected_now and self.tracker.steps == steps_then:
+            return ERROR, f"every message rejected ({rejected_now} since the last report)"
+        if grown:
+            return WARN, "since the last report: " + ", ".join(grown)
+        if self.tracker.steps == 0:
+            return OK, "waiting for paired images and actions"
+        return OK, "tracking"
+
+    def publish_diagnostics(self) -> None:
+        """Publish one DiagnosticArray (timer callback)."""
+        values = self.diagnostics_values()
+        level, message = self.health(values)
+        status = diagnostic_status(
+            level, f"{self.name}: state tracking", message, values, hardware_id="tpsr"
+        )
+        self.diagnostics_pub.publish(diagnostic_array(time.time_ns(), [status]))
+        self._last_report = (time.monotonic(), self.tracker.steps, self._problem_counts())
+
+    def on_shutdown(self) -> None:
+        """Log the totals."""
+        problems = ", ".join(f"{k} {v}" for k, v in self._problem_counts().items() if v)
+        self.logger.info(
+            f"tracked {self.tracker.steps} steps, {self.resets} resets, {self.commands} "
+            f"commands" + (f"; {problems}" if problems else "")
+        )
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of ``python -m tpsr_ros.filter_node``."""
+    run_node(FilterNode, prog=PROG, argv=argv)
+
+
+if __name__ == "__main__":
+    main()
