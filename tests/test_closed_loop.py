@@ -1,0 +1,157 @@
+"""The closed loop over the nodes as separate processes (DDS backend): the standard protocol's
+exact result, the recorded states equal offline tracking, and no process outlives a failure.
+
+The model and policy are the guide's defaults (24000 training steps, 15000 RL steps), so the
+robot really reaches the reward zone; fitting them takes about 15 s.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from learner.cli import main as learner_main
+from learner.closed_loop import ClosedLoopError, run_closed_loop
+from sim_node import SimConfig
+from sim_node.generate import generate_bag
+from tpsr_ros import messages as m
+from tpsr_ros.bag import BagReader
+from tpsr_ros.episodes import read_trajectory, track_trajectory
+from tpsr_ros.errors import TpsrError
+from tpsr_ros.model_io import load_model
+
+pytestmark = pytest.mark.dds
+LOOPBACK = (
+    "<CycloneDDS><Domain id='any'><General><Interfaces>"
+    "<NetworkInterface address='127.0.0.1' multicast='true'/>"
+    "</Interfaces></General></Domain></CycloneDDS>"
+)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    pytest.importorskip("cyclonedds")
+    tmp = tmp_path_factory.mktemp("closed_loop")
+    generate_bag(tmp / "train", SimConfig(environment="full"), 24_000, seed=0)
+    generate_bag(tmp / "rl", SimConfig(environment="full"), 15_000, seed=1)
+    assert learner_main(["fit", str(tmp / "train"), "-o", str(tmp / "model.npz")]) == 0
+    assert (
+        learner_main(
+            ["policy", str(tmp / "model.npz"), str(tmp / "rl"), "-o", str(tmp / "policy.npz")]
+        )
+        == 0
+    )
+    return tmp
+
+
+def _children_of_this_process() -> list[int]:
+    """Pids of live node processes started by the closed loop from this process."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            argv = (entry / "cmdline").read_bytes().split(b"\0")
+            state = (entry / "stat").read_text().split(") ")[-1][0]
+        except OSError:
+            continue
+        if state != "Z" and b"-c" in argv and str(os.getpid()).encode() in argv:
+            pids.append(int(entry.name))
+    return pids
+
+
+@pytest.mark.slow
+def test_closed_loop_equals_the_headless_evaluation_and_the_recorded_states_offline(
+    trained, tmp_path, capsys
+):
+    policy, model = trained / "policy.npz", trained / "model.npz"
+    assert (
+        learner_main(["evaluate", str(policy), "--environment", "full", "--model", str(model)]) == 0
+    )
+    headless = capsys.readouterr().out.splitlines()
+    bag = tmp_path / "closed_loop"
+    env = {**os.environ, "CYCLONEDDS_URI": LOOPBACK, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "learner",
+            "closed-loop",
+            str(policy),
+            "--environment",
+            "full",
+            "--model",
+            str(model),
+            "--record",
+            str(bag),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=240,
+        env=env,
+    )
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    # the real protocol (10 starts x 50 steps): every trial and the score, exactly
+    assert lines == headless and len(lines) == 11 and lines[-1].startswith("score: ")
+    assert any("goal zone at step" in line for line in lines)  # the robot reaches the goal
+
+    # the recorded /tpsr/state equals offline tracking of the recorded bag, every step
+    trajectory = read_trajectory([bag], require_ground_truth=True)
+    offline = track_trajectory(load_model(model), trajectory)
+    with BagReader(bag) as reader:
+        published = {}
+        for msg in reader.messages(["/tpsr/state"]):
+            state = msg.decode()
+            published[m.stamp_of(state)] = m.state_to_array(state)
+        commands = sum(1 for _ in reader.messages(["/cmd_vel"]))
+    assert len(trajectory) == len(published) == 500 and len(trajectory.segment_bounds()) == 10
+    worst = max(
+        np.abs(published[int(s)] - offline.states[i]).max() for i, s in enumerate(trajectory.stamps)
+    )
+    assert worst <= 1e-9
+    assert commands == 510  # 50 per trial and the ignored 51st
+    assert trajectory.rewards.reshape(10, 50).sum(axis=1).mean() == float(lines[-1].split()[1])
+
+
+@pytest.mark.slow
+def test_a_crashed_node_stops_the_run_and_leaves_no_process(trained, tmp_path):
+    def kill_filter(index, trial):
+        for pid in _children_of_this_process():
+            if b"tpsr_ros.filter_node" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                os.kill(pid, signal.SIGKILL)
+
+    with pytest.raises(ClosedLoopError, match="tpsr_filter exited with status -9") as exc:
+        run_closed_loop(
+            trained / "policy.npz",
+            "full",
+            model_path=trained / "model.npz",
+            log_dir=tmp_path / "logs",
+            on_trial=kill_filter,
+            timeout_s=60,
+        )
+    assert "\n" not in str(exc.value)
+    assert (tmp_path / "logs" / "sim_node.log").read_text().count("episode starts") >= 2
+    assert _children_of_this_process() == []
+
+
+def test_timeouts_and_refusals_leave_no_process(trained, tmp_path):
+    with pytest.raises(ClosedLoopError, match=r"timed out after 0\.01 s"):
+        run_closed_loop(
+            trained / "policy.npz", "full", model_path=trained / "model.npz", timeout_s=0.01
+        )
+    deadline = time.monotonic() + 5
+    while _children_of_this_process() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _children_of_this_process() == []
+    with pytest.raises(TpsrError, match="environment 'full', not 'partial'"):
+        run_closed_loop(trained / "policy.npz", "partial", model_path=trained / "model.npz")
+    with pytest.raises(TpsrError):
+        run_closed_loop(tmp_path / "missing.npz", "full")
