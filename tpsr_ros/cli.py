@@ -9,7 +9,7 @@ from typing import NoReturn
 
 from tpsr_ros.errors import TpsrError
 
-__all__ = ["ArgumentParser", "positive_int", "run_cli"]
+__all__ = ["ArgumentParser", "non_negative_int", "positive_float", "positive_int", "run_cli"]
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -20,14 +20,36 @@ class ArgumentParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
+def _number(text: str, kind: type[int] | type[float], noun: str) -> int | float:
+    try:
+        return kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not {noun}") from None
+
+
 def positive_int(text: str) -> int:
     """argparse type: an integer > 0."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    value = int(_number(text, int, "an integer"))
     if value <= 0:
         raise argparse.ArgumentTypeError(f"{value} is not positive")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    value = int(_number(text, int, "an integer"))
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value} is negative")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    value = float(_number(text, float, "a number"))
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"{value} is not positive")
+    if value == float("inf"):
+        raise argparse.ArgumentTypeError(f"{value} is not finite")
     return value
 
 

@@ -21,14 +21,13 @@ reliable subscribers to acknowledge everything, and exits.
 
 from __future__ import annotations
 
-import argparse
 import struct
 import time
 from pathlib import Path
 from typing import Any
 
 from tpsr_ros.bag import BagReader
-from tpsr_ros.cli import ArgumentParser
+from tpsr_ros.cli import ArgumentParser, non_negative_int, positive_float
 from tpsr_ros.errors import BagError, TpsrError
 from tpsr_ros.messages import CLOCK_TYPE, clock_msg, jazzy_typestore
 from tpsr_ros.runtime import DEFAULT_QOS, Node, NodeOptions, Publisher, run_node
@@ -39,26 +38,6 @@ __all__ = ["PlayerNode", "header_stamp_ns", "main"]
 PROG = "python -m tpsr_ros.play"
 CLOCK_TOPIC = "/clock"
 _NS = 1_000_000_000
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"{value} is not positive")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{value} is negative")
-    return value
 
 
 def _starts_with_header(msgtype: str) -> bool:
@@ -90,7 +69,7 @@ class PlayerNode(Node):
         parser = ArgumentParser(prog=prog, description=cls.description, add_help=False)
         parser.add_argument("bag", type=Path, help="rosbag2 MCAP bag directory")
         parser.add_argument(
-            "--rate", type=_positive_float, default=1.0, help="speed factor (default 1.0)"
+            "--rate", type=positive_float, default=1.0, help="speed factor (default 1.0)"
         )
         parser.add_argument("--loop", action="store_true", help="replay until interrupted")
         parser.add_argument(
@@ -103,7 +82,7 @@ class PlayerNode(Node):
         )
         parser.add_argument(
             "--wait-for-subscribers",
-            type=_non_negative_int,
+            type=non_negative_int,
             default=0,
             metavar="N",
             help="start once every played topic has N subscriptions (default 0)",

@@ -22,14 +22,13 @@ closes the bag (what it holds stays readable) and exits with status 1.
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
 from tpsr_ros.bag import BagWriter, check_bag_path_free
-from tpsr_ros.cli import ArgumentParser
+from tpsr_ros.cli import ArgumentParser, positive_float
 from tpsr_ros.errors import BagError, TpsrError
 from tpsr_ros.messages import jazzy_typestore
 from tpsr_ros.runtime import Node, NodeOptions, QoSProfile, run_node
@@ -39,16 +38,6 @@ __all__ = ["RecorderNode", "main"]
 
 PROG = "python -m tpsr_ros.record"
 EXCLUDED_BY_DEFAULT = ("/rosout", "/parameter_events")
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"{value} is not positive")
-    return value
 
 
 def _hidden(topic: str) -> bool:
@@ -69,13 +58,13 @@ class RecorderNode(Node):
         parser.add_argument("topics", nargs="*", help="topics to record (default: all)")
         parser.add_argument(
             "--polling-interval",
-            type=_positive_float,
+            type=positive_float,
             default=100.0,
             help="ms between graph scans for new topics (default 100)",
         )
         parser.add_argument(
             "--flush-interval",
-            type=_positive_float,
+            type=positive_float,
             default=1.0,
             help="s between flushes to disk; a hard kill loses at most this much (default 1)",
         )
