@@ -54,8 +54,8 @@ def test_defaults_and_overrides():
     "tokens, fragment",
     [
         (["-p", "sed:=1"], "unknown parameter 'sed'"),
-        (["-p", "seed:=1.5"], "expects a integer, got double 1.5"),
-        (["-p", "seed:=true"], "expects a integer, got bool true"),
+        (["-p", "seed:=1.5"], "expects an integer, got double 1.5"),
+        (["-p", "seed:=true"], "expects an integer, got bool true"),
         (["-p", "rate:=fast"], "expects a double, got string fast"),
         (["-p", "verbose:=1"], "expects a bool, got integer 1"),
         (["-p", "name:=3"], "expects a string, got integer 3"),
@@ -93,7 +93,7 @@ def test_params_file_errors(tmp_path):
         _resolve("--params-file", str(unknown))
     wrong = tmp_path / "wrong.yaml"
     wrong.write_text("example:\n  ros__parameters:\n    seed: abc\n")
-    with pytest.raises(UsageError, match="expects a integer"):
+    with pytest.raises(UsageError, match="expects an integer"):
         _resolve("--params-file", str(wrong))
     broken = tmp_path / "broken.yaml"
     broken.write_text("example: [\n")

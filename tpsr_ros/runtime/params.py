@@ -153,27 +153,25 @@ def _coerce_scalar(py_type: type, value: Any) -> Any:
 
 def coerce(spec: ParamSpec, value: Any, source: str) -> Any:
     """``value`` converted to the declared type of ``spec``, or a UsageError naming both."""
+    article = "an" if spec.ros_type[0] in "aeiou" else "a"
+
+    def mismatch(shown: str) -> UsageError:
+        return UsageError(
+            f"parameter {spec.name!r} ({source}) expects {article} {spec.ros_type}, got {shown}"
+        )
+
     element = spec.element_type
     if element is not None:
         if not isinstance(value, (list, tuple)):
-            raise UsageError(
-                f"parameter {spec.name!r} ({source}) expects a {spec.ros_type}, "
-                f"got {_type_word(value)} {format_value(value)}"
-            )
+            raise mismatch(f"{_type_word(value)} {format_value(value)}")
         items = [_coerce_scalar(element, v) for v in value]
         if any(v is None for v in items):
-            raise UsageError(
-                f"parameter {spec.name!r} ({source}) expects a {spec.ros_type}, "
-                f"got {format_value(value)}"
-            )
+            raise mismatch(format_value(value))
         result: Any = tuple(items)
     else:
         result = _coerce_scalar(spec.py_type, value)
         if result is None:
-            raise UsageError(
-                f"parameter {spec.name!r} ({source}) expects a {spec.ros_type}, "
-                f"got {_type_word(value)} {format_value(value)}"
-            )
+            raise mismatch(f"{_type_word(value)} {format_value(value)}")
     if spec.choices is not None and result not in spec.choices:
         choices = ", ".join(format_value(c) for c in spec.choices)
         raise UsageError(
