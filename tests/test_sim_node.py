@@ -192,7 +192,7 @@ def test_help_lists_parameters():
     "args, fragment",
     [
         (["--ros-args", "-p", "bogus:=1"], "unknown parameter 'bogus'"),
-        (["--ros-args", "-p", "seed:=abc"], "expects a integer"),
+        (["--ros-args", "-p", "seed:=abc"], "expects an integer"),
         (["--ros-args", "-p", "rate:=0"], "rate must be a positive"),
         (["--ros-args", "-p", "environment:=moon"], "moon is not one of full"),
         (["--ros-args", "--frobnicate"], "unknown ROS argument"),
