@@ -44,7 +44,7 @@ import numpy as np
 
 from tpsr_ros.errors import DataError
 from tpsr_ros.features import rbf_features
-from tpsr_ros.state_model import Track, UpdateInfo
+from tpsr_ros.state_model import Track, UpdateInfo, check_actions, check_observations
 
 if TYPE_CHECKING:
     from tpsr_ros.tpsr import TPSRModel
@@ -61,35 +61,9 @@ NORMALIZER_RTOL = 1e-3
 """Relative threshold of the normaliser guard (see the module docstring)."""
 
 
-def _check_observations(model: TPSRModel, observations: np.ndarray) -> np.ndarray:
-    obs = np.asarray(observations, dtype=np.float64)
-    if obs.ndim != 2 or obs.shape[1] != model.obs_size:
-        raise DataError(
-            f"observations of shape {obs.shape} do not match the model's observation size "
-            f"{model.obs_size}"
-        )
-    if not np.isfinite(obs).all():
-        raise DataError("observations contain non-finite values (NaN or infinity)")
-    return obs
-
-
-def _check_actions(model: TPSRModel, actions: np.ndarray, n_steps: int) -> np.ndarray:
-    arr = np.asarray(actions)
-    if arr.shape != (n_steps,) or (arr.size and arr.dtype.kind not in "iu"):
-        raise DataError(
-            f"expected {n_steps} integer action indices, got {arr.dtype} array of shape {arr.shape}"
-        )
-    arr = arr.astype(np.int64, copy=False)
-    if arr.size and (arr.min() < 0 or arr.max() >= model.n_actions):
-        raise DataError(
-            f"action indices must lie in 0..{model.n_actions - 1}, found {arr.min()}..{arr.max()}"
-        )
-    return arr
-
-
 def observation_weights(model: TPSRModel, observations: np.ndarray) -> np.ndarray:
     """Compute steps 1-2: normalised kernel weights ``(T, l_O)`` of observations ``(T, k)``."""
-    obs = _check_observations(model, observations)
+    obs = check_observations(observations, model.obs_size)
     white = np.matmul((obs - model.obs_mean)[:, None, :], model.obs_whitening)[:, 0, :]
     return rbf_features(
         white, model.obs_centers, model.config.sigma_obs, normalize=True, rowwise=True
@@ -148,7 +122,7 @@ def update(
     Returns the new state ``(r,)`` and its :class:`UpdateInfo`.
     """
     state = _check_state(model, state)
-    actions = _check_actions(model, np.asarray([action]), 1)
+    actions = check_actions(np.asarray([action]), model.n_actions, 1)
     weights = observation_weights(model, np.asarray(observation, dtype=np.float64)[None, :])
     b_ao = update_matrices(model, actions, weights)[0]
     new, z, recovered = _step(b_ao, state, model.b_star, model.b_inf)
@@ -166,8 +140,8 @@ def track(
     Starts at ``initial`` (default ``b_*``); row ``s`` of the states is the state after step
     ``s``. Equal, bit for bit, to a loop of :func:`update`.
     """
-    obs = _check_observations(model, observations)
-    acts = _check_actions(model, actions, obs.shape[0])
+    obs = check_observations(observations, model.obs_size)
+    acts = check_actions(actions, model.n_actions, obs.shape[0])
     state = model.initial_state() if initial is None else _check_state(model, initial)
     weights = observation_weights(model, obs)
     b_aos = update_matrices(model, acts, weights)

@@ -17,7 +17,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from tpsr_ros.errors import ConfigError, DataError
-from tpsr_ros.state_model import Track, UpdateInfo
+from tpsr_ros.state_model import Track, UpdateInfo, check_actions, check_observations
 from tpsr_ros.whitening import Whitening
 
 __all__ = ["PCAConfig", "PCAModel", "fit_pca"]
@@ -115,29 +115,16 @@ class PCAModel:
         return np.zeros(self.state_dim)
 
     def _project(self, observations: np.ndarray) -> np.ndarray:
-        obs = np.asarray(observations, dtype=np.float64)
-        if obs.ndim != 2 or obs.shape[1] != self.obs_size:
-            raise DataError(
-                f"observations of shape {obs.shape} do not match the model's observation size "
-                f"{self.obs_size}"
-            )
-        if not np.isfinite(obs).all():
-            raise DataError("observations contain non-finite values (NaN or infinity)")
+        obs = check_observations(observations, self.obs_size)
         # Row by row (stacked matmul) so that one update equals the batch bit for bit.
         states: np.ndarray = np.matmul((obs - self.mean)[:, None, :], self.components)[:, 0, :]
         return states
-
-    def _check_action(self, actions: np.ndarray) -> None:
-        if actions.size and (
-            actions.dtype.kind not in "iu" or actions.min() < 0 or actions.max() >= self.n_actions
-        ):
-            raise DataError(f"action indices must be integers in 0..{self.n_actions - 1}")
 
     def update(
         self, state: np.ndarray, action: int, observation: np.ndarray
     ) -> tuple[np.ndarray, UpdateInfo]:
         """Return the projection of ``observation (k,)``; ``state`` and ``action`` are unused."""
-        self._check_action(np.asarray([action]))
+        check_actions(np.asarray([action]), self.n_actions, 1)
         new = self._project(np.asarray(observation, dtype=np.float64)[None, :])[0]
         return new, UpdateInfo(normalizer=float("nan"), recovered=False)
 
@@ -146,10 +133,7 @@ class PCAModel:
     ) -> Track:
         """Project every observation ``(T, k)`` -> states ``(T, dim)``."""
         states = self._project(observations)
-        acts = np.asarray(actions)
-        if acts.shape != (states.shape[0],):
-            raise DataError(f"expected {states.shape[0]} actions, got shape {acts.shape}")
-        self._check_action(acts)
+        check_actions(actions, self.n_actions, states.shape[0])
         n = states.shape[0]
         return Track(states, np.full(n, np.nan), np.zeros(n, dtype=bool))
 

@@ -19,7 +19,9 @@ from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["StateModel", "Track", "UpdateInfo"]
+from tpsr_ros.errors import DataError
+
+__all__ = ["StateModel", "Track", "UpdateInfo", "check_actions", "check_observations"]
 
 
 @dataclass(frozen=True)
@@ -106,3 +108,31 @@ class StateModel(Protocol):
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Return the numeric content, for :mod:`tpsr_ros.model_io` (no object arrays)."""
         ...
+
+
+def check_observations(observations: np.ndarray, obs_size: int) -> np.ndarray:
+    """Observations ``(T, obs_size)`` as finite float64, or a ``DataError`` naming the problem."""
+    obs = np.asarray(observations, dtype=np.float64)
+    if obs.ndim != 2 or obs.shape[1] != obs_size:
+        raise DataError(
+            f"observations of shape {obs.shape} do not match the model's observation size "
+            f"{obs_size}"
+        )
+    if not np.isfinite(obs).all():
+        raise DataError("observations contain non-finite values (NaN or infinity)")
+    return obs
+
+
+def check_actions(actions: np.ndarray, n_actions: int, n_steps: int) -> np.ndarray:
+    """``n_steps`` action indices in ``0 .. n_actions - 1`` as int64, or a ``DataError``."""
+    arr = np.asarray(actions)
+    if arr.shape != (n_steps,) or (arr.size and arr.dtype.kind not in "iu"):
+        raise DataError(
+            f"expected {n_steps} integer action indices, got {arr.dtype} array of shape {arr.shape}"
+        )
+    arr = arr.astype(np.int64, copy=False)
+    if arr.size and (arr.min() < 0 or arr.max() >= n_actions):
+        raise DataError(
+            f"action indices must lie in 0..{n_actions - 1}, found {arr.min()}..{arr.max()}"
+        )
+    return arr

@@ -330,15 +330,8 @@ class TPSRModel:
         """Numeric content keyed by :attr:`ARRAY_NAMES`."""
         arrays = {
             name: getattr(self, name)
-            for name in (
-                "obs_mean",
-                "obs_whitening",
-                "obs_centers",
-                "b_star",
-                "b_inf",
-                "B",
-                "singular_values",
-            )
+            for name in self.ARRAY_NAMES
+            if not name.startswith("explained_variance_")
         }
         for key in ("obs", "history", "test"):
             arrays[f"explained_variance_{key}"] = self.explained_variance[key]
