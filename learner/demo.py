@@ -1,7 +1,16 @@
-"""The end-to-end demo behind ``make demo``.
+"""The end-to-end demo behind ``make demo``: simulate, record, learn, plan, filter, control.
 
-Writes everything under ``demo_output/`` (its own scratch directory, recreated on every
-run) and prints what it made. So far: one random-exploration bag per environment.
+Everything goes to ``demo_output/`` (recreated on every run):
+
+1. a random training run (24000 steps) and a separate random RL run (15000 steps) of the
+   simulator, written as bags (``python -m sim_node.generate``);
+2. a TPSR with the guide's default parameters (``learner fit``) and a fitted-Q policy on
+   the states tracked over the RL run (``learner policy``);
+3. the standard evaluation headless (``learner evaluate``), then over the nodes: sim_node
+   and the filter node as separate processes in lockstep over DDS, recorded into a bag
+   (``learner closed-loop --record``); the two scores are equal by construction;
+4. plots: the states over the RL run coloured by reward and true position (``learner
+   plot``), and the closed-loop trajectories from ``/ground_truth/pose`` coloured by trial.
 """
 
 from __future__ import annotations
@@ -10,36 +19,203 @@ import shutil
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
-from sim_node import SimConfig
+from tqdm import tqdm
+
+from learner.cli import main as learner_main
+from learner.closed_loop import run_closed_loop
+from learner.evaluate import START_POSITIONS, STEPS, evaluate
+from learner.representations import load_tracker
+from sim_node import Environment, SimConfig
 from sim_node.generate import generate_bag
+from tpsr_ros import messages as m
 from tpsr_ros.bag import BagReader
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
+from tpsr_ros.policy import load_policy
 
-__all__ = ["main"]
+__all__ = ["main", "plot_trajectories"]
 
 PROG = "python -m learner.demo"
+STAGES = 7
+
+
+def _stage(number: int, text: str) -> None:
+    print(f"[{number}/{STAGES}] {text}", file=sys.stderr, flush=True)
+
+
+def plot_trajectories(bag: Path, output: Path, config: SimConfig | None = None) -> int:
+    """Plot the ``/ground_truth/pose`` path of every episode in ``bag``, coloured by trial.
+
+    Episodes are split at the ``/sim/episode_start`` stamps; the goal zone (a quarter disk
+    at the north-east corner) and the walls are drawn. Returns the number of episodes.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle, Rectangle
+
+    config = config or SimConfig()
+    with BagReader(bag) as reader:
+        starts = sorted(
+            (m.stamp_of(msg.decode()), m.pose_to_xy(msg.decode()))
+            for msg in reader.messages(["/sim/episode_start"])
+        )
+        poses = sorted(
+            (m.stamp_of(msg.decode()), m.pose_to_xy(msg.decode()))
+            for msg in reader.messages(["/ground_truth/pose"])
+        )
+    episodes = [
+        [start] + [xy for stamp, xy in poses if t < stamp < (nxt[0] if nxt else float("inf"))]
+        for (t, start), nxt in zip(starts, [*starts[1:], None], strict=True)
+    ]
+    episodes = [e for e in episodes if len(e) > 1]
+    size = config.room_size
+    fig, ax = plt.subplots(figsize=(8.5, 7))
+    room = Rectangle((0, 0), size, size, fill=False, linewidth=2, color="black")
+    ax.add_patch(room)
+    goal = Circle((size, size), config.goal_radius, color="gold", alpha=0.35, label="goal zone")
+    ax.add_patch(goal)
+    goal.set_clip_path(room)
+    colours = plt.get_cmap("tab10")
+    for index, path in enumerate(episodes):
+        xs, ys = zip(*path, strict=True)
+        colour = colours(index % 10)
+        ax.plot(xs, ys, "-", color=colour, linewidth=1.2, alpha=0.9, label=f"trial {index + 1}")
+        ax.plot(xs[0], ys[0], "o", color=colour, markersize=7)
+        ax.plot(xs[-1], ys[-1], "x", color=colour, markersize=7)
+    ax.set_xlim(-1, size + 1)
+    ax.set_ylim(-1, size + 1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("closed loop over the nodes: true paths (o start, x after the last step)")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    fig.tight_layout()
+    fig.savefig(output, dpi=90)
+    plt.close(fig)
+    return len(episodes)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the demo."""
     parser = ArgumentParser(prog=PROG, description=__doc__.split("\n")[0])
-    parser.add_argument("--output", type=Path, default=Path("demo_output"))
-    parser.add_argument("--steps", type=positive_int, default=5000, help="steps per bag")
+    parser.add_argument(
+        "--output",
+        type=Path,
+        default=Path("demo_output"),
+        help="output directory, recreated (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--environment",
+        choices=[e.value for e in Environment],
+        default="full",
+        help="camera (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--train-steps",
+        type=positive_int,
+        default=24_000,
+        help="steps of the random training run (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--rl-steps",
+        type=positive_int,
+        default=15_000,
+        help="steps of the random RL run (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--fit-option",
+        action="append",
+        default=[],
+        metavar="OPTION",
+        help="extra `learner fit` option, repeatable (e.g. --fit-option=--rank=3)",
+    )
     args = parser.parse_args(argv)
-    if args.output.exists():
-        shutil.rmtree(args.output)
-    (args.output / "bags").mkdir(parents=True)
-    for environment in ("full", "partial", "distractors"):
-        bag = args.output / "bags" / environment
-        start = time.perf_counter()
-        generate_bag(bag, SimConfig(environment=environment), args.steps, seed=1, progress=True)
-        elapsed = time.perf_counter() - start
-        with BagReader(bag) as reader:
-            counts = ", ".join(f"{t} {n}" for t, n in sorted(reader.message_counts.items()))
-        print(f"{bag}: {args.steps} steps in {elapsed:.1f} s; {counts}", file=sys.stderr)
-    print(f"demo finished; outputs in {args.output}/")
+    began = time.perf_counter()
+    out: Path = args.output
+    if out.exists():
+        shutil.rmtree(out)
+    (out / "bags").mkdir(parents=True)
+    env = args.environment
+    train, rl, closed = out / "bags" / "train", out / "bags" / "rl", out / "bags" / "closed_loop"
+    model, policy = out / "model.npz", out / "policy.npz"
+
+    _stage(1, f"simulating the training run: {args.train_steps} random steps ({env}) -> {train}")
+    generate_bag(train, SimConfig(environment=env), args.train_steps, seed=0, progress=True)
+    _stage(2, f"simulating the RL run: {args.rl_steps} random steps ({env}) -> {rl}")
+    generate_bag(rl, SimConfig(environment=env), args.rl_steps, seed=1, progress=True)
+
+    _stage(3, f"learner fit {train} -o {model}  (guide defaults)")
+    learner_main(["fit", str(train), "-o", str(model), *args.fit_option])
+    _stage(4, f"learner policy {model} {rl} -o {policy}  (fitted Q-iteration)")
+    learner_main(["policy", str(model), str(rl), "-o", str(policy)])
+
+    _stage(5, f"learner evaluate {policy} --environment {env}  (headless)")
+    headless = evaluate(load_policy(policy), load_tracker(model), env)
+
+    _stage(
+        6,
+        "closed loop over the nodes: sim_node + tpsr_filter as processes over DDS, "
+        f"recorded to {closed}",
+    )
+    with tqdm(total=len(START_POSITIONS) * STEPS, unit="step", desc="closed loop") as bar:
+        result = run_closed_loop(
+            policy,
+            env,
+            model_path=model,
+            record=closed,
+            log_dir=out / "logs",
+            on_step=bar.update,
+            say=lambda text: bar.write(f"      {text}", file=sys.stderr),
+        )
+
+    _stage(7, "plots")
+    states_png, paths_png = out / "states.png", out / "trajectories.png"
+    learner_main(["plot", str(model), str(rl), "-o", str(states_png)])
+    plot_trajectories(closed, paths_png, SimConfig(environment=env))
+
+    _summary(out, headless, result, time.perf_counter() - began)
     return 0
+
+
+def _summary(out: Path, headless: Any, result: Any, seconds: float) -> None:
+    print()
+    print("trial  start           closed loop (reward, goal step)  headless")
+    for index, (ours, theirs) in enumerate(
+        zip(result.evaluation.trials, headless.trials, strict=True)
+    ):
+        goal = f"step {ours.goal_step}" if ours.goal_step else "never"
+        print(
+            f"{index + 1:5d}  ({ours.start[0]:4.1f}, {ours.start[1]:4.1f})  "
+            f"{ours.reward:7.1f}, goal zone {goal:8s}         {theirs.reward:7.1f}"
+        )
+    closed, head = result.evaluation.score, headless.score
+    same = "identical" if closed == head else "DIFFERENT"
+    print(
+        f"score over the nodes (closed loop): {closed:.1f}; headless (learner evaluate): "
+        f"{head:.1f} ({same})"
+    )
+    reached = sum(t.goal_step is not None for t in result.evaluation.trials)
+    print(f"the robot reached the goal zone in {reached} of {len(result.evaluation.trials)} trials")
+    print()
+    print(f"outputs in {out}/ (demo took {seconds:.0f} s):")
+    for path, what in [
+        ("bags/train", "random training run (rosbag2, MCAP)"),
+        ("bags/rl", "random RL run"),
+        ("model.npz", "TPSR (learner info model.npz)"),
+        ("policy.npz", "greedy fitted-Q policy for that model"),
+        (
+            "bags/closed_loop",
+            "closed-loop recording: images, actions, /tpsr/state, /cmd_vel, "
+            "/reward, /ground_truth/pose, /diagnostics",
+        ),
+        ("logs/", "the nodes' logs"),
+        ("states.png", "states over the RL run coloured by reward, true x and y"),
+        ("trajectories.png", "closed-loop paths by trial, with the goal zone"),
+    ]:
+        print(f"  {out / path}: {what}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,59 @@
+"""``python -m learner.demo`` (what ``make demo`` runs) end to end, at its real sizes."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
+from tpsr_ros.bag import BagReader
+
+pytestmark = [pytest.mark.dds, pytest.mark.slow]
+LOOPBACK = (
+    "<CycloneDDS><Domain id='any'><General><Interfaces>"
+    "<NetworkInterface address='127.0.0.1' multicast='true'/>"
+    "</Interfaces></General></Domain></CycloneDDS>"
+)
+
+
+def test_the_demo_runs_end_to_end(tmp_path):
+    pytest.importorskip("cyclonedds")
+    out = tmp_path / "demo_output"
+    out.mkdir()
+    (out / "stale.txt").write_text("from an earlier run")  # the directory is recreated
+    proc = subprocess.run(
+        [sys.executable, "-m", "learner.demo", "--output", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=280,
+        env={**os.environ, "CYCLONEDDS_URI": LOOPBACK},
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for stage in range(1, 8):
+        assert f"[{stage}/7]" in proc.stderr
+    scores = re.search(
+        r"score over the nodes \(closed loop\): (\S+); headless \(learner evaluate\): (\S+) "
+        r"\(identical\)",
+        proc.stdout,
+    )
+    assert scores and scores.group(1) == scores.group(2)
+    assert float(scores.group(1)) > 200  # the robot gets to the goal and stays there
+    assert not (out / "stale.txt").exists()
+    for name in (
+        "model.npz",
+        "policy.npz",
+        "states.png",
+        "trajectories.png",
+        "logs/sim_node.log",
+        "logs/tpsr_filter.log",
+        "logs/recorder.log",
+    ):
+        assert (out / name).is_file(), name
+        assert str(out / name.split("/")[0]) in proc.stdout
+    with BagReader(out / "bags" / "closed_loop") as reader:
+        counts = reader.message_counts
+    assert counts["/tpsr/state"] == counts["/camera/image_raw"] == 500
+    assert counts["/ground_truth/pose"] == 500 and counts["/sim/episode_start"] == 11
