@@ -37,7 +37,10 @@ def _one_run(environment: str, directory: str, index: int) -> dict[str, float]:
     out = os.path.join(directory, f"{environment}-{index}")
     result = subprocess.run(
         [sys.executable, "-c", _CHILD, environment, str(STEPS), out],
-        capture_output=True, text=True, check=True, env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+        env=env,
     )
     return json.loads(result.stdout.strip().splitlines()[-1])
 

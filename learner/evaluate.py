@@ -115,9 +115,7 @@ def register(subparsers: Any) -> None:
         "evaluate", help=doc, description=doc[0].upper() + doc[1:] + ". " + __doc__.split("\n\n")[1]
     )
     parser.add_argument("policy", type=Path, metavar="POLICY")
-    parser.add_argument(
-        "--environment", required=True, choices=[e.value for e in Environment]
-    )
+    parser.add_argument("--environment", required=True, choices=[e.value for e in Environment])
     parser.add_argument(
         "--model",
         default=None,
@@ -154,7 +152,9 @@ def run(args: argparse.Namespace) -> int:
     tracker = _tracker_for(policy, args.policy, args.model)
 
     def show(index: int, trial: Trial) -> None:
-        goal = f"goal zone at step {trial.goal_step}" if trial.goal_step else "goal zone not reached"
+        goal = (
+            f"goal zone at step {trial.goal_step}" if trial.goal_step else "goal zone not reached"
+        )
         print(
             f"trial {index + 1:2d}: start ({trial.start[0]:4.1f}, {trial.start[1]:4.1f})  "
             f"reward {trial.reward:7.1f}  {goal}, {trial.wall_contacts} wall contacts",

@@ -179,8 +179,12 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             if method == "tpsr":
                 ep = make_episodes(train, config.tpsr.history_length, config.tpsr.test_length)
                 model = fit_tpsr(
-                    ep.history, ep.observation, ep.action, ep.test,
-                    n_actions=train.n_actions, config=config.tpsr,
+                    ep.history,
+                    ep.observation,
+                    ep.action,
+                    ep.test,
+                    n_actions=train.n_actions,
+                    config=config.tpsr,
                 )
             elif method == "pca":
                 model = fit_pca(train.observations, n_actions=train.n_actions, config=config.pca)
@@ -199,9 +203,20 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             score, trials, ridge, status = float("nan"), "", config.fqi.ridge, f"error: {exc}"
         rows.append(
             Row(
-                config.environment, method, episodes, repetition, train_seed,
-                config.rl_seed, score, trials, round(fit_seconds, 3), ridge, recoveries,
-                round(float(r2[0]), 4), round(float(r2[1]), 4), status,
+                config.environment,
+                method,
+                episodes,
+                repetition,
+                train_seed,
+                config.rl_seed,
+                score,
+                trials,
+                round(fit_seconds, 3),
+                ridge,
+                recoveries,
+                round(float(r2[0]), 4),
+                round(float(r2[1]), 4),
+                status,
             )
         )
     return rows
@@ -286,7 +301,9 @@ def plot_summary(table: Sequence[dict[str, Any]], environment: str, path: Path) 
         mean = np.array([t["mean"] for t in part])
         sem = np.nan_to_num(np.array([t["sem"] for t in part]))
         ax.plot(x, mean, "-o", color=colours[method], label=f"{method} mean")
-        ax.plot(x, [t["median"] for t in part], "--", color=colours[method], label=f"{method} median")
+        ax.plot(
+            x, [t["median"] for t in part], "--", color=colours[method], label=f"{method} median"
+        )
         ax.fill_between(x, mean - sem, mean + sem, color=colours[method], alpha=0.2)
     ax.set_xlabel("training episodes")
     ax.set_ylabel("mean reward of 10 trials (max ~470)")
@@ -301,8 +318,10 @@ def plot_summary(table: Sequence[dict[str, Any]], environment: str, path: Path) 
 
 def format_table(table: Sequence[dict[str, Any]]) -> list[str]:
     """The summary as aligned text lines."""
-    lines = [f"{'method':14s} {'episodes':>8s} {'runs':>4s} {'mean':>7s} {'median':>7s} "
-             f"{'sem':>6s} {'failed':>6s}"]
+    lines = [
+        f"{'method':14s} {'episodes':>8s} {'runs':>4s} {'mean':>7s} {'median':>7s} "
+        f"{'sem':>6s} {'failed':>6s}"
+    ]
     for t in table:
         lines.append(
             f"{t['method']:14s} {t['episodes']:8d} {t['runs']:4d} {t['mean']:7.1f} "
@@ -315,25 +334,51 @@ def register(subparsers: Any) -> None:
     """Add the ``experiment`` subcommand."""
     doc = "run the guide's learning-planning loop (figure 4.2) for one environment"
     parser = subparsers.add_parser(
-        "experiment", help=doc, description=doc[0].upper() + doc[1:] + ". " + __doc__.split("\n\n")[1]
+        "experiment",
+        help=doc,
+        description=doc[0].upper() + doc[1:] + ". " + __doc__.split("\n\n")[1],
     )
     parser.add_argument("--environment", required=True, choices=[e.value for e in Environment])
-    parser.add_argument("--episodes", type=positive_int, nargs="+", default=None, metavar="N",
-                        help="data sizes in training episodes (default: 2000 4000 6000 8000)")
+    parser.add_argument(
+        "--episodes",
+        type=positive_int,
+        nargs="+",
+        default=None,
+        metavar="N",
+        help="data sizes in training episodes (default: 2000 4000 6000 8000)",
+    )
     parser.add_argument("--repetitions", type=positive_int, default=10)
-    parser.add_argument("--first-repetition", type=int, default=0, metavar="K",
-                        help="index of the first repetition (rerun rows alone)")
+    parser.add_argument(
+        "--first-repetition",
+        type=int,
+        default=0,
+        metavar="K",
+        help="index of the first repetition (rerun rows alone)",
+    )
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
-    parser.add_argument("--rl-steps", type=positive_int, default=None,
-                        help="RL trajectory length (default: 15000 full, 20000 otherwise)")
+    parser.add_argument(
+        "--rl-steps",
+        type=positive_int,
+        default=None,
+        help="RL trajectory length (default: 15000 full, 20000 otherwise)",
+    )
     parser.add_argument("--rl-seed", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0, help="base of every training seed")
     parser.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1)
-    parser.add_argument("-o", "--output", type=Path, default=Path("results"),
-                        help="directory for experiment_<env>.csv/.png (default: results)")
+    parser.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=Path("results"),
+        help="directory for experiment_<env>.csv/.png (default: results)",
+    )
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
-    parser.add_argument("--p-th-tests", choices=("after-current", "from-current"),
-                        default="after-current", help="TPSR P_TH test window (see learner fit)")
+    parser.add_argument(
+        "--p-th-tests",
+        choices=("after-current", "from-current"),
+        default="after-current",
+        help="TPSR P_TH test window (see learner fit)",
+    )
     parser.set_defaults(run=run)
 
 

@@ -114,9 +114,7 @@ def run(args: argparse.Namespace) -> int:
     output = check_output_path(args.output, force=args.force)
     config = config_from_args(FQIConfig, args)
     tracker = load_tracker(args.model)
-    trajectory = _first_steps(
-        read_trajectory(args.bags, topics=topics_from_args(args)), args.steps
-    )
+    trajectory = _first_steps(read_trajectory(args.bags, topics=topics_from_args(args)), args.steps)
     environment = trajectory.summary()["environment"]
     if not isinstance(environment, str):
         environment = None  # unknown or mixed: evaluation will not check it

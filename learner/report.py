@@ -94,7 +94,7 @@ def write_page(tables: dict[str, list[dict[str, Any]]], docs: Path, command: str
     target = docs / "results.md"
     existing = target.read_text() if target.exists() else ""
     marker = "<!-- discussion -->"
-    discussion = existing[existing.index(marker):] if marker in existing else f"{marker}\n"
+    discussion = existing[existing.index(marker) :] if marker in existing else f"{marker}\n"
     target.write_text("\n".join(lines) + "\n" + discussion)
     return target
 
@@ -103,11 +103,18 @@ def register(subparsers: Any) -> None:
     """Add the ``report`` subcommand."""
     doc = "run the experiments of all three environments and regenerate docs/results.md"
     parser = subparsers.add_parser("report", help=doc, description=doc[0].upper() + doc[1:] + ".")
-    parser.add_argument("--results", type=Path, default=Path("results"),
-                        help="directory of the experiment CSVs (default: results)")
+    parser.add_argument(
+        "--results",
+        type=Path,
+        default=Path("results"),
+        help="directory of the experiment CSVs (default: results)",
+    )
     parser.add_argument("--docs", type=Path, default=Path("docs"), help="(default: docs)")
-    parser.add_argument("--reuse", action="store_true",
-                        help="reuse existing experiment_<env>.csv instead of running")
+    parser.add_argument(
+        "--reuse",
+        action="store_true",
+        help="reuse existing experiment_<env>.csv instead of running",
+    )
     parser.add_argument("--workers", type=positive_int, default=2)
     parser.set_defaults(run=run)
 

@@ -45,7 +45,7 @@ def test_reader_refuses_what_is_not_a_rosbag2_mcap_bag(tmp_path):
     with pytest.raises(BagError, match="not a rosbag2 directory"):
         BagReader(tmp_path / "missing")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(BagError, match="no metadata.yaml"):
+    with pytest.raises(BagError, match=r"no metadata\.yaml"):
         BagReader(tmp_path / "empty")
     (tmp_path / "garbage").mkdir()
     (tmp_path / "garbage" / "metadata.yaml").write_text("just: [a, list")
@@ -53,7 +53,7 @@ def test_reader_refuses_what_is_not_a_rosbag2_mcap_bag(tmp_path):
         BagReader(tmp_path / "garbage")
     with Writer(tmp_path / "sqlite", version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
         w.add_connection("/a", m.CLOCK_TYPE, typestore=m.jazzy_typestore())
-    with pytest.raises(BagError, match="storage 'sqlite3', not mcap"):
+    with pytest.raises(BagError, match=r"storage 'sqlite3', not mcap"):
         BagReader(tmp_path / "sqlite")
 
 

@@ -62,7 +62,7 @@ def test_truncated_foreign_and_other_version_files_are_refused(tmp_path, policy)
     with zipfile.ZipFile(path) as z:
         arrays = {n[:-4]: np.load(z.open(n)) for n in z.namelist() if n != "metadata.npy"}
     write_archive(future, arrays, {"format": "tpsr-ros policy", "format_version": 99})
-    with pytest.raises(ModelFormatError, match="policy format version 99; .* reads version 1"):
+    with pytest.raises(ModelFormatError, match=r"policy format version 99; .* reads version 1"):
         load_policy(future)
     model = tmp_path / "model.npz"
     write_archive(model, arrays, {"format": "tpsr-ros model", "format_version": 1})

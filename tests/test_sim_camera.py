@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -55,9 +57,9 @@ def test_a_nearer_wall_looks_taller(environment):
     row = 2.0 * config.vertical_half_extent / config.image_size  # rows are even in tan
     # beyond the distance at which the wall fills the whole column
     heights = [north_wall_rows(y) for y in (3.0, 10.0, 20.0, 25.0, 33.0)]
-    assert all(a < b for a, b in zip(heights, heights[1:])), heights
+    assert all(a < b for a, b in itertools.pairwise(heights)), heights
     # perspective: the apparent height in tan of elevation is wall height / distance
-    for y, height in zip((3.0, 10.0, 20.0, 25.0, 33.0), heights):
+    for y, height in zip((3.0, 10.0, 20.0, 25.0, 33.0), heights, strict=True):
         assert height == pytest.approx(config.wall_height / (45.0 - y) / row, rel=0.05)
     close = north_wall_rows(42.0)
     assert close == pytest.approx(config.image_size, abs=0.1)  # fills the column
@@ -98,7 +100,7 @@ def test_distractors_move_between_steps():
     env.reset(options={"position": (22.5, 22.5)})
     still = 12  # zero velocity
     frames = [env.step(still)[0] for _ in range(5)]
-    assert all(not np.array_equal(a, b) for a, b in zip(frames, frames[1:]))
+    assert all(not np.array_equal(a, b) for a, b in itertools.pairwise(frames))
     plain = RobotEnv(SimConfig(environment="full"), seed=2)
     plain.reset(options={"position": (22.5, 22.5)})
     static = [plain.step(still)[0] for _ in range(3)]

@@ -89,7 +89,8 @@ def test_execution_noise_is_ten_percent_of_each_component(long_run):
     assert np.array_equal(run.executed[~moving], run.commands[~moving])  # no noise at rest
     # the noise really moves the robot: unobstructed displacement equals executed velocity x 1 s
     previous = _previous_positions(run, _start_of(11))
-    free = ~run.wall_contact & (np.abs(previous + run.executed - L / 2).max(axis=1) < L / 2 - R - 0.1)
+    inside = np.abs(previous + run.executed - L / 2).max(axis=1) < L / 2 - R - 0.1
+    free = ~run.wall_contact & inside
     assert np.abs(run.positions[free] - previous[free] - run.executed[free]).max() < 1e-6
 
 
@@ -100,7 +101,7 @@ def test_all_25_actions_move_the_robot_by_their_command():
     for index, command in enumerate(ACTIONS):
         env.reset(options={"position": (22.5, 22.5)})
         _, reward, *_ , info = env.step(index)
-        assert np.allclose(info["position"], [22.5, 22.5] + command, atol=1e-9)
+        assert np.allclose(info["position"], np.array([22.5, 22.5]) + command, atol=1e-9)
         assert np.array_equal(info["command"], command)
         assert action_index(*command) == index
         assert reward == 0.0
@@ -140,7 +141,7 @@ def test_same_seed_same_rollout_and_batch_equals_stepping(environment):
         return np.array(frames), np.array(positions), np.array(rewards)
 
     first, second = step_by_step(5), step_by_step(5)
-    for a, b in zip(first, second):
+    for a, b in zip(first, second, strict=True):
         assert np.array_equal(a, b)
     other = step_by_step(6)
     assert not np.array_equal(first[1], other[1])

@@ -124,7 +124,7 @@ def fit_q(
     n_actions: int,
     config: FQIConfig | None = None,
 ) -> QFunction:
-    """Fit Q from transitions ``(states (T, r), actions (T,), rewards (T,), next_states (T, r))``."""
+    """Fit Q from ``states (T, r)``, ``actions (T,)``, ``rewards (T,)``, ``next_states (T, r)``."""
     config = config or FQIConfig()
     states = np.asarray(states, dtype=np.float64)
     next_states = np.asarray(next_states, dtype=np.float64)

@@ -91,8 +91,7 @@ class Policy:
         """Refuse an environment other than the one the policy was trained in (when known)."""
         if self.environment is not None and environment != self.environment:
             raise ModelFormatError(
-                f"the policy was trained in environment {self.environment!r}, "
-                f"not {environment!r}"
+                f"the policy was trained in environment {self.environment!r}, not {environment!r}"
             )
 
 
