@@ -86,7 +86,7 @@ def inproc_throughput(model: Path, policy: Path, images: list) -> tuple[list, li
     feeder = Node(NodeOptions(name="feeder"), transport=InprocTransport("/feeder", bus))
     image_pub = feeder.create_publisher("/camera/image_raw", m.IMAGE_TYPE)
     action_pub = feeder.create_publisher("/action", m.ACTION_TYPE)
-    feeder.create_subscription("/cmd_vel", m.TWIST_TYPE, lambda _: None)
+    feeder.create_subscription("/cmd_vel", m.TWIST_TYPE, lambda _: None, raw=True)
     quiet = parse_ros_args(["--disable-stdout-logs"])
     options = NodeOptions.for_node(FilterNode, quiet, model=str(model), policy=str(policy))
     node = FilterNode(options, transport=InprocTransport("/tpsr_filter", bus))

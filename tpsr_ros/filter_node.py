@@ -256,12 +256,18 @@ def _image(msg: Any, shape: tuple[int, int], frame: str) -> np.ndarray:
     return m.image_to_array(msg, shape=shape)
 
 
-def _action(msg: Any, frame: str) -> int:
+def _action(msg: Any, frame: str, cache: dict[tuple[float, float], int]) -> int:
+    """Map a TwistStamped to its action index as offline tracking does (memoised)."""
     if frame and msg.header.frame_id != frame:
         raise _Rejected("frame", f"frame {msg.header.frame_id!r} is not {frame!r}")
     try:
-        velocity = np.array([m.twist_to_xy(msg)])
-        return int(velocities_to_actions(velocity, DEFAULT_ACTION_TOLERANCE)[0])
+        velocity = m.twist_to_xy(msg)
+        index = cache.get(velocity)
+        if index is None:
+            index = int(velocities_to_actions(np.array([velocity]), DEFAULT_ACTION_TOLERANCE)[0])
+            if len(cache) < 1024:
+                cache[velocity] = index
+        return index
     except TpsrError as exc:
         raise _Rejected("action", str(exc)) from None
 
@@ -333,6 +339,7 @@ class FilterNode(Node):
         self.latency = RollingPercentiles(1000)
         self._throttle = _Throttle(WARN_PERIOD_S)
         self._recovery_run = 0
+        self._action_cache: dict[tuple[float, float], int] = {}
         self._last_report = (time.monotonic(), 0, self._problem_counts())
         self._pending_command: int | None = None
         self._ready_since: float | None = None
@@ -419,7 +426,7 @@ class FilterNode(Node):
         if msg is None:
             return
         try:
-            action = _action(msg, self.params.action_frame)
+            action = _action(msg, self.params.action_frame, self._action_cache)
         except _Rejected as exc:
             self._reject(self.action_topic, exc.reason, str(exc))
             return
