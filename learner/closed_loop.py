@@ -51,7 +51,15 @@ from tpsr_ros.bag import check_bag_path_free
 from tpsr_ros.errors import ModelFormatError, TpsrError
 from tpsr_ros.filter_node import FilterNodeParams, load_inputs
 from tpsr_ros.policy import TRUE_POSITION, load_policy
-from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions
+from tpsr_ros.runtime import (
+    LATCHED_QOS,
+    Durability,
+    History,
+    Node,
+    NodeOptions,
+    QoSProfile,
+    Reliability,
+)
 
 __all__ = [
     "RECORDED_TOPICS",
@@ -76,6 +84,7 @@ RECORDED_TOPICS = (
     "/diagnostics",
 )
 _SIM_TOPICS = RECORDED_TOPICS[:7]
+KEEP_ALL_QOS = QoSProfile(Reliability.RELIABLE, Durability.VOLATILE, History.KEEP_ALL, 0)
 _IGNORED = "/cmd_vel ignored: episode_steps"
 _READY = "spinning until SIGINT/SIGTERM"
 _NS = 1_000_000_000
@@ -227,15 +236,19 @@ class _Driver:
         self.node.create_subscription(
             "/sim/episode_start", m.POSE_TYPE, self._on_start, LATCHED_QOS
         )
+        # keep-all: lockstep runs hundreds of steps per second; a keep-last reader of a
+        # descheduled driver would lose rewards
         self.reward_sub = self.node.create_subscription(
             "/reward",
             m.REWARD_TYPE,
             lambda msg: self.rewards.append((m.stamp_of(msg), m.reward_to_sample(msg))),
+            KEEP_ALL_QOS,
         )
         self.node.create_subscription(
             "/tpsr/state",
             m.STATE_TYPE,
             lambda msg: self.states.__setitem__(m.stamp_of(msg), m.state_to_array(msg)),
+            KEEP_ALL_QOS,
         )
         self.reset_pub = self.node.create_publisher("/sim/reset", m.POSE_TYPE)
 
