@@ -21,7 +21,7 @@ An episode start at or before the last processed step (and not a jump) is stale 
 
 Faults never stop the node: undecodable messages, images of the wrong encoding, size,
 frame or data length, actions that are not finite or not one of the 25 actions are
-rejected (counted per reason, one warning per topic and reason every 5 s); incomplete,
+rejected (counted per reason, at most one warning per topic every 5 s); incomplete,
 duplicated, late and out-of-order messages are counted by the synchroniser; degenerate
 normalisers are recovered by the guard of :mod:`tpsr_ros.filtering` and counted.
 ``/diagnostics`` reports it all once a second.
@@ -99,7 +99,7 @@ REJECT_REASONS = ("undecodable", "encoding", "size", "data", "frame", "action")
 CLOCK_QOS = QoSProfile(Reliability.BEST_EFFORT, Durability.VOLATILE, History.KEEP_LAST, 10)
 """Best effort, so /clock from any publisher matches (rosbag2 publishes it best-effort)."""
 WARN_PERIOD_S = 5.0
-"""At most one warning per topic and reason in this many seconds."""
+"""At most one warning per topic and kind (rejection, drop, duplicate...) in this many seconds."""
 SETTLE_S = 0.25
 """Once the command's subscribers are matched, time for their side of discovery to finish."""
 _NS = 1_000_000_000
@@ -382,7 +382,7 @@ class FilterNode(Node):
 
     def _reject(self, topic: str, reason: str, detail: str) -> None:
         self.rejected[reason] += 1
-        self._warn(topic, reason, f"rejected ({reason}): {detail}")
+        self._warn(topic, "rejected", f"rejected ({reason}): {detail}")
 
     def _problem_counts(self) -> dict[str, int]:
         stats = self.sync.stats
