@@ -28,7 +28,7 @@ import numpy as np
 
 from tpsr_ros.episodes import make_episodes, read_trajectory
 from tpsr_ros.features import rbf_features
-from tpsr_ros.tpsr import TPSRConfig, fit_tpsr, top_singular_triplets
+from tpsr_ros.tpsr import TPSRConfig, fit_tpsr_episodes, top_singular_triplets
 from tpsr_ros.whitening import Whitening
 
 STEPS = 24_000
@@ -48,14 +48,7 @@ def _bag(directory: str) -> Path:
 
 def _fast(episodes, config: TPSRConfig):
     start = time.perf_counter()
-    model = fit_tpsr(
-        episodes.history,
-        episodes.observation,
-        episodes.action,
-        episodes.test,
-        n_actions=episodes.n_actions,
-        config=config,
-    )
+    model = fit_tpsr_episodes(episodes, config=config)
     return model, time.perf_counter() - start
 
 
@@ -134,12 +127,12 @@ def _peak_memory(episodes, config: TPSRConfig) -> float:
 _CHILD = """
 import json, statistics, sys, time
 from tpsr_ros.episodes import make_episodes, read_trajectory
-from tpsr_ros.tpsr import fit_tpsr
+from tpsr_ros.tpsr import fit_tpsr_episodes
 ep = make_episodes(read_trajectory([sys.argv[1]]), 1, 1)
 times = []
 for _ in range(int(sys.argv[2])):
     start = time.perf_counter()
-    fit_tpsr(ep.history, ep.observation, ep.action, ep.test, n_actions=ep.n_actions)
+    fit_tpsr_episodes(ep)
     times.append(time.perf_counter() - start)
 print(json.dumps(times))
 """

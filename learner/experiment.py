@@ -43,7 +43,7 @@ from tpsr_ros.fqi import FQIConfig, fit_q
 from tpsr_ros.model_io import model_fingerprint
 from tpsr_ros.pca_baseline import PCAConfig, fit_pca
 from tpsr_ros.policy import TRUE_POSITION, Policy
-from tpsr_ros.tpsr import TPSRConfig, fit_tpsr
+from tpsr_ros.tpsr import TPSRConfig, fit_tpsr_episodes
 
 __all__ = [
     "METHODS",
@@ -178,14 +178,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             recoveries = 0
             if method == "tpsr":
                 ep = make_episodes(train, config.tpsr.history_length, config.tpsr.test_length)
-                model = fit_tpsr(
-                    ep.history,
-                    ep.observation,
-                    ep.action,
-                    ep.test,
-                    n_actions=train.n_actions,
-                    config=config.tpsr,
-                )
+                model = fit_tpsr_episodes(ep, config=config.tpsr)
             elif method == "pca":
                 model = fit_pca(train.observations, n_actions=train.n_actions, config=config.pca)
             if method == TRUE_POSITION:

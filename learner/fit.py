@@ -22,7 +22,7 @@ from tpsr_ros.episodes import Topics, make_episodes, read_trajectory
 from tpsr_ros.model_io import check_output_path, save_model
 from tpsr_ros.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.state_model import StateModel
-from tpsr_ros.tpsr import TPSRConfig, TPSRModel, fit_tpsr
+from tpsr_ros.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
 
 __all__ = [
     "add_config_options",
@@ -145,15 +145,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     model: StateModel
     if args.method == "tpsr":
-        model = fit_tpsr(
-            episodes.history,
-            episodes.observation,
-            episodes.action,
-            episodes.test,
-            n_actions=trajectory.n_actions,
-            config=tpsr_config,
-            progress=_say,
-        )
+        model = fit_tpsr_episodes(episodes, config=tpsr_config, progress=_say)
     else:
         _say("PCA")
         model = fit_pca(episodes.steps(), n_actions=trajectory.n_actions, config=pca_config)

@@ -42,7 +42,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
 import scipy.linalg
@@ -58,6 +58,7 @@ __all__ = [
     "TPSRConfig",
     "TPSRModel",
     "fit_tpsr",
+    "fit_tpsr_episodes",
     "top_singular_triplets",
 ]
 
@@ -533,4 +534,32 @@ def fit_tpsr(
             "test": wh_t.explained_variance_ratio_,
         },
         fit_info=fit_info,
+    )
+
+
+class EpisodeArrays(Protocol):
+    """What :func:`fit_tpsr_episodes` reads (e.g. :class:`tpsr_ros.episodes.Episodes`)."""
+
+    history: np.ndarray
+    observation: np.ndarray
+    action: np.ndarray
+    test: np.ndarray
+    n_actions: int
+
+
+def fit_tpsr_episodes(
+    episodes: EpisodeArrays,
+    *,
+    config: TPSRConfig | None = None,
+    progress: Progress | None = None,
+) -> TPSRModel:
+    """:func:`fit_tpsr` on the arrays of cut episodes."""
+    return fit_tpsr(
+        episodes.history,
+        episodes.observation,
+        episodes.action,
+        episodes.test,
+        n_actions=episodes.n_actions,
+        config=config,
+        progress=progress,
     )
