@@ -20,7 +20,10 @@ processes over the DDS backend (a fresh ``ROS_DOMAIN_ID``, loopback only unless
 Lockstep, reliable QoS and waiting for matched endpoints make the run deterministic: its
 trial rewards and score equal ``learner evaluate``'s exactly. The filter holds its first
 command until ``/cmd_vel`` and ``/tpsr/state`` have every subscriber (``wait_for_subscribers``),
-so the recorder misses nothing. Processes are stopped with SIGINT (filter, simulator, then
+and, when recording, the simulator holds its start-up reset until the recorder subscribes
+to each of its topics, so the recorder misses nothing of the trials (the start-up reset's
+latched ``/sim/episode_start`` can still be replaced by the first trial's before the
+recorder's reader matches: the driver's own subscription already satisfies that gate). Processes are stopped with SIGINT (filter, simulator, then
 the recorder, which closes the bag), killed if they do not exit, on success, error,
 timeout and Ctrl-C alike; on Linux they also get SIGTERM if this process dies.
 """
@@ -440,6 +443,8 @@ def run_closed_loop(
             "--log-level",
             "debug",
         ]
+        if record is not None:  # the recorder gets everything, the start-up reset included
+            sim_args[1:1] = ["-p", "wait_for_subscribers:=1"]
         say("starting " + " ".join(["python -m sim_node", *sim_args]))
         sim = children["sim_node"] = _Child("sim_node", "sim_node", sim_args, env, logs)
         run.wait("the simulator's start-up reset", lambda: len(driver.episode_starts) >= 1, driver)

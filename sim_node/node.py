@@ -56,7 +56,7 @@ class SimNodeParams:
     steps: int = param(0, "explore mode: stop stepping after this many steps (0 = never)")
     wait_for_subscribers: int = param(
         0,
-        "before the first reset, wait until every step topic has this many subscriptions",
+        "before the first reset, wait until every published topic has this many subscriptions",
     )
     command_tolerance: float = param(
         3.0,
@@ -110,7 +110,7 @@ class SimNode(Node):
         self._explore_done = False
         if p.wait_for_subscribers:
             self.logger.info(
-                f"waiting for {p.wait_for_subscribers} subscription(s) on every step topic"
+                f"waiting for {p.wait_for_subscribers} subscription(s) on every published topic"
             )
             self._wait_timer = self.create_timer(0.01, self._check_subscribers)
         else:
@@ -135,7 +135,8 @@ class SimNode(Node):
 
     def _check_subscribers(self) -> None:
         needed = self.params.wait_for_subscribers
-        if all(p.get_subscription_count() >= needed for p in self.step_publishers.values()):
+        publishers = [*self.step_publishers.values(), self.episode_publisher]
+        if all(p.get_subscription_count() >= needed for p in publishers):
             self._wait_timer.cancel()
             self._begin()
 
