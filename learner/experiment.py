@@ -33,6 +33,7 @@ from tqdm import tqdm
 
 from learner.evaluate import evaluate
 from learner.planning import transitions
+from learner.plots import affine_r2
 from learner.representations import ModelTracker, Tracker, TruePositionTracker
 from learner.simulated import random_trajectory
 from sim_node import Environment
@@ -131,14 +132,6 @@ class Row:
     status: str
 
 
-def _r2(states: np.ndarray, positions: np.ndarray) -> np.ndarray:
-    """R^2 of an affine least-squares map from states to true positions (a diagnostic)."""
-    design = np.column_stack([states, np.ones(len(states))])
-    coef, *_ = np.linalg.lstsq(design, positions, rcond=None)
-    residual = ((design @ coef - positions) ** 2).sum(axis=0)
-    return np.asarray(1.0 - residual / ((positions - positions.mean(axis=0)) ** 2).sum(axis=0))
-
-
 def _plan_and_score(
     config: ExperimentConfig, tracker: Tracker, rl: Trajectory, states: np.ndarray
 ) -> tuple[float, str, float, str]:
@@ -189,7 +182,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 track = model.track(rl.actions, rl.observations)
                 states, recoveries = track.states, int(track.recovered.sum())
             fit_seconds = time.perf_counter() - start
-            r2 = _r2(states, rl.positions)
+            r2 = affine_r2(states, rl.positions)
             score, trials, ridge, status = _plan_and_score(config, tracker, rl, states)
         except TpsrError as exc:  # a failed fit is a result, not a crash
             fit_seconds, recoveries, r2 = time.perf_counter() - start, 0, np.full(2, np.nan)

@@ -9,6 +9,7 @@ in the bag. The policy file names the model's fingerprint.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -99,13 +100,10 @@ def _first_steps(trajectory: Trajectory, steps: int | None) -> Trajectory:
         return trajectory
     if len(trajectory) < steps:
         raise DataError(f"the RL bag has {len(trajectory)} steps, fewer than the {steps} requested")
-    fields = ("stamps", "observations", "actions", "velocities", "positions", "rewards")
-    return Trajectory(
-        **{name: getattr(trajectory, name)[:steps] for name in fields},
-        segments=trajectory.segments[:steps],
-        image_shape=trajectory.image_shape,
-        n_actions=trajectory.n_actions,
-        sources=trajectory.sources,
+    per_step = ("stamps", "observations", "actions", "velocities", "positions", "rewards")
+    per_step += ("segments",)
+    return dataclasses.replace(
+        trajectory, **{name: getattr(trajectory, name)[:steps] for name in per_step}
     )
 
 
