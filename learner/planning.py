@@ -100,8 +100,9 @@ def _first_steps(trajectory: Trajectory, steps: int | None) -> Trajectory:
         return trajectory
     if len(trajectory) < steps:
         raise DataError(f"the RL bag has {len(trajectory)} steps, fewer than the {steps} requested")
-    per_step = ("stamps", "observations", "actions", "velocities", "positions", "rewards")
-    per_step += ("segments",)
+    per_step = (
+        "stamps", "observations", "actions", "velocities", "positions", "rewards", "segments"
+    )
     return dataclasses.replace(
         trajectory, **{name: getattr(trajectory, name)[:steps] for name in per_step}
     )
