@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from sim_node.actions import ACTIONS
 from tpsr_ros import messages as m
 from tpsr_ros.diagnostics import (
     DIAGNOSTICS_TYPE,
@@ -488,8 +489,11 @@ class FilterNode(Node):
 
     def _on_clock(self, data: bytes) -> None:
         msg = self._decode(data, m.CLOCK_TYPE, CLOCK_TOPIC)
-        if msg is not None and self.sync.check_time(m.stamp_of(msg)):
-            self._reinit(f"/clock jumped back to {m.stamp_of(msg) / _NS:.3f} s")
+        if msg is None:
+            return
+        stamp = m.stamp_of(msg)
+        if self.sync.check_time(stamp):
+            self._reinit(f"/clock jumped back to {stamp / _NS:.3f} s")
 
     def _reinit(self, why: str) -> None:
         self.tracker.reinit()
@@ -506,8 +510,6 @@ class FilterNode(Node):
             self._send_pending()
 
     def _send_pending(self) -> None:
-        from sim_node.actions import ACTIONS
-
         if self._pending_command is None or self.cmd_pub is None:
             return
         vx, vy = ACTIONS[self._pending_command]
