@@ -57,15 +57,13 @@ def plot_trajectories(bag: Path, output: Path, config: SimConfig | None = None) 
     from matplotlib.patches import Circle, Rectangle
 
     config = config or SimConfig()
+    def stamped_positions(topic: str) -> list[tuple[int, tuple[float, float]]]:
+        decoded = (msg.decode() for msg in reader.messages([topic]))
+        return sorted((m.stamp_of(pose), m.pose_to_xy(pose)) for pose in decoded)
+
     with BagReader(bag) as reader:
-        starts = sorted(
-            (m.stamp_of(msg.decode()), m.pose_to_xy(msg.decode()))
-            for msg in reader.messages(["/sim/episode_start"])
-        )
-        poses = sorted(
-            (m.stamp_of(msg.decode()), m.pose_to_xy(msg.decode()))
-            for msg in reader.messages(["/ground_truth/pose"])
-        )
+        starts = stamped_positions("/sim/episode_start")
+        poses = stamped_positions("/ground_truth/pose")
     episodes = [
         [start] + [xy for stamp, xy in poses if t < stamp < (nxt[0] if nxt else float("inf"))]
         for (t, start), nxt in zip(starts, [*starts[1:], None], strict=True)
