@@ -23,9 +23,10 @@ command until ``/cmd_vel`` and ``/tpsr/state`` have every subscriber (``wait_for
 and, when recording, the simulator holds its start-up reset until the recorder subscribes
 to each of its topics, so the recorder misses nothing of the trials (the start-up reset's
 latched ``/sim/episode_start`` can still be replaced by the first trial's before the
-recorder's reader matches: the driver's own subscription already satisfies that gate). Processes are stopped with SIGINT (filter, simulator, then
-the recorder, which closes the bag), killed if they do not exit, on success, error,
-timeout and Ctrl-C alike; on Linux they also get SIGTERM if this process dies.
+recorder's reader matches: the driver's own subscription already satisfies that gate).
+Processes are stopped with SIGINT (filter, simulator, then the recorder, which closes the
+bag), killed if they do not exit, on success, error, timeout and Ctrl-C alike; on Linux
+they also get SIGTERM if this process dies.
 """
 
 from __future__ import annotations
@@ -373,15 +374,7 @@ def run_closed_loop(
             "model's states"
         )
     policy.check_environment(environment)
-    if model_path is None:
-        recorded = policy.metadata.get("model_path")
-        if not recorded or not Path(recorded).exists():
-            raise ModelFormatError(
-                f"the policy's model {recorded!r} does not exist (relative to the current "
-                "directory); pass the model explicitly"
-            )
-        model_path = recorded
-    model_path = Path(model_path).resolve()
+    model_path = policy.model_path(model_path).resolve()
     # the filter node's own start-up checks, here, before any process starts
     load_inputs(FilterNodeParams(model=str(model_path), policy=str(policy_path)))
     if record is not None:

@@ -128,19 +128,10 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(run=run)
 
 
-def _tracker_for(policy: Policy, policy_path: Path, model: str | None) -> Tracker:
+def _tracker_for(policy: Policy, model: str | None) -> Tracker:
     if policy.representation == TRUE_POSITION:
         return load_tracker(TRUE_POSITION)
-    recorded = policy.metadata.get("model_path")
-    spec = model or recorded
-    if spec is None:
-        raise ModelFormatError(f"{policy_path} records no model path; pass --model MODEL")
-    if model is None and not Path(spec).exists():
-        raise ModelFormatError(
-            f"the policy's model {spec!r} does not exist (relative to the current directory); "
-            "pass --model MODEL"
-        )
-    return load_tracker(spec)
+    return load_tracker(policy.model_path(model))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -149,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
         raise ModelFormatError(f"--seed must be >= 0, got {args.seed}")
     policy = load_policy(args.policy)
     policy.check_environment(args.environment)
-    tracker = _tracker_for(policy, args.policy, args.model)
+    tracker = _tracker_for(policy, args.model)
 
     def show(index: int, trial: Trial) -> None:
         goal = (

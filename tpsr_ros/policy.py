@@ -87,6 +87,24 @@ class Policy:
                 f"{what} is {fingerprint[:12]}"
             )
 
+    def model_path(self, explicit: str | Path | None = None) -> Path:
+        """The model file to pair with: ``explicit``, else the path recorded at training.
+
+        A missing record or a recorded path that no longer exists is refused; the caller's
+        model check (:meth:`check_model`) then verifies the fingerprint.
+        """
+        if explicit is not None:
+            return Path(explicit)
+        recorded = self.metadata.get("model_path")
+        if not recorded:
+            raise ModelFormatError("the policy records no model path; pass --model MODEL")
+        if not Path(recorded).exists():
+            raise ModelFormatError(
+                f"the policy's model {recorded!r} does not exist (relative to the current "
+                "directory); pass --model MODEL"
+            )
+        return Path(recorded)
+
     def check_environment(self, environment: str) -> None:
         """Refuse an environment other than the one the policy was trained in (when known)."""
         if self.environment is not None and environment != self.environment:
