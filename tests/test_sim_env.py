@@ -9,6 +9,7 @@ import pytest
 
 from sim_node import ACTIONS, VELOCITIES, RobotEnv, SimConfig, action_index, random_rollout
 from sim_node.actions import action_indices
+from sim_node.env import step_reward
 from tpsr_ros.errors import ConfigError
 
 L, R = 45.0, 1.0
@@ -77,6 +78,15 @@ def test_goal_reward_exactly_inside_the_zone(long_run):
     assert both.any(), "the run should contain blocked steps inside the zone"
     assert np.all(run.rewards[both] == -1.0)  # a collision overrides the goal reward
     assert set(np.unique(run.rewards)) == {-1.0, 0.0, 10.0}
+
+
+def test_a_blocked_step_earns_the_wall_reward_and_nothing_else():
+    config = SimConfig()
+    positions = np.array([[44.0, 44.0], [44.0, 44.0], [5.0, 5.0], [1.0, 5.0]])
+    contact = np.array([True, False, False, True])
+    rewards, goal = step_reward(config, positions, contact)
+    assert list(goal) == [True, True, False, False]
+    assert list(rewards) == [-1.0, 10.0, 0.0, -1.0]
 
 
 def test_execution_noise_is_ten_percent_of_each_component(long_run):
