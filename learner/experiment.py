@@ -186,13 +186,25 @@ def _floor_row(config: ExperimentConfig, method: str, episodes: int, repetition:
         evaluation, extra = floor.evaluation, {"action": floor.action, "velocity": floor.velocity}
     else:
         policy_seed = config.train_seed(episodes, repetition)
-        evaluation, extra = random_floor(config.environment, policy_seed), {
-            "policy_seed": policy_seed
-        }
+        evaluation, extra = (
+            random_floor(config.environment, policy_seed),
+            {"policy_seed": policy_seed},
+        )
     return Row(
-        config.environment, method, episodes, repetition, config.train_seed(episodes, repetition),
-        config.rl_seed, evaluation.score, _trials(evaluation),
-        round(time.perf_counter() - start, 3), float("nan"), 0, float("nan"), float("nan"), "ok",
+        config.environment,
+        method,
+        episodes,
+        repetition,
+        config.train_seed(episodes, repetition),
+        config.rl_seed,
+        evaluation.score,
+        _trials(evaluation),
+        round(time.perf_counter() - start, 3),
+        float("nan"),
+        0,
+        float("nan"),
+        float("nan"),
+        "ok",
         _parameters(config, method, extra),
     )
 
@@ -312,9 +324,7 @@ def summarise(rows: Sequence[Row]) -> list[dict[str, Any]]:
             }
         )
     for entry in table:
-        floors = [
-            t for t in table if t["method"] in FLOORS and t["episodes"] == entry["episodes"]
-        ]
+        floors = [t for t in table if t["method"] in FLOORS and t["episodes"] == entry["episodes"]]
         entry["floor"], entry["margin_sem"] = "", float("nan")
         if entry["method"] in FLOORS or not floors:
             continue
@@ -322,8 +332,8 @@ def summarise(rows: Sequence[Row]) -> list[dict[str, Any]]:
         spread = np.hypot(np.nan_to_num(entry["sem"]), np.nan_to_num(best["sem"]))
         difference = entry["mean"] - best["mean"]
         entry["floor"] = best["method"]
-        entry["margin_sem"] = float(difference / spread) if spread > 0 else float(
-            np.sign(difference) * np.inf
+        entry["margin_sem"] = (
+            float(difference / spread) if spread > 0 else float(np.sign(difference) * np.inf)
         )
     return table
 

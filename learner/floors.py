@@ -21,8 +21,15 @@ from learner.evaluate import EVALUATION_SEED, Evaluation, run_protocol
 from sim_node.actions import ACTIONS, NUM_ACTIONS
 from tpsr_ros.episodes import Trajectory
 
-__all__ = ["CONSTANT", "FLOORS", "RANDOM", "BlindTracker", "ConstantFloor", "constant_floor",
-           "random_floor"]
+__all__ = [
+    "CONSTANT",
+    "FLOORS",
+    "RANDOM",
+    "BlindTracker",
+    "ConstantFloor",
+    "constant_floor",
+    "random_floor",
+]
 
 CONSTANT = "constant"
 RANDOM = "random"

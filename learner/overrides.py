@@ -30,7 +30,9 @@ _BOOLEANS = {"true": True, "1": True, "yes": True, "false": False, "0": False, "
 def parameter_names() -> list[str]:
     """Every settable name, qualified (``tpsr.rank``, ...)."""
     return [
-        f"{group}.{f.name}" for group, cls in CONFIG_CLASSES.items() for f in dataclasses.fields(cls)
+        f"{group}.{f.name}"
+        for group, cls in CONFIG_CLASSES.items()
+        for f in dataclasses.fields(cls)
     ]
 
 
@@ -79,9 +81,7 @@ def _convert(group: str, field: str, text: str) -> Any:
     raise ConfigError(f"--set {group}.{field}: parameters of type {kind} cannot be set")
 
 
-def apply_overrides(
-    configs: Mapping[str, Any], assignments: Iterable[str]
-) -> dict[str, Any]:
+def apply_overrides(configs: Mapping[str, Any], assignments: Iterable[str]) -> dict[str, Any]:
     """New ``{"tpsr": ..., "pca": ..., "fqi": ...}`` configs with every ``NAME=VALUE`` applied.
 
     Later assignments of the same name win. The configs validate the result; their
