@@ -227,7 +227,7 @@ def _read_rows(path: Path) -> list[Row]:
 
 def _table_markdown(table: Table) -> list[str]:
     lines = [
-        "| method | episodes | runs | mean | median | SEM | failed | margin over best floor (SEMs) |",
+        "| method | episodes | runs | mean | median | SEM | failed | margin over floor (SEMs) |",
         "|---|---:|---:|---:|---:|---:|---:|---|",
     ]
     for t in table:
