@@ -368,7 +368,7 @@ def plot_summary(table: Sequence[dict[str, Any]], environment: str, path: Path) 
         "pca": "tab:blue",
         TRUE_POSITION: "tab:gray",
     }
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    fig, ax = plt.subplots(figsize=(6.4, 4.8))
     for method in METHODS:
         part = [t for t in table if t["method"] == method]
         if not part:
@@ -386,7 +386,7 @@ def plot_summary(table: Sequence[dict[str, Any]], environment: str, path: Path) 
     ax.set_title(f"{environment}: learning-planning loop")
     ax.set_ylim(min(-100.0, *(t["mean"] - 20 for t in table if np.isfinite(t["mean"]))), 500)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, ncol=3, loc="lower right")
+    ax.legend(fontsize=7, ncol=5, loc="upper center", bbox_to_anchor=(0.5, -0.14))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -73,7 +73,7 @@ def test_report_reuse_writes_floors_margins_and_findings(tmp_path):
                   "tpsr": rng.normal(300, 30, 3), "pca": rng.normal(200, 30, 3),
                   "true-position": [469.7] * 3}
         write_csv(_rows(environment, scores), results / f"experiment_{environment}.csv")
-    (docs / "results.md").write_text("old\n<!-- discussion -->\nhand-written discussion\n")
+    (docs / "results.md").write_text("STALE PAGE\n<!-- discussion -->\nhand-written discussion\n")
     result = subprocess.run(
         [sys.executable, "-m", "learner", "report", "--reuse", "--results", str(results),
          "--docs", str(docs)], capture_output=True, text=True, timeout=120,
@@ -81,7 +81,7 @@ def test_report_reuse_writes_floors_margins_and_findings(tmp_path):
     assert result.returncode == 0, result.stderr
     page = (docs / "results.md").read_text()
     assert page.endswith("<!-- discussion -->\nhand-written discussion\n")
-    assert "old" not in page.split("<!--")[0]
+    assert "STALE PAGE" not in page.split("<!--")[0]
     for environment in ENVIRONMENTS:
         assert f"## `{environment}`" in page
         assert (docs / f"results_{environment}.png").stat().st_size > 10_000
