@@ -18,6 +18,7 @@ from __future__ import annotations
 import shutil
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,13 +27,14 @@ from tqdm import tqdm
 from learner.cli import main as learner_main
 from learner.closed_loop import run_closed_loop
 from learner.evaluate import START_POSITIONS, STEPS, evaluate
+from learner.floors import ConstantFloor, constant_floor, random_floor
 from learner.representations import load_tracker
 from sim_node import Environment, SimConfig
 from sim_node.generate import generate_bag
 from tpsr_ros import messages as m
 from tpsr_ros.bag import BagReader
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
-from tpsr_ros.policy import load_policy
+from tpsr_ros.policy import TRUE_POSITION, load_policy
 
 __all__ = ["main", "plot_trajectories"]
 
@@ -174,11 +176,20 @@ def main(argv: list[str] | None = None) -> int:
     learner_main(["plot", str(model), str(rl), "-o", str(states_png)])
     plot_trajectories(closed, paths_png, SimConfig(environment=env))
 
-    _summary(out, headless, result, time.perf_counter() - began)
+    _summary(out, headless, result, bounds, time.perf_counter() - began)
     return 0
 
 
-def _summary(out: Path, headless: Any, result: Any, seconds: float) -> None:
+@dataclass(frozen=True)
+class Bounds:
+    """What the score stands between: the state-blind floors and the true-position ceiling."""
+
+    constant: ConstantFloor
+    random: float
+    true_position: float
+
+
+def _summary(out: Path, headless: Any, result: Any, bounds: Bounds, seconds: float) -> None:
     print()
     print("trial  start           closed loop (reward, goal step)  headless")
     for index, (ours, theirs) in enumerate(
@@ -195,6 +206,12 @@ def _summary(out: Path, headless: Any, result: Any, seconds: float) -> None:
         f"score over the nodes (closed loop): {closed:.1f}; headless (learner evaluate): "
         f"{head:.1f} ({same})"
     )
+    vx, vy = bounds.constant.velocity
+    print(
+        f"same protocol, floors: best constant action ({vx:+.0f}, {vy:+.0f}) "
+        f"{bounds.constant.evaluation.score:.1f}, random actions {bounds.random:.1f}; "
+        f"ceiling: true position {bounds.true_position:.1f}"
+    )
     reached = sum(t.goal_step is not None for t in result.evaluation.trials)
     print(f"the robot reached the goal zone in {reached} of {len(result.evaluation.trials)} trials")
     print()
@@ -204,6 +221,7 @@ def _summary(out: Path, headless: Any, result: Any, seconds: float) -> None:
         ("bags/rl", "random RL run"),
         ("model.npz", "TPSR (learner info model.npz)"),
         ("policy.npz", "greedy fitted-Q policy for that model"),
+        ("policy_true_position.npz", "the ceiling: fitted Q on the true position"),
         (
             "bags/closed_loop",
             "closed-loop recording: images, actions, /tpsr/state, /cmd_vel, "
