@@ -6,9 +6,11 @@ Everything goes to ``demo_output/`` (recreated on every run):
    simulator, written as bags (``python -m sim_node.generate``);
 2. a TPSR with the guide's default parameters (``learner fit``) and a fitted-Q policy on
    the states tracked over the RL run (``learner policy``);
-3. the standard evaluation headless (``learner evaluate``), then over the nodes: sim_node
-   and the filter node as separate processes in lockstep over DDS, recorded into a bag
-   (``learner closed-loop --record``); the two scores are equal by construction;
+3. the standard evaluation headless (``learner evaluate``), beside the floors (the best
+   constant action, uniformly random actions) and the ceiling (fitted Q on the true
+   position), then over the nodes: sim_node and the filter node as separate processes in
+   lockstep over DDS, recorded into a bag (``learner closed-loop --record``); the two
+   scores are equal by construction;
 4. plots: the states over the RL run coloured by reward and true position (``learner
    plot``), and the closed-loop trajectories from ``/ground_truth/pose`` coloured by trial.
 """
@@ -152,8 +154,15 @@ def main(argv: list[str] | None = None) -> int:
     _stage(4, f"learner policy {model} {rl} -o {policy}  (fitted Q-iteration)")
     learner_main(["policy", str(model), str(rl), "-o", str(policy)])
 
-    _stage(5, f"learner evaluate {policy} --environment {env}  (headless)")
+    _stage(5, f"learner evaluate {policy} --environment {env}  (headless; floors, ceiling)")
     headless = evaluate(load_policy(policy), load_tracker(model), env)
+    ceiling_policy = out / "policy_true_position.npz"
+    learner_main(["policy", TRUE_POSITION, str(rl), "-o", str(ceiling_policy)])
+    bounds = Bounds(
+        constant_floor(env),
+        random_floor(env, policy_seed=0).score,
+        evaluate(load_policy(ceiling_policy), load_tracker(TRUE_POSITION), env).score,
+    )
 
     _stage(
         6,
