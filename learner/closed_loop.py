@@ -1,8 +1,10 @@
 """``learner closed-loop POLICY --environment E``: the standard evaluation over the nodes.
 
 The headless protocol of :mod:`learner.evaluate`, run by the real nodes as separate
-processes over the DDS backend (a fresh ``ROS_DOMAIN_ID``, loopback only unless
-``CYCLONEDDS_URI`` says otherwise):
+processes over the middleware the nodes choose by default (rclpy when importable, else
+the Cyclone DDS backend; ``--transport`` or ``TPSR_TRANSPORT`` picks one), in a fresh
+``ROS_DOMAIN_ID``, loopback only unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` or
+``CYCLONEDDS_URI`` says otherwise:
 
 1. ``python -m sim_node --ros-args -p mode:=command -p environment:=E -p seed:=2026
    -p episode_steps:=50`` (and, with ``--record BAG``, ``python -m tpsr_ros.record``);
@@ -64,6 +66,7 @@ from tpsr_ros.runtime import (
     QoSProfile,
     Reliability,
 )
+from tpsr_ros.runtime.backend import choose_backend, open_transport
 
 __all__ = [
     "RECORDED_TOPICS",
@@ -229,10 +232,9 @@ def _environment(overrides: dict[str, str]) -> Iterator[None]:
 class _Driver:
     """The in-process node that resets the simulator and collects rewards and states."""
 
-    def __init__(self, domain_id: int) -> None:
-        from tpsr_ros.runtime.dds import DdsTransport
-
-        transport = DdsTransport("closed_loop_driver", domain_id=domain_id)
+    def __init__(self, backend: str) -> None:
+        # the transport reads ROS_DOMAIN_ID (and the discovery range) from the environment
+        transport = open_transport(backend, "closed_loop_driver", "/")
         self.node = Node(NodeOptions(name="closed_loop_driver"), transport=transport)
         self.episode_starts: list[tuple[int, float, float]] = []
         self.rewards: list[tuple[int, m.RewardSample]] = []
@@ -354,6 +356,7 @@ def run_closed_loop(
     steps: int = STEPS,
     timeout_s: float = 60.0,
     domain_id: int | None = None,
+    transport: str | None = None,
     on_trial: Callable[[int, Trial], None] | None = None,
     on_step: Callable[[int], None] | None = None,
     say: Callable[[str], None] | None = None,
@@ -361,10 +364,17 @@ def run_closed_loop(
     """Run the standard protocol with the simulator and filter nodes as processes.
 
     ``on_step(n)`` is called with the number of new rewards as they arrive (for progress
-    bars), ``on_trial`` after each trial, ``say`` with stage lines.
+    bars), ``on_trial`` after each trial, ``say`` with stage lines. ``transport`` is
+    ``rclpy`` or ``dds`` (default: ``TPSR_TRANSPORT``, else rclpy if importable, else dds).
     """
     started = time.monotonic()
     say = say or (lambda text: None)
+    backend, _ = choose_backend(transport)
+    if backend == "inproc":
+        raise ClosedLoopError(
+            "the closed loop runs the nodes as processes: use the rclpy or dds transport, "
+            "not inproc"
+        )
     environment = Environment(environment).value
     policy_path = Path(policy_path).resolve()
     policy = load_policy(policy_path)
@@ -398,8 +408,8 @@ def run_closed_loop(
         # a domain nobody else is using right now (other runs, tests, robots)
         for _ in range(8):
             domain = domain_id if domain_id is not None else _pick_domain()
-            with _environment(network):
-                driver = _Driver(domain)
+            with _environment({**network, "ROS_DOMAIN_ID": str(domain)}):
+                driver = _Driver(backend)
             driver.node.spin(timeout_s=0.5)
             if driver.graph_is_empty() or domain_id is not None:
                 break
@@ -412,11 +422,11 @@ def run_closed_loop(
             **os.environ,
             **network,
             "ROS_DOMAIN_ID": str(domain),
-            "TPSR_TRANSPORT": "dds",
+            "TPSR_TRANSPORT": backend,
             "PYTHONUNBUFFERED": "1",
         }
         run = _Run(children, timeout_s)
-        say(f"DDS domain {domain}; node logs in {logs}")
+        say(f"{backend} transport, ROS_DOMAIN_ID {domain}; node logs in {logs}")
 
         if record is not None:
             say(f"recording to {record}")
@@ -517,7 +527,7 @@ def register(subparsers: Any) -> None:
     """Add the ``closed-loop`` subcommand."""
     doc = (
         "score a policy with the standard protocol over the nodes: sim_node and the filter "
-        "node as separate processes in lockstep over DDS"
+        "node as separate processes in lockstep over ROS 2 (rclpy or the DDS backend)"
     )
     parser = subparsers.add_parser(
         "closed-loop",
@@ -565,6 +575,13 @@ def register(subparsers: Any) -> None:
         metavar="N",
         help="ROS_DOMAIN_ID to use (default: a free one at random)",
     )
+    parser.add_argument(
+        "--transport",
+        choices=("rclpy", "dds"),
+        default=None,
+        help="middleware of the nodes (default: TPSR_TRANSPORT, else rclpy if importable, "
+        "else dds)",
+    )
     parser.set_defaults(run=run)
 
 
@@ -585,6 +602,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         timeout_s=args.timeout,
         domain_id=args.domain_id,
+        transport=args.transport,
         on_trial=show,
         say=lambda text: print(f"learner closed-loop: {text}", file=sys.stderr, flush=True),
     )

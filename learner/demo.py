@@ -9,8 +9,8 @@ Everything goes to ``demo_output/`` (recreated on every run):
 3. the standard evaluation headless (``learner evaluate``), beside the floors (the best
    constant action, uniformly random actions) and the ceiling (fitted Q on the true
    position), then over the nodes: sim_node and the filter node as separate processes in
-   lockstep over DDS, recorded into a bag (``learner closed-loop --record``); the two
-   scores are equal by construction;
+   lockstep over ROS 2 (rclpy when importable, else the DDS backend), recorded into a bag
+   (``learner closed-loop --record``); the two scores are equal by construction;
 4. plots: the states over the RL run coloured by reward and true position (``learner
    plot``), and the closed-loop trajectories from ``/ground_truth/pose`` coloured by trial.
 """
@@ -37,6 +37,7 @@ from tpsr_ros import messages as m
 from tpsr_ros.bag import BagReader
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
 from tpsr_ros.policy import TRUE_POSITION, load_policy
+from tpsr_ros.runtime.backend import choose_backend
 
 __all__ = ["main", "plot_trajectories"]
 
@@ -166,8 +167,8 @@ def main(argv: list[str] | None = None) -> int:
 
     _stage(
         6,
-        "closed loop over the nodes: sim_node + tpsr_filter as processes over DDS, "
-        f"recorded to {closed}",
+        f"closed loop over the nodes: sim_node + tpsr_filter as processes over "
+        f"{choose_backend()[0]}, recorded to {closed}",
     )
     with tqdm(total=len(START_POSITIONS) * STEPS, unit="step", desc="closed loop") as bar:
         result = run_closed_loop(
