@@ -31,9 +31,11 @@ from tpsr_ros.runtime import LATCHED_QOS, Node, param
 
 __all__ = ["EPISODE_START_TOPIC", "RESET_TOPIC", "SimNode", "SimNodeParams"]
 
-RESET_TOPIC = "/sim/reset"
-EPISODE_START_TOPIC = "/sim/episode_start"
-CMD_VEL_TOPIC = "/cmd_vel"
+# Relative names (the step topics too, see SimTopics.relative): `-r __ns:=/robot1` puts
+# every topic of the node under /robot1/, so robots run side by side.
+RESET_TOPIC = "sim/reset"
+EPISODE_START_TOPIC = "sim/episode_start"
+CMD_VEL_TOPIC = "cmd_vel"
 _NS = 1_000_000_000
 
 
@@ -90,7 +92,7 @@ class SimNode(Node):
         p: SimNodeParams = self.params
         self.config = SimConfig(environment=p.environment)
         self.env = RobotEnv(self.config, seed=p.seed)
-        self.topics = SimTopics()
+        self.topics = SimTopics().relative()
         self.step_publishers = {
             name: self.create_publisher(name, msgtype)
             for name, msgtype in self.topics.types().items()

@@ -89,12 +89,15 @@ __all__ = [
 ]
 
 PROG = "python -m tpsr_ros.filter_node"
-IMAGE_TOPIC = "/camera/image_raw"
-ACTION_TOPIC = "/action"
-RESET_TOPIC = "/sim/episode_start"
-CLOCK_TOPIC = "/clock"
-STATE_TOPIC = "/tpsr/state"
-CMD_VEL_TOPIC = "/cmd_vel"
+# Relative names, so `-r __ns:=/robot1` moves every topic of a robot's filter under
+# /robot1/ (next to its simulator's); /diagnostics stays global, as diagnostic
+# aggregators expect (each status names its node).
+IMAGE_TOPIC = "camera/image_raw"
+ACTION_TOPIC = "action"
+RESET_TOPIC = "sim/episode_start"
+CLOCK_TOPIC = "clock"
+STATE_TOPIC = "tpsr/state"
+CMD_VEL_TOPIC = "cmd_vel"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 REJECT_REASONS = ("undecodable", "encoding", "size", "data", "frame", "action")
 CLOCK_QOS = QoSProfile(Reliability.BEST_EFFORT, Durability.VOLATILE, History.KEEP_LAST, 10)
@@ -178,7 +181,10 @@ def _training_topics(metadata: dict[str, Any]) -> set[tuple[str, str]]:
 
 
 def load_inputs(
-    params: FilterNodeParams, image_topic: str = IMAGE_TOPIC, action_topic: str = ACTION_TOPIC
+    params: FilterNodeParams,
+    image_topic: str = "/" + IMAGE_TOPIC,
+    action_topic: str = "/" + ACTION_TOPIC,
+    namespace: str = "/",
 ) -> FilterInputs:
     """Load the model (and policy) and refuse a combination the node cannot run.
 
@@ -189,7 +195,9 @@ def load_inputs(
     ``H x W x 3``; and, unless ``check_topics`` is false, a model trained on other topics:
     every training bag recorded in the model names its image and action topics, and each
     pair must equal ``(image_topic, action_topic)``, the node's fully resolved subscription
-    names (after namespace and ``-r`` remapping). A model recording no topics is accepted.
+    names (after namespace and ``-r`` remapping), either as recorded or moved into the
+    node's ``namespace`` (a model trained on ``/camera/image_raw`` runs a filter in
+    ``/robot1`` on ``/robot1/camera/image_raw``). A model recording no topics is accepted.
     """
     if not params.model:
         raise ConfigError("no model given: pass -p model:=MODEL (a file from `learner fit`)")
@@ -205,8 +213,9 @@ def load_inputs(
         )
     if params.check_topics:
         subscribed = (image_topic, action_topic)
+        prefix = namespace.rstrip("/")
         for pair in sorted(_training_topics(metadata)):
-            if pair != subscribed:
+            if pair != subscribed and (prefix + pair[0], prefix + pair[1]) != subscribed:
                 raise ConfigError(
                     f"model {params.model} was trained on {pair[0]} and {pair[1]}, but the "
                     f"node subscribes {subscribed[0]} and {subscribed[1]} (remap with -r, or "
@@ -308,12 +317,16 @@ class FilterNode(Node):
     )
 
     @classmethod
-    def _resolved_inputs(cls, options: NodeOptions) -> tuple[str, str]:
+    def _resolved_inputs(cls, options: NodeOptions) -> tuple[str, str, str]:
         # Node.resolve_topic needs only the options, name and namespace: use it unbound
         # so the check sees exactly the names setup() will subscribe.
         probe = object.__new__(cls)
         probe.options, probe.name, probe.namespace = options, options.name, options.namespace
-        return probe.resolve_topic(IMAGE_TOPIC), probe.resolve_topic(ACTION_TOPIC)
+        return (
+            probe.resolve_topic(IMAGE_TOPIC),
+            probe.resolve_topic(ACTION_TOPIC),
+            options.namespace,
+        )
 
     @classmethod
     def preflight(cls, options: NodeOptions) -> None:
@@ -325,7 +338,7 @@ class FilterNode(Node):
         p: FilterNodeParams = self.params
         self.image_topic = self.resolve_topic(IMAGE_TOPIC)
         self.action_topic = self.resolve_topic(ACTION_TOPIC)
-        self.inputs = load_inputs(p, self.image_topic, self.action_topic)
+        self.inputs = load_inputs(p, self.image_topic, self.action_topic, self.namespace)
         self.model = self.inputs.model
         self.policy = self.inputs.policy
         self.tracker = OnlineTracker(self.model, round(p.step_period * _NS))
@@ -360,8 +373,12 @@ class FilterNode(Node):
         self.action_sub = self.create_subscription(
             ACTION_TOPIC, m.ACTION_TYPE, self._on_action, sensor, raw=True
         )
-        self.create_subscription(RESET_TOPIC, m.POSE_TYPE, self._on_reset, LATCHED_QOS, raw=True)
-        self.create_subscription(CLOCK_TOPIC, m.CLOCK_TYPE, self._on_clock, CLOCK_QOS, raw=True)
+        self.reset_topic = self.create_subscription(
+            RESET_TOPIC, m.POSE_TYPE, self._on_reset, LATCHED_QOS, raw=True
+        ).topic
+        self.clock_topic = self.create_subscription(
+            CLOCK_TOPIC, m.CLOCK_TYPE, self._on_clock, CLOCK_QOS, raw=True
+        ).topic
         self.create_timer(p.diagnostics_period, self.publish_diagnostics)
         if self.policy is not None:
             self._ready_timer = self.create_timer(0.01, self._check_ready)
@@ -456,13 +473,13 @@ class FilterNode(Node):
         except Exception as exc:  # never let one step stop the node
             self.errors += 1
             self.tracker.reinit()
-            if self._throttle((STATE_TOPIC, "error")):
+            if self._throttle((self.state_pub.topic, "error")):
                 self.logger.error(f"update at {stamp / _NS:.3f} s failed ({exc}); state reset")
             return
         if info.recovered:
             self._recovery_run += 1
             self._warn(
-                STATE_TOPIC,
+                self.state_pub.topic,
                 "recovery",
                 f"normaliser {info.normalizer:.3g} at {stamp / _NS:.3f} s: restarted from b_*",
             )
@@ -474,7 +491,7 @@ class FilterNode(Node):
         self.latency.add(time.perf_counter() - start)
 
     def _on_reset(self, data: bytes) -> None:
-        msg = self._decode(data, m.POSE_TYPE, RESET_TOPIC)
+        msg = self._decode(data, m.POSE_TYPE, self.reset_topic)
         if msg is None:
             return
         stamp = m.stamp_of(msg)
@@ -488,12 +505,12 @@ class FilterNode(Node):
         self.resets += 1
 
     def _on_clock(self, data: bytes) -> None:
-        msg = self._decode(data, m.CLOCK_TYPE, CLOCK_TOPIC)
+        msg = self._decode(data, m.CLOCK_TYPE, self.clock_topic)
         if msg is None:
             return
         stamp = m.stamp_of(msg)
         if self.sync.check_time(stamp):
-            self._reinit(f"/clock jumped back to {stamp / _NS:.3f} s")
+            self._reinit(f"{self.clock_topic} jumped back to {stamp / _NS:.3f} s")
 
     def _reinit(self, why: str) -> None:
         self.tracker.reinit()
