@@ -13,6 +13,8 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[test,dds,ros]' 2> $(VENV)/ros-extra.log \
 	|| { echo "note: no ROS 2 Jazzy wheels for $$($(PY) -V); installing without rclpy (Cyclone DDS backend; pip's reason in $(VENV)/ros-extra.log)"; \
 	     $(PY) -m pip install --quiet -e '.[test,dds]'; }
+	@# colcon must not take the venv's ROS packages (share/*/package.xml) for the workspace's
+	touch $(VENV)/COLCON_IGNORE
 	touch $(STAMP)
 
 demo: $(STAMP)
