@@ -3,11 +3,13 @@
 colcon (which sets ``COLCON=1``) gets what an ament_python package installs besides the
 Python packages: the ament resource marker, package.xml, and the node executables
 ``lib/tpsr_ros/{sim_node,filter_node,record,play}`` (setup.cfg puts scripts there), which
-``ros2 run tpsr_ros <node>`` starts. pip installs get no console scripts: the nodes run
+``ros2 run tpsr_ros <node>`` starts, and ``share/tpsr_ros/launch/*.launch.xml`` for
+``ros2 launch tpsr_ros <file>``. pip installs get no console scripts: the nodes run
 with ``python -m``, and names like ``record`` and ``play`` do not belong in a venv's bin/.
 """
 
 import os
+from pathlib import Path
 
 from setuptools import setup
 from setuptools.dist import Distribution
@@ -19,7 +21,6 @@ NODES = {
     "record": "tpsr_ros.record:main",
     "play": "tpsr_ros.play:main",
 }
-
 
 
 class _ColconDistribution(Distribution):
@@ -44,6 +45,7 @@ if os.environ.get("COLCON") == "1":
         "data_files": [
             ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
             (f"share/{PACKAGE}", ["package.xml"]),
+            (f"share/{PACKAGE}/launch", sorted(str(f) for f in Path("launch").glob("*.xml"))),
         ],
         "entry_points": {"console_scripts": [f"{k} = {v}" for k, v in NODES.items()]},
     }

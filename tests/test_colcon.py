@@ -77,6 +77,8 @@ def test_colcon_build_installs_runnable_node_executables(tmp_path):
     marker = install / "share" / "ament_index" / "resource_index" / "packages" / "tpsr_ros"
     assert marker.is_file()
     assert (install / "share" / "tpsr_ros" / "package.xml").is_file()
+    launch = install / "share" / "tpsr_ros" / "launch" / "closed_loop.launch.xml"
+    assert launch.read_bytes() == (ROOT / "launch" / "closed_loop.launch.xml").read_bytes()
     (site,) = install.glob("lib/python3*/site-packages")
     assert {"tpsr_ros", "sim_node", "learner"} <= {p.name for p in site.iterdir()}
 
