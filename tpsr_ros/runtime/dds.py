@@ -12,7 +12,10 @@ talks to our nodes:
   with a durability-service history of the same depth, writers not auto-disposing;
 - ``ros_discovery_info`` (``rmw_dds_common/msg/ParticipantEntitiesInfo``, reliable,
   transient-local, depth 1) announces the node and its endpoints, so ``ros2 node list``
-  and ``ros2 node info`` see it.
+  and ``ros2 node info`` see it;
+- ``/rosout`` (``rcl_interfaces/msg/Log``, reliable, transient-local, depth 1000, as rcl
+  publishes it) carries every log line the node prints, so ``ros2 topic echo /rosout``
+  and rqt_console see our nodes' logs.
 
 Samples are written and taken as raw CDR bytes: no per-field conversion happens here.
 Discovery follows ROS 2 Jazzy's variables unless ``CYCLONEDDS_URI`` configures Cyclone
@@ -54,6 +57,9 @@ __all__ = [
 
 _DISCOVERY_TOPIC = "ros_discovery_info"
 _DISCOVERY_TYPE = "rmw_dds_common/msg/ParticipantEntitiesInfo"
+_ROSOUT_TOPIC = "rt/rosout"
+_LOG_TYPE = "rcl_interfaces/msg/Log"
+_LOG_LEVELS = {"debug": 10, "info": 20, "warn": 30, "error": 40, "fatal": 50}
 _TAKE_BATCH = 256
 # close() waits (bounded) for reliable data to be acknowledged itself; lingering again in
 # every writer's deletion (Cyclone's default: up to 1 s each, one after the other) would
@@ -331,6 +337,19 @@ class DdsTransport(Transport):
             _DISCOVERY_TYPE,
             QoSProfile(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, History.KEEP_LAST, 1),
         )
+        self._rosout = _Writer(
+            self,
+            "/rosout",
+            self._make_writer(
+                _ROSOUT_TOPIC,
+                _LOG_TYPE,
+                QoSProfile(
+                    Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, History.KEEP_LAST, 1000
+                ),
+            ),
+        )
+        self._writers.append(self._rosout)
+        self._logger_name = (namespace.strip("/") + "/" + node_name).strip("/").replace("/", ".")
         self._closed = False
         self._announce()
 
@@ -384,6 +403,29 @@ class DdsTransport(Transport):
             self._readers.remove(handle)
         if not self._closed:
             self._announce()
+
+    # -- /rosout ---------------------------------------------------------------------
+
+    def log(self, level: str, message: str) -> bool:
+        """Publish the line on ``/rosout``; False, so the node's logger also prints it."""
+        if self._closed:
+            return False
+        store = jazzy_typestore()
+        now = time.time_ns()
+        stamp = store.types["builtin_interfaces/msg/Time"](
+            sec=now // 1_000_000_000, nanosec=now % 1_000_000_000
+        )
+        msg = store.types[_LOG_TYPE](
+            stamp=stamp,
+            level=_LOG_LEVELS[level],
+            name=self._logger_name,
+            msg=message,
+            file="",
+            function="",
+            line=0,
+        )
+        self._rosout.write(bytes(store.serialize_cdr(msg, _LOG_TYPE)))
+        return False
 
     # -- ros_discovery_info -----------------------------------------------------------
 

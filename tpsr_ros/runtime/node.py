@@ -285,9 +285,10 @@ class Node:
             if backend == "inproc":
                 self.logger.info("inproc transport: only nodes in this process can talk to it")
         self.transport = transport
-        if transport.kind == "rclpy":
-            self.logger.transport = transport
-            getattr(transport, "set_log_level", lambda level: None)(self.options.log_level)
+        # rclpy logs (console and /rosout) itself; the DDS backend publishes /rosout and
+        # lets this logger print
+        self.logger.transport = transport
+        getattr(transport, "set_log_level", lambda level: None)(self.options.log_level)
         try:
             self.transport.declare_parameters(
                 [
