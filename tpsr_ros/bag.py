@@ -20,15 +20,17 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-import yaml
 from rosbags.interfaces import Connection, Qos
 from rosbags.rosbag2 import Reader, ReaderError, Writer, WriterError
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
 
 from tpsr_ros.errors import BagError
 from tpsr_ros.messages import deserialize, jazzy_typestore, serialize
+from tpsr_ros.safe_yaml import YamlInputError, load_yaml
 
-__all__ = ["BagMessage", "BagReader", "BagWriter", "check_bag_path_free"]
+__all__ = ["BagMessage", "BagReader", "BagWriter", "check_bag_path_free", "read_bag_metadata"]
+
+MAX_METADATA_BYTES = 16 * 2**20
 
 
 def check_bag_path_free(path: Path) -> Path:
@@ -165,7 +167,13 @@ class BagMessage:
         return deserialize(self.data, self.msgtype)
 
 
-def _read_metadata(path: Path) -> dict[str, Any]:
+def read_bag_metadata(path: Path) -> dict[str, Any]:
+    """The validated ``rosbag2_bagfile_information`` of the bag directory ``path``.
+
+    ``metadata.yaml`` is read bounded (:mod:`tpsr_ros.safe_yaml`: UTF-8, 16 MiB, no
+    aliases, shallow nesting); ``custom_data`` must be a mapping and
+    ``relative_file_paths`` a list of names.
+    """
     meta_path = path / "metadata.yaml"
     if not path.is_dir():
         raise BagError(f"{str(path)!r} is not a rosbag2 directory")
@@ -175,12 +183,23 @@ def _read_metadata(path: Path) -> dict[str, Any]:
             f"run `python -m tpsr_ros.bag_recover {path}` first"
         )
     try:
-        meta = yaml.safe_load(meta_path.read_text())
-        info = meta["rosbag2_bagfile_information"]
-    except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
-        raise BagError(f"{str(meta_path)!r} is not rosbag2 metadata: {exc}") from None
+        with meta_path.open("rb") as handle:
+            data = handle.read(MAX_METADATA_BYTES + 1)
+        what = f"{str(meta_path)!r} is not rosbag2 metadata"
+        meta = load_yaml(data, what, max_bytes=MAX_METADATA_BYTES)
+    except OSError as exc:
+        raise BagError(f"cannot read {str(meta_path)!r}: {exc.strerror}") from None
+    except YamlInputError as exc:
+        raise BagError(str(exc)) from None
+    info = meta.get("rosbag2_bagfile_information") if isinstance(meta, dict) else None
     if not isinstance(info, dict):
         raise BagError(f"{str(meta_path)!r} is not rosbag2 metadata")
+    custom = info.get("custom_data")
+    if custom is not None and not isinstance(custom, dict):
+        raise BagError(f"{str(meta_path)!r}: custom_data is not a mapping")
+    files = info.get("relative_file_paths", [])
+    if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+        raise BagError(f"{str(meta_path)!r}: relative_file_paths is not a list of file names")
     return info
 
 
@@ -189,7 +208,7 @@ class BagReader:
 
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
-        info = _read_metadata(self.path)
+        info = read_bag_metadata(self.path)
         self._custom_data = {str(k): str(v) for k, v in (info.get("custom_data") or {}).items()}
         storage = info.get("storage_identifier")
         if storage != "mcap":
