@@ -12,13 +12,16 @@ recorder that is killed hard loses at most what arrived since its last flush.
 
 from __future__ import annotations
 
+import importlib
 import os
 import shutil
+import struct
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any
+
 
 from rosbags.interfaces import Connection, Qos
 from rosbags.rosbag2 import Reader, ReaderError, Writer, WriterError
@@ -31,6 +34,37 @@ from tpsr_ros.safe_yaml import YamlInputError, load_yaml
 __all__ = ["BagMessage", "BagReader", "BagWriter", "check_bag_path_free", "read_bag_metadata"]
 
 MAX_METADATA_BYTES = 16 * 2**20
+
+
+def _zstd_errors() -> tuple[type[Exception], ...]:
+    """The error type of the zstd module rosbags decompresses with (stdlib or backport)."""
+    for name in ("compression.zstd", "backports.zstd"):
+        try:
+            return (importlib.import_module(name).ZstdError,)
+        except (ImportError, AttributeError):
+            continue
+    return ()
+
+_DAMAGE = (
+    ValueError,
+    RuntimeError,
+    OverflowError,
+    IndexError,
+    KeyError,
+    EOFError,
+    MemoryError,
+    struct.error,
+    *_zstd_errors(),
+)
+"""What a corrupt MCAP file makes rosbags' reader raise besides ``ReaderError``: a
+decompressor's error (zstd's ``ZstdError``, lz4's ``RuntimeError``), impossible lengths
+and offsets (``OverflowError``, ``struct.error``, ``MemoryError`` from an allocation that
+was refused before it happened). A damaged bag is reported, never a traceback."""
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc) or type(exc).__name__
+    return f"{type(exc).__name__}: {text[:120]}"
 
 
 def check_bag_path_free(path: Path) -> Path:
@@ -218,6 +252,8 @@ class BagReader:
             self._reader.open()
         except (ReaderError, OSError) as exc:
             raise BagError(f"cannot open bag {str(self.path)!r}: {exc}") from None
+        except _DAMAGE as exc:
+            raise BagError(f"cannot open bag {str(self.path)!r}: damaged ({_describe(exc)})") from None
 
     def __enter__(self) -> BagReader:
         return self
@@ -278,3 +314,5 @@ class BagReader:
                 yield BagMessage(conn.topic, conn.msgtype, int(log_time), bytes(data))
         except ReaderError as exc:
             raise BagError(f"bag {str(self.path)!r} is damaged: {exc}") from None
+        except _DAMAGE as exc:
+            raise BagError(f"bag {str(self.path)!r} is damaged: {_describe(exc)}") from None

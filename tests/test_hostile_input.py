@@ -1,4 +1,4 @@
-"""Hostile YAML (issue 17, defects 3, 6 and 8): params files, -p values, bag metadata.yaml."""
+"""Hostile input (issue 17): params files, -p values, bag metadata.yaml, damaged MCAP bytes."""
 
 from __future__ import annotations
 
@@ -125,3 +125,41 @@ def test_a_node_refuses_a_billion_laughs_params_file_in_one_line(tmp_path):
     assert result.returncode == 2
     assert result.stderr.strip().count("\n") == 0 and "Traceback" not in result.stderr
     assert "anchors and aliases are not supported" in result.stderr
+
+
+def _read_all(bag: Path) -> int:
+    with BagReader(bag) as reader:
+        return sum(1 for _ in reader.messages())
+
+
+def test_damaged_mcap_bytes_give_a_bag_error_never_a_traceback(tmp_path):
+    # seeded mutations of the sample bag: flipped bits inside compressed chunks, records
+    # claiming 2**40 bytes, zeroed lengths; each read either succeeds or says "damaged"
+    import numpy as np
+
+    source = BAGS / "full" / "full.mcap"
+    original = source.read_bytes()
+    rng = np.random.default_rng(17)
+    outcomes = {"read": 0, "refused": 0}
+    for case in range(60):
+        data = bytearray(original)
+        offset = int(rng.integers(8, len(data) - 8))
+        kind = case % 3
+        if kind == 0:
+            data[offset] ^= 1 << int(rng.integers(8))
+        elif kind == 1:
+            data[offset : offset + 8] = (2**40).to_bytes(8, "little")
+        else:
+            data[offset : offset + 8] = bytes(8)
+        bag = tmp_path / f"case{case}"
+        bag.mkdir()
+        shutil.copy(BAGS / "full" / "metadata.yaml", bag)
+        (bag / "full.mcap").write_bytes(bytes(data))
+        try:
+            _read_all(bag)
+            outcomes["read"] += 1
+        except BagError as exc:
+            assert "\n" not in str(exc)
+            outcomes["refused"] += 1
+        shutil.rmtree(bag)
+    assert outcomes["refused"] > 10, outcomes  # the mutations do hit structure and chunks
