@@ -22,7 +22,6 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-
 from rosbags.interfaces import Connection, Qos
 from rosbags.rosbag2 import Reader, ReaderError, Writer, WriterError
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
@@ -253,7 +252,8 @@ class BagReader:
         except (ReaderError, OSError) as exc:
             raise BagError(f"cannot open bag {str(self.path)!r}: {exc}") from None
         except _DAMAGE as exc:
-            raise BagError(f"cannot open bag {str(self.path)!r}: damaged ({_describe(exc)})") from None
+            damage = _describe(exc)
+            raise BagError(f"cannot open bag {str(self.path)!r}: damaged ({damage})") from None
 
     def __enter__(self) -> BagReader:
         return self
