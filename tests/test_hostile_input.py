@@ -163,3 +163,16 @@ def test_damaged_mcap_bytes_give_a_bag_error_never_a_traceback(tmp_path):
             outcomes["refused"] += 1
         shutil.rmtree(bag)
     assert outcomes["refused"] > 10, outcomes  # the mutations do hit structure and chunks
+
+
+def test_messages_missing_from_what_the_metadata_lists_are_reported(tmp_path):
+    # rosbag2's own talker bag read as 0 of 20 messages and `play` exited 0: never again
+    bag = _bag_with_metadata(
+        tmp_path, lambda data: data.replace(b"message_count: 3000", b"message_count: 3005", 1)
+    )
+    with BagReader(bag) as reader, pytest.raises(BagError, match="read 15000 of the 15005"):
+        for _ in reader.messages():
+            pass
+    result = subprocess.run([sys.executable, "-m", "tpsr_ros.play", str(bag), "--rate", "100000"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode != 0 and "read 15000 of the 15005 messages" in result.stderr

@@ -302,17 +302,29 @@ class BagReader:
         }
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
-        """Yield messages in log-time order, optionally only on ``topics``."""
+        """Yield messages in log-time order, optionally only on ``topics``.
+
+        Read to the end, the messages must number what ``metadata.yaml`` lists for those
+        topics; otherwise a ``BagError`` says how many were missing.
+        """
         wanted = None if topics is None else set(topics)
         connections = [
             c for c in self._reader.connections if wanted is None or c.topic in wanted
         ]
         if wanted is not None and not connections:
             return
+        listed = sum(c.msgcount for c in connections)
+        read = 0
         try:
             for conn, log_time, data in self._reader.messages(connections=connections):
+                read += 1
                 yield BagMessage(conn.topic, conn.msgtype, int(log_time), bytes(data))
         except ReaderError as exc:
             raise BagError(f"bag {str(self.path)!r} is damaged: {exc}") from None
         except _DAMAGE as exc:
             raise BagError(f"bag {str(self.path)!r} is damaged: {_describe(exc)}") from None
+        if read != listed:  # nothing may go missing silently (rosbag2's talker bag did)
+            raise BagError(
+                f"bag {str(self.path)!r}: read {read} of the {listed} messages its metadata "
+                "lists; the file is damaged or laid out in a way this reader cannot read"
+            )
