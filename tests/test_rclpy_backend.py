@@ -176,23 +176,43 @@ def test_graph_endpoints_with_types_qos_and_node_names(ros_env):
         b.close()
 
 
-def test_parameters_are_declared_read_only_with_their_help(ros_env):
+def test_a_real_rclpy_client_gets_parameters_and_sets_are_checked_like_at_start_up(ros_env):
+    """ros2 param get/set against a node: rclpy's parameter services, our validation."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
     from sim_node.node import SimNode
 
     sim = rclpy_node("sim", SimNode, "-p", "mode:=command", "-p", "seed:=4")
+    caller = rclpy_node("param_client")
     try:
-        node = sim.transport.node
-        assert node.get_parameter("seed").value == 4
-        assert node.get_parameter("mode").value == "command"
-        assert node.get_parameter("rate").value == 10.0
-        (seed,) = node.describe_parameters(["seed"])
-        assert seed.read_only and "seed of every random stream" in seed.description
-        from rclpy.parameter import Parameter
+        (seed,) = sim.transport.node.describe_parameters(["seed"])
+        assert "seed of every random stream" in seed.description
+        client = AsyncParameterClient(caller.transport.node, "/sim_node")
+        assert spin_all((sim, caller), client.services_are_ready)
 
-        (result,) = node.set_parameters([Parameter("seed", value=5)])
-        assert not result.successful and "read-only" in result.reason
-        assert node.get_parameter("seed").value == 4
+        def call(future):
+            assert spin_all((sim, caller), future.done)
+            return future.result()
+
+        got = call(client.get_parameters(["environment", "seed", "rate"])).values
+        assert (got[0].string_value, got[1].integer_value, got[2].double_value) == (
+            "full", 4, 10.0
+        )
+        for parameter, reason in (
+            (Parameter("environment", value="moon"), "moon is not one of full, partial"),
+            (Parameter("rate", value=0.0), "rate must be a positive number of Hz"),
+            (Parameter("seed", value="x"), "type"),  # rclpy's own type check
+            (Parameter("environment", value="partial"),
+             "fixed at start-up; restart the node with -p environment:=partial"),
+        ):
+            (result,) = call(client.set_parameters([parameter])).results
+            assert not result.successful and reason in result.reason, (parameter, result)
+        assert sim.params.environment == "full" and sim.params.seed == 4
+        got = call(client.get_parameters(["environment"])).values
+        assert got[0].string_value == "full"
     finally:
+        caller.close()
         sim.close()
 
 
@@ -573,3 +593,44 @@ def test_a_dds_backend_node_logs_reach_rosout_of_real_rclpy(mixed_pair):
     spin_all((dds, ros), lambda: False, timeout=0.3)
     assert all(x.msg != "not at info level" for x in got)
     assert all(x.stamp.sec > 1_600_000_000 for x in got if x.name == "dds_side")  # wall time
+
+
+def test_the_filter_node_swaps_its_policy_at_runtime_only_for_one_that_fits(ros_env, tmp_path):
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+    from test_filter_node import fit_small_model, random_policy
+
+    from tpsr_ros.filter_node import FilterNode
+
+    model = fit_small_model(tmp_path)
+    first = random_policy(model, tmp_path / "first.npz", seed=0)
+    second = random_policy(model, tmp_path / "second.npz", seed=1)
+    foreign = random_policy(model, tmp_path / "foreign.npz", fingerprint="f" * 64)
+    node = rclpy_node("f", FilterNode, "-p", f"model:={model}", "-p", f"policy:={first}")
+    caller = rclpy_node("param_client")
+    try:
+        client = AsyncParameterClient(caller.transport.node, "/tpsr_filter")
+        assert spin_all((node, caller), client.services_are_ready)
+
+        def set_policy(path) -> object:
+            future = client.set_parameters([Parameter("policy", value=str(path))])
+            assert spin_all((node, caller), future.done)
+            (result,) = future.result().results
+            return result
+
+        before = node.policy
+        refused = set_policy(foreign)
+        assert not refused.successful and "ffffffffffff" in refused.reason
+        assert node.policy is before and node.params.policy == str(first)
+        refused = set_policy(tmp_path / "missing.npz")
+        assert not refused.successful and "missing.npz" in refused.reason
+        assert set_policy(second).successful
+        assert node.policy is not before and node.params.policy == str(second)
+        state = np.ones(node.model.state_dim)
+        from tpsr_ros.policy import load_policy
+
+        assert node.policy.action(state) == load_policy(second).action(state)
+        assert not set_policy("").successful  # a pure filter has no /cmd_vel publisher
+    finally:
+        caller.close()
+        node.close()

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -614,6 +614,32 @@ class FilterNode(Node):
         )
         self.diagnostics_pub.publish(diagnostic_array(time.time_ns(), [status]))
         self._last_report = (time.monotonic(), self.tracker.steps, self._problem_counts())
+
+    def on_parameter_change(self, name: str, value: Any) -> str | None:
+        """``ros2 param set /tpsr_filter policy NEW``: swap the policy if it fits the model.
+
+        Checked exactly as at start-up; every other parameter is fixed at start-up.
+        """
+        if name != "policy":
+            return super().on_parameter_change(name, value)
+        if self.policy is None or not value:
+            return (
+                "the policy can only be replaced by another one while the node runs (a pure "
+                "filter has no /cmd_vel publisher, and one with a policy keeps it); restart "
+                "the node"
+            )
+        try:
+            inputs = load_inputs(
+                replace(self.params, policy=str(value)),
+                self.image_topic,
+                self.action_topic,
+                self.namespace,
+            )
+        except TpsrError as exc:
+            return str(exc)
+        self.policy = inputs.policy
+        self.logger.info(f"policy {value} now chooses the commands")
+        return None
 
     def on_shutdown(self) -> None:
         """Log the totals."""

@@ -26,6 +26,7 @@ from tpsr_ros.messages import deserialize, serialize
 from tpsr_ros.runtime.qos import Durability, History, QoSProfile, Reliability
 from tpsr_ros.runtime.transport import (
     BytesCallback,
+    ParameterCheck,
     PublisherHandle,
     SubscriptionHandle,
     TopicEndpoint,
@@ -220,15 +221,36 @@ class RclpyTransport(Transport):
                 )
         return found
 
-    def declare_parameters(self, params: list[tuple[str, object, str]]) -> None:
-        from rcl_interfaces.msg import ParameterDescriptor
+    def declare_parameters(
+        self, params: list[tuple[str, object, str]], check: ParameterCheck | None = None
+    ) -> None:
+        """Declare the parameters; ``ros2 param set`` goes through ``check``.
+
+        Without ``check`` they are read-only. rclpy itself refuses a value of another type.
+        """
+        from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 
         for name, value, description in params:
             if isinstance(value, tuple):
                 value = list(value)
             self.node.declare_parameter(
-                name, value, ParameterDescriptor(description=description, read_only=True)
+                name,
+                value,
+                ParameterDescriptor(description=description, read_only=check is None),
             )
+        if check is None:
+            return
+
+        def on_set(parameters: list[Any]) -> Any:
+            for parameter in parameters:
+                value = parameter.value
+                reason = check(parameter.name, tuple(value) if isinstance(value, list) else value)
+                if reason is not None:
+                    return SetParametersResult(successful=False, reason=reason)
+            return SetParametersResult(successful=True)
+
+        # added after declaring: rclpy also runs these callbacks for declarations
+        self.node.add_on_set_parameters_callback(on_set)
 
     def log(self, level: str, message: str) -> bool:
         # rclpy's logger remembers the severity of each call site (function, line,
