@@ -44,6 +44,7 @@ def _zstd_errors() -> tuple[type[Exception], ...]:
             continue
     return ()
 
+
 _DAMAGE = (
     ValueError,
     RuntimeError,
@@ -61,9 +62,14 @@ and offsets (``OverflowError``, ``struct.error``, ``MemoryError`` from an alloca
 was refused before it happened). A damaged bag is reported, never a traceback."""
 
 
+def _one_line(exc: BaseException, limit: int = 200) -> str:
+    """An exception's text on one line, cut to ``limit`` characters."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _describe(exc: BaseException) -> str:
-    text = str(exc) or type(exc).__name__
-    return f"{type(exc).__name__}: {text[:120]}"
+    return f"{type(exc).__name__}: {_one_line(exc, 120)}"
 
 
 def check_bag_path_free(path: Path) -> Path:
@@ -233,7 +239,42 @@ def read_bag_metadata(path: Path) -> dict[str, Any]:
     files = info.get("relative_file_paths", [])
     if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
         raise BagError(f"{str(meta_path)!r}: relative_file_paths is not a list of file names")
+    _check_counts(meta_path, info)
     return info
+
+
+def _count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _check_counts(meta_path: Path, info: dict[str, Any]) -> None:
+    """Refuse metadata whose counts, times and topic entries are not what rosbag2 writes."""
+    where = f"{str(meta_path)!r}"
+    numbers = {
+        "message_count": info.get("message_count", 0),
+        "duration.nanoseconds": (info.get("duration") or {}).get("nanoseconds", 0)
+        if isinstance(info.get("duration") or {}, dict)
+        else None,
+        "starting_time.nanoseconds_since_epoch": (info.get("starting_time") or {}).get(
+            "nanoseconds_since_epoch", 0
+        )
+        if isinstance(info.get("starting_time") or {}, dict)
+        else None,
+    }
+    for name, value in numbers.items():
+        if not _count(value):
+            raise BagError(f"{where}: {name} is not a non-negative integer")
+    topics = info.get("topics_with_message_count", [])
+    if not isinstance(topics, list):
+        raise BagError(f"{where}: topics_with_message_count is not a list")
+    for entry in topics:
+        topic = entry.get("topic_metadata") if isinstance(entry, dict) else None
+        if not isinstance(topic, dict) or not all(
+            isinstance(topic.get(key), str) for key in ("name", "type")
+        ):
+            raise BagError(f"{where}: a topic entry lacks its name or type")
+        if not _count(entry.get("message_count", 0)):
+            raise BagError(f"{where}: topic {topic['name'][:80]!r} has a bad message_count")
 
 
 class BagReader:
@@ -250,8 +291,8 @@ class BagReader:
         try:
             self._reader.open()
         except (ReaderError, OSError) as exc:
-            raise BagError(f"cannot open bag {str(self.path)!r}: {exc}") from None
-        except _DAMAGE as exc:
+            raise BagError(f"cannot open bag {str(self.path)!r}: {_one_line(exc)}") from None
+        except (*_DAMAGE, TypeError, AttributeError) as exc:  # metadata rosbags did not expect
             damage = _describe(exc)
             raise BagError(f"cannot open bag {str(self.path)!r}: damaged ({damage})") from None
 
@@ -308,9 +349,7 @@ class BagReader:
         topics; otherwise a ``BagError`` says how many were missing.
         """
         wanted = None if topics is None else set(topics)
-        connections = [
-            c for c in self._reader.connections if wanted is None or c.topic in wanted
-        ]
+        connections = [c for c in self._reader.connections if wanted is None or c.topic in wanted]
         if wanted is not None and not connections:
             return
         listed = sum(c.msgcount for c in connections)
@@ -320,7 +359,7 @@ class BagReader:
                 read += 1
                 yield BagMessage(conn.topic, conn.msgtype, int(log_time), bytes(data))
         except ReaderError as exc:
-            raise BagError(f"bag {str(self.path)!r} is damaged: {exc}") from None
+            raise BagError(f"bag {str(self.path)!r} is damaged: {_one_line(exc)}") from None
         except _DAMAGE as exc:
             raise BagError(f"bag {str(self.path)!r} is damaged: {_describe(exc)}") from None
         if read != listed:  # nothing may go missing silently (rosbag2's talker bag did)
