@@ -266,6 +266,8 @@ def read_archive(
     """
     path = Path(path)
     what = format_name.removeprefix("tpsr-ros ")
+    if path.is_dir():
+        raise ModelFormatError(f"{what} file {str(path)!r} is a directory, not a file")
     if not path.is_file():
         raise ModelFormatError(f"{what} file {str(path)!r} does not exist")
     try:
