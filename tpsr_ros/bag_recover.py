@@ -35,13 +35,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
 from mcap.exceptions import EndOfFile, McapError
 from mcap.reader import make_reader
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
+from tpsr_ros.bag import rosbag2_metadata
 from tpsr_ros.cli import ArgumentParser, run_cli
 from tpsr_ros.errors import BagError
 
@@ -162,47 +162,21 @@ def _metadata_yaml(
     counts: dict[int, int],
     times: tuple[int, int],
 ) -> str:
-    """rosbag2 ``metadata.yaml`` (version 9) for the recovered file."""
-    start, end = times
-    duration = max(0, end - start)
-    total = sum(counts.values())
+    """rosbag2 ``metadata.yaml`` for the recovered file (types from the schemas)."""
     topics = []
     for channel_id, channel in channels.items():
         schema = schemas.get(channel.schema_id)
         topics.append(
             {
-                "topic_metadata": {
-                    "name": channel.topic,
-                    "type": schema.name if schema is not None else "",
-                    "serialization_format": channel.message_encoding,
-                    "offered_qos_profiles": channel.metadata.get("offered_qos_profiles", ""),
-                    "type_description_hash": channel.metadata.get("topic_type_hash", ""),
-                },
+                "name": channel.topic,
+                "type": schema.name if schema is not None else "",
+                "serialization_format": channel.message_encoding,
+                "offered_qos_profiles": channel.metadata.get("offered_qos_profiles", ""),
+                "type_description_hash": channel.metadata.get("topic_type_hash", ""),
                 "message_count": counts.get(channel_id, 0),
             }
         )
-    info = {
-        "version": 9,
-        "storage_identifier": "mcap",
-        "relative_file_paths": [file_name],
-        "duration": {"nanoseconds": duration},
-        "starting_time": {"nanoseconds_since_epoch": start},
-        "message_count": total,
-        "topics_with_message_count": topics,
-        "compression_format": "",
-        "compression_mode": "",
-        "files": [
-            {
-                "path": file_name,
-                "starting_time": {"nanoseconds_since_epoch": start},
-                "duration": {"nanoseconds": duration},
-                "message_count": total,
-            }
-        ],
-        "custom_data": {"tpsr_ros.recovered": "true"},
-        "ros_distro": "tpsr_ros",
-    }
-    return yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
+    return rosbag2_metadata(file_name, topics, times, {"tpsr_ros.recovered": "true"})
 
 
 def _write(records: list[Any], target: Path) -> tuple[dict[str, int], str]:
