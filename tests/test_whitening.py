@@ -105,8 +105,8 @@ def test_wide_data_take_the_lanczos_path_with_the_dense_result():
 
     rng = np.random.default_rng(4)
     b = whitening.DENSE_MAX_DIM + 200
-    latent = rng.standard_normal((3000, 40)) * np.linspace(5.0, 1.0, 40)  # a decaying spectrum
-    x = latent @ rng.standard_normal((40, b)) + 0.01 * rng.standard_normal((3000, b))
+    latent = rng.standard_normal((1500, 40)) * np.linspace(5.0, 1.0, 40)  # a decaying spectrum
+    x = latent @ rng.standard_normal((40, b)) + 0.01 * rng.standard_normal((1500, b))
     wide = Whitening.fit(x, 12)
     centred = x - x.mean(axis=0)
     cov = centred.T @ centred / (len(x) - 1)
