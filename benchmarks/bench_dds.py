@@ -36,7 +36,7 @@ def _node(name: str):
 
 def publisher(count: int) -> None:
     """Child process: wait for the subscriber, then publish ``count`` images at 100 Hz."""
-    from tpsr_ros import messages as m
+    from tpsr_ros.io import messages as m
 
     node = _node("bench_publisher")
     pub = node.create_publisher(TOPIC, m.IMAGE_TYPE)
@@ -58,7 +58,7 @@ def publisher(count: int) -> None:
 
 
 def one_run(env: dict[str, str]) -> np.ndarray:
-    from tpsr_ros import messages as m
+    from tpsr_ros.io import messages as m
 
     node = _node("bench_subscriber")
     latencies: list[int] = []

@@ -44,8 +44,8 @@ def _wait_for_line(log: Path, needle: str, proc: subprocess.Popen[bytes], timeou
 
 
 def one_run(tmp: Path, run: int) -> tuple[float, int]:
-    from tpsr_ros import messages as m
-    from tpsr_ros.bag import BagReader
+    from tpsr_ros.io import messages as m
+    from tpsr_ros.io.bag import BagReader
     from tpsr_ros.runtime import Node, NodeOptions, QoSProfile
     from tpsr_ros.runtime.dds import DdsTransport
 

@@ -50,11 +50,11 @@ import numpy as np
 
 from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, Evaluation, Trial
 from sim_node import Environment
-from tpsr_ros import messages as m
-from tpsr_ros.bag import check_bag_path_free
-from tpsr_ros.errors import ModelFormatError, TpsrError
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import check_bag_path_free
+from tpsr_ros.core.errors import ModelFormatError, TpsrError
 from tpsr_ros.filter_node import FilterNodeParams, load_inputs
-from tpsr_ros.policy import TRUE_POSITION, load_policy
+from tpsr_ros.io.policy import TRUE_POSITION, load_policy
 from tpsr_ros.runtime import (
     LATCHED_QOS,
     Durability,

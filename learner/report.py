@@ -24,7 +24,7 @@ from learner.experiment import (
     write_csv,
 )
 from tpsr_ros.cli import positive_int
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError
 
 __all__ = ["GUIDE_RESULTS", "register", "run", "write_page"]
 

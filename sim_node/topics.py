@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros import messages as m
+from tpsr_ros.io import messages as m
 
 __all__ = ["SimTopics", "step_messages"]
 

@@ -93,7 +93,7 @@ _CLASSES: dict[str, type] = {}
 
 def get_message(identifier: str) -> type:
     """rosidl_runtime_py.utilities.get_message('pkg/msg/Name')."""
-    from tpsr_ros.messages import jazzy_typestore
+    from tpsr_ros.io.messages import jazzy_typestore
 
     parts = identifier.split("/")
     if len(parts) != 3 or parts[1] != "msg":

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from tpsr_ros import messages as m
-from tpsr_ros.bag import BagWriter
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagWriter
 from tpsr_ros.runtime import Node, NodeOptions
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
 from tpsr_ros.runtime.params import param_specs

@@ -15,8 +15,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 import fake_rclpy
 
-from tpsr_ros import messages as m
-from tpsr_ros.bag import BagReader
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagReader
 from tpsr_ros.runtime import (
     LATCHED_QOS,
     SENSOR_DATA_QOS,

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from tpsr_ros import messages as m
+from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import (
     LATCHED_QOS,
     SENSOR_DATA_QOS,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tpsr_ros.errors import ConfigError, DataError
-from tpsr_ros.whitening import Whitening
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.whitening import Whitening
 
 
 def planted(n: int = 4000, b: int = 30, seed: int = 0):

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import yaml
 
-from tpsr_ros.bag import BagReader
+from tpsr_ros.io.bag import BagReader
 from tpsr_ros.cli import ArgumentParser, run_cli
 from tpsr_ros.runtime.qos import from_bag_qos
 

@@ -10,7 +10,7 @@ the last flush followed by at most one partial record.
 Recovery reads the file front to back with the ``mcap`` library's non-seeking
 ``StreamReader`` (which needs no summary), keeps every schema, channel and message record
 of the complete chunks and stops at the first truncated or damaged record. It writes them
-into a fresh bag with ``tpsr_ros.bag.BagWriter`` (same topics, types, offered QoS and
+into a fresh bag with ``tpsr_ros.io.bag.BagWriter`` (same topics, types, offered QoS and
 log times), then replaces the damaged ``.mcap`` with it and adds ``metadata.yaml``. With
 ``--keep-original`` the damaged file is kept as ``BAG.mcap.truncated``. A bag that
 already has ``metadata.yaml`` is left untouched.
@@ -26,9 +26,9 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from rosbags.rosbag2.metadata import parse_qos
 
-from tpsr_ros.bag import BagWriter
+from tpsr_ros.io.bag import BagWriter
 from tpsr_ros.cli import ArgumentParser, run_cli
-from tpsr_ros.errors import BagError
+from tpsr_ros.core.errors import BagError
 
 __all__ = ["RecoveryReport", "main", "recover_bag"]
 

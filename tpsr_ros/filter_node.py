@@ -4,12 +4,12 @@
 
 Boilerplate around three ROS-free parts (see msgs_doc/filter_node.md for the interface):
 
-- :class:`tpsr_ros.pairing.ExactTimeSynchronizer` pairs ``/camera/image_raw`` and ``/action``
+- :class:`tpsr_ros.runtime.pairing.ExactTimeSynchronizer` pairs ``/camera/image_raw`` and ``/action``
   by identical header stamp in a bounded buffer (like message_filters' ExactTime);
-- :class:`tpsr_ros.online.OnlineTracker` applies Algorithm 4 with the model's stateless
+- :class:`tpsr_ros.core.online.OnlineTracker` applies Algorithm 4 with the model's stateless
   update, with the offline tracker's rules (start from ``b_*``, restart at gaps), so the
   states published on ``/tpsr/state`` equal offline tracking of the same steps bit for bit;
-- the greedy policy (:func:`tpsr_ros.policy.load_policy`) turns each state into a
+- the greedy policy (:func:`tpsr_ros.io.policy.load_policy`) turns each state into a
   ``/cmd_vel`` command.
 
 Re-initialisation (state ``b_*``, next step starts a segment): on an episode start
@@ -23,7 +23,7 @@ Faults never stop the node: undecodable messages, images of the wrong encoding, 
 frame or data length, actions that are not finite or not one of the 25 actions are
 rejected (counted per reason, at most one warning per topic every 5 s); incomplete,
 duplicated, late and out-of-order messages are counted by the synchroniser; degenerate
-normalisers are recovered by the guard of :mod:`tpsr_ros.filtering` and counted.
+normalisers are recovered by the guard of :mod:`tpsr_ros.core.filtering` and counted.
 ``/diagnostics`` reports it all once a second.
 """
 
@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from sim_node.actions import ACTIONS
-from tpsr_ros import messages as m
-from tpsr_ros.diagnostics import (
+from tpsr_ros.core.actions import ACTIONS
+from tpsr_ros.io import messages as m
+from tpsr_ros.runtime.diagnostics import (
     DIAGNOSTICS_TYPE,
     ERROR,
     OK,
@@ -47,17 +47,17 @@ from tpsr_ros.diagnostics import (
     diagnostic_array,
     diagnostic_status,
 )
-from tpsr_ros.episodes import (
+from tpsr_ros.core.episodes import (
     DEFAULT_ACTION_TOLERANCE,
     DEFAULT_IMAGE_SHAPE,
     image_to_observation,
     velocities_to_actions,
 )
-from tpsr_ros.errors import ConfigError, MessageError, TpsrError
-from tpsr_ros.model_io import load_model, model_fingerprint, read_metadata
-from tpsr_ros.online import OnlineTracker
-from tpsr_ros.pairing import ExactTimeSynchronizer, Outcome
-from tpsr_ros.policy import TRUE_POSITION, Policy, load_policy
+from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
+from tpsr_ros.io.model_io import load_model, model_fingerprint, read_metadata
+from tpsr_ros.core.online import OnlineTracker
+from tpsr_ros.runtime.pairing import ExactTimeSynchronizer, Outcome
+from tpsr_ros.io.policy import TRUE_POSITION, Policy, load_policy
 from tpsr_ros.runtime import (
     DEFAULT_QOS,
     LATCHED_QOS,
@@ -70,7 +70,7 @@ from tpsr_ros.runtime import (
     param,
     run_node,
 )
-from tpsr_ros.state_model import StateModel
+from tpsr_ros.core.state_model import StateModel
 
 __all__ = [
     "ACTION_TOPIC",
@@ -182,7 +182,7 @@ def load_inputs(
 ) -> FilterInputs:
     """Load the model (and policy) and refuse a combination the node cannot run.
 
-    Refused, each with a one-line :class:`~tpsr_ros.errors.TpsrError`: no model; an
+    Refused, each with a one-line :class:`~tpsr_ros.core.errors.TpsrError`: no model; an
     unreadable model or policy; a true-position policy (it needs the ground truth); a policy
     trained for another model (fingerprint), or for other state dimension or number of
     actions, or another environment than the model's; a model whose images are not

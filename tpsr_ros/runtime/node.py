@@ -33,8 +33,8 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, NoReturn, TextIO
 
 from tpsr_ros.cli import ArgumentParser
-from tpsr_ros.errors import MessageError, TpsrError
-from tpsr_ros.messages import deserialize, serialize
+from tpsr_ros.core.errors import MessageError, TpsrError
+from tpsr_ros.io.messages import deserialize, serialize
 from tpsr_ros.runtime.backend import choose_backend, open_transport
 from tpsr_ros.runtime.params import (
     NoParameters,

@@ -23,7 +23,7 @@ from typing import Any
 
 import yaml
 
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.runtime.ros_args import ParamOverride, ParamsFile, RosArgs, UsageError
 
 __all__ = [

@@ -26,7 +26,7 @@ from typing import Any
 
 import yaml
 
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError
 
 __all__ = [
     "LOG_LEVELS",

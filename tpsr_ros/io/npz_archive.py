@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros.errors import ModelFormatError
+from tpsr_ros.core.errors import ModelFormatError
 
 __all__ = ["METADATA_KEY", "check_output_path", "jsonable", "read_archive", "write_archive"]
 

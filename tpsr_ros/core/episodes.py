@@ -12,7 +12,7 @@ Observations are float64 vectors of ``H * W * 3`` values: the rgb8 pixels in row
 ``(height, width, channel)`` order divided by 255, so in ``[0, 1]``
 (:func:`image_to_observation`). Whitening makes the learner insensitive to this scale, but
 training, tracking and the filter node must all use this one function. Actions are the
-indices of the nearest of the simulator's 25 velocity pairs (:mod:`sim_node.actions`);
+indices of the nearest of the simulator's 25 velocity pairs (:mod:`tpsr_ros.core.actions`);
 velocities farther than ``action_tolerance`` from every pair are refused. Ground truth
 (position, reward) is carried alongside for plots and evaluation, never used for learning;
 steps without it hold NaN.
@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros.bag import BagReader
-from tpsr_ros.errors import BagError, ConfigError, DataError, MessageError
-from tpsr_ros.messages import (
+from tpsr_ros.io.bag import BagReader
+from tpsr_ros.core.errors import BagError, ConfigError, DataError, MessageError
+from tpsr_ros.io.messages import (
     ACTION_TYPE,
     IMAGE_TYPE,
     POSE_TYPE,
@@ -41,7 +41,7 @@ from tpsr_ros.messages import (
     stamp_of,
     twist_to_xy,
 )
-from tpsr_ros.state_model import StateModel, Track
+from tpsr_ros.core.state_model import StateModel, Track
 
 __all__ = [
     "DEFAULT_ACTION_TOLERANCE",
@@ -106,7 +106,7 @@ def velocities_to_actions(
     velocities: np.ndarray, tolerance: float = DEFAULT_ACTION_TOLERANCE
 ) -> np.ndarray:
     """Map velocities ``(T, 2)`` to action indices ``(T,)``: the nearest of the 25 pairs."""
-    from sim_node.actions import action_indices
+    from tpsr_ros.core.actions import action_indices
 
     vel = np.asarray(velocities, dtype=np.float64).reshape(-1, 2)
     try:
@@ -116,7 +116,7 @@ def velocities_to_actions(
 
 
 def _n_actions() -> int:
-    from sim_node.actions import NUM_ACTIONS
+    from tpsr_ros.core.actions import NUM_ACTIONS
 
     return int(NUM_ACTIONS)
 

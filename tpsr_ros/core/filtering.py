@@ -42,12 +42,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tpsr_ros.errors import DataError
-from tpsr_ros.features import rbf_features
-from tpsr_ros.state_model import Track, UpdateInfo, check_actions, check_observations
+from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.features import rbf_features
+from tpsr_ros.core.state_model import Track, UpdateInfo, check_actions, check_observations
 
 if TYPE_CHECKING:
-    from tpsr_ros.tpsr import TPSRModel
+    from tpsr_ros.core.tpsr import TPSRModel
 
 __all__ = [
     "NORMALIZER_RTOL",

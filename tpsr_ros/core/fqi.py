@@ -30,7 +30,7 @@ import numpy as np
 from scipy.cluster.vq import kmeans2
 from scipy.spatial.distance import cdist
 
-from tpsr_ros.errors import ConfigError, DataError
+from tpsr_ros.core.errors import ConfigError, DataError
 
 __all__ = ["FQIConfig", "QFunction", "fit_q"]
 

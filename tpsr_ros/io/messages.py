@@ -20,7 +20,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from tpsr_ros.errors import MessageError
+from tpsr_ros.core.errors import MessageError
 
 __all__ = [
     "ACTION_TYPE",

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from tpsr_ros.errors import ConfigError, DataError
+from tpsr_ros.core.errors import ConfigError, DataError
 
 __all__ = ["Whitening", "check_finite_matrix", "flip_signs", "single_blas_thread"]
 

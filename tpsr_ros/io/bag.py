@@ -25,8 +25,8 @@ from rosbags.interfaces import Connection, Qos
 from rosbags.rosbag2 import Reader, ReaderError, Writer, WriterError
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
 
-from tpsr_ros.errors import BagError
-from tpsr_ros.messages import deserialize, jazzy_typestore, serialize
+from tpsr_ros.core.errors import BagError
+from tpsr_ros.io.messages import deserialize, jazzy_typestore, serialize
 
 __all__ = ["BagMessage", "BagReader", "BagWriter", "check_bag_path_free"]
 

@@ -2,9 +2,9 @@
 
 From episodes (history, current action-observation pair, test; guide section 3.1) the fit
 
-1. whitens histories, tests and current observations (Algorithm 1, :mod:`tpsr_ros.whitening`),
+1. whitens histories, tests and current observations (Algorithm 1, :mod:`tpsr_ros.core.whitening`),
 2. chooses kernel centres and computes the feature matrices (Algorithm 2,
-   :mod:`tpsr_ros.features`): ``phi_H`` and ``phi_T`` with the constant feature, ``phi_O``
+   :mod:`tpsr_ros.core.features`): ``phi_H`` and ``phi_T`` with the constant feature, ``phi_O``
    normalised,
 3. estimates ``P_H`` (eq. 3.1) and ``P_TH`` (eq. 3.2), normalised by ``1/t``,
 4. takes the compact rank-``r`` SVD ``P_TH ~ U S V^T``,
@@ -48,10 +48,10 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse.linalg
 
-from tpsr_ros.errors import ConfigError, DataError
-from tpsr_ros.features import CONSTANT_SCALE, rbf_features, select_centers
-from tpsr_ros.state_model import Track, UpdateInfo
-from tpsr_ros.whitening import Whitening, check_finite_matrix, flip_signs, single_blas_thread
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.features import CONSTANT_SCALE, rbf_features, select_centers
+from tpsr_ros.core.state_model import Track, UpdateInfo
+from tpsr_ros.core.whitening import Whitening, check_finite_matrix, flip_signs, single_blas_thread
 
 __all__ = [
     "DENSE_SVD_LIMIT",
@@ -299,16 +299,16 @@ class TPSRModel:
     def update(
         self, state: np.ndarray, action: int, observation: np.ndarray
     ) -> tuple[np.ndarray, UpdateInfo]:
-        """Algorithm 4; see :func:`tpsr_ros.filtering.update`."""
-        from tpsr_ros import filtering
+        """Algorithm 4; see :func:`tpsr_ros.core.filtering.update`."""
+        from tpsr_ros.core import filtering
 
         return filtering.update(self, state, action, observation)
 
     def track(
         self, actions: np.ndarray, observations: np.ndarray, initial: np.ndarray | None = None
     ) -> Track:
-        """Algorithm 4 over a trajectory; see :func:`tpsr_ros.filtering.track`."""
-        from tpsr_ros import filtering
+        """Algorithm 4 over a trajectory; see :func:`tpsr_ros.core.filtering.track`."""
+        from tpsr_ros.core import filtering
 
         return filtering.track(self, actions, observations, initial)
 
@@ -538,7 +538,7 @@ def fit_tpsr(
 
 
 class EpisodeArrays(Protocol):
-    """What :func:`fit_tpsr_episodes` reads (e.g. :class:`tpsr_ros.episodes.Episodes`)."""
+    """What :func:`fit_tpsr_episodes` reads (e.g. :class:`tpsr_ros.core.episodes.Episodes`)."""
 
     history: np.ndarray
     observation: np.ndarray
