@@ -3,7 +3,7 @@
 Every parameter of guide table 3.5 is an option generated from the fields of
 :class:`~tpsr_ros.core.tpsr.TPSRConfig` (name, default, help and choices spelled once, there);
 the PCA baseline's from :class:`~tpsr_ros.core.pca_baseline.PCAConfig` and the topic names from
-:class:`~tpsr_ros.core.episodes.Topics`. Stage lines go to stderr, the summary to stdout.
+:class:`~tpsr_ros.io.trajectory.Topics`. Stage lines go to stderr, the summary to stdout.
 """
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ from typing import Any, TypeVar
 import numpy as np
 
 from tpsr_ros.cli import positive_int
-from tpsr_ros.core.episodes import Topics, make_episodes, read_trajectory
+from tpsr_ros.core.episodes import make_episodes
+from tpsr_ros.io.trajectory import Topics, read_trajectory
 from tpsr_ros.io.model_io import check_output_path, save_model
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.core.state_model import StateModel

@@ -20,7 +20,8 @@ import numpy as np
 from learner.fit import add_config_options, add_topic_options, config_from_args, topics_from_args
 from learner.representations import Tracker, load_tracker
 from tpsr_ros.cli import positive_int
-from tpsr_ros.core.episodes import Trajectory, read_trajectory
+from tpsr_ros.core.episodes import Trajectory
+from tpsr_ros.io.trajectory import read_trajectory
 from tpsr_ros.core.errors import DataError
 from tpsr_ros.core.fqi import FQIConfig, fit_q
 from tpsr_ros.io.npz_archive import check_output_path

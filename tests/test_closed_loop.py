@@ -23,7 +23,8 @@ from sim_node import SimConfig
 from sim_node.generate import generate_bag
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.core.episodes import read_trajectory, track_trajectory
+from tpsr_ros.core.episodes import track_trajectory
+from tpsr_ros.io.trajectory import read_trajectory
 from tpsr_ros.core.errors import TpsrError
 from tpsr_ros.io.model_io import load_model
 

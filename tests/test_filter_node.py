@@ -25,7 +25,8 @@ from sim_node.generate import generate_bag
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagReader, BagWriter
 from tpsr_ros.runtime.diagnostics import DIAGNOSTICS_TYPE, ERROR, OK, WARN, status_values
-from tpsr_ros.core.episodes import read_trajectory, track_trajectory
+from tpsr_ros.core.episodes import track_trajectory
+from tpsr_ros.io.trajectory import read_trajectory
 from tpsr_ros.core.errors import TpsrError
 from tpsr_ros.filter_node import FilterNode, FilterNodeParams, load_inputs
 from tpsr_ros.core.fqi import QFunction
