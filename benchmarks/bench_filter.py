@@ -74,11 +74,11 @@ def _step_bytes(images: list, k: int) -> tuple[bytes, bytes]:
 
 def inproc_throughput(model: Path, policy: Path, images: list) -> tuple[list, list]:
     """Updates per second of each run: (node path, bare tracker)."""
-    from tpsr_ros.io import messages as m
     from tpsr_ros.core.episodes import image_to_observation
-    from tpsr_ros.filter_node import FilterNode
-    from tpsr_ros.io.model_io import load_model
     from tpsr_ros.core.online import OnlineTracker
+    from tpsr_ros.filter_node import FilterNode
+    from tpsr_ros.io import messages as m
+    from tpsr_ros.io.model_io import load_model
     from tpsr_ros.runtime import Node, NodeOptions, parse_ros_args
     from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
 

@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from tpsr_ros.core.episodes import make_episodes
-from tpsr_ros.io.trajectory import read_trajectory
 from tpsr_ros.core.features import rbf_features
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes, top_singular_triplets
 from tpsr_ros.core.whitening import Whitening
+from tpsr_ros.io.trajectory import read_trajectory
 
 STEPS = 24_000
 REPEATS = 5

@@ -50,10 +50,10 @@ import numpy as np
 
 from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, Evaluation, Trial
 from sim_node import Environment
+from tpsr_ros.core.errors import ModelFormatError, TpsrError
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import check_bag_path_free
-from tpsr_ros.core.errors import ModelFormatError, TpsrError
-from tpsr_ros.filter_node import FilterNodeParams, load_inputs
+from tpsr_ros.io.filter_inputs import load_filter_inputs
 from tpsr_ros.io.policy import TRUE_POSITION, load_policy
 from tpsr_ros.runtime import (
     LATCHED_QOS,
@@ -376,7 +376,7 @@ def run_closed_loop(
     policy.check_environment(environment)
     model_path = policy.model_path(model_path).resolve()
     # the filter node's own start-up checks, here, before any process starts
-    load_inputs(FilterNodeParams(model=str(model_path), policy=str(policy_path)))
+    load_filter_inputs(str(model_path), str(policy_path))
     if record is not None:
         record = Path(record).resolve()
         check_bag_path_free(record)

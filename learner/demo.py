@@ -29,9 +29,9 @@ from learner.evaluate import START_POSITIONS, STEPS, evaluate
 from learner.representations import load_tracker
 from sim_node import Environment, SimConfig
 from sim_node.generate import generate_bag
+from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
 from tpsr_ros.io.policy import load_policy
 
 __all__ = ["main", "plot_trajectories"]

@@ -19,11 +19,11 @@ import numpy as np
 
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.episodes import make_episodes
-from tpsr_ros.io.trajectory import Topics, read_trajectory
-from tpsr_ros.io.model_io import check_output_path, save_model
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
+from tpsr_ros.io.model_io import check_output_path, save_model
+from tpsr_ros.io.trajectory import Topics, read_trajectory
 
 __all__ = [
     "add_config_options",

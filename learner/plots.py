@@ -18,9 +18,9 @@ import numpy as np
 
 from learner.fit import add_topic_options, topics_from_args
 from tpsr_ros.core.episodes import track_trajectory
-from tpsr_ros.io.trajectory import read_trajectory
 from tpsr_ros.core.errors import DataError
 from tpsr_ros.io.model_io import check_output_path, load_model
+from tpsr_ros.io.trajectory import read_trajectory
 
 __all__ = ["affine_r2", "plot_states", "register", "run"]
 

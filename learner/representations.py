@@ -17,9 +17,9 @@ import numpy as np
 
 from tpsr_ros.core.episodes import Trajectory, image_to_observation, track_trajectory
 from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.io.model_io import load_model, model_fingerprint
 from tpsr_ros.io.policy import TRUE_POSITION
-from tpsr_ros.core.state_model import StateModel
 
 __all__ = ["ModelTracker", "Tracker", "TruePositionTracker", "load_tracker"]
 

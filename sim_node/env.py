@@ -20,11 +20,11 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros.core.actions import ACTIONS, NUM_ACTIONS
 from sim_node.camera import Camera
 from sim_node.config import SimConfig
 from sim_node.distractors import Distractors
 from sim_node.world import RoomWorld
+from tpsr_ros.core.actions import ACTIONS, NUM_ACTIONS
 from tpsr_ros.core.errors import ConfigError
 
 __all__ = ["RobotEnv", "Streams", "spawn_streams", "step_reward"]

@@ -21,12 +21,12 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from tpsr_ros.core.actions import action_index
 from sim_node.config import Environment, SimConfig
 from sim_node.env import RobotEnv
 from sim_node.topics import SimTopics, step_messages
-from tpsr_ros.io import messages as m
+from tpsr_ros.core.actions import action_index
 from tpsr_ros.core.errors import ConfigError, MessageError
+from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import LATCHED_QOS, Node, param
 
 __all__ = ["EPISODE_START_TOPIC", "RESET_TOPIC", "SimNode", "SimNodeParams"]

@@ -7,8 +7,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tpsr_ros.io import messages as m
-from tpsr_ros.io.bag import BagWriter
 from tpsr_ros.core.episodes import (
     image_to_observation,
     images_to_observations,
@@ -16,6 +14,8 @@ from tpsr_ros.core.episodes import (
     velocities_to_actions,
 )
 from tpsr_ros.core.errors import BagError, DataError, MessageError
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagWriter
 from tpsr_ros.io.trajectory import Topics, read_trajectory
 
 S = 1_000_000_000

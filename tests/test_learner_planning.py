@@ -18,8 +18,8 @@ from sim_node import RobotEnv, SimConfig
 from sim_node.generate import generate_bag
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.pca_baseline import PCAConfig
-from tpsr_ros.io.policy import Policy
 from tpsr_ros.core.tpsr import TPSRConfig
+from tpsr_ros.io.policy import Policy
 
 SMALL_FIT = ["--ht-centers", "150", "--obs-centers", "100"]
 

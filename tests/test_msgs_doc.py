@@ -18,10 +18,10 @@ import pytest
 
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagWriter
+from tpsr_ros.io.qos import parse_qos_text
 from tpsr_ros.runtime import Node, NodeOptions
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
 from tpsr_ros.runtime.params import param_specs
-from tpsr_ros.runtime.qos import parse_qos_text
 
 DOC = Path(__file__).resolve().parent.parent / "msgs_doc"
 

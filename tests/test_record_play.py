@@ -17,9 +17,9 @@ from pathlib import Path
 
 import pytest
 
+from tpsr_ros.core.errors import BagError
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagReader, BagWriter
-from tpsr_ros.core.errors import BagError
 
 S = 10**9
 LOOPBACK = (

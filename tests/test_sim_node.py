@@ -8,8 +8,8 @@ import sys
 import numpy as np
 import pytest
 
-from tpsr_ros.core.actions import ACTIONS
 from sim_node.node import SimNode
+from tpsr_ros.core.actions import ACTIONS
 from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions, parse_ros_args
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import yaml
 
-from tpsr_ros.io.bag import BagReader
 from tpsr_ros.cli import ArgumentParser, run_cli
-from tpsr_ros.runtime.qos import from_bag_qos
+from tpsr_ros.io.bag import BagReader
+from tpsr_ros.io.qos import from_bag_qos
 
 __all__ = ["format_info", "main"]
 

@@ -26,9 +26,9 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from rosbags.rosbag2.metadata import parse_qos
 
-from tpsr_ros.io.bag import BagWriter
 from tpsr_ros.cli import ArgumentParser, run_cli
 from tpsr_ros.core.errors import BagError
+from tpsr_ros.io.bag import BagWriter
 
 __all__ = ["RecoveryReport", "main", "recover_bag"]
 

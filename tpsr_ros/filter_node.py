@@ -37,27 +37,20 @@ from typing import Any
 import numpy as np
 
 from tpsr_ros.core.actions import ACTIONS
-from tpsr_ros.io import messages as m
-from tpsr_ros.runtime.diagnostics import (
-    DIAGNOSTICS_TYPE,
-    ERROR,
-    OK,
-    WARN,
-    RollingPercentiles,
-    diagnostic_array,
-    diagnostic_status,
-)
 from tpsr_ros.core.episodes import (
     DEFAULT_ACTION_TOLERANCE,
-    DEFAULT_IMAGE_SHAPE,
     image_to_observation,
     velocities_to_actions,
 )
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
-from tpsr_ros.io.model_io import load_model, model_fingerprint, read_metadata
 from tpsr_ros.core.online import OnlineTracker
-from tpsr_ros.runtime.pairing import ExactTimeSynchronizer, Outcome
-from tpsr_ros.io.policy import TRUE_POSITION, Policy, load_policy
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.filter_inputs import (
+    ACTION_TOPIC,
+    IMAGE_TOPIC,
+    FilterInputs,
+    load_filter_inputs,
+)
 from tpsr_ros.runtime import (
     DEFAULT_QOS,
     LATCHED_QOS,
@@ -70,7 +63,16 @@ from tpsr_ros.runtime import (
     param,
     run_node,
 )
-from tpsr_ros.core.state_model import StateModel
+from tpsr_ros.runtime.diagnostics import (
+    DIAGNOSTICS_TYPE,
+    ERROR,
+    OK,
+    WARN,
+    RollingPercentiles,
+    diagnostic_array,
+    diagnostic_status,
+)
+from tpsr_ros.runtime.pairing import ExactTimeSynchronizer, Outcome
 
 __all__ = [
     "ACTION_TOPIC",
@@ -89,8 +91,6 @@ __all__ = [
 ]
 
 PROG = "python -m tpsr_ros.filter_node"
-IMAGE_TOPIC = "/camera/image_raw"
-ACTION_TOPIC = "/action"
 RESET_TOPIC = "/sim/episode_start"
 CLOCK_TOPIC = "/clock"
 STATE_TOPIC = "/tpsr/state"
@@ -156,81 +156,17 @@ class FilterNodeParams:
 # -- loading and the start-up checks ------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class FilterInputs:
-    """The model and policy a filter node runs, checked against each other and its topics."""
-
-    model: StateModel
-    fingerprint: str
-    metadata: dict[str, Any]
-    image_shape: tuple[int, int]
-    policy: Policy | None
-
-
-def _training_topics(metadata: dict[str, Any]) -> set[tuple[str, str]]:
-    bags = metadata.get("training", {}).get("bags") or []
-    found = set()
-    for bag in bags:
-        topics = bag.get("topics") if isinstance(bag, dict) else None
-        if isinstance(topics, dict) and topics.get("image") and topics.get("action"):
-            found.add((str(topics["image"]), str(topics["action"])))
-    return found
-
-
 def load_inputs(
     params: FilterNodeParams, image_topic: str = IMAGE_TOPIC, action_topic: str = ACTION_TOPIC
 ) -> FilterInputs:
-    """Load the model (and policy) and refuse a combination the node cannot run.
-
-    Refused, each with a one-line :class:`~tpsr_ros.core.errors.TpsrError`: no model; an
-    unreadable model or policy; a true-position policy (it needs the ground truth); a policy
-    trained for another model (fingerprint), or for other state dimension or number of
-    actions, or another environment than the model's; a model whose images are not
-    ``H x W x 3``; and, unless ``check_topics`` is false, a model trained on other topics:
-    every training bag recorded in the model names its image and action topics, and each
-    pair must equal ``(image_topic, action_topic)``, the node's fully resolved subscription
-    names (after namespace and ``-r`` remapping). A model recording no topics is accepted.
-    """
-    if not params.model:
-        raise ConfigError("no model given: pass -p model:=MODEL (a file from `learner fit`)")
-    model = load_model(params.model)
-    metadata = read_metadata(params.model)
-    fingerprint = model_fingerprint(model)
-    training = metadata.get("training", {})
-    shape = tuple(training.get("image_shape") or DEFAULT_IMAGE_SHAPE)
-    if len(shape) != 2 or shape[0] * shape[1] * 3 != model.obs_size:
-        raise ConfigError(
-            f"model {params.model} takes {model.obs_size} observation values, not the rgb8 "
-            f"pixels of {shape} images"
-        )
-    if params.check_topics:
-        subscribed = (image_topic, action_topic)
-        for pair in sorted(_training_topics(metadata)):
-            if pair != subscribed:
-                raise ConfigError(
-                    f"model {params.model} was trained on {pair[0]} and {pair[1]}, but the "
-                    f"node subscribes {subscribed[0]} and {subscribed[1]} (remap with -r, or "
-                    "-p check_topics:=false to accept)"
-                )
-    policy = None
-    if params.policy:
-        policy = load_policy(params.policy)
-        if policy.representation == TRUE_POSITION:
-            raise ConfigError(
-                f"policy {params.policy} acts on the true position, which the filter node "
-                "does not have; use a policy fitted on this model's states"
-            )
-        policy.check_model(fingerprint, f"model {params.model}")
-        if policy.state_dim != model.state_dim or policy.n_actions != model.n_actions:
-            raise ConfigError(
-                f"policy {params.policy} takes {policy.state_dim}-dimensional states and "
-                f"{policy.n_actions} actions, the model has {model.state_dim} and "
-                f"{model.n_actions}"
-            )
-        environment = training.get("environment")
-        if isinstance(environment, str):
-            policy.check_environment(environment)
-    return FilterInputs(model, fingerprint, metadata, (int(shape[0]), int(shape[1])), policy)
+    """:func:`tpsr_ros.io.filter_inputs.load_filter_inputs` with the node's parameters."""
+    return load_filter_inputs(
+        params.model,
+        params.policy,
+        check_topics=params.check_topics,
+        image_topic=image_topic,
+        action_topic=action_topic,
+    )
 
 
 class _Rejected(Exception):

@@ -27,12 +27,12 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from tpsr_ros.io.bag import BagWriter, check_bag_path_free
 from tpsr_ros.cli import ArgumentParser, positive_float
 from tpsr_ros.core.errors import BagError, TpsrError
+from tpsr_ros.io.bag import BagWriter, check_bag_path_free
 from tpsr_ros.io.messages import jazzy_typestore
+from tpsr_ros.io.qos import adapt_to_publishers, compatible, to_bag_qos
 from tpsr_ros.runtime import Node, NodeOptions, QoSProfile, run_node
-from tpsr_ros.runtime.qos import adapt_to_publishers, compatible, to_bag_qos
 
 __all__ = ["RecorderNode", "main"]
 

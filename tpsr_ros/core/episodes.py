@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros.core.actions import NUM_ACTIONS, action_indices
+from tpsr_ros.core.actions import action_indices
 from tpsr_ros.core.errors import ConfigError, DataError, MessageError
 from tpsr_ros.core.state_model import StateModel, Track
 

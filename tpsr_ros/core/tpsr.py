@@ -48,6 +48,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse.linalg
 
+from tpsr_ros.core import filtering
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import CONSTANT_SCALE, rbf_features, select_centers
 from tpsr_ros.core.state_model import Track, UpdateInfo
@@ -300,16 +301,12 @@ class TPSRModel:
         self, state: np.ndarray, action: int, observation: np.ndarray
     ) -> tuple[np.ndarray, UpdateInfo]:
         """Algorithm 4; see :func:`tpsr_ros.core.filtering.update`."""
-        from tpsr_ros.core import filtering
-
         return filtering.update(self, state, action, observation)
 
     def track(
         self, actions: np.ndarray, observations: np.ndarray, initial: np.ndarray | None = None
     ) -> Track:
         """Algorithm 4 over a trajectory; see :func:`tpsr_ros.core.filtering.track`."""
-        from tpsr_ros.core import filtering
-
         return filtering.track(self, actions, observations, initial)
 
     def parameters(self) -> dict[str, Any]:

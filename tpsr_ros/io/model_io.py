@@ -26,10 +26,10 @@ import numpy as np
 
 import tpsr_ros
 from tpsr_ros.core.errors import ModelFormatError, TpsrError
-from tpsr_ros.io.npz_archive import check_output_path, read_archive, write_archive
 from tpsr_ros.core.pca_baseline import PCAModel
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.tpsr import TPSRModel
+from tpsr_ros.io.npz_archive import check_output_path, read_archive, write_archive
 
 __all__ = [
     "FORMAT_NAME",

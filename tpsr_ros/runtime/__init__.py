@@ -5,6 +5,15 @@ dataclass fields declared with :func:`param`; ``TPSR_TRANSPORT=rclpy|dds|inproc`
 the middleware (default: rclpy if importable, else dds). See ``msgs_doc/README.md``.
 """
 
+from tpsr_ros.io.qos import (
+    DEFAULT_QOS,
+    LATCHED_QOS,
+    SENSOR_DATA_QOS,
+    Durability,
+    History,
+    QoSProfile,
+    Reliability,
+)
 from tpsr_ros.runtime.node import (
     EndpointInfo,
     Logger,
@@ -17,15 +26,6 @@ from tpsr_ros.runtime.node import (
     run_node,
 )
 from tpsr_ros.runtime.params import NoParameters, ParamSpec, param, param_specs
-from tpsr_ros.runtime.qos import (
-    DEFAULT_QOS,
-    LATCHED_QOS,
-    SENSOR_DATA_QOS,
-    Durability,
-    History,
-    QoSProfile,
-    Reliability,
-)
 from tpsr_ros.runtime.ros_args import RosArgs, UsageError, parse_ros_args
 from tpsr_ros.runtime.transport import TopicEndpoint, Transport
 

@@ -28,8 +28,8 @@ from typing import Any, ClassVar
 
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.io.messages import jazzy_typestore
+from tpsr_ros.io.qos import Durability, History, QoSProfile, Reliability
 from tpsr_ros.runtime.dds_types import idl_struct, ros_type_name
-from tpsr_ros.runtime.qos import Durability, History, QoSProfile, Reliability
 from tpsr_ros.runtime.transport import (
     BytesCallback,
     PublisherHandle,

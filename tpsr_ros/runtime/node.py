@@ -35,6 +35,7 @@ from typing import Any, ClassVar, NoReturn, TextIO
 from tpsr_ros.cli import ArgumentParser
 from tpsr_ros.core.errors import MessageError, TpsrError
 from tpsr_ros.io.messages import deserialize, serialize
+from tpsr_ros.io.qos import DEFAULT_QOS, QoSProfile
 from tpsr_ros.runtime.backend import choose_backend, open_transport
 from tpsr_ros.runtime.params import (
     NoParameters,
@@ -42,7 +43,6 @@ from tpsr_ros.runtime.params import (
     param_specs,
     resolve_parameters,
 )
-from tpsr_ros.runtime.qos import DEFAULT_QOS, QoSProfile
 from tpsr_ros.runtime.ros_args import (
     LOG_LEVELS,
     RosArgs,
