@@ -91,11 +91,11 @@ _SIM_TOPICS = RECORDED_TOPICS[:7]
 KEEP_ALL_QOS = QoSProfile(Reliability.RELIABLE, Durability.VOLATILE, History.KEEP_ALL, 0)
 _IGNORED = "/cmd_vel ignored: episode_steps"
 _READY = "spinning until SIGINT/SIGTERM"
-_NS = 1_000_000_000
 # Run a node module so that it gets SIGTERM if this (parent) process dies (Linux prctl
 # PR_SET_PDEATHSIG), then exactly as `python -m MODULE ARGS...`.
 _LAUNCH = """\
 import ctypes, os, runpy, signal, sys
+from tpsr_ros.core.units import NS_PER_S as _NS
 try:
     ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
 except Exception:

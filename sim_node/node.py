@@ -26,6 +26,7 @@ from sim_node.env import RobotEnv
 from sim_node.topics import SimTopics, step_messages
 from tpsr_ros.core.actions import action_index
 from tpsr_ros.core.errors import ConfigError, MessageError
+from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import LATCHED_QOS, Node, param
 
@@ -34,7 +35,6 @@ __all__ = ["EPISODE_START_TOPIC", "RESET_TOPIC", "SimNode", "SimNodeParams"]
 RESET_TOPIC = "/sim/reset"
 EPISODE_START_TOPIC = "/sim/episode_start"
 CMD_VEL_TOPIC = "/cmd_vel"
-_NS = 1_000_000_000
 
 
 @dataclass(frozen=True)

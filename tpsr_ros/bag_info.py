@@ -15,13 +15,13 @@ from pathlib import Path
 import yaml
 
 from tpsr_ros.cli import ArgumentParser, run_cli
+from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.qos import from_bag_qos
 
 __all__ = ["format_info", "main"]
 
 PROG = "python -m tpsr_ros.bag_info"
-_NS = 1_000_000_000
 
 
 def _size(n: float) -> str:

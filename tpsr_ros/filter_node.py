@@ -44,6 +44,7 @@ from tpsr_ros.core.episodes import (
 )
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.online import OnlineTracker
+from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.filter_inputs import (
     ACTION_TOPIC,
@@ -103,7 +104,6 @@ WARN_PERIOD_S = 5.0
 """At most one warning per topic and kind (rejection, drop, duplicate...) in this many seconds."""
 SETTLE_S = 0.25
 """Once the command's subscribers are matched, time for their side of discovery to finish."""
-_NS = 1_000_000_000
 _RECOVERY_ERROR_RUN = 10
 
 

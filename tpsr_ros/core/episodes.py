@@ -29,6 +29,7 @@ import numpy as np
 from tpsr_ros.core.actions import action_indices
 from tpsr_ros.core.errors import ConfigError, DataError, MessageError
 from tpsr_ros.core.state_model import StateModel, Track
+from tpsr_ros.core.units import STEP_NS
 
 __all__ = [
     "DEFAULT_ACTION_TOLERANCE",
@@ -43,8 +44,6 @@ __all__ = [
     "velocities_to_actions",
 ]
 
-STEP_NS = 1_000_000_000
-"""Duration of one step (DESIGN.md: 1 s of simulation time)."""
 DEFAULT_IMAGE_SHAPE = (16, 16)
 DEFAULT_ACTION_TOLERANCE = 1.0
 """Largest distance (m/s, per component) of a velocity from its action; half the spacing is 1.5."""

@@ -20,9 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tpsr_ros.core.episodes import STEP_NS
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.state_model import StateModel
+from tpsr_ros.core.units import STEP_NS
 
 __all__ = ["OnlineTracker", "StepInfo"]
 

@@ -51,6 +51,7 @@ import scipy.sparse.linalg
 from tpsr_ros.core import filtering
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import CONSTANT_SCALE, rbf_features, select_centers
+from tpsr_ros.core.fields import option as _param
 from tpsr_ros.core.state_model import Track, UpdateInfo
 from tpsr_ros.core.whitening import Whitening, check_finite_matrix, flip_signs, single_blas_thread
 
@@ -70,11 +71,6 @@ EXTRA_SINGULAR_VALUES = 5
 """Singular values beyond the rank reported in the fit summary (to show the spectral gap)."""
 
 Progress = Callable[[str], None]
-
-
-def _param(default: Any, help: str, **cli: Any) -> Any:
-    """Dataclass field with its command-line help (``learner fit`` builds options from it)."""
-    return field(default=default, metadata={"help": help, **cli})
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
 from tpsr_ros.core.errors import MessageError
+from tpsr_ros.core.units import NS_PER_S as _NS
 
 __all__ = [
     "ACTION_TYPE",
@@ -60,7 +61,6 @@ STATE_TYPE = "sensor_msgs/msg/JointState"
 CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
 
 REWARD_NAMES = ("reward", "wall_contact", "goal_zone")
-_NS = 1_000_000_000
 
 
 @cache

@@ -34,6 +34,7 @@ from typing import Any, ClassVar, NoReturn, TextIO
 
 from tpsr_ros.cli import ArgumentParser
 from tpsr_ros.core.errors import MessageError, TpsrError
+from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io.messages import deserialize, serialize
 from tpsr_ros.io.qos import DEFAULT_QOS, QoSProfile
 from tpsr_ros.runtime.backend import choose_backend, open_transport
@@ -65,7 +66,6 @@ __all__ = [
 ]
 
 _MAX_WAIT_S = 0.1  # bound on one blocking wait, so signals are handled promptly
-_NS = 1_000_000_000
 
 ROS_ARGS_HELP = """\
 ROS arguments (after --ros-args):

@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import re
 import typing
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ from typing import Any
 import yaml
 
 from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.fields import option as param
 from tpsr_ros.runtime.ros_args import ParamOverride, ParamsFile, RosArgs, UsageError
 
 __all__ = [
@@ -42,14 +42,6 @@ _ROS_TYPES = {bool: "bool", int: "integer", float: "double", str: "string"}
 @dataclass(frozen=True)
 class NoParameters:
     """A node without parameters."""
-
-
-def param(default: Any, help: str, *, choices: Sequence[Any] | None = None) -> Any:
-    """Declare a parameter field, e.g. ``rate: float = param(10.0, "steps per second")``."""
-    metadata = {"help": help, "choices": tuple(choices) if choices is not None else None}
-    if isinstance(default, list):
-        default = tuple(default)
-    return dataclasses.field(default=default, metadata=metadata)
 
 
 @dataclass(frozen=True)
