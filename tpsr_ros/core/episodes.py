@@ -80,7 +80,10 @@ def velocities_to_actions(
 
 @dataclass(frozen=True, eq=False)
 class Trajectory:
-    """Steps read from one or more bags, in stamp order (bags in the order given).
+    """Steps in stamp order, read from bags or built from arrays.
+
+    :func:`tpsr_ros.io.trajectory.read_trajectory` reads bags (in the order given);
+    :meth:`from_arrays` takes any action and observation arrays.
 
     Attributes:
         stamps: ``(T,)`` int64 header stamps (ns).
@@ -106,6 +109,69 @@ class Trajectory:
     image_shape: tuple[int, int]
     n_actions: int
     sources: list[dict[str, Any]]
+
+    @classmethod
+    def from_arrays(
+        cls,
+        actions: np.ndarray,
+        observations: np.ndarray,
+        *,
+        stamps: np.ndarray | None = None,
+        n_actions: int | None = None,
+        step_ns: int = STEP_NS,
+        positions: np.ndarray | None = None,
+        rewards: np.ndarray | None = None,
+        image_shape: tuple[int, int] | None = None,
+    ) -> Trajectory:
+        """Build a trajectory of ``T`` steps from arrays: the front door for data not in bags.
+
+        Args:
+            actions: ``(T,)`` action indices ``a_k`` in ``0 .. n_actions - 1``.
+            observations: ``(T, k)`` observation vectors ``o_k`` (any real features; images
+                go through :func:`images_to_observations` first).
+            stamps: ``(T,)`` int stamps (ns); default ``1, 2, ... T`` steps. A stamp that is
+                not ``step_ns`` after the previous one starts a new segment (a gap).
+            n_actions: number of actions (default ``max(actions) + 1``).
+            step_ns: the step period (ns) that consecutive stamps are apart.
+            positions: ``(T, 2)`` ground-truth positions, for plots only (default NaN).
+            rewards: ``(T,)`` rewards, for planning only (default NaN).
+            image_shape: ``(H, W)`` if the observations are rgb8 images (default ``(1, k)``).
+
+        """
+        obs = np.asarray(observations, dtype=np.float64)
+        if obs.ndim != 2 or obs.shape[0] == 0:
+            raise DataError(f"observations must be a non-empty (T, k) array, got {obs.shape}")
+        n_steps = obs.shape[0]
+        acts = np.asarray(actions)
+        if acts.shape != (n_steps,) or acts.dtype.kind not in "iu":
+            raise DataError(
+                f"actions must be {n_steps} integer indices, got {acts.dtype} {acts.shape}"
+            )
+        acts = acts.astype(np.int64)
+        count = int(acts.max()) + 1 if n_actions is None else int(n_actions)
+        if acts.min() < 0 or acts.max() >= count:
+            raise DataError(f"action indices must lie in 0..{count - 1}")
+        if stamps is None:
+            stamp_arr = np.arange(1, n_steps + 1, dtype=np.int64) * int(step_ns)
+        else:
+            stamp_arr = np.asarray(stamps, dtype=np.int64)
+            if stamp_arr.shape != (n_steps,) or np.any(np.diff(stamp_arr) <= 0):
+                raise DataError(f"stamps must be {n_steps} increasing integers (ns)")
+        segments = np.concatenate([[0], np.cumsum(np.diff(stamp_arr) != step_ns)])
+        nan = np.full(n_steps, np.nan)
+        truth = np.column_stack([nan, nan]) if positions is None else positions
+        return cls(
+            stamps=stamp_arr,
+            observations=obs,
+            actions=acts,
+            velocities=np.full((n_steps, 2), np.nan),
+            positions=np.asarray(truth, dtype=np.float64),
+            rewards=nan if rewards is None else np.asarray(rewards, dtype=np.float64),
+            segments=segments.astype(np.int64),
+            image_shape=image_shape or (1, obs.shape[1]),
+            n_actions=count,
+            sources=[],
+        )
 
     def __len__(self) -> int:
         return int(self.stamps.shape[0])

@@ -17,6 +17,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.fields import option
 from tpsr_ros.core.state_model import Track, UpdateInfo, check_actions, check_observations
 from tpsr_ros.core.whitening import Whitening
 
@@ -27,12 +28,8 @@ __all__ = ["PCAConfig", "PCAModel", "fit_pca"]
 class PCAConfig:
     """Parameters of the PCA baseline (guide figure 4.5: dim 2)."""
 
-    dim: int = field(
-        default=2,
-        metadata={
-            "help": "PCA baseline: number of principal components (state dim)",
-            "cli": "--pca-dim",
-        },
+    dim: int = option(
+        2, "PCA baseline: number of principal components (state dim)", cli="--pca-dim"
     )
 
     def __post_init__(self) -> None:
