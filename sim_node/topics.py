@@ -12,7 +12,10 @@ import numpy as np
 
 from tpsr_ros.io import messages as m
 
-__all__ = ["SimTopics", "step_messages"]
+__all__ = ["CMD_IGNORED_TOPIC", "SimTopics", "step_messages"]
+
+CMD_IGNORED_TOPIC = "/sim/cmd_ignored"
+"""The node's announcement of a ``/cmd_vel`` that took no step (``std_msgs/msg/Header``)."""
 
 
 @dataclass(frozen=True)
