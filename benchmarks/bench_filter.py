@@ -19,9 +19,8 @@ from __future__ import annotations
 
 import os
 import random
+import signal
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from collections import deque
@@ -123,6 +122,7 @@ def dds_latency(model: Path, policy: Path, images: list, tmp: Path) -> list[np.n
     from tpsr_ros.io import messages as m
     from tpsr_ros.runtime import Node, NodeOptions
     from tpsr_ros.runtime.dds import DdsTransport
+    from tpsr_ros.runtime.launcher import NodeProcess
 
     domain = random.SystemRandom().randrange(1, 233)
     env = {
@@ -148,20 +148,11 @@ def dds_latency(model: Path, policy: Path, images: list, tmp: Path) -> list[np.n
             latencies.append((time.perf_counter_ns() - sent.popleft()) / 1e6)
 
     cmd_sub = node.create_subscription("/cmd_vel", m.TWIST_TYPE, on_cmd)
-    log = (tmp / "filter.log").open("wb")
-    child = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "tpsr_ros.filter_node",
-            "--ros-args",
-            "-p",
-            f"model:={model}",
-            "-p",
-            f"policy:={policy}",
-        ],
-        stdout=log,
-        stderr=log,
+    child = NodeProcess(
+        "filter",
+        "tpsr_ros.filter_node",
+        ["--ros-args", "-p", f"model:={model}", "-p", f"policy:={policy}"],
+        log_path=tmp / "filter.log",
         env=env,
     )
     k = 0
@@ -203,9 +194,7 @@ def dds_latency(model: Path, policy: Path, images: list, tmp: Path) -> list[np.n
                 raise RuntimeError(f"received {len(latencies)} of {STEPS_DDS} commands")
             runs.append(np.array(latencies))
     finally:
-        child.terminate()
-        child.wait(20)
-        log.close()
+        child.stop(timeout_s=20, sig=signal.SIGTERM)
         node.close()
     return runs
 
