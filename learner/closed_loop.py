@@ -362,6 +362,19 @@ def _filter_args(model_path: Path, policy_path: Path, record: Path | None) -> li
     ]
 
 
+def _tidy_logs(
+    logs: Path, statuses: dict[str, int], *, ok: bool, keep: bool, say: Callable[[str], None]
+) -> None:
+    """Remove the nodes' logs after a successful run unless asked to keep them."""
+    if not ok:
+        say(f"node logs kept in {logs}")
+    if ok and not keep:
+        for name in statuses:
+            (logs / f"{name}.log").unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            logs.rmdir()
+
+
 def run_closed_loop(
     policy_path: Path | str,
     environment: Environment | str,
@@ -378,10 +391,14 @@ def run_closed_loop(
     on_step: Callable[[int], None] | None = None,
     say: Callable[[str], None] | None = None,
 ) -> ClosedLoopResult:
-    """Run the standard protocol with the simulator and filter nodes as processes.
+    """Run the standard protocol (guide 4.1-4.2) with the simulator and filter nodes as processes.
 
-    ``on_step(n)`` is called with the number of new rewards as they arrive (for progress
-    bars), ``on_trial`` after each trial, ``say`` with stage lines.
+    The steps: the filter's own refusals (:func:`_check_inputs`), a free DDS domain for the
+    driver (:func:`_join_free_domain`), the recorder and simulator
+    (:func:`_start_simulator`), then per start one trial (:func:`_run_trial`; the filter
+    node starts at the first trial's reset). ``on_step(n)`` is called with the number of
+    new rewards as they arrive (for progress bars), ``on_trial`` after each trial, ``say``
+    with stage lines.
     """
     started = time.monotonic()
     say = say or (lambda text: None)
@@ -425,10 +442,9 @@ def run_closed_loop(
         trials: list[Trial] = []
         for index, start in enumerate(starts):
             on_reset = start_filter if index == 0 else None
-            trial = _run_trial(launch, driver, index, start, steps, on_reset, on_step)
-            trials.append(trial)
+            trials.append(_run_trial(launch, driver, index, start, steps, on_reset, on_step))
             if on_trial is not None:
-                on_trial(index, trial)
+                on_trial(index, trials[-1])
         evaluation = Evaluation(tuple(trials))
         states = dict(driver.states)
         ok = True
@@ -439,14 +455,7 @@ def run_closed_loop(
             statuses = launch.stop()
         if driver is not None:
             driver.close()
-        if not ok or keep_logs:
-            if not ok:
-                say(f"node logs kept in {logs}")
-        else:
-            for name in statuses:
-                (logs / f"{name}.log").unlink(missing_ok=True)
-            with contextlib.suppress(OSError):
-                logs.rmdir()
+        _tidy_logs(logs, statuses, ok=ok, keep=keep_logs, say=say)
     if record is not None and statuses.get("recorder") != 0:
         raise ClosedLoopError(f"the recorder exited with status {statuses.get('recorder')}")
     return ClosedLoopResult(
