@@ -3,6 +3,8 @@
 Nodes subclass :class:`Node` and start with :func:`run_node`; parameters are frozen
 dataclass fields declared with :func:`param`; ``TPSR_TRANSPORT=rclpy|dds|inproc`` picks
 the middleware (default: rclpy if importable, else dds). See ``msgs_doc/README.md``.
+:class:`Launch` starts node processes, waits on the graph and stops them
+(:mod:`tpsr_ros.runtime.launcher`).
 """
 
 from tpsr_ros.io.qos import (
@@ -14,6 +16,7 @@ from tpsr_ros.io.qos import (
     QoSProfile,
     Reliability,
 )
+from tpsr_ros.runtime.launcher import Launch, LaunchError, NodeProcess
 from tpsr_ros.runtime.node import (
     EndpointInfo,
     Logger,
@@ -36,10 +39,13 @@ __all__ = [
     "Durability",
     "EndpointInfo",
     "History",
+    "Launch",
+    "LaunchError",
     "Logger",
     "NoParameters",
     "Node",
     "NodeOptions",
+    "NodeProcess",
     "ParamSpec",
     "Publisher",
     "QoSProfile",
