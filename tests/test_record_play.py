@@ -56,10 +56,21 @@ BACKENDS = [
 ]
 
 
+def unused_domain(seed: int) -> int:
+    """A domain id in 20..219 that no participant of this process has configured yet.
+
+    Cyclone keeps one configuration per domain and process: a probe node in a domain that
+    an earlier test opened without the loopback URI would not discover the children.
+    """
+    from tpsr_ros.runtime import dds
+
+    return next(d for k in range(200) if (d := (seed + k) % 200 + 20) not in dds._DOMAINS)
+
+
 @pytest.fixture
 def graph_env():
     pytest.importorskip("cyclonedds")
-    domain = (os.getpid() * 11 + 3 * next(_COUNTER)) % 200 + 20
+    domain = unused_domain(os.getpid() * 11 + 3 * next(_COUNTER))
     return {
         **os.environ,
         "ROS_DOMAIN_ID": str(domain),

@@ -248,7 +248,11 @@ def test_sigterm_stops_the_node_gracefully_and_logs_the_count(tmp_path, monkeypa
         "<NetworkInterface address='127.0.0.1' multicast='true'/>"
         "</Interfaces></General></Domain></CycloneDDS>"
     )
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(os.getpid() % 90 + 140))
+    from tpsr_ros.runtime import dds
+
+    # a domain this process has not configured yet (Cyclone keeps one config per domain)
+    domain = next(d for k in range(90) if (d := (os.getpid() + k) % 90 + 140) not in dds._DOMAINS)
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
     monkeypatch.setenv("CYCLONEDDS_URI", loopback)
     probe = Node(NodeOptions(name="probe"), transport=DdsTransport("probe"))
     clocks: list = []
