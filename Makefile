@@ -9,7 +9,12 @@ STAMP  := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,dds]'
+	@# the ros extra (ROS 2 Jazzy wheels) exists for some Pythons only: fall back without it
+	$(PY) -m pip install --quiet -e '.[test,dds,ros]' 2> $(VENV)/ros-extra.log \
+	|| { echo "note: no ROS 2 Jazzy wheels for $$($(PY) -V); installing without rclpy (Cyclone DDS backend; pip's reason in $(VENV)/ros-extra.log)"; \
+	     $(PY) -m pip install --quiet -e '.[test,dds]'; }
+	@# colcon must not take the venv's ROS packages (share/*/package.xml) for the workspace's
+	touch $(VENV)/COLCON_IGNORE
 	touch $(STAMP)
 
 demo: $(STAMP)

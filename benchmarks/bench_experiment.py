@@ -1,7 +1,8 @@
 """Wall time of one environment's whole experiment grid (issue 5: target < 15 minutes).
 
 The default grid of ``learner experiment --environment full``: 4 data sizes x 10
-repetitions x (TPSR, PCA, true position) = 120 learning-planning runs, on every core.
+repetitions x (constant and random floors, TPSR, PCA, true position) = 200 runs, of
+which 120 learn and plan, on every core.
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ from __future__ import annotations
 import os
 import time
 
-from learner.experiment import default_config, run_experiment, summarise
+from learner.experiment import default_config, margin_text, run_experiment, summarise
 
 TARGET_S = 15 * 60
 
@@ -27,7 +28,10 @@ def main() -> None:
         f"({elapsed / TARGET_S:.2f} of the 15 min target); {elapsed / cells:.1f} s per cell"
     )
     best = max(summarise(rows), key=lambda t: (t["method"] == "tpsr", t["episodes"]))
-    print(f"  sanity: TPSR mean at {best['episodes']} episodes = {best['mean']:.1f}")
+    print(
+        f"  sanity: TPSR mean at {best['episodes']} episodes = {best['mean']:.1f} "
+        f"({margin_text(best)} SEMs)"
+    )
 
 
 if __name__ == "__main__":

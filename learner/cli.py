@@ -31,6 +31,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "learner.closed_loop",
     "learner.experiment",
     "learner.report",
+    "learner.memory",
     "learner.demo",
 )
 

@@ -1,8 +1,10 @@
 """``learner closed-loop POLICY --environment E``: the standard evaluation over the nodes.
 
 The headless protocol of :mod:`learner.evaluate`, run by the real nodes as separate
-processes over the DDS backend (a fresh ``ROS_DOMAIN_ID``, loopback only unless
-``CYCLONEDDS_URI`` says otherwise):
+processes over the middleware the nodes choose by default (rclpy when importable, else
+the Cyclone DDS backend; ``--transport`` or ``TPSR_TRANSPORT`` picks one), in a fresh
+``ROS_DOMAIN_ID``, loopback only unless ``ROS_AUTOMATIC_DISCOVERY_RANGE`` or
+``CYCLONEDDS_URI`` says otherwise:
 
 1. ``python -m sim_node --ros-args -p mode:=command -p environment:=E -p seed:=2026
    -p episode_steps:=50`` (and, with ``--record BAG``, ``python -m tpsr_ros.record``);
@@ -63,6 +65,7 @@ from tpsr_ros.runtime import (
     QoSProfile,
     Reliability,
 )
+from tpsr_ros.runtime.backend import choose_backend, open_transport
 from tpsr_ros.runtime.launcher import Launch, LaunchError
 
 __all__ = [
@@ -159,10 +162,9 @@ class _Driver:
     reset until a recorder has subscribed every one of them as well.
     """
 
-    def __init__(self, domain_id: int, *, watch_all: bool) -> None:
-        from tpsr_ros.runtime.dds import DdsTransport
-
-        transport = DdsTransport("closed_loop_driver", domain_id=domain_id)
+    def __init__(self, backend: str, *, watch_all: bool) -> None:
+        # the transport reads ROS_DOMAIN_ID (and the discovery range) from the environment
+        transport = open_transport(backend, "closed_loop_driver", "/")
         self.node = Node(NodeOptions(name="closed_loop_driver"), transport=transport)
         self.episode_starts: list[tuple[int, float, float]] = []
         self.rewards: list[tuple[int, m.RewardSample]] = []
@@ -286,13 +288,17 @@ def _check_inputs(
 
 
 def _join_free_domain(
-    domain_id: int | None, network: dict[str, str], watch_all: bool, say: Callable[[str], None]
+    domain_id: int | None,
+    network: dict[str, str],
+    backend: str,
+    watch_all: bool,
+    say: Callable[[str], None],
 ) -> tuple[_Driver, int]:
     """Start the driver node in a ROS domain nobody else uses right now (runs, tests, robots)."""
     for _ in range(8):
         domain = domain_id if domain_id is not None else _pick_domain()
-        with _environment(network):
-            driver = _Driver(domain, watch_all=watch_all)
+        with _environment({**network, "ROS_DOMAIN_ID": str(domain)}):
+            driver = _Driver(backend, watch_all=watch_all)
         driver.node.spin(timeout_s=0.5)
         if driver.graph_is_empty() or domain_id is not None:
             return driver, domain
@@ -387,21 +393,29 @@ def run_closed_loop(
     steps: int = STEPS,
     timeout_s: float = 60.0,
     domain_id: int | None = None,
+    transport: str | None = None,
     on_trial: Callable[[int, Trial], None] | None = None,
     on_step: Callable[[int], None] | None = None,
     say: Callable[[str], None] | None = None,
 ) -> ClosedLoopResult:
     """Run the standard protocol (guide 4.1-4.2) with the simulator and filter nodes as processes.
 
-    The steps: the filter's own refusals (:func:`_check_inputs`), a free DDS domain for the
+    The steps: the filter's own refusals (:func:`_check_inputs`), a free ROS domain for the
     driver (:func:`_join_free_domain`), the recorder and simulator
     (:func:`_start_simulator`), then per start one trial (:func:`_run_trial`; the filter
     node starts at the first trial's reset). ``on_step(n)`` is called with the number of
     new rewards as they arrive (for progress bars), ``on_trial`` after each trial, ``say``
-    with stage lines.
+    with stage lines. ``transport`` is ``rclpy`` or ``dds`` (default: ``TPSR_TRANSPORT``,
+    else rclpy if importable, else dds).
     """
     started = time.monotonic()
     say = say or (lambda text: None)
+    backend, _ = choose_backend(transport)
+    if backend == "inproc":
+        raise ClosedLoopError(
+            "the closed loop runs the nodes as processes: use the rclpy or dds transport, "
+            "not inproc"
+        )
     environment = Environment(environment).value
     policy_path, model_path = _check_inputs(policy_path, environment, model_path)
     if record is not None:
@@ -423,10 +437,10 @@ def run_closed_loop(
     statuses: dict[str, int] = {}
     ok = False
     try:
-        driver, domain = _join_free_domain(domain_id, network, record is not None, say)
-        env = {**os.environ, **network, "ROS_DOMAIN_ID": str(domain), "TPSR_TRANSPORT": "dds"}
+        driver, domain = _join_free_domain(domain_id, network, backend, record is not None, say)
+        env = {**os.environ, **network, "ROS_DOMAIN_ID": str(domain), "TPSR_TRANSPORT": backend}
         launch = Launch(logs, env=env, spin=driver.node.spin_once, timeout_s=timeout_s)
-        say(f"DDS domain {domain}; node logs in {logs}")
+        say(f"{backend} transport, ROS_DOMAIN_ID {domain}; node logs in {logs}")
         _start_simulator(
             launch, driver, environment=environment, seed=seed, steps=steps, record=record, say=say
         )
@@ -470,7 +484,7 @@ def register(subparsers: Any) -> None:
     """Add the ``closed-loop`` subcommand."""
     doc = (
         "score a policy with the standard protocol over the nodes: sim_node and the filter "
-        "node as separate processes in lockstep over DDS"
+        "node as separate processes in lockstep over ROS 2 (rclpy or the DDS backend)"
     )
     parser = subparsers.add_parser(
         "closed-loop",
@@ -518,6 +532,13 @@ def register(subparsers: Any) -> None:
         metavar="N",
         help="ROS_DOMAIN_ID to use (default: a free one at random)",
     )
+    parser.add_argument(
+        "--transport",
+        choices=("rclpy", "dds"),
+        default=None,
+        help="middleware of the nodes (default: TPSR_TRANSPORT, else rclpy if importable, "
+        "else dds)",
+    )
     parser.set_defaults(run=run)
 
 
@@ -538,6 +559,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         timeout_s=args.timeout,
         domain_id=args.domain_id,
+        transport=args.transport,
         on_trial=show,
         say=lambda text: print(f"learner closed-loop: {text}", file=sys.stderr, flush=True),
     )

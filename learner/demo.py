@@ -6,8 +6,10 @@ Everything goes to ``demo_output/`` (recreated on every run):
    simulator, written as bags (``python -m sim_node.generate``);
 2. a TPSR with the guide's default parameters (``learner fit``) and a fitted-Q policy on
    the states tracked over the RL run (``learner policy``);
-3. the standard evaluation headless (``learner evaluate``), then over the nodes: sim_node
-   and the filter node as separate processes in lockstep over DDS, recorded into a bag
+3. the standard evaluation headless (``learner evaluate``), beside the floors (the best
+   constant action, uniformly random actions) and the ceiling (fitted Q on the true
+   position), then over the nodes: sim_node and the filter node as separate processes in
+   lockstep over ROS 2 (rclpy when importable, else the DDS backend), recorded into a bag
    (``learner closed-loop --record``); the two scores are equal by construction;
 4. plots: the states over the RL run coloured by reward and true position (``learner
    plot``), and the closed-loop trajectories from ``/ground_truth/pose`` coloured by trial.
@@ -18,6 +20,7 @@ from __future__ import annotations
 import shutil
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,13 +29,15 @@ from tqdm import tqdm
 from learner.cli import main as learner_main
 from learner.closed_loop import run_closed_loop
 from learner.evaluate import START_POSITIONS, STEPS, evaluate
+from learner.floors import ConstantFloor, constant_floor, random_floor
 from learner.representations import load_tracker
 from sim_node import Environment, SimConfig
 from sim_node.generate import generate_bag
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.io.policy import load_policy
+from tpsr_ros.io.policy import TRUE_POSITION, load_policy
+from tpsr_ros.runtime.backend import choose_backend
 
 __all__ = ["main", "plot_trajectories"]
 
@@ -150,13 +155,20 @@ def main(argv: list[str] | None = None) -> int:
     _stage(4, f"learner policy {model} {rl} -o {policy}  (fitted Q-iteration)")
     learner_main(["policy", str(model), str(rl), "-o", str(policy)])
 
-    _stage(5, f"learner evaluate {policy} --environment {env}  (headless)")
+    _stage(5, f"learner evaluate {policy} --environment {env}  (headless; floors, ceiling)")
     headless = evaluate(load_policy(policy), load_tracker(model), env)
+    ceiling_policy = out / "policy_true_position.npz"
+    learner_main(["policy", TRUE_POSITION, str(rl), "-o", str(ceiling_policy)])
+    bounds = Bounds(
+        constant_floor(env),
+        random_floor(env, policy_seed=0).score,
+        evaluate(load_policy(ceiling_policy), load_tracker(TRUE_POSITION), env).score,
+    )
 
     _stage(
         6,
-        "closed loop over the nodes: sim_node + tpsr_filter as processes over DDS, "
-        f"recorded to {closed}",
+        f"closed loop over the nodes: sim_node + tpsr_filter as processes over "
+        f"{choose_backend()[0]}, recorded to {closed}",
     )
     with tqdm(total=len(START_POSITIONS) * STEPS, unit="step", desc="closed loop") as bar:
         result = run_closed_loop(
@@ -174,11 +186,20 @@ def main(argv: list[str] | None = None) -> int:
     learner_main(["plot", str(model), str(rl), "-o", str(states_png)])
     plot_trajectories(closed, paths_png, SimConfig(environment=env))
 
-    _summary(out, headless, result, time.perf_counter() - began)
+    _summary(out, headless, result, bounds, time.perf_counter() - began)
     return 0
 
 
-def _summary(out: Path, headless: Any, result: Any, seconds: float) -> None:
+@dataclass(frozen=True)
+class Bounds:
+    """What the score stands between: the state-blind floors and the true-position ceiling."""
+
+    constant: ConstantFloor
+    random: float
+    true_position: float
+
+
+def _summary(out: Path, headless: Any, result: Any, bounds: Bounds, seconds: float) -> None:
     print()
     print("trial  start           closed loop (reward, goal step)  headless")
     for index, (ours, theirs) in enumerate(
@@ -195,6 +216,12 @@ def _summary(out: Path, headless: Any, result: Any, seconds: float) -> None:
         f"score over the nodes (closed loop): {closed:.1f}; headless (learner evaluate): "
         f"{head:.1f} ({same})"
     )
+    vx, vy = bounds.constant.velocity
+    print(
+        f"same protocol, floors: best constant action ({vx:+.0f}, {vy:+.0f}) "
+        f"{bounds.constant.evaluation.score:.1f}, random actions {bounds.random:.1f}; "
+        f"ceiling: true position {bounds.true_position:.1f}"
+    )
     reached = sum(t.goal_step is not None for t in result.evaluation.trials)
     print(f"the robot reached the goal zone in {reached} of {len(result.evaluation.trials)} trials")
     print()
@@ -204,6 +231,7 @@ def _summary(out: Path, headless: Any, result: Any, seconds: float) -> None:
         ("bags/rl", "random RL run"),
         ("model.npz", "TPSR (learner info model.npz)"),
         ("policy.npz", "greedy fitted-Q policy for that model"),
+        ("policy_true_position.npz", "the ceiling: fitted Q on the true position"),
         (
             "bags/closed_loop",
             "closed-loop recording: images, actions, /tpsr/state, /cmd_vel, "

@@ -34,6 +34,7 @@ __all__ = [
     "evaluate",
     "register",
     "run",
+    "run_protocol",
 ]
 
 EVALUATION_SEED = 2026
@@ -86,6 +87,27 @@ def evaluate(
 ) -> Evaluation:
     """Run the standard protocol with ``policy`` choosing from ``tracker``'s states."""
     policy.check_model(tracker.fingerprint)
+    return run_protocol(
+        policy.action, tracker, environment, seed=seed, starts=starts, steps=steps,
+        on_trial=on_trial,
+    )
+
+
+def run_protocol(
+    choose: Callable[[np.ndarray], int],
+    tracker: Tracker,
+    environment: Environment | str,
+    *,
+    seed: int = EVALUATION_SEED,
+    starts: Sequence[tuple[float, float]] = START_POSITIONS,
+    steps: int = STEPS,
+    on_trial: Callable[[int, Trial], None] | None = None,
+) -> Evaluation:
+    """The standard protocol for any controller ``choose(state) -> action index``.
+
+    ``evaluate`` runs it for a fitted-Q policy; the floor baselines (:mod:`learner.floors`)
+    for state-blind controllers.
+    """
     env = RobotEnv(SimConfig(environment=environment), seed=seed)
     env.reset()  # the start-up reset of a freshly started sim_node
     trials = []
@@ -94,7 +116,7 @@ def evaluate(
         state = tracker.start(image, info["position"])
         total, goal_step, contacts = 0.0, None, 0
         for k in range(1, steps + 1):
-            action = policy.action(state)
+            action = choose(state)
             image, reward, _, _, info = env.step(action)
             total += reward
             contacts += info["wall_contact"]

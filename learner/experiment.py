@@ -4,8 +4,11 @@ For every data size (training episodes) and repetition: a fresh uniformly random
 trajectory; a TPSR and the PCA baseline learned from it; states tracked with each
 model's parameters over one separate random RL trajectory (15000 steps in ``full``,
 20000 in ``partial`` and ``distractors``; the same for every run, as in the guide);
-fitted Q-iteration on them; the standard evaluation. The true-position baseline (the
-upper bound of the RL step) runs the same RL step on the ground truth.
+fitted Q-iteration on them; the standard evaluation. Beside them stand the floors
+(``constant``: the best of the 25 constant actions; ``random``: uniformly random
+actions, seeded per run; :mod:`learner.floors`) and the ceiling (``true-position``: the
+same RL step on the ground truth). ``--set NAME=VALUE`` changes any fit or fitted-Q
+parameter (:mod:`learner.overrides`); the CSV records every parameter of every run.
 
 Every seed is derived from ``--seed``, the data size and the repetition and written to
 the CSV, so any row reruns alone (``--episodes N --first-repetition K --repetitions 1``).
@@ -18,6 +21,7 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import json
 import os
 import sys
 import time
@@ -31,7 +35,9 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from learner.evaluate import evaluate
+from learner.evaluate import Evaluation, evaluate
+from learner.floors import CONSTANT, FLOORS, RANDOM, constant_floor, random_floor
+from learner.overrides import apply_overrides
 from learner.planning import transitions
 from learner.plots import affine_r2
 from learner.representations import ModelTracker, Tracker, TruePositionTracker
@@ -58,7 +64,7 @@ __all__ = [
     "summarise",
 ]
 
-METHODS = ("tpsr", "pca", TRUE_POSITION)
+METHODS = (CONSTANT, RANDOM, "tpsr", "pca", TRUE_POSITION)
 RL_STEPS = {"full": 15000, "partial": 20000, "distractors": 20000}
 PCA_DIM = {"full": 2, "partial": 3, "distractors": 3}  # guide figure 4.5 / appendix A.2-A.3
 MAX_RIDGE = 1.0
@@ -130,6 +136,7 @@ class Row:
     r2_x: float
     r2_y: float
     status: str
+    parameters: str = "{}"
 
 
 def _plan_and_score(
@@ -148,8 +155,7 @@ def _plan_and_score(
             fqi = dataclasses.replace(fqi, ridge=fqi.ridge * 10)
     policy = Policy(q, tracker.representation, tracker.fingerprint, config.environment)
     result = evaluate(policy, tracker, config.environment)
-    trials = ";".join(f"{t.reward:g}" for t in result.trials)
-    return result.score, trials, fqi.ridge, "ok"
+    return result.score, _trials(result), fqi.ridge, "ok"
 
 
 @lru_cache(maxsize=1)
@@ -158,29 +164,80 @@ def _rl_trajectory(environment: str, steps: int, seed: int) -> Trajectory:
     return random_trajectory(environment, steps, seed)
 
 
+def _parameters(config: ExperimentConfig, method: str, extra: dict[str, Any]) -> str:
+    """Every parameter of one run as JSON: the method's own config, the RL step's, the rest."""
+    values: dict[str, Any] = {"rl_steps": config.rl_steps, **extra}
+    if method in ("tpsr", "pca"):
+        values[method] = dataclasses.asdict(getattr(config, method))
+    if method not in FLOORS:
+        values["fqi"] = dataclasses.asdict(config.fqi)
+    return json.dumps(values, sort_keys=True)
+
+
+def _trials(evaluation: Evaluation) -> str:
+    return ";".join(f"{t.reward:g}" for t in evaluation.trials)
+
+
+def _floor_row(config: ExperimentConfig, method: str, episodes: int, repetition: int) -> Row:
+    """A floor's run: state-blind, so it needs no training data and no fitted Q."""
+    start = time.perf_counter()
+    if method == CONSTANT:
+        floor = constant_floor(config.environment)
+        evaluation, extra = floor.evaluation, {"action": floor.action, "velocity": floor.velocity}
+    else:
+        policy_seed = config.train_seed(episodes, repetition)
+        evaluation, extra = (
+            random_floor(config.environment, policy_seed),
+            {"policy_seed": policy_seed},
+        )
+    return Row(
+        config.environment,
+        method,
+        episodes,
+        repetition,
+        config.train_seed(episodes, repetition),
+        config.rl_seed,
+        evaluation.score,
+        _trials(evaluation),
+        round(time.perf_counter() - start, 3),
+        float("nan"),
+        0,
+        float("nan"),
+        float("nan"),
+        "ok",
+        _parameters(config, method, extra),
+    )
+
+
+def _learn_states(
+    config: ExperimentConfig, method: str, train: Trajectory, rl: Trajectory
+) -> tuple[Tracker, np.ndarray, int]:
+    """The method's tracker and its states over the RL trajectory (and filter recoveries)."""
+    if method == TRUE_POSITION:
+        tracker = TruePositionTracker()
+        return tracker, tracker.track(rl), 0
+    if method == "tpsr":
+        episodes = make_episodes(train, config.tpsr.history_length, config.tpsr.test_length)
+        model = fit_tpsr_episodes(episodes, config=config.tpsr)
+    else:
+        model = fit_pca(train.observations, n_actions=train.n_actions, config=config.pca)
+    track = model.track(rl.actions, rl.observations)
+    return ModelTracker(model, model_fingerprint(model)), track.states, int(track.recovered.sum())
+
+
 def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[Row]:
     """Every method at one (data size, repetition): the unit of parallel work."""
     train_seed = config.train_seed(episodes, repetition)
+    rows = [_floor_row(config, m, episodes, repetition) for m in config.methods if m in FLOORS]
+    learned = [m for m in config.methods if m not in FLOORS]
+    if not learned:
+        return rows
     rl = _rl_trajectory(config.environment, config.rl_steps, config.rl_seed)
     train = random_trajectory(config.environment, config.steps_for(episodes), train_seed)
-    rows = []
-    for method in config.methods:
+    for method in learned:
         start = time.perf_counter()
         try:
-            tracker: Tracker
-            recoveries = 0
-            if method == "tpsr":
-                ep = make_episodes(train, config.tpsr.history_length, config.tpsr.test_length)
-                model = fit_tpsr_episodes(ep, config=config.tpsr)
-            elif method == "pca":
-                model = fit_pca(train.observations, n_actions=train.n_actions, config=config.pca)
-            if method == TRUE_POSITION:
-                tracker = TruePositionTracker()
-                states = tracker.track(rl)
-            else:
-                tracker = ModelTracker(model, model_fingerprint(model))
-                track = model.track(rl.actions, rl.observations)
-                states, recoveries = track.states, int(track.recovered.sum())
+            tracker, states, recoveries = _learn_states(config, method, train, rl)
             fit_seconds = time.perf_counter() - start
             r2 = affine_r2(states, rl.positions)
             score, trials, ridge, status = _plan_and_score(config, tracker, rl, states)
@@ -203,6 +260,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 round(float(r2[0]), 4),
                 round(float(r2[1]), 4),
                 status,
+                _parameters(config, method, {}),
             )
         )
     return rows
@@ -242,7 +300,13 @@ def run_experiment(
 
 
 def summarise(rows: Sequence[Row]) -> list[dict[str, Any]]:
-    """Mean, median, standard error of the mean and failures per (method, data size)."""
+    """Mean, median, SEM and failures per (method, data size), and each margin over the floor.
+
+    For every method that is not a floor, ``floor`` names the best floor at the same data
+    size (highest mean) and ``margin_sem`` is ``(mean - floor mean) / sqrt(SEM^2 + floor
+    SEM^2)``: how many standard errors of the difference the method lies above it (NaN
+    when no floor ran).
+    """
     table = []
     keys = sorted({(r.method, r.episodes) for r in rows}, key=lambda k: (METHODS.index(k[0]), k[1]))
     for method, episodes in keys:
@@ -259,7 +323,27 @@ def summarise(rows: Sequence[Row]) -> list[dict[str, Any]]:
                 "sem": float(ok.std(ddof=1) / np.sqrt(len(ok))) if len(ok) > 1 else float("nan"),
             }
         )
+    for entry in table:
+        floors = [t for t in table if t["method"] in FLOORS and t["episodes"] == entry["episodes"]]
+        entry["floor"], entry["margin_sem"] = "", float("nan")
+        if entry["method"] in FLOORS or not floors:
+            continue
+        best = max(floors, key=lambda t: t["mean"])
+        spread = np.hypot(np.nan_to_num(entry["sem"]), np.nan_to_num(best["sem"]))
+        difference = entry["mean"] - best["mean"]
+        entry["floor"] = best["method"]
+        entry["margin_sem"] = (
+            float(difference / spread) if spread > 0 else float(np.sign(difference) * np.inf)
+        )
     return table
+
+
+def margin_text(entry: dict[str, Any]) -> str:
+    """The margin over the best floor in SEMs, as printed in tables (``-`` for floors)."""
+    margin = entry.get("margin_sem", float("nan"))
+    if not entry.get("floor") or not np.isfinite(entry["mean"]):
+        return "-"
+    return f"{margin:+.1f} over {entry['floor']}"
 
 
 def write_csv(rows: Sequence[Row], path: Path) -> None:
@@ -277,8 +361,14 @@ def plot_summary(table: Sequence[dict[str, Any]], environment: str, path: Path) 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colours = {"tpsr": "tab:red", "pca": "tab:blue", TRUE_POSITION: "tab:gray"}
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    colours = {
+        CONSTANT: "tab:brown",
+        RANDOM: "tab:olive",
+        "tpsr": "tab:red",
+        "pca": "tab:blue",
+        TRUE_POSITION: "tab:gray",
+    }
+    fig, ax = plt.subplots(figsize=(6.4, 4.8))
     for method in METHODS:
         part = [t for t in table if t["method"] == method]
         if not part:
@@ -294,9 +384,9 @@ def plot_summary(table: Sequence[dict[str, Any]], environment: str, path: Path) 
     ax.set_xlabel("training episodes")
     ax.set_ylabel("mean reward of 10 trials (max ~470)")
     ax.set_title(f"{environment}: learning-planning loop")
-    ax.set_ylim(-100, 500)
+    ax.set_ylim(min(-100.0, *(t["mean"] - 20 for t in table if np.isfinite(t["mean"]))), 500)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, ncol=3, loc="lower right")
+    ax.legend(fontsize=7, ncol=5, loc="upper center", bbox_to_anchor=(0.5, -0.14))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -306,12 +396,12 @@ def format_table(table: Sequence[dict[str, Any]]) -> list[str]:
     """The summary as aligned text lines."""
     lines = [
         f"{'method':14s} {'episodes':>8s} {'runs':>4s} {'mean':>7s} {'median':>7s} "
-        f"{'sem':>6s} {'failed':>6s}"
+        f"{'sem':>6s} {'failed':>6s}  margin (SEMs)"
     ]
     for t in table:
         lines.append(
             f"{t['method']:14s} {t['episodes']:8d} {t['runs']:4d} {t['mean']:7.1f} "
-            f"{t['median']:7.1f} {t['sem']:6.1f} {t['failed']:6d}"
+            f"{t['median']:7.1f} {t['sem']:6.1f} {t['failed']:6d}  {margin_text(t)}"
         )
     return lines
 
@@ -341,7 +431,24 @@ def register(subparsers: Any) -> None:
         metavar="K",
         help="index of the first repetition (rerun rows alone)",
     )
-    parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        choices=METHODS,
+        default=list(METHODS),
+        help="floors (constant, random), learned representations (tpsr, pca) and the "
+        "ceiling (true-position); default: all",
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        dest="assignments",
+        help="set a fit or fitted-Q parameter for every run (repeatable): tpsr.<field> "
+        "(e.g. rank, sigma_ht, ht_centers), pca.dim, fqi.<field> (e.g. ridge, centers); a "
+        "bare name where unambiguous",
+    )
     parser.add_argument(
         "--rl-steps",
         type=positive_int,
@@ -376,8 +483,14 @@ def run(args: argparse.Namespace) -> int:
         "methods": tuple(args.methods),
         "rl_seed": args.rl_seed,
         "seed": args.seed,
-        "tpsr": TPSRConfig(p_th_tests=args.p_th_tests),
     }
+    base = default_config(args.environment)
+    configs = {
+        "tpsr": dataclasses.replace(base.tpsr, p_th_tests=args.p_th_tests),
+        "pca": base.pca,
+        "fqi": base.fqi,
+    }
+    overrides.update(apply_overrides(configs, args.assignments))
     if args.episodes:
         overrides["episodes"] = tuple(args.episodes)
     if args.rl_steps:

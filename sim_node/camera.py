@@ -62,6 +62,7 @@ class Camera:
         self._row_top = edges[:-1, None].astype(np.float32)  # (H, 1)
         self._row_bottom = edges[1:, None].astype(np.float32)
         self._inv_row_height = np.float32(size / (2.0 * extent))
+        self._ground_rows = np.flatnonzero(self._row_bottom[:, 0] < 0)  # may show the floor
         self._cam_h = config.robot_height
         self._wall_h = config.wall_height
         self._wall_colours = WALL_COLOURS.astype(np.float32)
@@ -132,8 +133,16 @@ class Camera:
     def _floor_distractor_red(
         self, positions: np.ndarray, distance: np.ndarray, disks: np.ndarray
     ) -> np.ndarray:
-        """Red-channel change ``(N, W, H)`` from disks lying on the floor."""
+        """Red-channel change ``(N, W, H)`` from disks lying on the floor.
+
+        Only the (step, column, disk, ray) combinations whose ray crosses a disk, and only
+        the rows below the horizon, get a coverage: the dense ``(N, W, F, H, S)`` tensor
+        would be mostly zeros. Coverages are summed per (step, column) with one
+        ``reduceat`` over the visible combinations, which come out of ``nonzero`` sorted.
+        """
         radius = self.config.distractors.floor_radius
+        count, columns = distance.shape[:2]
+        out = np.zeros((count * columns, self.config.image_size), dtype=np.float32)
         offset = np.asarray(disks, dtype=np.float64) - positions[:, None, :]  # (N, F, 2)
         # distance along each ray to the disk centre's foot point: (N, W, F, S)
         along_ray = (
@@ -145,11 +154,20 @@ class Camera:
         near = np.maximum(along_ray - half, 1e-9)
         far = np.minimum(along_ray + half, distance[:, :, None, :])
         visible = (perp2 < radius**2) & (far > near)
-        low = np.where(visible, -self._cam_h / near, 0.0).astype(np.float32)
-        high = np.where(visible, -self._cam_h / far, 0.0).astype(np.float32)
-        cover = self._coverage(low, high)  # (N, W, F, H, S)
-        delta = float(_distractor_red(FLOOR_COLOUR[0]) - FLOOR_COLOUR[0])
-        return (delta / self.config.rays_per_column) * cover.sum(axis=(2, 4))
+        step, column, _, _ = np.nonzero(visible)
+        if step.size:
+            low = (-self._cam_h / near[visible]).astype(np.float32)[:, None]  # (K, 1)
+            high = (-self._cam_h / far[visible]).astype(np.float32)[:, None]
+            rows = self._ground_rows
+            cover = np.minimum(high, self._row_top[rows, 0])
+            cover -= np.maximum(low, self._row_bottom[rows, 0])
+            np.clip(cover, 0.0, None, out=cover)  # (K, rows below the horizon)
+            key = step * columns + column  # non-decreasing: nonzero returns C order
+            first = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+            delta = float(_distractor_red(FLOOR_COLOUR[0]) - FLOOR_COLOUR[0])
+            scale = np.float32(delta * self._inv_row_height / self.config.rays_per_column)
+            out[key[first, None], rows] = np.add.reduceat(cover, first, axis=0) * scale
+        return out.reshape(count, columns, -1)
 
     def _wall_distractor_red(
         self, inv_distance: np.ndarray, wall: np.ndarray, along: np.ndarray, patches: np.ndarray

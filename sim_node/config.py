@@ -39,10 +39,13 @@ class DistractorConfig:
     """Randomly moving distractors (guide figure 4.6): three disks on the floor and one
     rectangle on each wall, differing from their background only in the red channel.
 
-    Each moves as a reflected Gaussian random walk with ``step_std`` metres per step; the
-    default 15 m makes consecutive positions nearly independent, so the distractors are
-    task-irrelevant noise that history cannot predict. Sizes are ours (the guide gives
-    none): disks of radius 6 m and 16 m wide rectangles over the full wall height.
+    Each moves as a slow reflected Gaussian random walk: ``step_std`` metres (standard
+    deviation per coordinate) per 1 s step, 1.5 m by default, so a distractor persists
+    from step to step like the guide's "randomly moving" objects and drifts across the
+    room over tens of steps. (Steps of 15 m, the first version, redrew them almost
+    independently every step: white noise rather than moving objects.) Sizes are ours
+    (the guide gives none): disks of radius 6 m and 16 m wide rectangles over the full
+    wall height.
     """
 
     floor_count: int = 3
@@ -50,7 +53,7 @@ class DistractorConfig:
     wall_half_width: float = 8.0
     wall_bottom: float = 0.0
     wall_top: float = 4.0
-    step_std: float = 15.0
+    step_std: float = 1.5
 
     def __post_init__(self) -> None:
         if self.floor_count < 0:

@@ -4,10 +4,13 @@ One step: the robot executes action a_k (its commanded velocity plus Gaussian no
 a standard deviation of ``noise_fraction`` of each commanded component) for 1 s, then
 the camera sees o_k. Step k is stamped ``start_time_ns + k * 1 s``; reset is step 0.
 
-Reward of a step: ``goal_reward`` (+10) when the robot centre ends the step closer than
-``goal_radius`` (15 m) to the north-east corner, plus ``wall_reward`` (-1) when a wall
-blocked the robot during the step. The two add: a blocked step inside the goal zone
-earns +9.
+Reward of a step (guide 4.1: reach the upper right-hand corner "without hitting walls"):
+``wall_reward`` (-1) when a wall blocked the robot during the step, and nothing else,
+inside the goal zone too; otherwise ``goal_reward`` (+10) when the robot centre ends the
+step closer than ``goal_radius`` (15 m) to the north-east corner; otherwise 0. A
+collision overrides the goal reward because otherwise a state-blind push into the corner
+earns +9 per step, 90 % of the maximum, and the evaluation could not tell a learned
+representation from none (the guide's failing representations score about 0).
 
 Randomness comes from four independent streams spawned from one seed: start position,
 exploration actions, execution noise and distractors. With the same seed and actions
@@ -50,10 +53,15 @@ def spawn_streams(seed: int) -> Streams:
 
 
 def step_reward(config: SimConfig, position: np.ndarray, contact: np.ndarray) -> np.ndarray:
-    """Reward and goal-zone flag for positions ``(..., 2)`` and contact flags ``(...)``."""
+    """Reward and goal-zone flag for positions ``(..., 2)`` and contact flags ``(...)``.
+
+    A blocked step earns ``wall_reward`` whether or not it ends in the goal zone; a free
+    step in the zone earns ``goal_reward`` (see the module docstring for why).
+    """
     corner = np.array([config.room_size, config.room_size])
     goal = np.linalg.norm(np.asarray(position) - corner, axis=-1) < config.goal_radius
-    reward = config.goal_reward * goal + config.wall_reward * np.asarray(contact, dtype=bool)
+    blocked = np.asarray(contact, dtype=bool)
+    reward = np.where(blocked, config.wall_reward, np.where(goal, config.goal_reward, 0.0))
     return reward.astype(np.float64), goal
 
 

@@ -12,7 +12,7 @@ if set); ``command`` takes one step per ``/cmd_vel`` Twist, snapped to the neare
 the 25 actions, and with ``episode_steps`` N > 0 ignores further commands once N steps
 were taken since the last reset (a controller answering the last step of an episode in
 lockstep then takes no extra step). ``/sim/reset`` (PoseStamped, frame ``map``) restarts
-at a position. Every ignored command is announced on ``/sim/cmd_ignored`` (a Header stamped
+at a position. Every ignored command is announced on ``sim/cmd_ignored`` (a Header stamped
 with the last event's time, ``frame_id`` the reason), so a driver can tell through the graph
 that a command was consumed without a step.
 """
@@ -34,11 +34,13 @@ from tpsr_ros.runtime import LATCHED_QOS, Node, param
 
 __all__ = ["CMD_IGNORED_TOPIC", "EPISODE_START_TOPIC", "RESET_TOPIC", "SimNode", "SimNodeParams"]
 
-RESET_TOPIC = "/sim/reset"
-EPISODE_START_TOPIC = "/sim/episode_start"
-CMD_VEL_TOPIC = "/cmd_vel"
+# Relative names (the step topics too, see SimTopics.relative): `-r __ns:=/robot1` puts
+# every topic of the node under /robot1/, so robots run side by side.
+RESET_TOPIC = "sim/reset"
+EPISODE_START_TOPIC = "sim/episode_start"
+CMD_VEL_TOPIC = "cmd_vel"
 IGNORED_REASONS = ("explore_mode", "not_started", "episode_steps")
-"""``frame_id`` of a ``/sim/cmd_ignored`` Header: why the command took no step."""
+"""``frame_id`` of a ``sim/cmd_ignored`` Header: why the command took no step."""
 
 
 @dataclass(frozen=True)
@@ -94,7 +96,7 @@ class SimNode(Node):
         p: SimNodeParams = self.params
         self.config = SimConfig(environment=p.environment)
         self.env = RobotEnv(self.config, seed=p.seed)
-        self.topics = SimTopics()
+        self.topics = SimTopics().relative()
         self.step_publishers = {
             name: self.create_publisher(name, msgtype)
             for name, msgtype in self.topics.types().items()

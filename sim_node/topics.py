@@ -5,7 +5,7 @@ Every message of step k carries exactly the stamp t_k (DESIGN.md, "Time and step
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -14,19 +14,27 @@ from tpsr_ros.io import messages as m
 
 __all__ = ["CMD_IGNORED_TOPIC", "SimTopics", "step_messages"]
 
-CMD_IGNORED_TOPIC = "/sim/cmd_ignored"
-"""The node's announcement of a ``/cmd_vel`` that took no step (``std_msgs/msg/Header``)."""
+CMD_IGNORED_TOPIC = "sim/cmd_ignored"
+"""The node's announcement of a ``cmd_vel`` that took no step (``std_msgs/msg/Header``; relative)."""
 
 
 @dataclass(frozen=True)
 class SimTopics:
-    """Topic names of the simulator (defaults from DESIGN.md; remappable)."""
+    """Topic names of the simulator (defaults from DESIGN.md; remappable).
+
+    Bags use these absolute names; the node uses :meth:`relative` ones, which resolve in
+    its namespace (the same names in the root namespace).
+    """
 
     image: str = "/camera/image_raw"
     action: str = "/action"
     pose: str = "/ground_truth/pose"
     reward: str = "/reward"
     clock: str = "/clock"
+
+    def relative(self) -> SimTopics:
+        """Return the same names without the leading ``/`` (resolved in a node's namespace)."""
+        return replace(self, **{f.name: getattr(self, f.name).lstrip("/") for f in fields(self)})
 
     def types(self) -> dict[str, str]:
         """Topic name to ROS message type."""

@@ -1,5 +1,6 @@
-"""The closed loop over the nodes as separate processes (DDS backend): the standard protocol's
-exact result, the recorded states equal offline tracking, and no process outlives a failure.
+"""The closed loop over the nodes as separate processes (real rclpy and the DDS backend): the
+standard protocol's exact result, the recorded states equal offline tracking, and no process
+outlives a failure.
 
 The model and policy are the guide's defaults (24000 training steps, 15000 RL steps), so the
 robot really reaches the reward zone; fitting them takes about 15 s.
@@ -29,6 +30,26 @@ from tpsr_ros.io.model_io import load_model
 from tpsr_ros.io.trajectory import read_trajectory
 
 pytestmark = pytest.mark.dds
+
+
+def _rclpy_available() -> bool:
+    try:
+        import rclpy  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+BACKENDS = [
+    pytest.param("dds", marks=pytest.mark.dds),
+    pytest.param(
+        "rclpy",
+        marks=[
+            pytest.mark.rclpy,
+            pytest.mark.skipif(not _rclpy_available(), reason="rclpy not importable"),
+        ],
+    ),
+]
 LOOPBACK = (
     "<CycloneDDS><Domain id='any'><General><Interfaces>"
     "<NetworkInterface address='127.0.0.1' multicast='true'/>"
@@ -69,8 +90,9 @@ def _children_of_this_process() -> list[int]:
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_closed_loop_equals_the_headless_evaluation_and_the_recorded_states_offline(
-    trained, tmp_path, capsys
+    trained, tmp_path, capsys, backend
 ):
     policy, model = trained / "policy.npz", trained / "model.npz"
     assert (
@@ -92,6 +114,8 @@ def test_closed_loop_equals_the_headless_evaluation_and_the_recorded_states_offl
             str(model),
             "--record",
             str(bag),
+            "--transport",
+            backend,
         ],
         capture_output=True,
         text=True,
@@ -99,6 +123,7 @@ def test_closed_loop_equals_the_headless_evaluation_and_the_recorded_states_offl
         env=env,
     )
     assert proc.returncode == 0, proc.stderr
+    assert f"{backend} transport, ROS_DOMAIN_ID" in proc.stderr
     lines = proc.stdout.splitlines()
     # the real protocol (10 starts x 50 steps): every trial and the score, exactly
     assert lines == headless and len(lines) == 11 and lines[-1].startswith("score: ")

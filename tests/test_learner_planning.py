@@ -3,19 +3,24 @@
 from __future__ import annotations
 
 import csv
+import json
+import re
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
-from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, evaluate
+from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, evaluate, run_protocol
 from learner.experiment import default_config, run_cell, run_experiment, summarise
+from learner.floors import BlindTracker, constant_floor, random_floor
+from learner.overrides import apply_overrides
 from learner.planning import fit_policy, transitions
 from learner.representations import TruePositionTracker
 from learner.simulated import random_trajectory
-from sim_node import RobotEnv, SimConfig
+from sim_node import RobotEnv, SimConfig, action_index
 from sim_node.generate import generate_bag
+from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.pca_baseline import PCAConfig
 from tpsr_ros.core.tpsr import TPSRConfig
@@ -52,15 +57,33 @@ def test_transitions_follow_steps_and_never_cross_a_gap():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("environment", ["full", "partial", "distractors"])
-def test_true_position_baseline_scores_at_least_450(environment):
+def test_true_position_baseline_scores_at_least_460(environment):
     steps = 15000 if environment == "full" else 20000
     rl = random_trajectory(environment, steps, seed=100)
     tracker = TruePositionTracker()
     policy = fit_policy(tracker, rl, FQIConfig(), environment=environment)
     result = evaluate(policy, tracker, environment)
     assert len(result.trials) == 10
-    assert result.score >= 450, [t.reward for t in result.trials]
+    assert result.score >= 460, [t.reward for t in result.trials]
     assert all(t.goal_step is not None for t in result.trials)
+
+
+def test_state_blind_floors_score_near_zero_and_far_below_the_ceiling():
+    # pushing blindly into the goal corner collides there: it must not pay (issue 11)
+    push = run_protocol(lambda _state: action_index(6.0, 6.0), BlindTracker(), "full")
+    assert push.score < 0, [t.reward for t in push.trials]
+    assert all(t.goal_step is not None for t in push.trials)  # it does reach the zone
+    floor = constant_floor("full")
+    still = run_protocol(lambda _state: 12, BlindTracker(), "full")
+    assert still.score == 0.0
+    for velocity in [(6.0, 6.0), (3.0, 3.0), (6.0, 3.0), (3.0, 6.0), (0.0, 3.0)]:
+        constant = run_protocol(lambda _s, v=velocity: action_index(*v), BlindTracker(), "full")
+        assert floor.evaluation.score >= constant.score
+    assert floor.evaluation.score < 100  # no constant action comes near the ceiling
+    # the random floor is reproducible from its seed and differs between seeds
+    first, again, other = (random_floor("full", s) for s in (1, 1, 2))
+    assert first.trials == again.trials and first.trials != other.trials
+    assert abs(first.score) < 100
 
 
 def test_evaluation_follows_the_documented_protocol():
@@ -141,10 +164,16 @@ def test_experiment_grid_rows_seeds_and_rerun_of_one_row(tmp_path):
     config = _small_grid()
     rows = run_experiment(config, workers=2, progress=False)
     assert [(r.method, r.repetition) for r in rows] == [
-        (m, k) for k in (0, 1) for m in ("tpsr", "pca", "true-position")
+        (m, k) for k in (0, 1) for m in ("constant", "random", "tpsr", "pca", "true-position")
     ]
     assert all(r.status == "ok" and np.isfinite(r.score) for r in rows)
     assert len({r.train_seed for r in rows}) == 2  # one training run per repetition
+    # every run records every parameter it used
+    params = {r.method: json.loads(r.parameters) for r in rows if r.repetition == 0}
+    assert params["tpsr"]["tpsr"]["ht_centers"] == 150 and params["tpsr"]["fqi"]["ridge"] == 0.01
+    assert params["pca"]["pca"] == {"dim": 2} and "tpsr" not in params["pca"]
+    assert params["constant"]["action"] == constant_floor("full").action
+    assert params["random"]["policy_seed"] == rows[1].train_seed
     # any row reruns alone from its recorded seeds, with the same result
     again = run_cell(_small_grid(first_repetition=1, repetitions=1), 400, 1)
     assert [(r.score, r.train_seed) for r in again] == [
@@ -154,6 +183,12 @@ def test_experiment_grid_rows_seeds_and_rerun_of_one_row(tmp_path):
     tpsr = np.array([r.score for r in rows if r.method == "tpsr"])
     assert table[("tpsr", 400)]["mean"] == pytest.approx(tpsr.mean())
     assert table[("tpsr", 400)]["sem"] == pytest.approx(tpsr.std(ddof=1) / np.sqrt(2))
+    # the margin over the best floor, in standard errors of the difference
+    floor = max((table[(f, 400)] for f in ("constant", "random")), key=lambda t: t["mean"])
+    expected = (tpsr.mean() - floor["mean"]) / np.hypot(table[("tpsr", 400)]["sem"], floor["sem"])
+    assert table[("tpsr", 400)]["floor"] == floor["method"]
+    assert table[("tpsr", 400)]["margin_sem"] == pytest.approx(expected)
+    assert table[("random", 400)]["floor"] == "" and np.isnan(table[("random", 400)]["margin_sem"])
 
 
 def test_experiment_command_writes_csv_and_plot(tmp_path):
@@ -168,3 +203,49 @@ def test_experiment_command_writes_csv_and_plot(tmp_path):
     assert [r["method"] for r in rows] == ["pca", "true-position"]
     assert (out / "experiment_full.png").stat().st_size > 10_000
     assert "already exists" in _learner(*args).stderr
+
+
+def test_set_changes_any_fit_or_fitted_q_parameter_and_refuses_bad_ones():
+    configs = {"tpsr": TPSRConfig(), "pca": PCAConfig(), "fqi": FQIConfig()}
+    changed = apply_overrides(
+        configs,
+        ["rank=3", "tpsr.sigma_ht=4.5", "ht-centers=700", "center_selection=kmeans",
+         "normalize_ht_features=true", "pca.dim=3", "fqi.ridge=0.1", "fqi.seed=4"],
+    )
+    assert changed["tpsr"] == TPSRConfig(rank=3, sigma_ht=4.5, ht_centers=700,
+                                         center_selection="kmeans", normalize_ht_features=True)
+    assert changed["pca"] == PCAConfig(dim=3)
+    assert changed["fqi"] == FQIConfig(ridge=0.1, seed=4)
+    assert configs["tpsr"] == TPSRConfig()  # the inputs are left alone
+    cases = [
+        ("bogus=1", "unknown --set name 'bogus'; choose from ['tpsr.history_length'"),
+        ("seed=1", "ambiguous; use one of ['tpsr.seed', 'fqi.seed']"),
+        ("rank=three", "tpsr.rank takes an integer, got 'three'"),
+        ("rank=0", "rank must be a positive integer"),
+        ("sigma_obs=wide", "tpsr.sigma_obs takes a number"),
+        ("center_selection=random", "takes one of ['first', 'kmeans']"),
+        ("normalize_ht_features=maybe", "takes true or false"),
+        ("fqi.discount=1.5", "discount 1.5 must be in [0, 1)"),
+        ("rank", "--set takes NAME=VALUE"),
+    ]
+    for text, message in cases:
+        with pytest.raises(ConfigError, match=re.escape(message)):
+            apply_overrides(configs, [text])
+
+
+def test_experiment_command_set_and_floors(tmp_path):
+    out = tmp_path / "results"
+    args = ["experiment", "--environment", "full", "--episodes", "300", "--repetitions", "1",
+            "--methods", "constant", "random", "pca", "--set", "pca.dim=3", "--set",
+            "fqi.centers=40", "--rl-steps", "2000", "--workers", "1", "-o", str(out)]
+    result = _learner(*args)
+    assert result.returncode == 0, result.stderr
+    with (out / "experiment_full.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    assert [r["method"] for r in rows] == ["constant", "random", "pca"]
+    assert json.loads(rows[2]["parameters"])["pca"] == {"dim": 3}
+    assert json.loads(rows[2]["parameters"])["fqi"]["centers"] == 40
+    assert "over random" in result.stdout or "over constant" in result.stdout
+    bad = _learner("experiment", "--environment", "full", "--set", "rnak=3", "-o", str(out))
+    assert bad.returncode != 0 and bad.stderr.count("\n") == 1
+    assert "unknown --set name 'rnak'" in bad.stderr and "tpsr.rank" in bad.stderr

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import zipfile
 
@@ -12,6 +13,7 @@ from test_tpsr import SMALL, structured_episodes
 from tpsr_ros.core.errors import ModelFormatError
 from tpsr_ros.core.pca_baseline import fit_pca
 from tpsr_ros.core.tpsr import TPSRModel, fit_tpsr
+from tpsr_ros.io import npz_archive
 from tpsr_ros.io.model_io import FORMAT_VERSION, load_model, read_metadata, save_model
 
 
@@ -153,16 +155,93 @@ def test_other_format_version_names_both(tmp_path, tpsr):
 def test_bad_arrays(tmp_path, tpsr):
     src = save_model(tpsr, tmp_path / "m.npz")
     cases = {
-        "missing": ({"drop": ("b_inf",)}, "lacks the tpsr arrays \\['b_inf'\\]"),
-        "shape": ({"arrays": {"b_inf": np.zeros(4)}}, "b_inf has shape \\(4,\\)"),
+        "missing": ({"drop": ("b_inf",)}, "lacks the arrays \\['b_inf'\\]"),
+        "shape": ({"arrays": {"b_inf": np.zeros(4)}}, "'b_inf' of .* has shape \\(4,\\)"),
         "dtype": ({"arrays": {"B": tpsr.B.astype(np.float32)}}, "dtype float32"),
         "nan": ({"arrays": {"b_star": np.full(3, np.nan)}}, "non-finite"),
         "extra": ({"arrays": {"extra": np.zeros(1)}}, "unexpected arrays \\['extra'\\]"),
-        "actions": ({"metadata": {"n_actions": 7}}, "declares 7 actions"),
-        "params": ({"metadata": {"parameters": {"rank": -1}}}, "inconsistent"),
+        # shapes are checked against the metadata before any array is read
+        "actions": ({"metadata": {"n_actions": 7}}, "'B' of .* its metadata implies \\(7, "),
+        "params": ({"metadata": {"parameters": {"rank": -1}}}, "lacks a valid 'rank' entry"),
     }
     for name, (change, message) in cases.items():
         dst = tmp_path / f"{name}.npz"
         rewrite(src, dst, **change)
         with pytest.raises(ModelFormatError, match=message):
             load_model(dst)
+
+
+def _write_members(dst, members):
+    """A zip of raw ``name -> bytes`` members, deflated (what a hostile file may be)."""
+    with zipfile.ZipFile(dst, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
+
+
+def _members(src):
+    with zipfile.ZipFile(src) as archive:
+        return {name: archive.read(name) for name in archive.namelist()}
+
+
+def _npy(array=None, header=None):
+    buffer = io.BytesIO()
+    if header is None:
+        np.save(buffer, array)
+    else:
+        np.lib.format.write_array_header_1_0(buffer, header)
+    return buffer.getvalue()
+
+
+def test_hostile_model_files_are_refused_before_any_array_is_inflated(tmp_path, tpsr, monkeypatch):
+    src = save_model(tpsr, tmp_path / "m.npz")
+    members = _members(src)
+    meta = json.loads(str(np.load(io.BytesIO(members["metadata.npy"]))))
+    # a header declaring 2**40 values over 800 bytes
+    huge = {**members, "B.npy": _npy(header={"descr": "<f8", "fortran_order": False,
+                                            "shape": (2**40,)}) + b"\0" * 800}
+    _write_members(tmp_path / "huge.npz", huge)
+    with pytest.raises(ModelFormatError, match=r"declares shape \(1099511627776,\)"):
+        load_model(tmp_path / "huge.npz")
+    # deflated zeros whose shape agrees with doctored metadata, over the size limit (lowered
+    # here to 16 MiB so the test writes 43 MB, not the GBs a real bomb inflates to)
+    monkeypatch.setattr(npz_archive, "MAX_ARRAY_BYTES", 2**24)
+    centres = 200_000
+    bomb_meta = {**meta, "parameters": {**meta["parameters"], "obs_centers": centres}}
+    header = {"descr": "<f8", "fortran_order": False, "shape": (3, centres, 3, 3)}
+    with zipfile.ZipFile(tmp_path / "bomb.npz", "w", compression=zipfile.ZIP_DEFLATED) as z:
+        for name, data in members.items():
+            if name == "B.npy":
+                with z.open(name, "w", force_zip64=True) as handle:
+                    handle.write(_npy(header=header))
+                    zeros = bytes(2**24)
+                    for _ in range(3 * centres * 9 * 8 // len(zeros)):
+                        handle.write(zeros)
+                    handle.write(bytes(3 * centres * 9 * 8 % len(zeros)))
+            elif name == "metadata.npy":
+                z.writestr(name, _npy(np.array(json.dumps(bomb_meta))))
+            else:
+                z.writestr(name, data)
+    assert (tmp_path / "bomb.npz").stat().st_size < 1_000_000
+    with pytest.raises(ModelFormatError, match="more than the 16777216 this tpsr-ros reads"):
+        load_model(tmp_path / "bomb.npz")
+    # metadata of the wrong types or nested absurdly deep
+    cases = {
+        "method": ({**meta, "method": ["tpsr"]}, "holds method \"\\['tpsr'\\]\""),
+        "observation": ({**meta, "observation": [768]}, "valid 'observation' entry"),
+        "rank": ({**meta, "parameters": {**meta["parameters"], "rank": "5"}}, "valid 'rank'"),
+    }
+    for name, (changed, message) in cases.items():
+        _write_members(tmp_path / f"{name}.npz",
+                       {**members, "metadata.npy": _npy(np.array(json.dumps(changed)))})
+        with pytest.raises(ModelFormatError, match=message):
+            load_model(tmp_path / f"{name}.npz")
+    deep = "[" * 100_000 + "]" * 100_000
+    _write_members(tmp_path / "deep.npz", {**members, "metadata.npy": _npy(np.array(deep))})
+    with pytest.raises(ModelFormatError, match="nests deeper than 64 levels"):
+        load_model(tmp_path / "deep.npz")
+    # an object array is refused from its header, pickles are never loaded
+    objects = {**members, "b_inf.npy": _npy(header={"descr": "|O", "fortran_order": False,
+                                                   "shape": (3,)}) + b"\0" * 24}
+    _write_members(tmp_path / "objects.npz", objects)
+    with pytest.raises(ModelFormatError, match="has dtype object"):
+        load_model(tmp_path / "objects.npz")

@@ -1,9 +1,11 @@
 """msgs_doc/ says exactly what the nodes declare: parameters, options, endpoints, QoS.
 
 Each page (format in msgs_doc/README.md) names its node class; the node is constructed on
-the in-process bus (with its default parameters, or by a factory below) and its
-parameters, command-line options, publishers and subscriptions are compared with the
-page's tables. Rows whose topic is ``*`` are dynamic and not checked.
+the in-process bus (with its default parameters, or by a factory below) in the namespace
+``/doc_ns`` and its parameters, command-line options, publishers and subscriptions are
+compared with the page's tables: a relative topic (``camera/image_raw``) must resolve into
+the namespace, an absolute one (``/diagnostics``) must not. Rows whose topic is ``*`` are
+dynamic and not checked.
 """
 
 from __future__ import annotations
@@ -19,11 +21,12 @@ import pytest
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagWriter
 from tpsr_ros.io.qos import parse_qos_text
-from tpsr_ros.runtime import Node, NodeOptions
+from tpsr_ros.runtime import Node, NodeOptions, RosArgs, parse_ros_args
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
 from tpsr_ros.runtime.params import param_specs
 
 DOC = Path(__file__).resolve().parent.parent / "msgs_doc"
+NAMESPACE = "/doc_ns"
 
 
 def _cells(line: str) -> list[str]:
@@ -89,16 +92,16 @@ def index_pages() -> list[str]:
 # -- node factories: nodes that need more than their default parameters -----------------
 
 
-def _recorder(tmp: Path, bus: InprocBus) -> tuple[Node, set[str]]:
+def _recorder(tmp: Path, bus: InprocBus, ros_args: RosArgs) -> tuple[Node, set[str]]:
     from tpsr_ros.record import RecorderNode
 
     args = RecorderNode.argument_parser("record").parse_args(["-o", str(tmp / "bag")])
-    node = RecorderNode(NodeOptions.for_node(RecorderNode, args=args),
+    node = RecorderNode(NodeOptions.for_node(RecorderNode, ros_args, args=args),
                         transport=InprocTransport("/rec", bus))
     return node, set()
 
 
-def _player(tmp: Path, bus: InprocBus) -> tuple[Node, set[str]]:
+def _player(tmp: Path, bus: InprocBus, ros_args: RosArgs) -> tuple[Node, set[str]]:
     from tpsr_ros.play import PlayerNode
 
     bag = tmp / "in"
@@ -106,23 +109,23 @@ def _player(tmp: Path, bus: InprocBus) -> tuple[Node, set[str]]:
         writer.add_topic("/action", m.ACTION_TYPE)
         writer.write_message("/action", 1, m.twist_stamped_msg(1, 0.0, 0.0))
     args = PlayerNode.argument_parser("play").parse_args([str(bag)])
-    node = PlayerNode(NodeOptions.for_node(PlayerNode, args=args),
+    node = PlayerNode(NodeOptions.for_node(PlayerNode, ros_args, args=args),
                       transport=InprocTransport("/play", bus))
     return node, {"/action"}  # the bag's topics are the dynamic '*' rows
 
 
-def _filter(tmp: Path, bus: InprocBus) -> tuple[Node, set[str]]:
+def _filter(tmp: Path, bus: InprocBus, ros_args: RosArgs) -> tuple[Node, set[str]]:
     from test_filter_node import fit_small_model, random_policy
 
     from tpsr_ros.filter_node import FilterNode
 
     model = fit_small_model(tmp)
     policy = random_policy(model, tmp / "policy.npz")  # with a policy: /cmd_vel exists too
-    options = NodeOptions.for_node(FilterNode, model=str(model), policy=str(policy))
+    options = NodeOptions.for_node(FilterNode, ros_args, model=str(model), policy=str(policy))
     return FilterNode(options, transport=InprocTransport("/filter", bus)), set()
 
 
-FACTORIES: dict[str, Callable[[Path, InprocBus], tuple[Node, set[str]]]] = {
+FACTORIES: dict[str, Callable[[Path, InprocBus, RosArgs], tuple[Node, set[str]]]] = {
     "tpsr_ros.record:RecorderNode": _recorder,
     "tpsr_ros.play:PlayerNode": _player,
     "tpsr_ros.filter_node:FilterNode": _filter,
@@ -138,10 +141,16 @@ def _node_class(spec: str) -> type[Node]:
 
 def _construct(spec: str, tmp: Path) -> tuple[Node, set[str]]:
     bus = InprocBus()
+    ros_args = parse_ros_args(["-r", f"__ns:={NAMESPACE}"])
     if spec in FACTORIES:
-        return FACTORIES[spec](tmp, bus)
+        return FACTORIES[spec](tmp, bus, ros_args)
     cls = _node_class(spec)
-    return cls(NodeOptions.for_node(cls), transport=InprocTransport("/doc", bus)), set()
+    options = NodeOptions.for_node(cls, ros_args)
+    return cls(options, transport=InprocTransport("/doc", bus)), set()
+
+
+def _in_namespace(topic: str) -> str:
+    return topic if topic.startswith("/") else f"{NAMESPACE}/{topic}"
 
 
 def test_index_lists_every_page_and_every_page_exists():
@@ -191,11 +200,12 @@ def test_page_matches_the_node(page, tmp_path):
 
     # endpoints: every non-dynamic row, exactly
     node, dynamic = _construct(head["node class"], tmp_path)
+    assert node.namespace == NAMESPACE
     try:
         for kind, heading in (("publisher", "Publishers"), ("subscription", "Subscriptions")):
             rows = table(parts[heading], ["topic", "type", "qos", "meaning"]) or []
             documented_endpoints = {
-                (_unquote(r[0]), _unquote(r[1]), parse_qos_text(r[2]))
+                (_in_namespace(_unquote(r[0])), _unquote(r[1]), parse_qos_text(r[2]))
                 for r in rows if _unquote(r[0]) != "*"
             }
             assert all(r[3] for r in rows), f"{page}: an endpoint has no meaning"

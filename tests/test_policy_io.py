@@ -80,5 +80,27 @@ def test_inconsistent_shapes_are_refused(tmp_path, policy):
     arrays["weights"] = arrays["weights"][:-1]  # one centre's weights missing
     broken = tmp_path / "broken.npz"
     write_archive(broken, arrays, metadata)
-    with pytest.raises(ModelFormatError, match="inconsistent"):
+    # (the temporary path holds this test's name, so match more than "inconsistent")
+    with pytest.raises(ModelFormatError, match=r"'weights' .* has shape \(9, 4\); its metadata implies \(10, 4\)"):
         load_policy(broken)
+
+
+def test_hostile_values_and_metadata_are_refused(tmp_path, policy):
+    import json
+
+    path = save_policy(policy, tmp_path / "p.npz")
+    with zipfile.ZipFile(path) as z:
+        arrays = {n[:-4]: np.load(z.open(n)) for n in z.namelist() if n != "metadata.npy"}
+    metadata = json.loads(str(np.load(path)["metadata"]))
+    cases = [
+        ({**arrays, "width": np.array(1e308)}, metadata, "beyond 1e\\+100"),  # width**2 overflows
+        ({**arrays, "width": np.array(1e-300)}, metadata, "has inconsistent array shapes"),
+        (arrays, {**metadata, "state_dim": "3"}, "valid 'state_dim'"),
+        (arrays, {**metadata, "n_centers": 10.0}, "valid 'n_centers'"),
+        (arrays, {**metadata, "environment": ["full"]}, "valid 'environment'"),
+    ]
+    for index, (content, meta, message) in enumerate(cases):
+        target = tmp_path / f"bad{index}.npz"
+        write_archive(target, content, meta)
+        with pytest.raises(ModelFormatError, match=message):
+            load_policy(target)

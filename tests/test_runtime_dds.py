@@ -166,8 +166,8 @@ def test_ros_discovery_info_names_the_node_and_its_endpoints(domain):
             for sample in reader.take(N=100):
                 for n in sample.node_entities_info_seq:
                     latest[n.node_name] = n
-            entry = latest.get("announced")
-            return entry is not None and len(entry.writer_gid_seq) == 1 and len(
+            entry = latest.get("announced")  # writers: /a and /rosout (as rcl nodes have)
+            return entry is not None and len(entry.writer_gid_seq) == 2 and len(
                 entry.reader_gid_seq) == 1
 
         assert wait(collect)

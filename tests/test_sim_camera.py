@@ -117,3 +117,31 @@ def test_images_change_smoothly_with_position():
         b = Camera(config).render(position[None] + [0.01, 0.0])[0].astype(int)
         assert np.abs(a - b).max() <= 255 / config.rays_per_column + 2
         assert np.abs(a - b).mean() < 0.2
+
+
+def test_distractors_persist_moving_a_few_metres_per_step():
+    # the guide's "randomly moving" objects: a slow reflected walk (1.5 m std per coordinate),
+    # not positions redrawn every step
+    from sim_node.distractors import Distractors
+
+    config = SimConfig(environment="distractors")
+    walker = Distractors(config, np.random.default_rng(7))
+    floor, walls = walker.positions()
+    floor_steps, wall_steps, visited = [], [], []
+    for _ in range(2000):
+        walker.advance()
+        new_floor, new_walls = walker.positions()
+        floor_steps.append(np.linalg.norm(new_floor - floor, axis=1))
+        wall_steps.append(np.abs(new_walls - walls))
+        visited.append(new_floor)
+        floor, walls = new_floor, new_walls
+    floor_steps, wall_steps = np.array(floor_steps), np.array(wall_steps)
+    std = config.distractors.step_std
+    assert std <= 2.0
+    # reflection only shortens a step, so no step exceeds the free walk's (5 sigma here)
+    assert floor_steps.max() < 5 * std * np.sqrt(2) and wall_steps.max() < 5 * std
+    # a free 2-D Gaussian step has mean sigma * sqrt(pi / 2); reflections barely change it
+    assert floor_steps.mean() == pytest.approx(std * np.sqrt(np.pi / 2), rel=0.1)
+    # and over many steps each disk wanders across most of the room: the walk is not stuck
+    span = np.ptp(np.array(visited), axis=0)  # (F, 2)
+    assert span.min() > 0.5 * (config.room_size - 2 * config.distractors.floor_radius)

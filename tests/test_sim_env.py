@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from sim_node import ACTIONS, VELOCITIES, RobotEnv, SimConfig, action_index, random_rollout
+from sim_node.env import step_reward
 from tpsr_ros.core.actions import action_indices
 from tpsr_ros.core.errors import ConfigError
 
@@ -57,9 +58,7 @@ def test_wall_penalty_exactly_on_blocked_steps(long_run):
     clear = np.abs(excess) > 1e-3  # leave out steps that graze a wall within 1 mm
     assert clear.mean() > 0.999
     assert np.array_equal(run.wall_contact[clear], excess[clear] > 0)
-    penalty = run.rewards - 10.0 * run.goal_zone
-    assert np.array_equal(penalty == -1.0, run.wall_contact)
-    assert set(np.unique(penalty)) == {-1.0, 0.0}
+    assert np.array_equal(run.rewards == -1.0, run.wall_contact)
     # sliding along a wall without pushing into it is not a contact
     touching = (np.abs(previous - R) < 1e-3) | (np.abs(previous - (L - R)) < 1e-3)
     sliding = touching.any(axis=1) & (excess < 0)
@@ -73,10 +72,21 @@ def test_goal_reward_exactly_inside_the_zone(long_run):
     run = long_run
     inside = np.linalg.norm(run.positions - [L, L], axis=1) < 15.0
     assert np.array_equal(run.goal_zone, inside)
-    assert np.array_equal(run.rewards, 10.0 * inside - 1.0 * run.wall_contact)
+    expected = np.where(run.wall_contact, -1.0, np.where(inside, 10.0, 0.0))
+    assert np.array_equal(run.rewards, expected)
     both = inside & run.wall_contact
     assert both.any(), "the run should contain blocked steps inside the zone"
-    assert np.all(run.rewards[both] == 9.0)  # the two rewards add
+    assert np.all(run.rewards[both] == -1.0)  # a collision overrides the goal reward
+    assert set(np.unique(run.rewards)) == {-1.0, 0.0, 10.0}
+
+
+def test_a_blocked_step_earns_the_wall_reward_and_nothing_else():
+    config = SimConfig()
+    positions = np.array([[44.0, 44.0], [44.0, 44.0], [5.0, 5.0], [1.0, 5.0]])
+    contact = np.array([True, False, False, True])
+    rewards, goal = step_reward(config, positions, contact)
+    assert list(goal) == [True, True, False, False]
+    assert list(rewards) == [-1.0, 10.0, 0.0, -1.0]
 
 
 def test_execution_noise_is_ten_percent_of_each_component(long_run):

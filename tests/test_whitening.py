@@ -96,3 +96,25 @@ def test_non_finite_and_mismatched_data():
         w.transform(np.zeros((3, 5)))
     with pytest.raises(DataError, match="at least 2"):
         Whitening.fit(np.zeros((1, 4)), 1)
+
+
+def test_wide_data_take_the_lanczos_path_with_the_dense_result():
+    # histories of several images are wider than DENSE_MAX_DIM: no covariance is formed,
+    # and the eigenpairs agree with the dense eigendecomposition to machine precision
+    from tpsr_ros.core import whitening
+
+    rng = np.random.default_rng(4)
+    b = whitening.DENSE_MAX_DIM + 200
+    latent = rng.standard_normal((3000, 40)) * np.linspace(5.0, 1.0, 40)  # a decaying spectrum
+    x = latent @ rng.standard_normal((40, b)) + 0.01 * rng.standard_normal((3000, b))
+    wide = Whitening.fit(x, 12)
+    centred = x - x.mean(axis=0)
+    cov = centred.T @ centred / (len(x) - 1)
+    values, vectors = np.linalg.eigh(cov)
+    np.testing.assert_allclose(wide.eigenvalues_, values[::-1][:12], rtol=1e-10)
+    np.testing.assert_allclose(wide.explained_variance_ratio_, values[::-1][:12] / values.sum(),
+                               rtol=1e-10)
+    expected = whitening.flip_signs(vectors[:, ::-1][:, :12])[0]
+    np.testing.assert_allclose(wide.components_, expected, atol=1e-8)
+    white = wide.transform(x)
+    np.testing.assert_allclose(np.cov(white, rowvar=False), np.eye(12), atol=1e-8)

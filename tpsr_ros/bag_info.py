@@ -12,11 +12,9 @@ from __future__ import annotations
 import datetime as dt
 from pathlib import Path
 
-import yaml
-
 from tpsr_ros.cli import ArgumentParser, run_cli
 from tpsr_ros.core.units import NS_PER_S as _NS
-from tpsr_ros.io.bag import BagReader
+from tpsr_ros.io.bag import BagReader, read_bag_metadata
 from tpsr_ros.io.qos import from_bag_qos
 
 __all__ = ["format_info", "main"]
@@ -46,8 +44,7 @@ def format_info(path: Path) -> str:
         total = sum(counts.values())
         start = reader.start_time_ns if total else 0
         end = reader.end_time_ns - 1 if total else 0
-    meta = yaml.safe_load((Path(path) / "metadata.yaml").read_text())
-    info = meta["rosbag2_bagfile_information"]
+    info = read_bag_metadata(Path(path))
     files = [str(f) for f in info.get("relative_file_paths", [])]
     size = sum(p.stat().st_size for p in Path(path).iterdir() if p.is_file())
     duration = max(0, end - start)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -46,12 +46,7 @@ from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.online import OnlineTracker
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io import messages as m
-from tpsr_ros.io.filter_inputs import (
-    ACTION_TOPIC,
-    IMAGE_TOPIC,
-    FilterInputs,
-    load_filter_inputs,
-)
+from tpsr_ros.io.filter_inputs import FilterInputs, load_filter_inputs
 from tpsr_ros.runtime import (
     DEFAULT_QOS,
     LATCHED_QOS,
@@ -92,10 +87,15 @@ __all__ = [
 ]
 
 PROG = "python -m tpsr_ros.filter_node"
-RESET_TOPIC = "/sim/episode_start"
-CLOCK_TOPIC = "/clock"
-STATE_TOPIC = "/tpsr/state"
-CMD_VEL_TOPIC = "/cmd_vel"
+# Relative names, so `-r __ns:=/robot1` moves every topic of a robot's filter under
+# /robot1/ (next to its simulator's); /diagnostics stays global, as diagnostic
+# aggregators expect (each status names its node).
+IMAGE_TOPIC = "camera/image_raw"
+ACTION_TOPIC = "action"
+RESET_TOPIC = "sim/episode_start"
+CLOCK_TOPIC = "clock"
+STATE_TOPIC = "tpsr/state"
+CMD_VEL_TOPIC = "cmd_vel"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 REJECT_REASONS = ("undecodable", "encoding", "size", "data", "frame", "action")
 CLOCK_QOS = QoSProfile(Reliability.BEST_EFFORT, Durability.VOLATILE, History.KEEP_LAST, 10)
@@ -157,7 +157,10 @@ class FilterNodeParams:
 
 
 def load_inputs(
-    params: FilterNodeParams, image_topic: str = IMAGE_TOPIC, action_topic: str = ACTION_TOPIC
+    params: FilterNodeParams,
+    image_topic: str = "/" + IMAGE_TOPIC,
+    action_topic: str = "/" + ACTION_TOPIC,
+    namespace: str = "/",
 ) -> FilterInputs:
     """:func:`tpsr_ros.io.filter_inputs.load_filter_inputs` with the node's parameters."""
     return load_filter_inputs(
@@ -166,6 +169,7 @@ def load_inputs(
         check_topics=params.check_topics,
         image_topic=image_topic,
         action_topic=action_topic,
+        namespace=namespace,
     )
 
 
@@ -244,12 +248,16 @@ class FilterNode(Node):
     )
 
     @classmethod
-    def _resolved_inputs(cls, options: NodeOptions) -> tuple[str, str]:
+    def _resolved_inputs(cls, options: NodeOptions) -> tuple[str, str, str]:
         # Node.resolve_topic needs only the options, name and namespace: use it unbound
         # so the check sees exactly the names setup() will subscribe.
         probe = object.__new__(cls)
         probe.options, probe.name, probe.namespace = options, options.name, options.namespace
-        return probe.resolve_topic(IMAGE_TOPIC), probe.resolve_topic(ACTION_TOPIC)
+        return (
+            probe.resolve_topic(IMAGE_TOPIC),
+            probe.resolve_topic(ACTION_TOPIC),
+            options.namespace,
+        )
 
     @classmethod
     def preflight(cls, options: NodeOptions) -> None:
@@ -261,7 +269,7 @@ class FilterNode(Node):
         p: FilterNodeParams = self.params
         self.image_topic = self.resolve_topic(IMAGE_TOPIC)
         self.action_topic = self.resolve_topic(ACTION_TOPIC)
-        self.inputs = load_inputs(p, self.image_topic, self.action_topic)
+        self.inputs = load_inputs(p, self.image_topic, self.action_topic, self.namespace)
         self.model = self.inputs.model
         self.policy = self.inputs.policy
         self.tracker = OnlineTracker(self.model, round(p.step_period * _NS))
@@ -296,8 +304,12 @@ class FilterNode(Node):
         self.action_sub = self.create_subscription(
             ACTION_TOPIC, m.ACTION_TYPE, self._on_action, sensor, raw=True
         )
-        self.create_subscription(RESET_TOPIC, m.POSE_TYPE, self._on_reset, LATCHED_QOS, raw=True)
-        self.create_subscription(CLOCK_TOPIC, m.CLOCK_TYPE, self._on_clock, CLOCK_QOS, raw=True)
+        self.reset_topic = self.create_subscription(
+            RESET_TOPIC, m.POSE_TYPE, self._on_reset, LATCHED_QOS, raw=True
+        ).topic
+        self.clock_topic = self.create_subscription(
+            CLOCK_TOPIC, m.CLOCK_TYPE, self._on_clock, CLOCK_QOS, raw=True
+        ).topic
         self.create_timer(p.diagnostics_period, self.publish_diagnostics)
         if self.policy is not None:
             self._ready_timer = self.create_timer(0.01, self._check_ready)
@@ -392,13 +404,13 @@ class FilterNode(Node):
         except Exception as exc:  # never let one step stop the node
             self.errors += 1
             self.tracker.reinit()
-            if self._throttle((STATE_TOPIC, "error")):
+            if self._throttle((self.state_pub.topic, "error")):
                 self.logger.error(f"update at {stamp / _NS:.3f} s failed ({exc}); state reset")
             return
         if info.recovered:
             self._recovery_run += 1
             self._warn(
-                STATE_TOPIC,
+                self.state_pub.topic,
                 "recovery",
                 f"normaliser {info.normalizer:.3g} at {stamp / _NS:.3f} s: restarted from b_*",
             )
@@ -410,7 +422,7 @@ class FilterNode(Node):
         self.latency.add(time.perf_counter() - start)
 
     def _on_reset(self, data: bytes) -> None:
-        msg = self._decode(data, m.POSE_TYPE, RESET_TOPIC)
+        msg = self._decode(data, m.POSE_TYPE, self.reset_topic)
         if msg is None:
             return
         stamp = m.stamp_of(msg)
@@ -424,12 +436,12 @@ class FilterNode(Node):
         self.resets += 1
 
     def _on_clock(self, data: bytes) -> None:
-        msg = self._decode(data, m.CLOCK_TYPE, CLOCK_TOPIC)
+        msg = self._decode(data, m.CLOCK_TYPE, self.clock_topic)
         if msg is None:
             return
         stamp = m.stamp_of(msg)
         if self.sync.check_time(stamp):
-            self._reinit(f"/clock jumped back to {stamp / _NS:.3f} s")
+            self._reinit(f"{self.clock_topic} jumped back to {stamp / _NS:.3f} s")
 
     def _reinit(self, why: str) -> None:
         self.tracker.reinit()
@@ -533,6 +545,32 @@ class FilterNode(Node):
         )
         self.diagnostics_pub.publish(diagnostic_array(time.time_ns(), [status]))
         self._last_report = (time.monotonic(), self.tracker.steps, self._problem_counts())
+
+    def on_parameter_change(self, name: str, value: Any) -> str | None:
+        """``ros2 param set /tpsr_filter policy NEW``: swap the policy if it fits the model.
+
+        Checked exactly as at start-up; every other parameter is fixed at start-up.
+        """
+        if name != "policy":
+            return super().on_parameter_change(name, value)
+        if self.policy is None or not value:
+            return (
+                "the policy can only be replaced by another one while the node runs (a pure "
+                "filter has no /cmd_vel publisher, and one with a policy keeps it); restart "
+                "the node"
+            )
+        try:
+            inputs = load_inputs(
+                replace(self.params, policy=str(value)),
+                self.image_topic,
+                self.action_topic,
+                self.namespace,
+            )
+        except TpsrError as exc:
+            return str(exc)
+        self.policy = inputs.policy
+        self.logger.info(f"policy {value} now chooses the commands")
+        return None
 
     def on_shutdown(self) -> None:
         """Log the totals."""

@@ -12,23 +12,58 @@ recorder that is killed hard loses at most what arrived since its last flush.
 
 from __future__ import annotations
 
+import importlib
 import os
 import shutil
+import struct
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-import yaml
 from rosbags.interfaces import Connection, Qos
 from rosbags.rosbag2 import Reader, ReaderError, Writer, WriterError
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
 
 from tpsr_ros.core.errors import BagError
 from tpsr_ros.io.messages import deserialize, jazzy_typestore, serialize
+from tpsr_ros.safe_yaml import YamlInputError, load_yaml
 
-__all__ = ["BagMessage", "BagReader", "BagWriter", "check_bag_path_free"]
+__all__ = ["BagMessage", "BagReader", "BagWriter", "check_bag_path_free", "read_bag_metadata"]
+
+MAX_METADATA_BYTES = 16 * 2**20
+
+
+def _zstd_errors() -> tuple[type[Exception], ...]:
+    """The error type of the zstd module rosbags decompresses with (stdlib or backport)."""
+    for name in ("compression.zstd", "backports.zstd"):
+        try:
+            return (importlib.import_module(name).ZstdError,)
+        except (ImportError, AttributeError):
+            continue
+    return ()
+
+_DAMAGE = (
+    ValueError,
+    RuntimeError,
+    OverflowError,
+    IndexError,
+    KeyError,
+    EOFError,
+    MemoryError,
+    struct.error,
+    *_zstd_errors(),
+)
+"""What a corrupt MCAP file makes rosbags' reader raise besides ``ReaderError``: a
+decompressor's error (zstd's ``ZstdError``, lz4's ``RuntimeError``), impossible lengths
+and offsets (``OverflowError``, ``struct.error``, ``MemoryError`` from an allocation that
+was refused before it happened). A damaged bag is reported, never a traceback."""
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc) or type(exc).__name__
+    return f"{type(exc).__name__}: {text[:120]}"
 
 
 def check_bag_path_free(path: Path) -> Path:
@@ -165,7 +200,13 @@ class BagMessage:
         return deserialize(self.data, self.msgtype)
 
 
-def _read_metadata(path: Path) -> dict[str, Any]:
+def read_bag_metadata(path: Path) -> dict[str, Any]:
+    """The validated ``rosbag2_bagfile_information`` of the bag directory ``path``.
+
+    ``metadata.yaml`` is read bounded (:mod:`tpsr_ros.safe_yaml`: UTF-8, 16 MiB, no
+    aliases, shallow nesting); ``custom_data`` must be a mapping and
+    ``relative_file_paths`` a list of names.
+    """
     meta_path = path / "metadata.yaml"
     if not path.is_dir():
         raise BagError(f"{str(path)!r} is not a rosbag2 directory")
@@ -175,12 +216,23 @@ def _read_metadata(path: Path) -> dict[str, Any]:
             f"run `python -m tpsr_ros.bag_recover {path}` first"
         )
     try:
-        meta = yaml.safe_load(meta_path.read_text())
-        info = meta["rosbag2_bagfile_information"]
-    except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
-        raise BagError(f"{str(meta_path)!r} is not rosbag2 metadata: {exc}") from None
+        with meta_path.open("rb") as handle:
+            data = handle.read(MAX_METADATA_BYTES + 1)
+        what = f"{str(meta_path)!r} is not rosbag2 metadata"
+        meta = load_yaml(data, what, max_bytes=MAX_METADATA_BYTES)
+    except OSError as exc:
+        raise BagError(f"cannot read {str(meta_path)!r}: {exc.strerror}") from None
+    except YamlInputError as exc:
+        raise BagError(str(exc)) from None
+    info = meta.get("rosbag2_bagfile_information") if isinstance(meta, dict) else None
     if not isinstance(info, dict):
         raise BagError(f"{str(meta_path)!r} is not rosbag2 metadata")
+    custom = info.get("custom_data")
+    if custom is not None and not isinstance(custom, dict):
+        raise BagError(f"{str(meta_path)!r}: custom_data is not a mapping")
+    files = info.get("relative_file_paths", [])
+    if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+        raise BagError(f"{str(meta_path)!r}: relative_file_paths is not a list of file names")
     return info
 
 
@@ -189,7 +241,7 @@ class BagReader:
 
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
-        info = _read_metadata(self.path)
+        info = read_bag_metadata(self.path)
         self._custom_data = {str(k): str(v) for k, v in (info.get("custom_data") or {}).items()}
         storage = info.get("storage_identifier")
         if storage != "mcap":
@@ -199,6 +251,9 @@ class BagReader:
             self._reader.open()
         except (ReaderError, OSError) as exc:
             raise BagError(f"cannot open bag {str(self.path)!r}: {exc}") from None
+        except _DAMAGE as exc:
+            damage = _describe(exc)
+            raise BagError(f"cannot open bag {str(self.path)!r}: damaged ({damage})") from None
 
     def __enter__(self) -> BagReader:
         return self
@@ -247,15 +302,29 @@ class BagReader:
         }
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
-        """Yield messages in log-time order, optionally only on ``topics``."""
+        """Yield messages in log-time order, optionally only on ``topics``.
+
+        Read to the end, the messages must number what ``metadata.yaml`` lists for those
+        topics; otherwise a ``BagError`` says how many were missing.
+        """
         wanted = None if topics is None else set(topics)
         connections = [
             c for c in self._reader.connections if wanted is None or c.topic in wanted
         ]
         if wanted is not None and not connections:
             return
+        listed = sum(c.msgcount for c in connections)
+        read = 0
         try:
             for conn, log_time, data in self._reader.messages(connections=connections):
+                read += 1
                 yield BagMessage(conn.topic, conn.msgtype, int(log_time), bytes(data))
         except ReaderError as exc:
             raise BagError(f"bag {str(self.path)!r} is damaged: {exc}") from None
+        except _DAMAGE as exc:
+            raise BagError(f"bag {str(self.path)!r} is damaged: {_describe(exc)}") from None
+        if read != listed:  # nothing may go missing silently (rosbag2's talker bag did)
+            raise BagError(
+                f"bag {str(self.path)!r}: read {read} of the {listed} messages its metadata "
+                "lists; the file is damaged or laid out in a way this reader cannot read"
+            )

@@ -49,6 +49,7 @@ def load_filter_inputs(
     check_topics: bool = True,
     image_topic: str = IMAGE_TOPIC,
     action_topic: str = ACTION_TOPIC,
+    namespace: str = "/",
 ) -> FilterInputs:
     """Load the model (and policy) and refuse a combination the filter node cannot run.
 
@@ -59,7 +60,9 @@ def load_filter_inputs(
     ``H x W x 3``; and, unless ``check_topics`` is false, a model trained on other topics:
     every training bag recorded in the model names its image and action topics, and each
     pair must equal ``(image_topic, action_topic)``, the node's fully resolved subscription
-    names (after namespace and ``-r`` remapping). A model recording no topics is accepted.
+    names (after namespace and ``-r`` remapping), either as recorded or moved into the
+    node's ``namespace`` (a model trained on ``/camera/image_raw`` runs a filter in
+    ``/robot1`` on ``/robot1/camera/image_raw``). A model recording no topics is accepted.
     """
     if not model_path:
         raise ConfigError("no model given: pass -p model:=MODEL (a file from `learner fit`)")
@@ -75,8 +78,9 @@ def load_filter_inputs(
         )
     if check_topics:
         subscribed = (image_topic, action_topic)
+        prefix = namespace.rstrip("/")
         for pair in sorted(_training_topics(metadata)):
-            if pair != subscribed:
+            if pair != subscribed and (prefix + pair[0], prefix + pair[1]) != subscribed:
                 raise ConfigError(
                     f"model {model_path} was trained on {pair[0]} and {pair[1]}, but the "
                     f"node subscribes {subscribed[0]} and {subscribed[1]} (remap with -r, or "

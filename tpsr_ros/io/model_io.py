@@ -29,7 +29,7 @@ from tpsr_ros.core.errors import ModelFormatError, TpsrError
 from tpsr_ros.core.pca_baseline import PCAModel
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.tpsr import TPSRModel
-from tpsr_ros.io.npz_archive import check_output_path, read_archive, write_archive
+from tpsr_ros.io.npz_archive import ShapeRule, check_output_path, read_archive, write_archive
 
 __all__ = [
     "FORMAT_NAME",
@@ -80,14 +80,61 @@ def save_model(
 
 
 def _open_arrays(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    return read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION)
+    return read_archive(
+        path,
+        format_name=FORMAT_NAME,
+        format_version=FORMAT_VERSION,
+        expected_shapes=lambda metadata: _expected_shapes(path, metadata),
+    )
+
+
+def _positive_int(path: Path, where: dict[str, Any], key: str) -> int:
+    value = where.get(key)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ModelFormatError(f"the metadata of {str(path)!r} lacks a valid {key!r} entry")
+    return value
+
+
+def _expected_shapes(path: Path, metadata: dict[str, Any]) -> dict[str, ShapeRule]:
+    """The shape of every array, implied by the metadata alone (checked before reading)."""
+    method = _check_metadata(path, metadata)
+    parameters = metadata["parameters"]
+    observation = metadata.get("observation")
+    if not isinstance(observation, dict):
+        raise ModelFormatError(f"the metadata of {str(path)!r} lacks a valid 'observation' entry")
+    k = _positive_int(path, observation, "size")
+    if method == "pca":
+        dim = _positive_int(path, parameters, "dim")
+        return {
+            "mean": (k,),
+            "components": (k, dim),
+            "eigenvalues": (dim,),
+            "explained_variance_ratio": (dim,),
+            "n_actions": (),
+        }
+    n_actions = _positive_int(path, metadata, "n_actions")
+    r, d_o, d_ht, l_o = (
+        _positive_int(path, parameters, key) for key in ("rank", "obs_dim", "ht_dim", "obs_centers")
+    )
+    return {
+        "obs_mean": (k,),
+        "obs_whitening": (k, d_o),
+        "obs_centers": (l_o, d_o),
+        "b_star": (r,),
+        "b_inf": (r,),
+        "B": (n_actions, l_o, r, r),
+        "singular_values": (None,),
+        "explained_variance_obs": (d_o,),
+        "explained_variance_history": (d_ht,),
+        "explained_variance_test": (d_ht,),
+    }
 
 
 def _check_metadata(path: Path, metadata: dict[str, Any]) -> str:
     method = metadata.get("method")
-    if method not in METHODS:
+    if not isinstance(method, str) or method not in METHODS:
         raise ModelFormatError(
-            f"{str(path)!r} holds method {method!r}, not one of {sorted(METHODS)}"
+            f"{str(path)!r} holds method {str(method)[:40]!r}, not one of {sorted(METHODS)}"
         )
     for key, kind in (("parameters", dict), ("summary", dict), ("n_actions", int)):
         if not isinstance(metadata.get(key), kind):

@@ -7,24 +7,54 @@ Writing goes to a temporary file next to the target, then an atomic rename, so a
 never sees half a file and nothing is left behind on failure; an existing target is
 refused unless ``force``. Reading uses ``allow_pickle=False`` and names every problem
 (truncated, foreign, wrong format or version) in a ``ModelFormatError``.
+
+Reading is bounded: nothing is inflated before it is checked. The zip directory and each
+array's ``.npy`` header are read first; every array must be numeric, its declared shape
+must match the bytes its member holds, the metadata must be at most
+``MAX_METADATA_BYTES`` of JSON nested at most ``MAX_JSON_DEPTH`` deep, and the caller's
+``expected_shapes(metadata)`` (the shapes the metadata's parameters imply) must accept
+every array's shape before any array is read. A hostile file (a header declaring 2**40
+values, a few MB of deflated zeros that inflate to GB, metadata nested 100000 deep) is
+refused with one line.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 import zipfile
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
 from tpsr_ros.core.errors import ModelFormatError
 
-__all__ = ["METADATA_KEY", "check_output_path", "jsonable", "read_archive", "write_archive"]
+__all__ = [
+    "MAX_ARRAY_BYTES",
+    "MAX_JSON_DEPTH",
+    "MAX_METADATA_BYTES",
+    "METADATA_KEY",
+    "ArrayHeader",
+    "ShapeRule",
+    "check_output_path",
+    "jsonable",
+    "read_archive",
+    "write_archive",
+]
 
 METADATA_KEY = "metadata"
+MAX_METADATA_BYTES = 16 * 2**20
+MAX_JSON_DEPTH = 64
+MAX_ARRAY_BYTES = 2**30  # all arrays together; real models and policies are a few MB
+MAX_MEMBERS = 64
+
+ArrayHeader = tuple[tuple[int, ...], np.dtype]
+ShapeRule = tuple[int | None, ...]
+"""An expected shape: ``None`` where any length is allowed."""
 
 
 def check_output_path(path: Path | str, *, force: bool = False) -> Path:
@@ -95,50 +125,171 @@ def write_archive(
     return path
 
 
+def _json_depth_ok(text: str, limit: int) -> bool:
+    """Whether brackets nest at most ``limit`` deep (strings ignored), before parsing."""
+    depth, in_string, escaped = 0, False, False
+    for char in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif char == "\\":
+                escaped = True
+            elif char == '"':
+                in_string = False
+        elif char == '"':
+            in_string = True
+        elif char in "[{":
+            depth += 1
+            if depth > limit:
+                return False
+        elif char in "]}":
+            depth -= 1
+    return True
+
+
+def _read_header(handle: BinaryIO) -> tuple[ArrayHeader, int]:
+    """Shape and dtype from an ``.npy`` header, and the header's length in bytes."""
+    version = np.lib.format.read_magic(handle)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(handle)
+    elif version == (2, 0):
+        shape, _, dtype = np.lib.format.read_array_header_2_0(handle)
+    else:
+        raise ValueError(f"unsupported .npy format version {version}")
+    return (tuple(int(n) for n in shape), np.dtype(dtype)), handle.tell()
+
+
+def _inspect(archive: zipfile.ZipFile, path: Path) -> dict[str, ArrayHeader]:
+    """Every member's declared shape and dtype, checked against its stored size."""
+    infos = archive.infolist()
+    if len(infos) > MAX_MEMBERS:
+        raise ModelFormatError(f"{str(path)!r} holds {len(infos)} entries: not an archive of ours")
+    headers: dict[str, ArrayHeader] = {}
+    total = 0
+    for info in infos:
+        name = info.filename.removesuffix(".npy")
+        if not info.filename.endswith(".npy") or name in headers:
+            raise ModelFormatError(f"{str(path)!r} holds an unexpected entry {info.filename!r}")
+        with archive.open(info) as handle:
+            (shape, dtype), header_bytes = _read_header(handle)
+        if dtype.hasobject or dtype.kind not in "biufU":
+            raise ModelFormatError(f"array {name!r} of {str(path)!r} has dtype {dtype}")
+        declared = math.prod(shape) * dtype.itemsize
+        if declared != info.file_size - header_bytes:
+            raise ModelFormatError(
+                f"array {name!r} of {str(path)!r} declares shape {shape} ({declared} bytes) "
+                f"but holds {info.file_size - header_bytes} bytes: the file is corrupt"
+            )
+        limit = MAX_METADATA_BYTES if name == METADATA_KEY else MAX_ARRAY_BYTES
+        total += declared
+        if declared > limit or total > MAX_ARRAY_BYTES:
+            raise ModelFormatError(
+                f"{str(path)!r} declares {total} bytes of arrays, more than the {limit} "
+                "this tpsr-ros reads"
+            )
+        headers[name] = (shape, dtype)
+    return headers
+
+
+def _check_shapes(
+    path: Path, headers: Mapping[str, ArrayHeader], expected: Mapping[str, ShapeRule]
+) -> None:
+    """Refuse missing, unexpected and wrongly shaped arrays before any is read."""
+    arrays = {name for name in headers if name != METADATA_KEY}
+    if missing := sorted(set(expected) - arrays):
+        raise ModelFormatError(f"{str(path)!r} lacks the arrays {missing}")
+    if extra := sorted(arrays - set(expected)):
+        raise ModelFormatError(f"{str(path)!r} has unexpected arrays {extra}")
+    for name, rule in expected.items():
+        shape = headers[name][0]
+        fits = len(shape) == len(rule) and all(
+            want is None or want == got for want, got in zip(rule, shape, strict=True)
+        )
+        if not fits:
+            shown = tuple("*" if n is None else n for n in rule)
+            raise ModelFormatError(
+                f"array {name!r} of {str(path)!r} has shape {shape}; its metadata implies {shown}"
+            )
+
+
+def _parse_metadata(path: Path, raw: np.ndarray) -> dict[str, Any]:
+    if raw.shape != () or raw.dtype.kind != "U":
+        raise ModelFormatError(f"the metadata entry of {str(path)!r} is not a JSON string")
+    text = str(raw)
+    if not _json_depth_ok(text, MAX_JSON_DEPTH):
+        raise ModelFormatError(
+            f"the metadata of {str(path)!r} nests deeper than {MAX_JSON_DEPTH} levels"
+        )
+    try:
+        metadata = json.loads(text)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        raise ModelFormatError(f"the metadata of {str(path)!r} is not valid JSON: {exc}") from None
+    if not isinstance(metadata, dict):
+        raise ModelFormatError(f"the metadata of {str(path)!r} is not a JSON object")
+    return metadata
+
+
 def read_archive(
-    path: Path | str, *, format_name: str, format_version: int
+    path: Path | str,
+    *,
+    format_name: str,
+    format_version: int,
+    expected_shapes: Callable[[dict[str, Any]], Mapping[str, ShapeRule]] | None = None,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Read and check an archive of ``format_name`` at ``format_version``.
 
-    Returns ``(metadata, arrays)``; the arrays still need the caller's shape checks.
+    ``expected_shapes(metadata)`` names every array the format has and the shape its
+    metadata implies (raising ``ModelFormatError`` for unusable metadata); arrays are read
+    only after it accepted their declared shapes. Returns ``(metadata, arrays)``.
     """
     path = Path(path)
     what = format_name.removeprefix("tpsr-ros ")
     if not path.is_file():
         raise ModelFormatError(f"{what} file {str(path)!r} does not exist")
     try:
-        loaded = np.load(path, allow_pickle=False)
-        if isinstance(loaded, np.ndarray):
-            raise ModelFormatError(f"{str(path)!r} is a single array, not a {format_name} file")
-        with loaded as npz:
-            arrays = {name: npz[name] for name in npz.files}
+        with path.open("rb") as handle:
+            if handle.read(6) == b"\x93NUMPY":
+                raise ModelFormatError(f"{str(path)!r} is a single array, not a {format_name} file")
+        with zipfile.ZipFile(path) as archive:
+            headers = _inspect(archive, path)
+            if METADATA_KEY not in headers:
+                raise ModelFormatError(
+                    f"{str(path)!r} has no {METADATA_KEY!r} entry: not a {format_name} file"
+                )
+            metadata = _parse_metadata(path, _read_member(archive, METADATA_KEY))
+            _check_format(path, metadata, format_name, format_version)
+            if expected_shapes is not None:
+                _check_shapes(path, headers, expected_shapes(metadata))
+            arrays = {name: _read_member(archive, name) for name in headers if name != METADATA_KEY}
     except ModelFormatError:
         raise
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, RuntimeError) as exc:
         raise ModelFormatError(
             f"{str(path)!r} is not a readable {what} file (truncated or foreign): {exc}"
         ) from None
-    if METADATA_KEY not in arrays:
-        raise ModelFormatError(
-            f"{str(path)!r} has no {METADATA_KEY!r} entry: not a {format_name} file"
-        )
-    raw = arrays.pop(METADATA_KEY)
-    if raw.shape != () or raw.dtype.kind != "U":
-        raise ModelFormatError(f"the metadata entry of {str(path)!r} is not a JSON string")
-    try:
-        metadata = json.loads(str(raw))
-    except json.JSONDecodeError as exc:
-        raise ModelFormatError(f"the metadata of {str(path)!r} is not valid JSON: {exc}") from None
-    if not isinstance(metadata, dict):
-        raise ModelFormatError(f"the metadata of {str(path)!r} is not a JSON object")
+    return metadata, arrays
+
+
+def _read_member(archive: zipfile.ZipFile, name: str) -> np.ndarray:
+    with archive.open(f"{name}.npy") as handle:
+        array: np.ndarray = np.lib.format.read_array(handle, allow_pickle=False)
+    return array
+
+
+def _short(value: Any) -> str:
+    """``repr(value)``, cut to 60 characters (hostile metadata may hold anything)."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _check_format(path: Path, metadata: dict[str, Any], format_name: str, version: int) -> None:
+    what = format_name.removeprefix("tpsr-ros ")
     if metadata.get("format") != format_name:
         raise ModelFormatError(
-            f"{str(path)!r} is a {metadata.get('format')!r} file, not a {format_name!r} file"
+            f"{str(path)!r} is a {_short(metadata.get('format'))} file, not a {format_name!r} file"
         )
-    version = metadata.get("format_version")
-    if version != format_version:
+    if metadata.get("format_version") != version:
         raise ModelFormatError(
-            f"{str(path)!r} has {what} format version {version!r}; this tpsr-ros reads "
-            f"version {format_version}"
+            f"{str(path)!r} has {what} format version {_short(metadata.get('format_version'))}; "
+            f"this tpsr-ros reads version {version}"
         )
-    return metadata, arrays

@@ -9,7 +9,8 @@ checks the fingerprint and refuses a mismatch.
 File layout (:mod:`tpsr_ros.io.npz_archive`): arrays ``mean``, ``scale``, ``centers``,
 ``width``, ``weights`` and JSON metadata ``{"format": "tpsr-ros policy",
 "format_version": 1, "representation", "model_fingerprint", "model_path",
-"environment", "fqi": {...}, "data": {...}, "state_dim", "n_actions", ...}``.
+"environment", "fqi": {...}, "data": {...}, "state_dim", "n_actions", "n_centers",
+...}``.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import numpy as np
 import tpsr_ros
 from tpsr_ros.core.errors import ModelFormatError
 from tpsr_ros.core.fqi import QFunction
-from tpsr_ros.io.npz_archive import read_archive, write_archive
+from tpsr_ros.io.npz_archive import ShapeRule, read_archive, write_archive
 
 __all__ = [
     "FORMAT_NAME",
@@ -42,6 +43,8 @@ FORMAT_VERSION = 1
 TRUE_POSITION = "true-position"
 REPRESENTATIONS = ("tpsr", "pca", TRUE_POSITION)
 _ARRAYS = ("mean", "scale", "centers", "width", "weights")
+MAX_MAGNITUDE = 1e100
+"""Bound on every stored value: fitted Q squares widths and distances, which must not overflow."""
 
 
 @dataclass(frozen=True)
@@ -132,21 +135,54 @@ def save_policy(policy: Policy, path: Path | str, *, force: bool = False) -> Pat
         "environment": policy.environment,
         "state_dim": policy.state_dim,
         "n_actions": policy.n_actions,
+        "n_centers": int(q.centers.shape[0]),
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "software": {"tpsr_ros": tpsr_ros.__version__, "numpy": np.__version__},
     }
     return write_archive(path, arrays, metadata, force=force)
 
 
+def _expected_shapes(path: Path, metadata: dict[str, Any]) -> dict[str, ShapeRule]:
+    """Array shapes implied by the metadata: ``state_dim``, ``n_actions``, ``n_centers``.
+
+    Files written before ``n_centers`` was recorded leave the number of centres free (the
+    archive's size limit still bounds it, and the arrays must agree with each other).
+    """
+    sizes = {key: metadata.get(key) for key in ("state_dim", "n_actions", "n_centers")}
+    for key, value in sizes.items():
+        if key == "n_centers" and value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ModelFormatError(f"the metadata of {str(path)!r} lacks a valid {key!r} entry")
+    dim, actions, centers = sizes.values()
+    return {
+        "mean": (dim,),
+        "scale": (dim,),
+        "centers": (centers, dim),
+        "width": (),
+        "weights": (centers, actions),
+    }
+
+
 def load_policy(path: Path | str) -> Policy:
     """Load and validate a policy written by :func:`save_policy`."""
     path = Path(path)
-    metadata, arrays = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION)
-    if sorted(arrays) != sorted(_ARRAYS):
-        raise ModelFormatError(f"{str(path)!r} holds arrays {sorted(arrays)}, expected {_ARRAYS}")
+    metadata, arrays = read_archive(
+        path,
+        format_name=FORMAT_NAME,
+        format_version=FORMAT_VERSION,
+        expected_shapes=lambda meta: _expected_shapes(path, meta),
+    )
     for name, array in arrays.items():
         if array.dtype != np.float64 or not np.all(np.isfinite(array)):
             raise ModelFormatError(f"array {name!r} of {str(path)!r} is not finite float64")
+        if np.any(np.abs(array) > MAX_MAGNITUDE):
+            raise ModelFormatError(
+                f"array {name!r} of {str(path)!r} holds values beyond {MAX_MAGNITUDE:g}: corrupt"
+            )
+    for key in ("representation", "environment"):
+        if metadata.get(key) is not None and not isinstance(metadata.get(key), str):
+            raise ModelFormatError(f"the metadata of {str(path)!r} lacks a valid {key!r} entry")
     mean, scale, centers, weights = (arrays[k] for k in ("mean", "scale", "centers", "weights"))
     dim = mean.shape[0] if mean.ndim == 1 else -1
     consistent = (
@@ -158,7 +194,8 @@ def load_policy(path: Path | str) -> Policy:
         and weights.ndim == 2
         and weights.shape[0] == centers.shape[0]
         and arrays["width"].shape == ()
-        and float(arrays["width"]) > 0
+        and float(arrays["width"]) > 1.0 / MAX_MAGNITUDE
+        and np.all(scale > 1.0 / MAX_MAGNITUDE)
         and metadata.get("state_dim") == dim
         and metadata.get("n_actions") == weights.shape[1]
     )

@@ -12,11 +12,19 @@ talks to our nodes:
   with a durability-service history of the same depth, writers not auto-disposing;
 - ``ros_discovery_info`` (``rmw_dds_common/msg/ParticipantEntitiesInfo``, reliable,
   transient-local, depth 1) announces the node and its endpoints, so ``ros2 node list``
-  and ``ros2 node info`` see it.
+  and ``ros2 node info`` see it;
+- ``/rosout`` (``rcl_interfaces/msg/Log``, reliable, transient-local, depth 1000, as rcl
+  publishes it) carries every log line the node prints, so ``ros2 topic echo /rosout``
+  and rqt_console see our nodes' logs.
 
 Samples are written and taken as raw CDR bytes: no per-field conversion happens here.
-``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` (or the older ``ROS_LOCALHOST_ONLY=1``)
-restricts Cyclone to the loopback interface unless ``CYCLONEDDS_URI`` configures it.
+Discovery follows ROS 2 Jazzy's variables unless ``CYCLONEDDS_URI`` configures Cyclone
+(see :func:`discovery_config`): ``ROS_AUTOMATIC_DISCOVERY_RANGE`` = ``SUBNET`` (default:
+multicast), ``LOCALHOST`` (or the older ``ROS_LOCALHOST_ONLY=1``: the loopback interface,
+unicast discovery of the participants on this host, as rmw_cyclonedds_cpp and
+rmw_fastrtps_cpp do, so real ROS 2 nodes with the same setting and ours see each other)
+or ``OFF`` (no discovery at all, not even on this host), and ``ROS_STATIC_PEERS``
+(``;``-separated addresses also contacted, except with ``OFF``, as in ROS 2).
 """
 
 from __future__ import annotations
@@ -27,6 +35,7 @@ import time
 from typing import Any, ClassVar
 
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
+from tpsr_ros.core.units import NS_PER_S
 from tpsr_ros.io.messages import jazzy_typestore
 from tpsr_ros.io.qos import Durability, History, QoSProfile, Reliability
 from tpsr_ros.runtime.dds_types import idl_struct, ros_type_name
@@ -39,10 +48,19 @@ from tpsr_ros.runtime.transport import (
     pad_cdr,
 )
 
-__all__ = ["DdsTransport", "domain_id_from_env", "localhost_only_from_env"]
+__all__ = [
+    "DdsTransport",
+    "discovery_config",
+    "discovery_range_from_env",
+    "domain_id_from_env",
+    "localhost_only_from_env",
+]
 
 _DISCOVERY_TOPIC = "ros_discovery_info"
 _DISCOVERY_TYPE = "rmw_dds_common/msg/ParticipantEntitiesInfo"
+_ROSOUT_TOPIC = "rt/rosout"
+_LOG_TYPE = "rcl_interfaces/msg/Log"
+_LOG_LEVELS = {"debug": 10, "info": 20, "warn": 30, "error": 40, "fatal": 50}
 _TAKE_BATCH = 256
 # close() waits (bounded) for reliable data to be acknowledged itself; lingering again in
 # every writer's deletion (Cyclone's default: up to 1 s each, one after the other) would
@@ -52,11 +70,9 @@ _LINGER_CONFIG = (
     "<WriterLingerDuration>10 ms</WriterLingerDuration>"
     "</Internal></Domain></CycloneDDS>"
 )
-_LOCALHOST_CONFIG = (
-    "<CycloneDDS><Domain id='any'><General><Interfaces>"
-    "<NetworkInterface address='127.0.0.1' multicast='true'/>"
-    "</Interfaces></General></Domain></CycloneDDS>"
-)
+# Unicast discovery probes the ports of participant indices 0..this on each peer.
+_MAX_PARTICIPANT_INDEX = 32
+_RANGES = ("SUBNET", "LOCALHOST", "OFF", "SYSTEM_DEFAULT")
 
 
 def domain_id_from_env() -> int:
@@ -73,11 +89,66 @@ def domain_id_from_env() -> int:
     return value
 
 
+def discovery_range_from_env() -> str:
+    """``ROS_AUTOMATIC_DISCOVERY_RANGE`` (SUBNET, LOCALHOST, OFF, SYSTEM_DEFAULT).
+
+    Unset or empty: LOCALHOST if the older ``ROS_LOCALHOST_ONLY=1`` is set, else SUBNET.
+    """
+    text = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "").strip().upper()
+    if not text:
+        return "LOCALHOST" if os.environ.get("ROS_LOCALHOST_ONLY", "") == "1" else "SUBNET"
+    if text not in _RANGES:
+        raise ConfigError(
+            f"ROS_AUTOMATIC_DISCOVERY_RANGE={text!r} is not one of {', '.join(_RANGES)}"
+        )
+    return text
+
+
 def localhost_only_from_env() -> bool:
     """Whether ROS 2's environment asks for loopback-only discovery."""
-    if os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "").upper() == "LOCALHOST":
-        return True
-    return os.environ.get("ROS_LOCALHOST_ONLY", "") == "1"
+    return discovery_range_from_env() == "LOCALHOST"
+
+
+def discovery_config(discovery_range: str, static_peers: list[str]) -> str:
+    """Cyclone XML for ROS 2's discovery range and static peers ('' = Cyclone's defaults).
+
+    LOCALHOST: the loopback interface without multicast; each process takes a participant
+    index (``auto``) and contacts the indices 0..32 of ``localhost`` and the static peers,
+    which is where Fast DDS and rmw_cyclonedds_cpp nodes with LOCALHOST listen. OFF: no
+    multicast and no predictable unicast ports, so nothing is discovered (static peers
+    are ignored, as ROS 2 does). SUBNET: multicast, plus the static peers.
+    """
+    if discovery_range == "SYSTEM_DEFAULT" or (discovery_range == "SUBNET" and not static_peers):
+        return ""
+    if discovery_range == "OFF":
+        return (
+            "<CycloneDDS><Domain id='any'><General><AllowMulticast>false</AllowMulticast>"
+            "</General><Discovery><ParticipantIndex>none</ParticipantIndex></Discovery>"
+            "</Domain></CycloneDDS>"
+        )
+    general = ""
+    peers = list(static_peers)
+    if discovery_range == "LOCALHOST":
+        general = (
+            "<General><Interfaces><NetworkInterface address='127.0.0.1'/></Interfaces>"
+            "<AllowMulticast>false</AllowMulticast></General>"
+        )
+        peers.insert(0, "localhost")
+    peer_xml = "".join(f"<Peer address='{p}'/>" for p in peers)
+    return (
+        f"<CycloneDDS><Domain id='any'>{general}<Discovery>"
+        f"<ParticipantIndex>auto</ParticipantIndex>"
+        f"<MaxAutoParticipantIndex>{_MAX_PARTICIPANT_INDEX}</MaxAutoParticipantIndex>"
+        f"<Peers>{peer_xml}</Peers></Discovery></Domain></CycloneDDS>"
+    )
+
+
+def _static_peers_from_env() -> list[str]:
+    peers = [p.strip() for p in os.environ.get("ROS_STATIC_PEERS", "").split(";")]
+    for peer in filter(None, peers):
+        if any(c in peer for c in "<>'\"&") or any(c.isspace() for c in peer):
+            raise ConfigError(f"ROS_STATIC_PEERS has an invalid address {peer!r}")
+    return [p for p in peers if p]
 
 
 _DOMAINS: dict[int, Any] = {}
@@ -86,16 +157,16 @@ _DOMAINS: dict[int, Any] = {}
 def _configure_domain(domain_id: int, domain_cls: Any) -> None:
     """Create the process's Cyclone domain ``domain_id`` once, with our configuration.
 
-    The user's ``CYCLONEDDS_URI`` comes first (or the loopback interface when ROS asks for
-    localhost-only discovery), then our writer-linger setting. The domain lives until the
+    The user's ``CYCLONEDDS_URI`` comes first (or else what ROS 2's discovery variables
+    ask for, :func:`discovery_config`), then our writer-linger setting. The domain lives until the
     process exits: deleting it would delete every participant in it, ours or not. If the
     domain already exists (a participant was created elsewhere first) it is left alone.
     """
     if domain_id in _DOMAINS:
         return
     fragments = [os.environ.get("CYCLONEDDS_URI", "").strip()]
-    if not fragments[0] and localhost_only_from_env():
-        fragments = [_LOCALHOST_CONFIG]
+    if not fragments[0]:
+        fragments = [discovery_config(discovery_range_from_env(), _static_peers_from_env())]
     fragments.append(_LINGER_CONFIG)
     try:
         _DOMAINS[domain_id] = domain_cls(domain_id, ",".join(f for f in fragments if f))
@@ -267,6 +338,19 @@ class DdsTransport(Transport):
             _DISCOVERY_TYPE,
             QoSProfile(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, History.KEEP_LAST, 1),
         )
+        self._rosout = _Writer(
+            self,
+            "/rosout",
+            self._make_writer(
+                _ROSOUT_TOPIC,
+                _LOG_TYPE,
+                QoSProfile(
+                    Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, History.KEEP_LAST, 1000
+                ),
+            ),
+        )
+        self._writers.append(self._rosout)
+        self._logger_name = (namespace.strip("/") + "/" + node_name).strip("/").replace("/", ".")
         self._closed = False
         self._announce()
 
@@ -320,6 +404,29 @@ class DdsTransport(Transport):
             self._readers.remove(handle)
         if not self._closed:
             self._announce()
+
+    # -- /rosout ---------------------------------------------------------------------
+
+    def log(self, level: str, message: str) -> bool:
+        """Publish the line on ``/rosout``; False, so the node's logger also prints it."""
+        if self._closed:
+            return False
+        store = jazzy_typestore()
+        now = time.time_ns()
+        stamp = store.types["builtin_interfaces/msg/Time"](
+            sec=now // NS_PER_S, nanosec=now % NS_PER_S
+        )
+        msg = store.types[_LOG_TYPE](
+            stamp=stamp,
+            level=_LOG_LEVELS[level],
+            name=self._logger_name,
+            msg=message,
+            file="",
+            function="",
+            line=0,
+        )
+        self._rosout.write(bytes(store.serialize_cdr(msg, _LOG_TYPE)))
+        return False
 
     # -- ros_discovery_info -----------------------------------------------------------
 

@@ -33,14 +33,16 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, NoReturn, TextIO
 
 from tpsr_ros.cli import ArgumentParser
-from tpsr_ros.core.errors import MessageError, TpsrError
+from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io.messages import deserialize, serialize
 from tpsr_ros.io.qos import DEFAULT_QOS, QoSProfile
 from tpsr_ros.runtime.backend import choose_backend, open_transport
 from tpsr_ros.runtime.params import (
     NoParameters,
+    coerce,
     format_parameter_help,
+    format_value,
     param_specs,
     resolve_parameters,
 )
@@ -285,15 +287,17 @@ class Node:
             if backend == "inproc":
                 self.logger.info("inproc transport: only nodes in this process can talk to it")
         self.transport = transport
-        if transport.kind == "rclpy":
-            self.logger.transport = transport
-            getattr(transport, "set_log_level", lambda level: None)(self.options.log_level)
+        # rclpy logs (console and /rosout) itself; the DDS backend publishes /rosout and
+        # lets this logger print
+        self.logger.transport = transport
+        getattr(transport, "set_log_level", lambda level: None)(self.options.log_level)
         try:
             self.transport.declare_parameters(
                 [
                     (spec.name, getattr(self.params, spec.name), spec.help)
                     for spec in param_specs(type(self.params))
-                ]
+                ],
+                self._check_parameter_change,
             )
             self.setup()
         except BaseException:
@@ -308,6 +312,31 @@ class Node:
 
     def on_shutdown(self) -> None:
         """Called once by :meth:`close` before the transport closes (log totals, close files)."""
+
+    def on_parameter_change(self, name: str, value: Any) -> str | None:
+        """Apply a valid runtime change of parameter ``name``; None if applied, else why not.
+
+        The default refuses: the nodes read their parameters once, at start-up.
+        """
+        return (
+            f"parameter {name!r} is fixed at start-up; restart the node with "
+            f"-p {name}:={format_value(value)}"
+        )
+
+    def _check_parameter_change(self, name: str, value: object) -> str | None:
+        """A runtime set (``ros2 param set``): validated as at start-up, then the node's call."""
+        specs = {s.name: s for s in param_specs(type(self.params))}
+        if name not in specs:
+            return f"unknown parameter {name!r}"
+        try:
+            coerced = coerce(specs[name], value, "set")
+            changed = dataclasses.replace(self.params, **{name: coerced})
+        except (UsageError, ConfigError) as exc:
+            return str(exc)
+        reason = self.on_parameter_change(name, coerced)
+        if reason is None:
+            self.params = changed
+        return reason
 
     @classmethod
     def preflight(cls, options: NodeOptions) -> None:

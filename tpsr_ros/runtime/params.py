@@ -20,11 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.fields import option as param
 from tpsr_ros.runtime.ros_args import ParamOverride, ParamsFile, RosArgs, UsageError
+from tpsr_ros.safe_yaml import YamlInputError, load_yaml
 
 __all__ = [
     "NoParameters",
@@ -37,6 +36,8 @@ __all__ = [
 ]
 
 _ROS_TYPES = {bool: "bool", int: "integer", float: "double", str: "string"}
+
+MAX_PARAMS_FILE_BYTES = 2**20
 
 
 @dataclass(frozen=True)
@@ -222,13 +223,13 @@ def load_params_file(path: Path, node_fqn: str) -> list[tuple[bool, dict[str, An
     """
     where = f"--params-file {str(path)!r}"
     try:
-        tree = yaml.safe_load(Path(path).read_text())
+        with Path(path).open("rb") as handle:
+            data = handle.read(MAX_PARAMS_FILE_BYTES + 1)
+        tree = load_yaml(data, where, max_bytes=MAX_PARAMS_FILE_BYTES, rcl_values=True)
     except OSError as exc:
         raise UsageError(f"{where}: cannot read it: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f" (line {mark.line + 1})" if mark is not None else ""
-        raise UsageError(f"{where}: not valid YAML{line}") from None
+    except YamlInputError as exc:
+        raise UsageError(str(exc)) from None
     if tree is None:
         return []
     sections = _node_sections(tree, "", where)

@@ -1,10 +1,13 @@
 """rclpy transport, written to rclpy's documented Jazzy API.
 
-Used when a sourced ROS 2 makes ``rclpy`` importable. Each node gets its own
-``rclpy.Context`` (initialised without rclpy's signal handlers: the runtime installs its
-own), one ``rclpy`` node and a ``SingleThreadedExecutor``.
+Used when ``rclpy`` is importable: a sourced ROS 2 Jazzy, or the PyPI wheels of the
+``ros`` extra (``ros-jazzy-rclpy``, ``ros-jazzy-common-interfaces``,
+``ros-jazzy-rmw-fastrtps-cpp``). Each node gets its own ``rclpy.Context`` (initialised
+without rclpy's signal handlers: the runtime installs its own), one ``rclpy`` node and a
+``SingleThreadedExecutor``.
 
-Message classes come from rosidl (``rosidl_runtime_py.utilities.get_message``). Data
+Message classes are imported from their generated packages (``sensor_msgs.msg.Image``
+for ``sensor_msgs/msg/Image``; the PyPI wheels ship no ``rosidl_runtime_py``). Data
 crosses the boundary only as CDR bytes: publishers publish serialised bytes
 (``Publisher.publish`` accepts ``bytes``) and subscriptions are created with
 ``raw=True``, so a node sees exactly the bytes the DDS backend would give it.
@@ -14,6 +17,7 @@ rclpy's through ``rclpy.serialization`` for code that needs rclpy objects.
 
 from __future__ import annotations
 
+import importlib
 import threading
 from typing import Any, ClassVar
 
@@ -22,6 +26,7 @@ from tpsr_ros.io.messages import deserialize, serialize
 from tpsr_ros.io.qos import Durability, History, QoSProfile, Reliability
 from tpsr_ros.runtime.transport import (
     BytesCallback,
+    ParameterCheck,
     PublisherHandle,
     SubscriptionHandle,
     TopicEndpoint,
@@ -35,13 +40,15 @@ _SEVERITY = {"debug": "DEBUG", "info": "INFO", "warn": "WARN", "error": "ERROR",
 
 
 def message_class(msgtype: str) -> Any:
-    """The rclpy message class of ``pkg/msg/Name`` (via rosidl)."""
-    from rosidl_runtime_py.utilities import get_message
-
+    """The rclpy message class of ``pkg/msg/Name``, imported from ``pkg.msg``."""
+    parts = msgtype.split("/")
+    if len(parts) != 3 or parts[1] != "msg" or not all(p.isidentifier() for p in parts):
+        raise MessageError(f"{msgtype!r} is not a message type name like pkg/msg/Name")
     try:
-        return get_message(msgtype)
-    except (AttributeError, ModuleNotFoundError, ValueError) as exc:
+        cls = getattr(importlib.import_module(f"{parts[0]}.msg"), parts[2])
+    except (AttributeError, ImportError) as exc:
         raise MessageError(f"ROS 2 has no message type {msgtype!r}: {exc}") from None
+    return cls
 
 
 def to_rclpy(msg: Any, msgtype: str) -> Any:
@@ -52,10 +59,23 @@ def to_rclpy(msg: Any, msgtype: str) -> Any:
 
 
 def from_rclpy(msg: Any, msgtype: str) -> Any:
-    """An rclpy message as a rosbags message, through CDR bytes."""
+    """An rclpy message as a rosbags message, through CDR bytes.
+
+    ``rclpy.serialization.serialize_message`` (Fast CDR) can return a few unused bytes
+    after the message (it reserves alignment for empty sequences of 8-byte elements, e.g.
+    a JointState without velocities); on the wire the sample has its exact size. A CDR
+    parse does not depend on what follows the message, so the longest prefix that
+    decodes is the message.
+    """
     from rclpy.serialization import serialize_message
 
-    return deserialize(serialize_message(msg), msgtype)
+    data = bytes(serialize_message(msg))
+    for end in range(len(data), 3, -4):
+        try:
+            return deserialize(data[:end], msgtype)
+        except MessageError:
+            continue
+    return deserialize(data, msgtype)  # raises with the full-length reason
 
 
 def to_rclpy_qos(profile: QoSProfile) -> Any:
@@ -193,31 +213,61 @@ class RclpyTransport(Transport):
         found = []
         for topic, _types in self.node.get_topic_names_and_types():
             for info in self.node.get_publishers_info_by_topic(topic):
-                node = info.node_namespace.rstrip("/") + "/" + info.node_name
+                node: str | None = info.node_namespace.rstrip("/") + "/" + info.node_name
+                if "_UNKNOWN_" in node:  # the peer's ros_discovery_info has not arrived yet
+                    node = None
                 found.append(
                     TopicEndpoint(topic, info.topic_type, from_rclpy_qos(info.qos_profile), node)
                 )
         return found
 
-    def declare_parameters(self, params: list[tuple[str, object, str]]) -> None:
-        from rcl_interfaces.msg import ParameterDescriptor
+    def declare_parameters(
+        self, params: list[tuple[str, object, str]], check: ParameterCheck | None = None
+    ) -> None:
+        """Declare the parameters; ``ros2 param set`` goes through ``check``.
+
+        Without ``check`` they are read-only. rclpy itself refuses a value of another type.
+        """
+        from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 
         for name, value, description in params:
             if isinstance(value, tuple):
                 value = list(value)
             self.node.declare_parameter(
-                name, value, ParameterDescriptor(description=description, read_only=True)
+                name,
+                value,
+                ParameterDescriptor(description=description, read_only=check is None),
             )
+        if check is None:
+            return
+
+        def on_set(parameters: list[Any]) -> Any:
+            for parameter in parameters:
+                value = parameter.value
+                reason = check(parameter.name, tuple(value) if isinstance(value, list) else value)
+                if reason is not None:
+                    return SetParametersResult(successful=False, reason=reason)
+            return SetParametersResult(successful=True)
+
+        # added after declaring: rclpy also runs these callbacks for declarations
+        self.node.add_on_set_parameters_callback(on_set)
 
     def log(self, level: str, message: str) -> bool:
+        # rclpy's logger remembers the severity of each call site (function, line,
+        # bytecode offset) and raises ValueError if it changes: one call per severity.
         logger = self.node.get_logger()
-        {
-            "debug": logger.debug,
-            "info": logger.info,
-            "warn": logger.warning,
-            "error": logger.error,
-            "fatal": logger.fatal,
-        }[level](message)
+        if level == "debug":
+            logger.debug(message)
+        elif level == "info":
+            logger.info(message)
+        elif level == "warn":
+            logger.warning(message)
+        elif level == "error":
+            logger.error(message)
+        elif level == "fatal":
+            logger.fatal(message)
+        else:
+            raise ValueError(f"unknown log level {level!r}")
         return True
 
     def set_log_level(self, level: str) -> None:

@@ -24,9 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.safe_yaml import YamlInputError, load_yaml
 
 __all__ = [
     "LOG_LEVELS",
@@ -156,13 +155,14 @@ def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str], bool]:
 
 
 def parse_yaml_value(text: str, what: str) -> Any:
-    """A ``-p`` value parsed as one YAML scalar or flow sequence, as rcl does."""
+    """A ``-p`` value parsed as one YAML scalar or flow sequence, typed as rcl does."""
     if text == "":
         return ""
     try:
-        value = yaml.safe_load(text)
-    except yaml.YAMLError:
-        raise UsageError(f"{what}: cannot parse value {text!r} as YAML") from None
+        where = f"{what}: cannot parse value {text[:40]!r}"
+        value = load_yaml(text, where, max_bytes=2**16, rcl_values=True)
+    except YamlInputError as exc:
+        raise UsageError(str(exc)) from None
     if isinstance(value, dict):
         raise UsageError(f"{what}: value {text!r} is a mapping; parameters are scalars or lists")
     if value is None:

@@ -27,6 +27,8 @@ __all__ = [
 ]
 
 BytesCallback = Callable[[bytes], None]
+ParameterCheck = Callable[[str, object], "str | None"]
+"""``check(name, value)``: None to accept a runtime parameter change, else the reason."""
 
 
 def pad_cdr(data: bytes | bytearray | memoryview) -> bytes:
@@ -109,10 +111,14 @@ class Transport(ABC):
     def publishers(self) -> list[TopicEndpoint]:
         """Every publisher currently visible in the graph (remote and local)."""
 
-    def declare_parameters(self, params: list[tuple[str, object, str]]) -> None:  # noqa: B027
+    def declare_parameters(  # noqa: B027
+        self, params: list[tuple[str, object, str]], check: ParameterCheck | None = None
+    ) -> None:
         """Expose ``(name, value, description)`` triples to the middleware.
 
-        rclpy declares them read-only; other backends keep parameters to the node.
+        rclpy declares them and serves ROS 2's parameter services; a set request is
+        answered by ``check`` (refused, with its reason, unless it returns None). Other
+        backends keep parameters to the node.
         """
 
     def log(self, level: str, message: str) -> bool:

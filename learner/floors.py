@@ -1,0 +1,94 @@
+"""The floors of every results table: the best state-blind policies (DESIGN.md, issue 11).
+
+A learned representation is worth something only where its policy beats every policy
+that ignores the state. Two floors run the standard protocol (:mod:`learner.evaluate`)
+without looking at what the robot sees:
+
+- ``constant``: the best of the 25 constant actions (the best state-blind policy that
+  does not randomise). It is deterministic: the protocol's seed fixes the execution noise,
+  so every repetition of an experiment scores the same and its SEM is 0.
+- ``random``: uniformly random actions from a seeded generator (one seed per run).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from learner.evaluate import EVALUATION_SEED, Evaluation, run_protocol
+from tpsr_ros.core.actions import ACTIONS, NUM_ACTIONS
+from tpsr_ros.core.episodes import Trajectory
+
+__all__ = [
+    "CONSTANT",
+    "FLOORS",
+    "RANDOM",
+    "BlindTracker",
+    "ConstantFloor",
+    "constant_floor",
+    "random_floor",
+]
+
+CONSTANT = "constant"
+RANDOM = "random"
+FLOORS = (CONSTANT, RANDOM)
+_NO_STATE = np.zeros(0)
+
+
+@dataclass(frozen=True)
+class BlindTracker:
+    """A tracker whose state is empty: the controller sees nothing of the robot."""
+
+    representation: str = "none"
+    fingerprint: str = "none"
+
+    def start(self, image: np.ndarray, position: np.ndarray) -> np.ndarray:
+        """The empty state."""
+        return _NO_STATE
+
+    def step(
+        self, state: np.ndarray, action: int, image: np.ndarray, position: np.ndarray
+    ) -> np.ndarray:
+        """The empty state, whatever happened."""
+        return _NO_STATE
+
+    def track(self, trajectory: Trajectory) -> np.ndarray:
+        """An empty state per step."""
+        return np.zeros((len(trajectory), 0))
+
+
+@dataclass(frozen=True)
+class ConstantFloor:
+    """The best constant action and its evaluation."""
+
+    action: int
+    evaluation: Evaluation
+
+    @property
+    def velocity(self) -> tuple[float, float]:
+        """The commanded ``(vx, vy)`` of the action in m/s."""
+        vx, vy = ACTIONS[self.action]
+        return float(vx), float(vy)
+
+
+@lru_cache(maxsize=4)
+def constant_floor(environment: str, seed: int = EVALUATION_SEED) -> ConstantFloor:
+    """Evaluate all 25 constant actions; the best (lowest index on a tie) is the floor."""
+    results = [
+        run_protocol(lambda _state, a=action: a, BlindTracker(), environment, seed=seed)
+        for action in range(NUM_ACTIONS)
+    ]
+    best = int(np.argmax([r.score for r in results]))
+    return ConstantFloor(best, results[best])
+
+
+def random_floor(environment: str, policy_seed: int, seed: int = EVALUATION_SEED) -> Evaluation:
+    """Uniformly random actions drawn from ``policy_seed`` under the standard protocol."""
+    rng = np.random.default_rng(policy_seed)
+
+    def choose(_state: np.ndarray) -> int:
+        return int(rng.integers(NUM_ACTIONS))
+
+    return run_protocol(choose, BlindTracker(), environment, seed=seed)

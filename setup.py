@@ -1,0 +1,53 @@
+"""setup.py for colcon's ament_python build; pip uses pyproject.toml (same metadata).
+
+colcon (which sets ``COLCON=1``) gets what an ament_python package installs besides the
+Python packages: the ament resource marker, package.xml, and the node executables
+``lib/tpsr_ros/{sim_node,filter_node,record,play}`` (setup.cfg puts scripts there), which
+``ros2 run tpsr_ros <node>`` starts, and ``share/tpsr_ros/launch/*.launch.xml`` for
+``ros2 launch tpsr_ros <file>``. pip installs get no console scripts: the nodes run
+with ``python -m``, and names like ``record`` and ``play`` do not belong in a venv's bin/.
+"""
+
+import os
+from pathlib import Path
+
+from setuptools import setup
+from setuptools.dist import Distribution
+
+PACKAGE = "tpsr_ros"
+NODES = {
+    "sim_node": "sim_node.__main__:main",
+    "filter_node": "tpsr_ros.filter_node:main",
+    "record": "tpsr_ros.record:main",
+    "play": "tpsr_ros.play:main",
+}
+
+
+class _ColconDistribution(Distribution):
+    """Requires-Python as text, as colcon reads it.
+
+    colcon-python-setup-py evaluates the repr of the configured distribution with
+    ``ast.literal_eval``; pyproject.toml's ``requires-python`` becomes a ``SpecifierSet``
+    there, whose repr is no literal (colcon/colcon-python-setup-py issues 33 and 56).
+    """
+
+    def parse_config_files(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        super().parse_config_files(*args, **kwargs)
+        for holder in (self, self.metadata):
+            if getattr(holder, "python_requires", None) is not None:
+                holder.python_requires = str(holder.python_requires)
+
+
+extra = {}
+if os.environ.get("COLCON") == "1":
+    extra = {
+        "distclass": _ColconDistribution,
+        "data_files": [
+            ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+            (f"share/{PACKAGE}", ["package.xml"]),
+            (f"share/{PACKAGE}/launch", sorted(str(f) for f in Path("launch").glob("*.xml"))),
+        ],
+        "entry_points": {"console_scripts": [f"{k} = {v}" for k, v in NODES.items()]},
+    }
+
+setup(**extra)

@@ -1,0 +1,178 @@
+"""Hostile input (issue 17): params files, -p values, bag metadata.yaml, damaged MCAP bytes."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from tpsr_ros.core.errors import BagError
+from tpsr_ros.io.bag import BagReader
+from tpsr_ros.runtime.params import param, resolve_parameters
+from tpsr_ros.runtime.ros_args import UsageError, parse_ros_args
+from tpsr_ros.safe_yaml import rcl_scalar
+
+BAGS = Path(__file__).resolve().parent.parent / "bags"
+LAUGHS = "\n".join(
+    ['a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]']
+    + [f"{chr(98 + i)}: &{chr(98 + i)} [{','.join(['*' + chr(97 + i)] * 9)}]" for i in range(8)]
+    + ["node:", "  ros__parameters:", "    steps: *i"]
+)
+
+
+@dataclass(frozen=True)
+class Params:
+    steps: int = param(10, "steps")
+    rate: float = param(1.0, "rate")
+    name: str = param("x", "name")
+    gains: tuple[float, ...] = param((1.0,), "gains")
+
+
+def _resolve(*tokens: str) -> Params:
+    return resolve_parameters(Params, parse_ros_args(list(tokens)), "/node")
+
+
+def _params_file(tmp_path: Path, content: str | bytes) -> str:
+    path = tmp_path / "params.yaml"
+    path.write_bytes(content.encode() if isinstance(content, str) else content)
+    return str(path)
+
+
+@pytest.mark.parametrize(
+    "content, fragment",
+    [
+        (LAUGHS, "anchors and aliases are not supported"),
+        ("a: &a [*a]\n", "anchors and aliases are not supported"),
+        (b"node:\n  ros__parameters:\n    name: \xff\xfe\n", "not UTF-8 text"),
+        ("node:\n  ros__parameters:\n    gains: " + "[" * 5000 + "]" * 5000 + "\n",
+         "nested deeper than 32 levels"),
+        ("node:\n  ros__parameters:\n    steps: " + "7" * 5001 + "\n",
+         "expects an integer, got string 777"),
+        ("node:\n  ros__parameters:\n    gains: [[1.0]]\n", "nested sequences"),
+        ("node: [unclosed\n", "not valid YAML (line 2)"),
+    ],
+)
+def test_hostile_params_files_are_one_line_usage_errors(tmp_path, content, fragment):
+    start = time.perf_counter()
+    with pytest.raises(UsageError) as info:
+        _resolve("--params-file", _params_file(tmp_path, content))
+    assert fragment in str(info.value) and "\n" not in str(info.value)
+    assert time.perf_counter() - start < 5  # no exponential expansion
+
+
+def test_values_are_typed_as_rcl_types_them():
+    # rcl (rcl_yaml_param_parser get_value), not YAML 1.1: no sexagesimal, C integer bases
+    assert rcl_scalar("1:00") == "1:00"
+    assert rcl_scalar("0x1f") == 31 and rcl_scalar("017") == 15 and rcl_scalar("-3") == -3
+    assert rcl_scalar("yes") is True and rcl_scalar("Off") is False and rcl_scalar("TRUE") is True
+    assert rcl_scalar("true", quoted=True) == "true" and rcl_scalar("5", quoted=True) == "5"
+    assert rcl_scalar("1e3") == 1000.0 and rcl_scalar(".inf") == float("inf")
+    assert rcl_scalar("9" * 30) == 1e30  # beyond int64: strtol fails, strtod reads a double
+    assert rcl_scalar("9" * 400) == "9" * 400  # strtod overflows too: a string
+    assert rcl_scalar("1_000") == "1_000" and rcl_scalar("null") == "null"
+    with pytest.raises(UsageError, match="expects an integer, got string 1:00"):
+        _resolve("-p", "steps:=1:00")
+    assert _resolve("-p", "steps:=0x10", "-p", "gains:=[1, 2.5]") == Params(steps=16,
+                                                                             gains=(1.0, 2.5))
+    for value, fragment in [
+        ("[" * 5000 + "]" * 5000, "nested deeper than 32 levels"),
+        ("[[1.0]]", "nested sequences"),
+        ("*x", "cannot parse value"),
+        ("7" * 5001, "expects an integer, got string"),
+    ]:
+        with pytest.raises(UsageError, match=fragment):
+            _resolve("-p", f"steps:={value}")
+
+
+def _bag_with_metadata(tmp_path: Path, change) -> Path:
+    bag = tmp_path / "bag"
+    shutil.copytree(BAGS / "full", bag)
+    meta = bag / "metadata.yaml"
+    meta.write_bytes(change(meta.read_bytes()))
+    return bag
+
+
+@pytest.mark.parametrize(
+    "change, fragment",
+    [
+        (lambda data: data.replace(b"mcap", b"mc\xffap", 1), "not UTF-8 text"),
+        (lambda data: data + b"deep: " + b"[" * 20000 + b"]" * 20000 + b"\n",
+         "nested deeper than 32 levels"),
+        (lambda data: data.replace(b"custom_data:", b"custom_data: [1, 2]\n  unused:", 1)
+         if b"custom_data:" in data else data + b"  custom_data: [1, 2]\n",
+         "custom_data is not a mapping"),
+        (lambda data: b"&a x: *a\n" + data, "anchors and aliases"),
+    ],
+)
+def test_hostile_bag_metadata_is_a_one_line_bag_error(tmp_path, change, fragment):
+    bag = _bag_with_metadata(tmp_path, change)
+    with pytest.raises(BagError) as info:
+        BagReader(bag)
+    assert fragment in str(info.value) and "\n" not in str(info.value)
+
+
+def test_a_node_refuses_a_billion_laughs_params_file_in_one_line(tmp_path):
+    path = _params_file(tmp_path, LAUGHS.replace("node:", "sim_node:"))
+    result = subprocess.run(
+        [sys.executable, "-m", "sim_node", "--ros-args", "--params-file", path],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0 and "Traceback" not in result.stderr
+    assert "anchors and aliases are not supported" in result.stderr
+
+
+def _read_all(bag: Path) -> int:
+    with BagReader(bag) as reader:
+        return sum(1 for _ in reader.messages())
+
+
+def test_damaged_mcap_bytes_give_a_bag_error_never_a_traceback(tmp_path):
+    # seeded mutations of the sample bag: flipped bits inside compressed chunks, records
+    # claiming 2**40 bytes, zeroed lengths; each read either succeeds or says "damaged"
+    import numpy as np
+
+    source = BAGS / "full" / "full.mcap"
+    original = source.read_bytes()
+    rng = np.random.default_rng(17)
+    outcomes = {"read": 0, "refused": 0}
+    for case in range(60):
+        data = bytearray(original)
+        offset = int(rng.integers(8, len(data) - 8))
+        kind = case % 3
+        if kind == 0:
+            data[offset] ^= 1 << int(rng.integers(8))
+        elif kind == 1:
+            data[offset : offset + 8] = (2**40).to_bytes(8, "little")
+        else:
+            data[offset : offset + 8] = bytes(8)
+        bag = tmp_path / f"case{case}"
+        bag.mkdir()
+        shutil.copy(BAGS / "full" / "metadata.yaml", bag)
+        (bag / "full.mcap").write_bytes(bytes(data))
+        try:
+            _read_all(bag)
+            outcomes["read"] += 1
+        except BagError as exc:
+            assert "\n" not in str(exc)
+            outcomes["refused"] += 1
+        shutil.rmtree(bag)
+    assert outcomes["refused"] > 10, outcomes  # the mutations do hit structure and chunks
+
+
+def test_messages_missing_from_what_the_metadata_lists_are_reported(tmp_path):
+    # rosbag2's own talker bag read as 0 of 20 messages and `play` exited 0: never again
+    bag = _bag_with_metadata(
+        tmp_path, lambda data: data.replace(b"message_count: 3000", b"message_count: 3005", 1)
+    )
+    with BagReader(bag) as reader, pytest.raises(BagError, match="read 15000 of the 15005"):
+        for _ in reader.messages():
+            pass
+    result = subprocess.run([sys.executable, "-m", "tpsr_ros.play", str(bag), "--rate", "100000"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode != 0 and "read 15000 of the 15005 messages" in result.stderr
