@@ -245,3 +245,8 @@ def test_hostile_model_files_are_refused_before_any_array_is_inflated(tmp_path, 
     _write_members(tmp_path / "objects.npz", objects)
     with pytest.raises(ModelFormatError, match="has dtype object"):
         load_model(tmp_path / "objects.npz")
+
+
+def test_a_directory_is_named_as_one(tmp_path):
+    with pytest.raises(ModelFormatError, match="is a directory, not a file"):
+        load_model(tmp_path)

@@ -639,3 +639,41 @@ def test_the_filter_node_swaps_its_policy_at_runtime_only_for_one_that_fits(ros_
     finally:
         caller.close()
         node.close()
+
+
+def test_why_the_dds_backend_serves_no_ros2_services_to_fast_dds_clients(mixed_pair):
+    """A real rclpy (Fast DDS) service request reaches a plain Cyclone DDS reader of the
+    service's request topic as the bare request: no correlation header in the payload, as
+    rmw_cyclonedds_cpp would put there. Fast DDS carries the request's identity out of band
+    (RTPS sample identities), and a reply would have to echo it the same way, which the
+    Python Cyclone API cannot write; so the DDS backend serves no parameter services
+    (msgs_doc/README.md), and ``ros2 param`` needs the rclpy backend."""
+    from cyclonedds.core import Policy, Qos
+    from cyclonedds.idl import make_idl_struct
+    from cyclonedds.idl.annotations import final
+    from cyclonedds.idl.types import sequence
+    from cyclonedds.sub import DataReader
+    from cyclonedds.topic import Topic
+    from cyclonedds.util import duration
+    from rcl_interfaces.srv import GetParameters
+
+    Request = final(make_idl_struct(
+        "GetParameters_Request", "rcl_interfaces::srv::dds_::GetParameters_Request_",
+        {"names": sequence[str]}, dataclassify=True,
+    ))
+
+    dds, ros = mixed_pair
+    topic = Topic(dds.transport._dp, "rq/sim_node/get_parametersRequest", Request)
+    reader = DataReader(dds.transport._dp, topic, Qos(
+        Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(10)))
+    client = ros.transport.node.create_client(GetParameters, "/sim_node/get_parameters")
+    got: list = []
+    deadline = time.monotonic() + 20
+    while not got and time.monotonic() < deadline:
+        if reader.get_subscription_matched_status().current_count:
+            client.call_async(GetParameters.Request(names=["environment"]))
+        spin_all((ros,), lambda: False, timeout=0.2)
+        got = reader.take(N=10)
+    assert got and got[0].names == ["environment"]  # the bare request, nothing before it
+    assert not client.service_is_ready()  # a reader alone is no service for Fast DDS
+    ros.transport.node.destroy_client(client)

@@ -1,8 +1,11 @@
 """rosbag2 MCAP bags: the one module the generator, recorder, player and learner share.
 
 A bag is a rosbag2 directory (``metadata.yaml`` + ``<name>.mcap``, storage ``mcap``,
-serialisation ``cdr``) written with ``rosbags``; MCAP chunks are zstd-compressed, which
-``ros2 bag``, ``rosbags`` and ``mcap`` all read transparently.
+serialisation ``cdr``), written with the ``mcap`` library (zstd chunks with CRCs) and
+read with ``rosbags``; ``ros2 bag``, ``rosbags`` and ``mcap`` all read it. Reading is
+bounded and checked: ``metadata.yaml`` through :mod:`tpsr_ros.safe_yaml`, damaged MCAP
+bytes and chunk CRC mismatches as one-line ``BagError`` reports, and a bag that yields fewer
+messages than its metadata lists is refused.
 
 Writing never clobbers: an existing path is refused, an unwritable directory is named,
 and a writer that fails or is interrupted inside its ``with`` block removes what it
@@ -22,15 +25,25 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-from rosbags.interfaces import Connection, Qos
-from rosbags.rosbag2 import Reader, ReaderError, Writer, WriterError
-from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
+import yaml
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+from rosbags.interfaces import Qos
+from rosbags.rosbag2 import Reader, ReaderError
+from rosbags.rosbag2.metadata import dump_qos_v9
 
 from tpsr_ros.core.errors import BagError
 from tpsr_ros.io.messages import deserialize, jazzy_typestore, serialize
 from tpsr_ros.safe_yaml import YamlInputError, load_yaml
 
-__all__ = ["BagMessage", "BagReader", "BagWriter", "check_bag_path_free", "read_bag_metadata"]
+__all__ = [
+    "BagMessage",
+    "BagReader",
+    "BagWriter",
+    "check_bag_path_free",
+    "read_bag_metadata",
+    "rosbag2_metadata",
+]
 
 MAX_METADATA_BYTES = 16 * 2**20
 
@@ -43,6 +56,7 @@ def _zstd_errors() -> tuple[type[Exception], ...]:
         except (ImportError, AttributeError):
             continue
     return ()
+
 
 _DAMAGE = (
     ValueError,
@@ -61,9 +75,14 @@ and offsets (``OverflowError``, ``struct.error``, ``MemoryError`` from an alloca
 was refused before it happened). A damaged bag is reported, never a traceback."""
 
 
+def _one_line(exc: BaseException, limit: int = 200) -> str:
+    """An exception's text on one line, cut to ``limit`` characters."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _describe(exc: BaseException) -> str:
-    text = str(exc) or type(exc).__name__
-    return f"{type(exc).__name__}: {text[:120]}"
+    return f"{type(exc).__name__}: {_one_line(exc, 120)}"
 
 
 def check_bag_path_free(path: Path) -> Path:
@@ -79,31 +98,98 @@ def check_bag_path_free(path: Path) -> Path:
     return path
 
 
+@dataclass
+class _Topic:
+    """A declared topic: its MCAP channel and what ``metadata.yaml`` says of it."""
+
+    channel_id: int
+    msgtype: str
+    qos: str
+    rihs01: str
+    count: int = 0
+
+
+def rosbag2_metadata(
+    file_name: str, topics: Sequence[dict[str, Any]], times: tuple[int, int],
+    custom_data: dict[str, str] | None = None,
+) -> str:
+    """``metadata.yaml`` (rosbag2 version 9) for one MCAP file.
+
+    ``topics`` are ``{"name", "type", "serialization_format", "offered_qos_profiles",
+    "type_description_hash", "message_count"}``; ``times`` the first and last log time.
+    """
+    start, end = times
+    duration = max(0, end - start)
+    total = sum(int(t["message_count"]) for t in topics)
+    info = {
+        "version": 9,
+        "storage_identifier": "mcap",
+        "relative_file_paths": [file_name],
+        "duration": {"nanoseconds": duration},
+        "starting_time": {"nanoseconds_since_epoch": start},
+        "message_count": total,
+        "topics_with_message_count": [
+            {
+                "topic_metadata": {k: v for k, v in t.items() if k != "message_count"},
+                "message_count": int(t["message_count"]),
+            }
+            for t in topics
+        ],
+        "compression_format": "",
+        "compression_mode": "",
+        "files": [
+            {
+                "path": file_name,
+                "starting_time": {"nanoseconds_since_epoch": start},
+                "duration": {"nanoseconds": duration},
+                "message_count": total,
+            }
+        ],
+        "custom_data": dict(custom_data) if custom_data else None,
+        "ros_distro": "jazzy",
+    }
+    return yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
+
+
 class BagWriter:
     """Write serialised ROS 2 messages into a new rosbag2 MCAP bag.
 
     Use as a context manager. Topics are declared once with :meth:`add_topic`; messages
     are written as CDR bytes (:meth:`write`, what a recorder receives) or as message
     objects (:meth:`write_message`, serialised here).
+
+    The file is written by the ``mcap`` library, as ROS 2's own recorder writes it: the
+    ``ros2`` profile, a ``ros2msg`` schema per type, the offered QoS in each channel's
+    metadata, zstd chunks of about 1 MiB carrying a CRC of their content (so a flipped
+    bit is detected when read, not passed on silently), chunk and message indexes, and a
+    summary. ``metadata.yaml`` is written on :meth:`close`.
     """
 
     def __init__(self, path: Path | str, *, compress: bool = True) -> None:
         self.path = check_bag_path_free(Path(path))
-        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-        if compress:
-            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        self._connections: dict[str, Connection] = {}
-        self._types: dict[str, str] = {}
-        self._open = False
+        self._compress = compress
+        self._handle: Any = None
+        self._writer: McapWriter | None = None
+        self._topics: dict[str, _Topic] = {}
+        self._schemas: dict[str, int] = {}
+        self._custom_data: dict[str, str] = {}
+        self._times = (2**63 - 1, 0)
         self.message_count = 0
+
+    @property
+    def _file(self) -> Path:
+        return self.path / f"{self.path.name}.mcap"
 
     def open(self) -> BagWriter:
         """Create the bag directory and MCAP file."""
         try:
-            self._writer.open()
-        except (WriterError, OSError) as exc:
-            raise BagError(f"cannot create bag {str(self.path)!r}: {exc}") from None
-        self._open = True
+            self.path.mkdir()
+            self._handle = self._file.open("wb")
+        except OSError as exc:
+            raise BagError(f"cannot create bag {str(self.path)!r}: {exc.strerror}") from None
+        compression = CompressionType.ZSTD if self._compress else CompressionType.NONE
+        self._writer = McapWriter(self._handle, compression=compression, enable_crcs=True)
+        self._writer.start(profile="ros2", library=f"tpsr_ros {_version()}")
         return self
 
     def __enter__(self) -> BagWriter:
@@ -120,41 +206,61 @@ class BagWriter:
         else:
             self.abort()
 
+    def _require_open(self) -> McapWriter:
+        if self._writer is None:
+            raise BagError(f"bag {str(self.path)!r} is not open")
+        return self._writer
+
     def add_topic(self, topic: str, msgtype: str, qos: Sequence[Qos] = ()) -> None:
         """Declare ``topic`` with ROS type ``msgtype``; a clashing redeclaration is refused."""
-        if topic in self._types:
-            if self._types[topic] != msgtype:
+        writer = self._require_open()
+        if topic in self._topics:
+            if self._topics[topic].msgtype != msgtype:
                 raise BagError(
-                    f"topic {topic!r} already has type {self._types[topic]}, not {msgtype}"
+                    f"topic {topic!r} already has type {self._topics[topic].msgtype}, "
+                    f"not {msgtype}"
                 )
             return
-        self._connections[topic] = self._writer.add_connection(
-            topic, msgtype, typestore=jazzy_typestore(), offered_qos_profiles=list(qos)
+        store = jazzy_typestore()
+        try:
+            msgdef, _ = store.generate_msgdef(msgtype, ros_version=2)
+            rihs01 = store.hash_rihs01(msgtype)
+        except Exception as exc:  # rosbags raises its own types for unknown messages
+            raise BagError(f"cannot record {topic!r}: unknown type {msgtype!r} ({exc})") from None
+        if msgtype not in self._schemas:
+            self._schemas[msgtype] = writer.register_schema(msgtype, "ros2msg", msgdef.encode())
+        offered = _dump_qos(list(qos))
+        channel = writer.register_channel(
+            topic, "cdr", self._schemas[msgtype], {"offered_qos_profiles": offered}
         )
-        self._types[topic] = msgtype
+        self._topics[topic] = _Topic(channel, msgtype, offered, rihs01)
 
     def set_custom_data(self, key: str, value: str) -> None:
         """Store a string in ``metadata.yaml``'s ``custom_data`` (e.g. generator settings)."""
-        self._writer.set_custom_data(key, value)
+        self._custom_data[str(key)] = str(value)
 
     def has_topic(self, topic: str) -> bool:
         """Whether ``topic`` was declared."""
-        return topic in self._types
+        return topic in self._topics
 
     def write(self, topic: str, stamp_ns: int, data: bytes | memoryview) -> None:
         """Append CDR bytes on a declared topic with log time ``stamp_ns``."""
+        writer = self._require_open()
         try:
-            connection = self._connections[topic]
+            declared = self._topics[topic]
         except KeyError:
             raise BagError(f"topic {topic!r} was not declared with add_topic") from None
-        self._writer.write(connection, int(stamp_ns), data)
+        stamp = int(stamp_ns)
+        writer.add_message(declared.channel_id, stamp, bytes(data), stamp, declared.count)
+        declared.count += 1
         self.message_count += 1
+        self._times = (min(self._times[0], stamp), max(self._times[1], stamp))
 
     def write_message(self, topic: str, stamp_ns: int, msg: Any) -> None:
         """Serialise ``msg`` with the topic's declared type and append it."""
-        if topic not in self._types:
+        if topic not in self._topics:
             raise BagError(f"topic {topic!r} was not declared with add_topic")
-        self.write(topic, stamp_ns, serialize(msg, self._types[topic]))
+        self.write(topic, stamp_ns, serialize(msg, self._topics[topic].msgtype))
 
     def flush(self) -> None:
         """Close the pending MCAP chunk and hand everything written so far to the OS.
@@ -162,28 +268,55 @@ class BagWriter:
         After a hard kill the ``.mcap`` then holds every message up to this call; see
         ``tpsr_ros.bag_recover`` for reading such a bag.
         """
-        storage = getattr(self._writer, "storage", None)
-        if storage is None:
-            return
-        chunk = getattr(storage, "chunk", None)
-        if chunk is not None and chunk.bio.tell():
-            storage.close_chunk()
-        storage.bio.flush()
+        if self._writer is not None:
+            self._writer.flush()
 
     def close(self) -> None:
         """Finish the MCAP summary and write ``metadata.yaml``."""
-        if self._open:
-            self._open = False
-            self._writer.close()
+        if self._writer is None:
+            return
+        writer, self._writer = self._writer, None
+        writer.finish()
+        self._handle.close()
+        topics = [
+            {
+                "name": name,
+                "type": t.msgtype,
+                "serialization_format": "cdr",
+                "offered_qos_profiles": t.qos,
+                "type_description_hash": t.rihs01,
+                "message_count": t.count,
+            }
+            for name, t in self._topics.items()
+        ]
+        times = self._times if self.message_count else (0, 0)
+        text = rosbag2_metadata(self._file.name, topics, times, self._custom_data)
+        temporary = self.path / "metadata.yaml.tmp"
+        temporary.write_text(text)
+        temporary.replace(self.path / "metadata.yaml")
 
     def abort(self) -> None:
         """Discard the bag: close files and remove the directory this writer created."""
-        if self._open:
-            self._open = False
+        if self._writer is not None:
+            self._writer = None
             try:
-                self._writer.close()
+                self._handle.close()
             finally:
                 shutil.rmtree(self.path, ignore_errors=True)
+
+
+def _dump_qos(profiles: list[Qos]) -> str:
+    """Offered QoS profiles as rosbag2 (version 9) stores them: a YAML string."""
+    dumped = dump_qos_v9(profiles)
+    if isinstance(dumped, str):
+        return dumped
+    return yaml.safe_dump(dumped, default_flow_style=False, sort_keys=False).strip()
+
+
+def _version() -> str:
+    from tpsr_ros import __version__
+
+    return str(__version__)
 
 
 @dataclass(frozen=True)
@@ -233,7 +366,42 @@ def read_bag_metadata(path: Path) -> dict[str, Any]:
     files = info.get("relative_file_paths", [])
     if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
         raise BagError(f"{str(meta_path)!r}: relative_file_paths is not a list of file names")
+    _check_counts(meta_path, info)
     return info
+
+
+def _count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _check_counts(meta_path: Path, info: dict[str, Any]) -> None:
+    """Refuse metadata whose counts, times and topic entries are not what rosbag2 writes."""
+    where = f"{str(meta_path)!r}"
+    numbers = {
+        "message_count": info.get("message_count", 0),
+        "duration.nanoseconds": (info.get("duration") or {}).get("nanoseconds", 0)
+        if isinstance(info.get("duration") or {}, dict)
+        else None,
+        "starting_time.nanoseconds_since_epoch": (info.get("starting_time") or {}).get(
+            "nanoseconds_since_epoch", 0
+        )
+        if isinstance(info.get("starting_time") or {}, dict)
+        else None,
+    }
+    for name, value in numbers.items():
+        if not _count(value):
+            raise BagError(f"{where}: {name} is not a non-negative integer")
+    topics = info.get("topics_with_message_count", [])
+    if not isinstance(topics, list):
+        raise BagError(f"{where}: topics_with_message_count is not a list")
+    for entry in topics:
+        topic = entry.get("topic_metadata") if isinstance(entry, dict) else None
+        if not isinstance(topic, dict) or not all(
+            isinstance(topic.get(key), str) for key in ("name", "type")
+        ):
+            raise BagError(f"{where}: a topic entry lacks its name or type")
+        if not _count(entry.get("message_count", 0)):
+            raise BagError(f"{where}: topic {topic['name'][:80]!r} has a bad message_count")
 
 
 class BagReader:
@@ -250,8 +418,8 @@ class BagReader:
         try:
             self._reader.open()
         except (ReaderError, OSError) as exc:
-            raise BagError(f"cannot open bag {str(self.path)!r}: {exc}") from None
-        except _DAMAGE as exc:
+            raise BagError(f"cannot open bag {str(self.path)!r}: {_one_line(exc)}") from None
+        except (*_DAMAGE, TypeError, AttributeError) as exc:  # metadata rosbags did not expect
             damage = _describe(exc)
             raise BagError(f"cannot open bag {str(self.path)!r}: damaged ({damage})") from None
 
@@ -308,9 +476,7 @@ class BagReader:
         topics; otherwise a ``BagError`` says how many were missing.
         """
         wanted = None if topics is None else set(topics)
-        connections = [
-            c for c in self._reader.connections if wanted is None or c.topic in wanted
-        ]
+        connections = [c for c in self._reader.connections if wanted is None or c.topic in wanted]
         if wanted is not None and not connections:
             return
         listed = sum(c.msgcount for c in connections)
@@ -320,7 +486,7 @@ class BagReader:
                 read += 1
                 yield BagMessage(conn.topic, conn.msgtype, int(log_time), bytes(data))
         except ReaderError as exc:
-            raise BagError(f"bag {str(self.path)!r} is damaged: {exc}") from None
+            raise BagError(f"bag {str(self.path)!r} is damaged: {_one_line(exc)}") from None
         except _DAMAGE as exc:
             raise BagError(f"bag {str(self.path)!r} is damaged: {_describe(exc)}") from None
         if read != listed:  # nothing may go missing silently (rosbag2's talker bag did)

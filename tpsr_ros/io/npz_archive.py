@@ -23,10 +23,13 @@ from __future__ import annotations
 import json
 import math
 import os
+import struct
 import tempfile
 import zipfile
+import zlib
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from tokenize import TokenError
 from typing import Any, BinaryIO
 
 import numpy as np
@@ -51,6 +54,20 @@ MAX_METADATA_BYTES = 16 * 2**20
 MAX_JSON_DEPTH = 64
 MAX_ARRAY_BYTES = 2**30  # all arrays together; real models and policies are a few MB
 MAX_MEMBERS = 64
+
+_UNREADABLE = (
+    OSError,
+    ValueError,
+    EOFError,
+    KeyError,
+    RuntimeError,
+    OverflowError,
+    NotImplementedError,  # a zip member compressed with an unsupported method
+    struct.error,
+    zipfile.BadZipFile,
+    zlib.error,
+)
+"""What zipfile and numpy raise on a damaged archive; reported, never a traceback."""
 
 ArrayHeader = tuple[tuple[int, ...], np.dtype]
 ShapeRule = tuple[int | None, ...]
@@ -150,13 +167,18 @@ def _json_depth_ok(text: str, limit: int) -> bool:
 def _read_header(handle: BinaryIO) -> tuple[ArrayHeader, int]:
     """Shape and dtype from an ``.npy`` header, and the header's length in bytes."""
     version = np.lib.format.read_magic(handle)
-    if version == (1, 0):
-        shape, _, dtype = np.lib.format.read_array_header_1_0(handle)
-    elif version == (2, 0):
-        shape, _, dtype = np.lib.format.read_array_header_2_0(handle)
-    else:
+    readers = {
+        (1, 0): np.lib.format.read_array_header_1_0,
+        (2, 0): np.lib.format.read_array_header_2_0,
+    }
+    if version not in readers:
         raise ValueError(f"unsupported .npy format version {version}")
-    return (tuple(int(n) for n in shape), np.dtype(dtype)), handle.tell()
+    try:  # numpy parses the header as a Python literal: garbage raises anything
+        shape, _, dtype = readers[version](handle)
+        header = (tuple(int(n) for n in shape), np.dtype(dtype))
+    except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError, TokenError) as exc:
+        raise ValueError(f"unreadable .npy header ({type(exc).__name__})") from None
+    return header, handle.tell()
 
 
 def _inspect(archive: zipfile.ZipFile, path: Path) -> dict[str, ArrayHeader]:
@@ -244,6 +266,8 @@ def read_archive(
     """
     path = Path(path)
     what = format_name.removeprefix("tpsr-ros ")
+    if path.is_dir():
+        raise ModelFormatError(f"{what} file {str(path)!r} is a directory, not a file")
     if not path.is_file():
         raise ModelFormatError(f"{what} file {str(path)!r} does not exist")
     try:
@@ -263,9 +287,10 @@ def read_archive(
             arrays = {name: _read_member(archive, name) for name in headers if name != METADATA_KEY}
     except ModelFormatError:
         raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError, RuntimeError) as exc:
+    except _UNREADABLE as exc:
         raise ModelFormatError(
-            f"{str(path)!r} is not a readable {what} file (truncated or foreign): {exc}"
+            f"{str(path)!r} is not a readable {what} file (truncated or foreign): "
+            f"{str(exc)[:200] or type(exc).__name__}"
         ) from None
     return metadata, arrays
 
