@@ -13,7 +13,7 @@ from __future__ import annotations
 from tpsr_ros.core.episodes import Episodes, Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
-from tpsr_ros.core.tpsr import Progress, TPSRConfig, TPSRModel, fit_tpsr
+from tpsr_ros.core.tpsr import Progress, TPSRConfig, TPSRModel, fit_tpsr_episodes
 
 __all__ = ["fit"]
 
@@ -48,12 +48,4 @@ def fit(
         raise ConfigError(f"fit takes a Trajectory or Episodes, not {type(data).__name__}")
     if isinstance(cfg, PCAConfig):
         return fit_pca(episodes.steps(), n_actions=episodes.n_actions, config=cfg)
-    return fit_tpsr(
-        episodes.history,
-        episodes.observation,
-        episodes.action,
-        episodes.test,
-        n_actions=episodes.n_actions,
-        config=cfg,
-        progress=progress,
-    )
+    return fit_tpsr_episodes(episodes, config=cfg, progress=progress)

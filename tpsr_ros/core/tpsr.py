@@ -643,11 +643,16 @@ def fit_tpsr(
 class EpisodeArrays(Protocol):
     """What :func:`fit_tpsr_episodes` reads (e.g. :class:`tpsr_ros.core.episodes.Episodes`)."""
 
-    history: np.ndarray
-    observation: np.ndarray
-    action: np.ndarray
-    test: np.ndarray
-    n_actions: int
+    @property
+    def history(self) -> np.ndarray: ...
+    @property
+    def observation(self) -> np.ndarray: ...
+    @property
+    def action(self) -> np.ndarray: ...
+    @property
+    def test(self) -> np.ndarray: ...
+    @property
+    def n_actions(self) -> int: ...
 
 
 def fit_tpsr_episodes(
