@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import os
 import statistics
-import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -36,7 +37,7 @@ def _node(name: str):
 
 def publisher(count: int) -> None:
     """Child process: wait for the subscriber, then publish ``count`` images at 100 Hz."""
-    from tpsr_ros import messages as m
+    from tpsr_ros.io import messages as m
 
     node = _node("bench_publisher")
     pub = node.create_publisher(TOPIC, m.IMAGE_TYPE)
@@ -58,7 +59,8 @@ def publisher(count: int) -> None:
 
 
 def one_run(env: dict[str, str]) -> np.ndarray:
-    from tpsr_ros import messages as m
+    from tpsr_ros.io import messages as m
+    from tpsr_ros.runtime.launcher import NodeProcess
 
     node = _node("bench_subscriber")
     latencies: list[int] = []
@@ -67,15 +69,15 @@ def one_run(env: dict[str, str]) -> np.ndarray:
         latencies.append(time.time_ns() - m.stamp_of(msg))
 
     node.create_subscription(TOPIC, m.IMAGE_TYPE, on_image)
-    child = subprocess.Popen(
-        [sys.executable, "-m", "benchmarks.bench_dds", "--publish", str(MESSAGES)], env=env
+    log = Path(tempfile.mkdtemp(prefix="bench_dds_")) / "publisher.log"
+    child = NodeProcess(
+        "publisher", "benchmarks.bench_dds", ["--publish", str(MESSAGES)], log_path=log, env=env
     )
     try:
         node.wait_for(lambda: len(latencies) >= MESSAGES, timeout_s=MESSAGES / RATE_HZ + 30)
         child.wait(30)
     finally:
-        if child.poll() is None:
-            child.kill()
+        child.kill()
         node.close()
     if len(latencies) < MESSAGES:
         raise RuntimeError(f"received {len(latencies)} of {MESSAGES} messages")

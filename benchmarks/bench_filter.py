@@ -19,9 +19,8 @@ from __future__ import annotations
 
 import os
 import random
+import signal
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from collections import deque
@@ -45,7 +44,7 @@ def _train(tmp: Path) -> tuple[Path, Path, list]:
     from learner.cli import main as learner_main
     from sim_node import SimConfig
     from sim_node.generate import generate_bag
-    from tpsr_ros.bag import BagReader
+    from tpsr_ros.io.bag import BagReader
 
     generate_bag(tmp / "train", SimConfig(environment="full"), 24_000, seed=0)
     generate_bag(tmp / "rl", SimConfig(environment="full"), 15_000, seed=1)
@@ -63,8 +62,8 @@ def _train(tmp: Path) -> tuple[Path, Path, list]:
 
 def _step_bytes(images: list, k: int) -> tuple[bytes, bytes]:
     """CDR bytes of the image and action of step k (stamp k s), a real image, a valid action."""
-    from sim_node.actions import ACTIONS
-    from tpsr_ros import messages as m
+    from tpsr_ros.core.actions import ACTIONS
+    from tpsr_ros.io import messages as m
 
     image = m.image_msg(k * S, m.image_to_array(images[k % len(images)]))
     vx, vy = ACTIONS[(7 * k) % len(ACTIONS)]
@@ -74,11 +73,11 @@ def _step_bytes(images: list, k: int) -> tuple[bytes, bytes]:
 
 def inproc_throughput(model: Path, policy: Path, images: list) -> tuple[list, list]:
     """Updates per second of each run: (node path, bare tracker)."""
-    from tpsr_ros import messages as m
-    from tpsr_ros.episodes import image_to_observation
+    from tpsr_ros.core.episodes import image_to_observation
+    from tpsr_ros.core.online import OnlineTracker
     from tpsr_ros.filter_node import FilterNode
-    from tpsr_ros.model_io import load_model
-    from tpsr_ros.online import OnlineTracker
+    from tpsr_ros.io import messages as m
+    from tpsr_ros.io.model_io import load_model
     from tpsr_ros.runtime import Node, NodeOptions, parse_ros_args
     from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
 
@@ -120,9 +119,10 @@ def inproc_throughput(model: Path, policy: Path, images: list) -> tuple[list, li
 
 def dds_latency(model: Path, policy: Path, images: list, tmp: Path) -> list[np.ndarray]:
     """Latencies (ms) of each run, image publish -> /cmd_vel received."""
-    from tpsr_ros import messages as m
+    from tpsr_ros.io import messages as m
     from tpsr_ros.runtime import Node, NodeOptions
     from tpsr_ros.runtime.dds import DdsTransport
+    from tpsr_ros.runtime.launcher import NodeProcess
 
     domain = random.SystemRandom().randrange(1, 233)
     env = {
@@ -148,20 +148,11 @@ def dds_latency(model: Path, policy: Path, images: list, tmp: Path) -> list[np.n
             latencies.append((time.perf_counter_ns() - sent.popleft()) / 1e6)
 
     cmd_sub = node.create_subscription("/cmd_vel", m.TWIST_TYPE, on_cmd)
-    log = (tmp / "filter.log").open("wb")
-    child = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "tpsr_ros.filter_node",
-            "--ros-args",
-            "-p",
-            f"model:={model}",
-            "-p",
-            f"policy:={policy}",
-        ],
-        stdout=log,
-        stderr=log,
+    child = NodeProcess(
+        "filter",
+        "tpsr_ros.filter_node",
+        ["--ros-args", "-p", f"model:={model}", "-p", f"policy:={policy}"],
+        log_path=tmp / "filter.log",
         env=env,
     )
     k = 0
@@ -203,9 +194,7 @@ def dds_latency(model: Path, policy: Path, images: list, tmp: Path) -> list[np.n
                 raise RuntimeError(f"received {len(latencies)} of {STEPS_DDS} commands")
             runs.append(np.array(latencies))
     finally:
-        child.terminate()
-        child.wait(20)
-        log.close()
+        child.stop(timeout_s=20, sig=signal.SIGTERM)
         node.close()
     return runs
 

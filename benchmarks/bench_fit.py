@@ -26,10 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from tpsr_ros.episodes import make_episodes, read_trajectory
-from tpsr_ros.features import rbf_features
-from tpsr_ros.tpsr import TPSRConfig, fit_tpsr_episodes, top_singular_triplets
-from tpsr_ros.whitening import Whitening
+from tpsr_ros.core.episodes import make_episodes
+from tpsr_ros.core.features import rbf_features
+from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes, top_singular_triplets
+from tpsr_ros.core.whitening import Whitening
+from tpsr_ros.io.trajectory import read_trajectory
 
 STEPS = 24_000
 REPEATS = 5
@@ -126,8 +127,9 @@ def _peak_memory(episodes, config: TPSRConfig) -> float:
 
 _CHILD = """
 import json, statistics, sys, time
-from tpsr_ros.episodes import make_episodes, read_trajectory
-from tpsr_ros.tpsr import fit_tpsr_episodes
+from tpsr_ros.core.episodes import make_episodes
+from tpsr_ros.io.trajectory import read_trajectory
+from tpsr_ros.core.tpsr import fit_tpsr_episodes
 ep = make_episodes(read_trajectory([sys.argv[1]]), 1, 1)
 times = []
 for _ in range(int(sys.argv[2])):

@@ -12,10 +12,7 @@ prints each and the median. Target: >= 2000 images/s.
 from __future__ import annotations
 
 import os
-import signal
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -32,37 +29,25 @@ LOOPBACK = (
 )
 
 
-def _wait_for_line(log: Path, needle: str, proc: subprocess.Popen[bytes], timeout: float) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if needle in log.read_text(errors="replace"):
-            return
-        if proc.poll() is not None:
-            break
-        time.sleep(0.02)
-    raise RuntimeError(f"recorder never logged {needle!r}:\n{log.read_text()}")
-
-
 def one_run(tmp: Path, run: int) -> tuple[float, int]:
-    from tpsr_ros import messages as m
-    from tpsr_ros.bag import BagReader
+    from tpsr_ros.io import messages as m
+    from tpsr_ros.io.bag import BagReader
     from tpsr_ros.runtime import Node, NodeOptions, QoSProfile
     from tpsr_ros.runtime.dds import DdsTransport
+    from tpsr_ros.runtime.launcher import Launch
 
-    bag, log = tmp / f"bag{run}", tmp / f"rec{run}.log"
-    with log.open("wb") as sink:
-        recorder = subprocess.Popen(
-            [sys.executable, "-m", "tpsr_ros.record", "-o", str(bag), TOPIC,
-             "--ros-args", "--log-level", "debug"],
-            stdout=sink, stderr=sink, env={**os.environ, "TPSR_TRANSPORT": "dds"},
-        )
+    bag = tmp / f"bag{run}"
     node = Node(NodeOptions(name="bench_images"), transport=DdsTransport("bench_images"))
+    launch = Launch(tmp, env={**os.environ, "TPSR_TRANSPORT": "dds"}, spin=node.spin_once)
+    recorder = launch.start(
+        f"rec{run}", "tpsr_ros.record",
+        ["-o", str(bag), TOPIC, "--ros-args", "--log-level", "debug"],
+    )  # fmt: skip
     try:
-        _wait_for_line(log, "spinning until", recorder, 60)
         pub = node.create_publisher(
             TOPIC, m.IMAGE_TYPE, QoSProfile(history="keep_all", depth=0)
         )
-        node.wait_for(lambda: pub.get_subscription_count() >= 1, timeout_s=30)
+        launch.wait("the recorder to subscribe", lambda: pub.get_subscription_count() >= 1)
         rng = np.random.default_rng(run)
         frames = rng.integers(0, 255, (64, 16, 16, 3), dtype=np.uint8)
         payloads = [
@@ -74,13 +59,11 @@ def one_run(tmp: Path, run: int) -> tuple[float, int]:
             pub.publish_raw(data)
         if not pub._handle.wait_for_acks(60.0):  # DDS writer: every image acknowledged
             raise RuntimeError("the recorder did not acknowledge every image within 60 s")
-        recorder.send_signal(signal.SIGINT)
-        if recorder.wait(60) != 0:
-            raise RuntimeError(f"recorder failed:\n{log.read_text()}")
+        if recorder.stop(timeout_s=60) != 0:
+            raise RuntimeError(f"recorder failed:\n{recorder.text()}")
     finally:
         node.close()
-        if recorder.poll() is None:
-            recorder.kill()
+        recorder.kill()
     with BagReader(bag) as reader:
         times = [msg.log_time_ns for msg in reader.messages([TOPIC])]
     span = (times[-1] - start_ns) / 1e9 if times else float("nan")

@@ -6,7 +6,7 @@ Each module named in :data:`SUBCOMMAND_MODULES` adds its own subcommand: it expo
 that only has ``main(argv) -> int`` (its own argparse) is mounted as a pass-through
 subcommand named after the module. Adding a command = adding a module and its name here.
 
-Errors: a :class:`~tpsr_ros.errors.TpsrError` prints one line ``learner: error: ...`` and
+Errors: a :class:`~tpsr_ros.core.errors.TpsrError` prints one line ``learner: error: ...`` and
 exits 1; bad usage prints ``learner COMMAND: error: ...`` and exits 2; no tracebacks.
 """
 

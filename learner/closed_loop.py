@@ -16,19 +16,19 @@ the Cyclone DDS backend; ``--transport`` or ``TPSR_TRANSPORT`` picks one), in a 
    from ``b_*``, and from then on sim and filter run in lockstep;
 4. per trial the driver sums the 50 rewards on ``/reward`` (stamps t_r+1 .. t_r+50 after
    the reset at t_r), waits until the simulator has *ignored* the filter's 51st command
-   (its debug log line; only then can the next reset not be overtaken by that command),
-   and resets to the next start.
+   (announced on ``/sim/cmd_ignored``; only then can the next reset not be overtaken by
+   that command), and resets to the next start.
 
 Lockstep, reliable QoS and waiting for matched endpoints make the run deterministic: its
 trial rewards and score equal ``learner evaluate``'s exactly. The filter holds its first
 command until ``/cmd_vel`` and ``/tpsr/state`` have every subscriber (``wait_for_subscribers``),
 and, when recording, the simulator holds its start-up reset until the recorder subscribes
-to each of its topics, so the recorder misses nothing of the trials (the start-up reset's
-latched ``/sim/episode_start`` can still be replaced by the first trial's before the
-recorder's reader matches: the driver's own subscription already satisfies that gate).
-Processes are stopped with SIGINT (filter, simulator, then the recorder, which closes the
-bag), killed if they do not exit, on success, error, timeout and Ctrl-C alike; on Linux
-they also get SIGTERM if this process dies.
+to each of its topics (``wait_for_subscribers:=2``: the driver subscribes them all too), so
+the recorder misses nothing of the trials. Every wait is a condition on the graph
+(matched endpoints, messages received), never on log text. The processes are started and
+stopped by :class:`tpsr_ros.runtime.launcher.Launch`: SIGINT (filter, simulator, then the
+recorder, which closes the bag), killed if they do not exit, on success, error, timeout
+and Ctrl-C alike; on Linux they also get SIGTERM if this process dies.
 """
 
 from __future__ import annotations
@@ -37,11 +37,8 @@ import argparse
 import contextlib
 import os
 import random
-import signal
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -52,11 +49,13 @@ import numpy as np
 
 from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, Evaluation, Trial
 from sim_node import Environment
-from tpsr_ros import messages as m
-from tpsr_ros.bag import check_bag_path_free
-from tpsr_ros.errors import ModelFormatError, TpsrError
-from tpsr_ros.filter_node import FilterNodeParams, load_inputs
-from tpsr_ros.policy import TRUE_POSITION, load_policy
+from sim_node.topics import CMD_IGNORED_TOPIC
+from tpsr_ros.core.errors import ModelFormatError, TpsrError
+from tpsr_ros.core.units import NS_PER_S as _NS
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import check_bag_path_free
+from tpsr_ros.io.filter_inputs import load_filter_inputs
+from tpsr_ros.io.policy import TRUE_POSITION, load_policy
 from tpsr_ros.runtime import (
     LATCHED_QOS,
     Durability,
@@ -67,6 +66,7 @@ from tpsr_ros.runtime import (
     Reliability,
 )
 from tpsr_ros.runtime.backend import choose_backend, open_transport
+from tpsr_ros.runtime.launcher import Launch, LaunchError
 
 __all__ = [
     "RECORDED_TOPICS",
@@ -90,25 +90,14 @@ RECORDED_TOPICS = (
     "/cmd_vel",
     "/diagnostics",
 )
-_SIM_TOPICS = RECORDED_TOPICS[:7]
+_WATCHED_TOPICS = {
+    "/camera/image_raw": m.IMAGE_TYPE,
+    "/action": m.ACTION_TYPE,
+    "/ground_truth/pose": m.POSE_TYPE,
+    "/clock": m.CLOCK_TYPE,
+}
+"""The simulator's topics the driver does not otherwise read (see :class:`_Driver`)."""
 KEEP_ALL_QOS = QoSProfile(Reliability.RELIABLE, Durability.VOLATILE, History.KEEP_ALL, 0)
-_IGNORED = "/cmd_vel ignored: episode_steps"
-_READY = "spinning until SIGINT/SIGTERM"
-_NS = 1_000_000_000
-# Run a node module so that it gets SIGTERM if this (parent) process dies (Linux prctl
-# PR_SET_PDEATHSIG), then exactly as `python -m MODULE ARGS...`.
-_LAUNCH = """\
-import ctypes, os, runpy, signal, sys
-try:
-    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
-except Exception:
-    pass
-if os.getppid() != int(sys.argv[1]):
-    sys.exit(1)
-module = sys.argv[2]
-sys.argv = [module] + sys.argv[3:]
-runpy.run_module(module, run_name="__main__", alter_sys=True)
-"""
 
 
 class ClosedLoopError(TpsrError):
@@ -144,70 +133,6 @@ def format_trial(index: int, trial: Trial) -> str:
     )
 
 
-# -- child processes ----------------------------------------------------------------------
-
-
-class _Child:
-    """A node process; its output is copied to a log file and kept for waiting on lines."""
-
-    def __init__(
-        self, name: str, module: str, args: Sequence[str], env: dict[str, str], log_dir: Path
-    ) -> None:
-        self.name = name
-        self.command = ["python", "-m", module, *args]
-        self.log_path = log_dir / f"{name}.log"
-        self._lines: list[str] = []
-        self._lock = threading.Lock()
-        self._log = self.log_path.open("w", encoding="utf-8")
-        self.popen = subprocess.Popen(
-            [sys.executable, "-c", _LAUNCH, str(os.getpid()), module, *args],
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            env=env,
-            text=True,
-            errors="replace",
-        )
-        self._reader = threading.Thread(target=self._read, name=f"{name}-log", daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        assert self.popen.stdout is not None
-        for line in self.popen.stdout:
-            with self._lock:
-                self._lines.append(line.rstrip("\n"))
-                self._log.write(line)
-                self._log.flush()
-
-    def count(self, needle: str) -> int:
-        """Lines so far containing ``needle``."""
-        with self._lock:
-            return sum(needle in line for line in self._lines)
-
-    def tail(self, n: int = 8) -> str:
-        """Return the last ``n`` lines of output."""
-        with self._lock:
-            return "\n".join(self._lines[-n:])
-
-    def alive(self) -> bool:
-        return self.popen.poll() is None
-
-    def stop(self, timeout_s: float = 20.0) -> int | None:
-        """SIGINT, wait; SIGKILL if it does not exit. Returns the exit code."""
-        if self.popen.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                self.popen.send_signal(signal.SIGINT)
-            try:
-                self.popen.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                self.popen.kill()
-                self.popen.wait(10)
-        self._reader.join(5)
-        with self._lock:
-            self._log.close()
-        return self.popen.returncode
-
-
 # -- the driver ---------------------------------------------------------------------------
 
 
@@ -230,15 +155,22 @@ def _environment(overrides: dict[str, str]) -> Iterator[None]:
 
 
 class _Driver:
-    """The in-process node that resets the simulator and collects rewards and states."""
+    """The in-process node that resets the simulator and collects rewards and states.
 
-    def __init__(self, backend: str) -> None:
+    With ``watch_all`` it also subscribes the simulator's other step topics (and drops
+    what it gets), so that ``wait_for_subscribers:=2`` holds the simulator's start-up
+    reset until a recorder has subscribed every one of them as well.
+    """
+
+    def __init__(self, backend: str, *, watch_all: bool) -> None:
         # the transport reads ROS_DOMAIN_ID (and the discovery range) from the environment
         transport = open_transport(backend, "closed_loop_driver", "/")
         self.node = Node(NodeOptions(name="closed_loop_driver"), transport=transport)
         self.episode_starts: list[tuple[int, float, float]] = []
         self.rewards: list[tuple[int, m.RewardSample]] = []
         self.states: dict[int, np.ndarray] = {}
+        self.ended_episodes = 0
+        """``/sim/cmd_ignored`` messages for ``episode_steps``: commands after an episode's end."""
         self.node.create_subscription(
             "/sim/episode_start", m.POSE_TYPE, self._on_start, LATCHED_QOS
         )
@@ -256,11 +188,21 @@ class _Driver:
             lambda msg: self.states.__setitem__(m.stamp_of(msg), m.state_to_array(msg)),
             KEEP_ALL_QOS,
         )
+        self.node.create_subscription(
+            CMD_IGNORED_TOPIC, m.HEADER_TYPE, self._on_ignored, KEEP_ALL_QOS
+        )
+        if watch_all:
+            for topic, msgtype in _WATCHED_TOPICS.items():
+                self.node.create_subscription(topic, msgtype, lambda data: None, raw=True)
         self.reset_pub = self.node.create_publisher("/sim/reset", m.POSE_TYPE)
 
     def _on_start(self, msg: Any) -> None:
         x, y = m.pose_to_xy(msg)
         self.episode_starts.append((m.stamp_of(msg), x, y))
+
+    def _on_ignored(self, msg: Any) -> None:
+        if msg.frame_id == "episode_steps":
+            self.ended_episodes += 1
 
     def graph_is_empty(self) -> bool:
         """No other simulator or filter is publishing in this domain."""
@@ -271,41 +213,25 @@ class _Driver:
         self.node.close()
 
 
-@dataclass
-class _Run:
-    children: dict[str, _Child]
-    timeout_s: float
-
-    def wait(self, what: str, condition: Callable[[], bool], driver: _Driver) -> None:
-        """Spin the driver until ``condition()``; fail if a node exits or on timeout."""
-        deadline = time.monotonic() + self.timeout_s
-        while not condition():
-            for child in self.children.values():
-                if not child.alive():
-                    raise ClosedLoopError(
-                        f"{child.name} exited with status {child.popen.returncode} while "
-                        f"waiting for {what}: {child.tail(3)!r}"
-                    )
-            if time.monotonic() > deadline:
-                raise ClosedLoopError(f"timed out after {self.timeout_s:g} s waiting for {what}")
-            driver.node.spin_once(0.02)
-
-
 def _run_trial(
-    run: _Run,
+    launch: Launch,
     driver: _Driver,
-    sim: _Child,
     index: int,
     start: tuple[float, float],
     steps: int,
     on_reset: Callable[[], None] | None,
     on_step: Callable[[int], None] | None,
 ) -> Trial:
-    """Reset to ``start``, collect the trial's rewards, wait until the sim ignored step N+1."""
+    """One trial of the standard protocol (guide 4.1): reset, N lockstep steps, their reward.
+
+    Reset to ``start``, collect the rewards r_1 .. r_N stamped after the reset, wait until
+    the simulator announced on ``/sim/cmd_ignored`` that it ignored the filter's command
+    N+1 (only then can the next reset not be overtaken by it) and for the N states.
+    """
     name = f"trial {index + 1}"
     before = len(driver.episode_starts)
     driver.reset_pub.publish(m.pose_msg(0, float(start[0]), float(start[1])))
-    run.wait(f"the episode start of {name}", lambda: len(driver.episode_starts) > before, driver)
+    launch.wait(f"the episode start of {name}", lambda: len(driver.episode_starts) > before)
     reset_stamp, x, y = driver.episode_starts[-1]
     if abs(x - start[0]) > 1e-9 or abs(y - start[1]) > 1e-9:
         raise ClosedLoopError(f"{name}: the simulator started at ({x}, {y}), not {tuple(start)}")
@@ -326,15 +252,12 @@ def _run_trial(
         seen = count
         return count == steps
 
-    run.wait(f"the {steps} rewards of {name}", complete, driver)
-    run.wait(
+    launch.wait(f"the {steps} rewards of {name}", complete)
+    launch.wait(
         f"the simulator to ignore the command after step {steps} of {name}",
-        lambda: sim.count(_IGNORED) >= index + 1,
-        driver,
+        lambda: driver.ended_episodes >= index + 1,
     )
-    run.wait(
-        f"the {steps} states of {name}", lambda: all(s in driver.states for s in wanted), driver
-    )
+    launch.wait(f"the {steps} states of {name}", lambda: all(s in driver.states for s in wanted))
     samples = rewards()
     return Trial(
         (float(start[0]), float(start[1])),
@@ -342,6 +265,120 @@ def _run_trial(
         next((k + 1 for k, s in enumerate(samples) if s.goal_zone), None),
         int(sum(s.wall_contact for s in samples)),
     )
+
+
+def _check_inputs(
+    policy_path: Path | str, environment: str, model_path: Path | str | None
+) -> tuple[Path, Path]:
+    """Refuse what the filter node would refuse, before any process starts.
+
+    Returns the resolved policy and model paths.
+    """
+    policy_path = Path(policy_path).resolve()
+    policy = load_policy(policy_path)
+    if policy.representation == TRUE_POSITION:
+        raise ModelFormatError(
+            f"{policy_path} is a true-position policy; the filter node drives only from a "
+            "model's states"
+        )
+    policy.check_environment(environment)
+    model = policy.model_path(model_path).resolve()
+    load_filter_inputs(str(model), str(policy_path))
+    return policy_path, model
+
+
+def _join_free_domain(
+    domain_id: int | None,
+    network: dict[str, str],
+    backend: str,
+    watch_all: bool,
+    say: Callable[[str], None],
+) -> tuple[_Driver, int]:
+    """Start the driver node in a ROS domain nobody else uses right now (runs, tests, robots)."""
+    for _ in range(8):
+        domain = domain_id if domain_id is not None else _pick_domain()
+        with _environment({**network, "ROS_DOMAIN_ID": str(domain)}):
+            driver = _Driver(backend, watch_all=watch_all)
+        driver.node.spin(timeout_s=0.5)
+        if driver.graph_is_empty() or domain_id is not None:
+            return driver, domain
+        say(f"ROS_DOMAIN_ID {domain} is in use; trying another")
+        driver.close()
+    raise ClosedLoopError("found no free ROS_DOMAIN_ID")
+
+
+def _start_simulator(
+    launch: Launch,
+    driver: _Driver,
+    *,
+    environment: str,
+    seed: int,
+    steps: int,
+    record: Path | None,
+    say: Callable[[str], None],
+) -> None:
+    """Start the recorder (if any) and the simulator; wait until both are in the graph.
+
+    The simulator in command mode with ``episode_steps:=N`` (lockstep, one step per
+    ``/cmd_vel``); when recording, ``wait_for_subscribers:=2`` (the driver and the
+    recorder) holds its start-up reset until the recorder subscribes each of its topics.
+    """
+    if record is not None:
+        say(f"recording to {record}")
+        launch.start("recorder", "tpsr_ros.record", ["-o", str(record), *RECORDED_TOPICS])
+    sim_args = [
+        "--ros-args",
+        "-p",
+        "mode:=command",
+        "-p",
+        f"environment:={environment}",
+        "-p",
+        f"seed:={seed}",
+        "-p",
+        f"episode_steps:={steps}",
+        "--log-level",
+        "debug",
+    ]
+    if record is not None:  # the recorder gets everything, the start-up reset included
+        sim_args[1:1] = ["-p", "wait_for_subscribers:=2"]
+    say("starting " + " ".join(["python -m sim_node", *sim_args]))
+    launch.start("sim_node", "sim_node", sim_args)
+    launch.wait("the simulator's start-up reset", lambda: len(driver.episode_starts) >= 1)
+    readers = 1 if record is None else 2  # the simulator's /sim/reset, and the recorder's
+    launch.wait(
+        "the simulator to subscribe /sim/reset and publish /reward"
+        + ("" if record is None else ", and the recorder to subscribe /sim/reset"),
+        lambda: (
+            driver.reset_pub.get_subscription_count() >= readers
+            and driver.reward_sub.get_publisher_count() >= 1
+        ),
+    )
+
+
+def _filter_args(model_path: Path, policy_path: Path, record: Path | None) -> list[str]:
+    """Build the filter node's command line: the first command waits until its readers match."""
+    return [
+        "--ros-args",
+        "-p",
+        f"model:={model_path}",
+        "-p",
+        f"policy:={policy_path}",
+        "-p",
+        f"wait_for_subscribers:={2 if record is not None else 1}",
+    ]
+
+
+def _tidy_logs(
+    logs: Path, statuses: dict[str, int], *, ok: bool, keep: bool, say: Callable[[str], None]
+) -> None:
+    """Remove the nodes' logs after a successful run unless asked to keep them."""
+    if not ok:
+        say(f"node logs kept in {logs}")
+    if ok and not keep:
+        for name in statuses:
+            (logs / f"{name}.log").unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            logs.rmdir()
 
 
 def run_closed_loop(
@@ -361,11 +398,15 @@ def run_closed_loop(
     on_step: Callable[[int], None] | None = None,
     say: Callable[[str], None] | None = None,
 ) -> ClosedLoopResult:
-    """Run the standard protocol with the simulator and filter nodes as processes.
+    """Run the standard protocol (guide 4.1-4.2) with the simulator and filter nodes as processes.
 
-    ``on_step(n)`` is called with the number of new rewards as they arrive (for progress
-    bars), ``on_trial`` after each trial, ``say`` with stage lines. ``transport`` is
-    ``rclpy`` or ``dds`` (default: ``TPSR_TRANSPORT``, else rclpy if importable, else dds).
+    The steps: the filter's own refusals (:func:`_check_inputs`), a free ROS domain for the
+    driver (:func:`_join_free_domain`), the recorder and simulator
+    (:func:`_start_simulator`), then per start one trial (:func:`_run_trial`; the filter
+    node starts at the first trial's reset). ``on_step(n)`` is called with the number of
+    new rewards as they arrive (for progress bars), ``on_trial`` after each trial, ``say``
+    with stage lines. ``transport`` is ``rclpy`` or ``dds`` (default: ``TPSR_TRANSPORT``,
+    else rclpy if importable, else dds).
     """
     started = time.monotonic()
     say = say or (lambda text: None)
@@ -376,17 +417,7 @@ def run_closed_loop(
             "not inproc"
         )
     environment = Environment(environment).value
-    policy_path = Path(policy_path).resolve()
-    policy = load_policy(policy_path)
-    if policy.representation == TRUE_POSITION:
-        raise ModelFormatError(
-            f"{policy_path} is a true-position policy; the filter node drives only from a "
-            "model's states"
-        )
-    policy.check_environment(environment)
-    model_path = policy.model_path(model_path).resolve()
-    # the filter node's own start-up checks, here, before any process starts
-    load_inputs(FilterNodeParams(model=str(model_path), policy=str(policy_path)))
+    policy_path, model_path = _check_inputs(policy_path, environment, model_path)
     if record is not None:
         record = Path(record).resolve()
         check_bag_path_free(record)
@@ -401,120 +432,46 @@ def run_closed_loop(
     network: dict[str, str] = {}
     if not os.environ.get("CYCLONEDDS_URI") and not os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE"):
         network["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    children: dict[str, _Child] = {}
+    launch: Launch | None = None
     driver: _Driver | None = None
+    statuses: dict[str, int] = {}
     ok = False
     try:
-        # a domain nobody else is using right now (other runs, tests, robots)
-        for _ in range(8):
-            domain = domain_id if domain_id is not None else _pick_domain()
-            with _environment({**network, "ROS_DOMAIN_ID": str(domain)}):
-                driver = _Driver(backend)
-            driver.node.spin(timeout_s=0.5)
-            if driver.graph_is_empty() or domain_id is not None:
-                break
-            say(f"ROS_DOMAIN_ID {domain} is in use; trying another")
-            driver.close()
-            driver = None
-        if driver is None:
-            raise ClosedLoopError("found no free ROS_DOMAIN_ID")
-        env = {
-            **os.environ,
-            **network,
-            "ROS_DOMAIN_ID": str(domain),
-            "TPSR_TRANSPORT": backend,
-            "PYTHONUNBUFFERED": "1",
-        }
-        run = _Run(children, timeout_s)
+        driver, domain = _join_free_domain(domain_id, network, backend, record is not None, say)
+        env = {**os.environ, **network, "ROS_DOMAIN_ID": str(domain), "TPSR_TRANSPORT": backend}
+        launch = Launch(logs, env=env, spin=driver.node.spin_once, timeout_s=timeout_s)
         say(f"{backend} transport, ROS_DOMAIN_ID {domain}; node logs in {logs}")
-
-        if record is not None:
-            say(f"recording to {record}")
-            children["recorder"] = _Child(
-                "recorder", "tpsr_ros.record", ["-o", str(record), *RECORDED_TOPICS], env, logs
-            )
-        sim_args = [
-            "--ros-args",
-            "-p",
-            "mode:=command",
-            "-p",
-            f"environment:={environment}",
-            "-p",
-            f"seed:={seed}",
-            "-p",
-            f"episode_steps:={steps}",
-            "--log-level",
-            "debug",
-        ]
-        if record is not None:  # the recorder gets everything, the start-up reset included
-            sim_args[1:1] = ["-p", "wait_for_subscribers:=1"]
-        say("starting " + " ".join(["python -m sim_node", *sim_args]))
-        sim = children["sim_node"] = _Child("sim_node", "sim_node", sim_args, env, logs)
-        run.wait("the simulator's start-up reset", lambda: len(driver.episode_starts) >= 1, driver)
-        run.wait(
-            "the simulator to subscribe /sim/reset and publish /reward",
-            lambda: (
-                driver.reset_pub.get_subscription_count() >= 1
-                and driver.reward_sub.get_publisher_count() >= 1
-            ),
-            driver,
+        _start_simulator(
+            launch, driver, environment=environment, seed=seed, steps=steps, record=record, say=say
         )
-        if record is not None:
-            recorder = children["recorder"]
-            run.wait(
-                "the recorder to subscribe the simulator's topics",
-                lambda: (
-                    all(recorder.count(f"subscribed to {t} ") for t in _SIM_TOPICS)
-                    and driver.reset_pub.get_subscription_count() >= 2
-                ),
-                driver,
-            )
+        filter_args = _filter_args(model_path, policy_path, record)
 
-        filter_args = [
-            "--ros-args",
-            "-p",
-            f"model:={model_path}",
-            "-p",
-            f"policy:={policy_path}",
-            "-p",
-            f"wait_for_subscribers:={2 if record is not None else 1}",
-        ]
+        def start_filter() -> None:
+            # only after the first trial's reset, so the latched episode start it receives
+            # is the first trial's; it commands the first step from b_*
+            say("starting " + " ".join(["python -m tpsr_ros.filter_node", *filter_args]))
+            assert launch is not None
+            launch.start("tpsr_filter", "tpsr_ros.filter_node", filter_args)
+
         trials: list[Trial] = []
         for index, start in enumerate(starts):
-            on_reset = None
-            if index == 0:
-
-                def on_reset() -> None:
-                    say("starting " + " ".join(["python -m tpsr_ros.filter_node", *filter_args]))
-                    children["tpsr_filter"] = _Child(
-                        "tpsr_filter", "tpsr_ros.filter_node", filter_args, env, logs
-                    )
-
-            trial = _run_trial(run, driver, sim, index, start, steps, on_reset, on_step)
-            trials.append(trial)
+            on_reset = start_filter if index == 0 else None
+            trials.append(_run_trial(launch, driver, index, start, steps, on_reset, on_step))
             if on_trial is not None:
-                on_trial(index, trial)
+                on_trial(index, trials[-1])
         evaluation = Evaluation(tuple(trials))
         states = dict(driver.states)
         ok = True
+    except LaunchError as exc:
+        raise ClosedLoopError(str(exc)) from None
     finally:
-        for name in ("tpsr_filter", "sim_node", "recorder"):  # the recorder last: it drains
-            if name in children:
-                children[name].stop()
+        if launch is not None:  # filter, simulator, then the recorder: it drains last
+            statuses = launch.stop()
         if driver is not None:
             driver.close()
-        if not ok or keep_logs:
-            if not ok:
-                say(f"node logs kept in {logs}")
-        else:
-            for child in children.values():
-                child.log_path.unlink(missing_ok=True)
-            with contextlib.suppress(OSError):
-                logs.rmdir()
-    if record is not None and children["recorder"].popen.returncode != 0:
-        raise ClosedLoopError(
-            f"the recorder exited with status {children['recorder'].popen.returncode}"
-        )
+        _tidy_logs(logs, statuses, ok=ok, keep=keep_logs, say=say)
+    if record is not None and statuses.get("recorder") != 0:
+        raise ClosedLoopError(f"the recorder exited with status {statuses.get('recorder')}")
     return ClosedLoopResult(
         evaluation, states, record, logs if keep_logs else None, time.monotonic() - started
     )

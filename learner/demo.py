@@ -33,10 +33,10 @@ from learner.floors import ConstantFloor, constant_floor, random_floor
 from learner.representations import load_tracker
 from sim_node import Environment, SimConfig
 from sim_node.generate import generate_bag
-from tpsr_ros import messages as m
-from tpsr_ros.bag import BagReader
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
-from tpsr_ros.policy import TRUE_POSITION, load_policy
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagReader
+from tpsr_ros.io.policy import TRUE_POSITION, load_policy
 from tpsr_ros.runtime.backend import choose_backend
 
 __all__ = ["main", "plot_trajectories"]

@@ -22,8 +22,8 @@ import numpy as np
 
 from learner.representations import Tracker, load_tracker
 from sim_node import Environment, RobotEnv, SimConfig
-from tpsr_ros.errors import ModelFormatError
-from tpsr_ros.policy import TRUE_POSITION, Policy, load_policy
+from tpsr_ros.core.errors import ModelFormatError
+from tpsr_ros.io.policy import TRUE_POSITION, Policy, load_policy
 
 __all__ = [
     "EVALUATION_SEED",

@@ -44,13 +44,13 @@ from learner.representations import ModelTracker, Tracker, TruePositionTracker
 from learner.simulated import random_trajectory
 from sim_node import Environment
 from tpsr_ros.cli import positive_int
-from tpsr_ros.episodes import Trajectory, make_episodes
-from tpsr_ros.errors import ConfigError, DataError, TpsrError
-from tpsr_ros.fqi import FQIConfig, fit_q
-from tpsr_ros.model_io import model_fingerprint
-from tpsr_ros.pca_baseline import PCAConfig, fit_pca
-from tpsr_ros.policy import TRUE_POSITION, Policy
-from tpsr_ros.tpsr import TPSRConfig, fit_tpsr_episodes
+from tpsr_ros.core.episodes import Trajectory, make_episodes
+from tpsr_ros.core.errors import ConfigError, DataError, TpsrError
+from tpsr_ros.core.fqi import FQIConfig, fit_q
+from tpsr_ros.core.pca_baseline import PCAConfig, fit_pca
+from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
+from tpsr_ros.io.model_io import model_fingerprint
+from tpsr_ros.io.policy import TRUE_POSITION, Policy
 
 __all__ = [
     "METHODS",

@@ -1,9 +1,9 @@
 """``learner fit BAG... -o MODEL``: learn a TPSR (or the PCA baseline) from bags.
 
 Every parameter of guide table 3.5 is an option generated from the fields of
-:class:`~tpsr_ros.tpsr.TPSRConfig` (name, default, help and choices spelled once, there);
-the PCA baseline's from :class:`~tpsr_ros.pca_baseline.PCAConfig` and the topic names from
-:class:`~tpsr_ros.episodes.Topics`. Stage lines go to stderr, the summary to stdout.
+:class:`~tpsr_ros.core.tpsr.TPSRConfig` (name, default, help and choices spelled once, there);
+the PCA baseline's from :class:`~tpsr_ros.core.pca_baseline.PCAConfig` and the topic names from
+:class:`~tpsr_ros.io.trajectory.Topics`. Stage lines go to stderr, the summary to stdout.
 """
 
 from __future__ import annotations
@@ -18,11 +18,12 @@ from typing import Any, TypeVar
 import numpy as np
 
 from tpsr_ros.cli import positive_int
-from tpsr_ros.episodes import Topics, make_episodes, read_trajectory
-from tpsr_ros.model_io import check_output_path, save_model
-from tpsr_ros.pca_baseline import PCAConfig, PCAModel, fit_pca
-from tpsr_ros.state_model import StateModel
-from tpsr_ros.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
+from tpsr_ros.core.episodes import make_episodes
+from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
+from tpsr_ros.core.state_model import StateModel
+from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
+from tpsr_ros.io.model_io import check_output_path, save_model
+from tpsr_ros.io.trajectory import Topics, read_trajectory
 
 __all__ = [
     "add_config_options",

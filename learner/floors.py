@@ -18,8 +18,8 @@ from functools import lru_cache
 import numpy as np
 
 from learner.evaluate import EVALUATION_SEED, Evaluation, run_protocol
-from sim_node.actions import ACTIONS, NUM_ACTIONS
-from tpsr_ros.episodes import Trajectory
+from tpsr_ros.core.actions import ACTIONS, NUM_ACTIONS
+from tpsr_ros.core.episodes import Trajectory
 
 __all__ = [
     "CONSTANT",

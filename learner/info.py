@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from tpsr_ros.model_io import load_model, read_metadata
+from tpsr_ros.io.model_io import load_model, read_metadata
 
 __all__ = ["info_lines", "register", "run"]
 

@@ -40,10 +40,10 @@ import numpy as np
 from learner.simulated import random_trajectory
 from sim_node import Environment, RobotEnv, SimConfig, action_index
 from tpsr_ros.cli import positive_int
-from tpsr_ros.episodes import images_to_observations
-from tpsr_ros.errors import ConfigError, DataError
-from tpsr_ros.model_io import load_model
-from tpsr_ros.state_model import StateModel
+from tpsr_ros.core.episodes import images_to_observations
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.state_model import StateModel
+from tpsr_ros.io.model_io import load_model
 
 __all__ = [
     "EXPERIMENTS",

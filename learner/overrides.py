@@ -1,7 +1,7 @@
 """``--set NAME=VALUE``: any fit or fitted-Q parameter of an experiment, by name.
 
-Names are the fields of :class:`~tpsr_ros.tpsr.TPSRConfig`, :class:`~tpsr_ros.pca_baseline.
-PCAConfig` and :class:`~tpsr_ros.fqi.FQIConfig`, qualified as ``tpsr.rank``, ``pca.dim`` or
+Names are the fields of :class:`~tpsr_ros.core.tpsr.TPSRConfig`, :class:`~tpsr_ros.core.pca_baseline.
+PCAConfig` and :class:`~tpsr_ros.core.fqi.FQIConfig`, qualified as ``tpsr.rank``, ``pca.dim`` or
 ``fqi.ridge``; a bare name (``rank``, ``sigma_ht``) is enough where only one of the three
 has it, and ``-`` may stand for ``_`` (``ht-centers`` as in ``learner fit --ht-centers``).
 Values are converted to the field's type (integer, number, ``true``/``false``, one of the
@@ -16,10 +16,10 @@ import typing
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from tpsr_ros.errors import ConfigError
-from tpsr_ros.fqi import FQIConfig
-from tpsr_ros.pca_baseline import PCAConfig
-from tpsr_ros.tpsr import TPSRConfig
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.fqi import FQIConfig
+from tpsr_ros.core.pca_baseline import PCAConfig
+from tpsr_ros.core.tpsr import TPSRConfig
 
 __all__ = ["CONFIG_CLASSES", "apply_overrides", "parameter_names", "parse_assignment"]
 

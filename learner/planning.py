@@ -20,11 +20,12 @@ import numpy as np
 from learner.fit import add_config_options, add_topic_options, config_from_args, topics_from_args
 from learner.representations import Tracker, load_tracker
 from tpsr_ros.cli import positive_int
-from tpsr_ros.episodes import Trajectory, read_trajectory
-from tpsr_ros.errors import DataError
-from tpsr_ros.fqi import FQIConfig, fit_q
-from tpsr_ros.npz_archive import check_output_path
-from tpsr_ros.policy import Policy, save_policy
+from tpsr_ros.core.episodes import Trajectory
+from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.fqi import FQIConfig, fit_q
+from tpsr_ros.io.npz_archive import check_output_path
+from tpsr_ros.io.policy import Policy, save_policy
+from tpsr_ros.io.trajectory import read_trajectory
 
 __all__ = ["fit_policy", "register", "run", "transitions"]
 

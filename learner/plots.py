@@ -17,9 +17,10 @@ from typing import Any
 import numpy as np
 
 from learner.fit import add_topic_options, topics_from_args
-from tpsr_ros.episodes import read_trajectory, track_trajectory
-from tpsr_ros.errors import DataError
-from tpsr_ros.model_io import check_output_path, load_model
+from tpsr_ros.core.episodes import track_trajectory
+from tpsr_ros.core.errors import DataError
+from tpsr_ros.io.model_io import check_output_path, load_model
+from tpsr_ros.io.trajectory import read_trajectory
 
 __all__ = ["affine_r2", "plot_states", "register", "run"]
 

@@ -39,8 +39,8 @@ from learner.experiment import (
 )
 from learner.floors import FLOORS
 from tpsr_ros.cli import positive_int
-from tpsr_ros.errors import ConfigError
-from tpsr_ros.policy import TRUE_POSITION
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.io.policy import TRUE_POSITION
 
 __all__ = ["FINDINGS", "GUIDE_RESULTS", "Finding", "judge", "register", "run", "write_page"]
 

@@ -1,6 +1,6 @@
 """State trackers for planning and evaluation: a learned model, or the true position.
 
-The learning core's :class:`~tpsr_ros.state_model.StateModel` turns images and actions
+The learning core's :class:`~tpsr_ros.core.state_model.StateModel` turns images and actions
 into states. The true-position baseline (the upper bound of the RL step) reads the
 simulator's ground truth instead, which is allowed only here, in evaluation and
 planning, never in learning. Both sit behind one small interface so the fitted-Q and
@@ -15,11 +15,11 @@ from typing import Protocol
 
 import numpy as np
 
-from tpsr_ros.episodes import Trajectory, image_to_observation, track_trajectory
-from tpsr_ros.errors import DataError
-from tpsr_ros.model_io import load_model, model_fingerprint
-from tpsr_ros.policy import TRUE_POSITION
-from tpsr_ros.state_model import StateModel
+from tpsr_ros.core.episodes import Trajectory, image_to_observation, track_trajectory
+from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.state_model import StateModel
+from tpsr_ros.io.model_io import load_model, model_fingerprint
+from tpsr_ros.io.policy import TRUE_POSITION
 
 __all__ = ["ModelTracker", "Tracker", "TruePositionTracker", "load_tracker"]
 

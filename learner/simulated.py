@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from sim_node import SimConfig, random_rollout
-from sim_node.actions import NUM_ACTIONS
-from tpsr_ros.episodes import Trajectory, images_to_observations
+from tpsr_ros.core.actions import NUM_ACTIONS
+from tpsr_ros.core.episodes import Trajectory, images_to_observations
 
 __all__ = ["random_trajectory"]
 

@@ -5,10 +5,10 @@ for long random trajectories, ``python -m sim_node`` as a ROS 2 node and
 ``python -m sim_node.generate`` for bags.
 """
 
-from sim_node.actions import ACTIONS, VELOCITIES, action_index
 from sim_node.config import DistractorConfig, Environment, SimConfig
 from sim_node.env import RobotEnv
 from sim_node.rollout import Rollout, random_rollout
+from tpsr_ros.core.actions import ACTIONS, VELOCITIES, action_index
 
 __all__ = [
     "ACTIONS",

@@ -23,16 +23,15 @@ from typing import Any
 
 import numpy as np
 
-from sim_node.actions import ACTIONS, NUM_ACTIONS
 from sim_node.camera import Camera
 from sim_node.config import SimConfig
 from sim_node.distractors import Distractors
 from sim_node.world import RoomWorld
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.actions import ACTIONS, NUM_ACTIONS
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.units import NS_PER_S as _NS
 
 __all__ = ["RobotEnv", "Streams", "spawn_streams", "step_reward"]
-
-_NS = 1_000_000_000
 
 
 class Streams:

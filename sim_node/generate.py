@@ -20,9 +20,9 @@ from tqdm import tqdm
 from sim_node.config import Environment, SimConfig
 from sim_node.rollout import Rollout, iter_random_rollout
 from sim_node.topics import SimTopics, step_messages
-from tpsr_ros.bag import BagWriter, check_bag_path_free
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
-from tpsr_ros.messages import RewardSample
+from tpsr_ros.io.bag import BagWriter, check_bag_path_free
+from tpsr_ros.io.messages import RewardSample
 
 __all__ = ["generate_bag", "main"]
 

@@ -12,7 +12,9 @@ if set); ``command`` takes one step per ``/cmd_vel`` Twist, snapped to the neare
 the 25 actions, and with ``episode_steps`` N > 0 ignores further commands once N steps
 were taken since the last reset (a controller answering the last step of an episode in
 lockstep then takes no extra step). ``/sim/reset`` (PoseStamped, frame ``map``) restarts
-at a position.
+at a position. Every ignored command is announced on ``sim/cmd_ignored`` (a Header stamped
+with the last event's time, ``frame_id`` the reason), so a driver can tell through the graph
+that a command was consumed without a step.
 """
 
 from __future__ import annotations
@@ -21,22 +23,24 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from sim_node.actions import action_index
 from sim_node.config import Environment, SimConfig
 from sim_node.env import RobotEnv
-from sim_node.topics import SimTopics, step_messages
-from tpsr_ros import messages as m
-from tpsr_ros.errors import ConfigError, MessageError
+from sim_node.topics import CMD_IGNORED_TOPIC, SimTopics, step_messages
+from tpsr_ros.core.actions import action_index
+from tpsr_ros.core.errors import ConfigError, MessageError
+from tpsr_ros.core.units import NS_PER_S as _NS
+from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import LATCHED_QOS, Node, param
 
-__all__ = ["EPISODE_START_TOPIC", "RESET_TOPIC", "SimNode", "SimNodeParams"]
+__all__ = ["CMD_IGNORED_TOPIC", "EPISODE_START_TOPIC", "RESET_TOPIC", "SimNode", "SimNodeParams"]
 
 # Relative names (the step topics too, see SimTopics.relative): `-r __ns:=/robot1` puts
 # every topic of the node under /robot1/, so robots run side by side.
 RESET_TOPIC = "sim/reset"
 EPISODE_START_TOPIC = "sim/episode_start"
 CMD_VEL_TOPIC = "cmd_vel"
-_NS = 1_000_000_000
+IGNORED_REASONS = ("explore_mode", "not_started", "episode_steps")
+"""``frame_id`` of a ``sim/cmd_ignored`` Header: why the command took no step."""
 
 
 @dataclass(frozen=True)
@@ -100,6 +104,7 @@ class SimNode(Node):
         self.episode_publisher = self.create_publisher(
             EPISODE_START_TOPIC, m.POSE_TYPE, LATCHED_QOS
         )
+        self.ignored_publisher = self.create_publisher(CMD_IGNORED_TOPIC, m.HEADER_TYPE)
         self.create_subscription(RESET_TOPIC, m.POSE_TYPE, self.on_reset)
         self.create_subscription(CMD_VEL_TOPIC, m.TWIST_TYPE, self.on_cmd_vel)
         self._warned_explore = False
@@ -184,9 +189,11 @@ class SimNode(Node):
             if not self._warned_explore:
                 self._warned_explore = True
                 self.logger.warning("/cmd_vel ignored in explore mode (use -p mode:=command)")
+            self._announce_ignored("explore_mode")
             return
         if not self.started:
             self.logger.warning("/cmd_vel ignored: waiting for subscribers before the start")
+            self._announce_ignored("not_started")
             return
         limit = self.params.episode_steps
         if limit and self.episode_step_count >= limit:
@@ -195,6 +202,7 @@ class SimNode(Node):
                 f"/cmd_vel ignored: episode_steps ({limit}) reached since the last reset "
                 f"({self.ignored_commands} ignored in all)"
             )
+            self._announce_ignored("episode_steps")
             return
         try:
             vx, vy = m.twist_to_xy(msg)
@@ -203,6 +211,11 @@ class SimNode(Node):
             self.logger.warning(f"/cmd_vel rejected: {exc}")
             return
         self.step(action)
+
+    def _announce_ignored(self, reason: str) -> None:
+        """Publish ``/sim/cmd_ignored``: a Header at the last event's stamp naming ``reason``."""
+        stamp = self.last_stamp_ns
+        self.ignored_publisher.publish(m.header_msg(0 if stamp is None else stamp, reason))
 
     def on_reset(self, msg: Any) -> None:
         """Reset to the PoseStamped position (frame ``map``, inside the room)."""

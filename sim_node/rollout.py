@@ -13,17 +13,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim_node.actions import ACTIONS, NUM_ACTIONS
 from sim_node.camera import Camera
 from sim_node.config import SimConfig
 from sim_node.distractors import distractor_paths
 from sim_node.env import spawn_streams, step_reward
 from sim_node.world import RoomWorld
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.actions import ACTIONS, NUM_ACTIONS
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.units import NS_PER_S as _NS
 
 __all__ = ["Rollout", "iter_random_rollout", "random_rollout"]
-
-_NS = 1_000_000_000
 
 
 @dataclass(frozen=True)

@@ -10,9 +10,12 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros import messages as m
+from tpsr_ros.io import messages as m
 
-__all__ = ["SimTopics", "step_messages"]
+__all__ = ["CMD_IGNORED_TOPIC", "SimTopics", "step_messages"]
+
+CMD_IGNORED_TOPIC = "sim/cmd_ignored"
+"""The node's announcement of a ``cmd_vel`` that took no step (``std_msgs/msg/Header``; relative)."""
 
 
 @dataclass(frozen=True)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-from tpsr_ros import messages as m
-from tpsr_ros.bag import BagReader, BagWriter
-from tpsr_ros.errors import BagError
+from tpsr_ros.core.errors import BagError
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagReader, BagWriter
 
 
 def test_round_trip_of_messages_and_bytes(tmp_path):

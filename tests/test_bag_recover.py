@@ -18,9 +18,9 @@ from mcap.records import Message
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, IndexType, Writer
 
-from tpsr_ros.safe_yaml import load_yaml
 from tpsr_ros.bag_recover import recover_bag
-from tpsr_ros.errors import BagError
+from tpsr_ros.core.errors import BagError
+from tpsr_ros.safe_yaml import load_yaml
 
 STRING_SCHEMA = b"string data\n"
 

@@ -22,11 +22,12 @@ from learner.cli import main as learner_main
 from learner.closed_loop import ClosedLoopError, run_closed_loop
 from sim_node import SimConfig
 from sim_node.generate import generate_bag
-from tpsr_ros import messages as m
-from tpsr_ros.bag import BagReader
-from tpsr_ros.episodes import read_trajectory, track_trajectory
-from tpsr_ros.errors import TpsrError
-from tpsr_ros.model_io import load_model
+from tpsr_ros.core.episodes import track_trajectory
+from tpsr_ros.core.errors import TpsrError
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagReader
+from tpsr_ros.io.model_io import load_model
+from tpsr_ros.io.trajectory import read_trajectory
 
 pytestmark = pytest.mark.dds
 

@@ -9,8 +9,8 @@ import sys
 
 import pytest
 
-from tpsr_ros.bag import BagReader
-from tpsr_ros.messages import stamp_of
+from tpsr_ros.io.bag import BagReader
+from tpsr_ros.io.messages import stamp_of
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
 LOOPBACK = (

@@ -21,8 +21,8 @@ import pytest
 
 pytest.importorskip("cyclonedds")
 
-from tpsr_ros import messages as m
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import Node, NodeOptions
 from tpsr_ros.runtime.dds import DdsTransport, discovery_config, discovery_range_from_env
 

@@ -7,17 +7,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tpsr_ros import messages as m
-from tpsr_ros.bag import BagWriter
-from tpsr_ros.episodes import (
-    Topics,
+from tpsr_ros.core.episodes import (
     image_to_observation,
     images_to_observations,
     make_episodes,
-    read_trajectory,
     velocities_to_actions,
 )
-from tpsr_ros.errors import BagError, DataError, MessageError
+from tpsr_ros.core.errors import BagError, DataError, MessageError
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagWriter
+from tpsr_ros.io.trajectory import Topics, read_trajectory
 
 S = 1_000_000_000
 VEL = np.array([-6.0, -3.0, 0.0, 3.0, 6.0])

@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from tpsr_ros.errors import ConfigError, DataError
-from tpsr_ros.features import (
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.features import (
     CONSTANT_FEATURE,
     RBFFeatures,
     constant_vector,

@@ -20,20 +20,21 @@ import pytest
 
 from learner.cli import main as learner_main
 from sim_node import SimConfig
-from sim_node.actions import ACTIONS
 from sim_node.generate import generate_bag
-from tpsr_ros import messages as m
-from tpsr_ros.bag import BagReader, BagWriter
-from tpsr_ros.diagnostics import DIAGNOSTICS_TYPE, ERROR, OK, WARN, status_values
-from tpsr_ros.episodes import read_trajectory, track_trajectory
-from tpsr_ros.errors import TpsrError
+from tpsr_ros.core.actions import ACTIONS
+from tpsr_ros.core.episodes import track_trajectory
+from tpsr_ros.core.errors import TpsrError
+from tpsr_ros.core.fqi import QFunction
+from tpsr_ros.core.tpsr import TPSRModel
 from tpsr_ros.filter_node import FilterNode, FilterNodeParams, load_inputs
-from tpsr_ros.fqi import QFunction
-from tpsr_ros.model_io import load_model, model_fingerprint, read_metadata, save_model
-from tpsr_ros.policy import Policy, save_policy
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagReader, BagWriter
+from tpsr_ros.io.model_io import load_model, model_fingerprint, read_metadata, save_model
+from tpsr_ros.io.policy import Policy, save_policy
+from tpsr_ros.io.trajectory import read_trajectory
 from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions, parse_ros_args
+from tpsr_ros.runtime.diagnostics import DIAGNOSTICS_TYPE, ERROR, OK, WARN, status_values
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
-from tpsr_ros.tpsr import TPSRModel
 
 S = 10**9
 SMALL = ["--obs-centers", "40", "--ht-centers", "80", "--rank", "3"]
@@ -351,7 +352,7 @@ def test_resets_jumps_and_the_command_for_b_star(small):
     images, actions = small["images"], small["actions"]
     t = {k: k * S for k in range(1, 41)}
     policy_file = small["policy"]
-    from tpsr_ros.policy import load_policy
+    from tpsr_ros.io.policy import load_policy
 
     policy = load_policy(policy_file)
     model = load_model(small["model"])

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 
 from sim_node.node import SimNode
-from tpsr_ros import messages as m
+from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions, parse_ros_args
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
 
@@ -105,7 +105,7 @@ def test_the_filter_drives_the_standard_protocol_exactly_like_the_headless_evalu
     from learner.evaluate import START_POSITIONS, STEPS, evaluate
     from learner.representations import load_tracker
     from tpsr_ros.filter_node import FilterNode
-    from tpsr_ros.policy import load_policy
+    from tpsr_ros.io.policy import load_policy
 
     model = fit_small_model(tmp_path)
     policy = random_policy(model, tmp_path / "policy.npz", seed=5)

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from test_tpsr import SMALL, structured_episodes
 
-from tpsr_ros import filtering
-from tpsr_ros.errors import DataError
-from tpsr_ros.features import rbf_features
-from tpsr_ros.state_model import StateModel, UpdateInfo
-from tpsr_ros.tpsr import TPSRModel, fit_tpsr
+from tpsr_ros.core import filtering
+from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.features import rbf_features
+from tpsr_ros.core.state_model import StateModel, UpdateInfo
+from tpsr_ros.core.tpsr import TPSRModel, fit_tpsr
 
 
 @pytest.fixture(scope="module")

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tpsr_ros.errors import ConfigError, DataError
-from tpsr_ros.fqi import FQIConfig, fit_q
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.fqi import FQIConfig, fit_q
 
 LEFT, STAY, RIGHT = 0, 1, 2
 
@@ -67,7 +67,7 @@ def test_bad_inputs_are_refused():
 
 
 def test_divergence_is_detected_not_returned(monkeypatch):
-    import tpsr_ros.fqi as fqi
+    import tpsr_ros.core.fqi as fqi
 
     monkeypatch.setattr(fqi, "_DIVERGED", 1e-3)  # any real fit now counts as diverged
     with pytest.raises(DataError, match="diverged"):

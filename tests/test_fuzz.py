@@ -20,14 +20,14 @@ import numpy as np
 import pytest
 from test_tpsr import SMALL, structured_episodes
 
-from tpsr_ros.bag import BagReader
-from tpsr_ros.errors import BagError, ModelFormatError
-from tpsr_ros.fqi import FQIConfig, fit_q
-from tpsr_ros.model_io import load_model, save_model
-from tpsr_ros.policy import Policy, load_policy, save_policy
+from tpsr_ros.core.errors import BagError, ModelFormatError
+from tpsr_ros.core.fqi import FQIConfig, fit_q
+from tpsr_ros.core.tpsr import fit_tpsr
+from tpsr_ros.io.bag import BagReader
+from tpsr_ros.io.model_io import load_model, save_model
+from tpsr_ros.io.policy import Policy, load_policy, save_policy
 from tpsr_ros.runtime.params import param, resolve_parameters
 from tpsr_ros.runtime.ros_args import UsageError, parse_ros_args
-from tpsr_ros.tpsr import fit_tpsr
 
 CASES = int(os.environ.get("FUZZ_CASES", "40"))
 SEED = int(os.environ.get("FUZZ_SEED", "0"))  # make fuzz varies it; CI keeps 0

@@ -15,7 +15,7 @@ from rosbags.typesys import Stores, get_typestore
 import sim_node.generate as generate
 from sim_node import SimConfig
 from sim_node.generate import generate_bag
-from tpsr_ros.errors import BagError
+from tpsr_ros.core.errors import BagError
 
 STEPS = 24000
 
@@ -117,7 +117,7 @@ def test_failure_midway_leaves_nothing_behind(tmp_path, monkeypatch):
 
 
 def test_generated_bag_records_its_settings(tmp_path):
-    from tpsr_ros.bag import BagReader
+    from tpsr_ros.io.bag import BagReader
 
     out = tmp_path / "bag"
     generate_bag(out, SimConfig(environment="partial"), 10, seed=7)

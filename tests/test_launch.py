@@ -17,9 +17,9 @@ from pathlib import Path
 import pytest
 
 from sim_node.node import SimNode
-from tpsr_ros import messages as m
-from tpsr_ros.bag import BagReader
 from tpsr_ros.filter_node import FilterNode
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagReader
 from tpsr_ros.launch import EXECUTABLES, LaunchError, parse_launch
 from tpsr_ros.play import PlayerNode
 from tpsr_ros.record import RecorderNode

@@ -14,10 +14,11 @@ from learner.cli import build_parser, entry, main
 from learner.plots import affine_r2
 from sim_node import SimConfig
 from sim_node.generate import generate_bag
-from tpsr_ros.episodes import read_trajectory, track_trajectory
-from tpsr_ros.model_io import load_model, read_metadata
-from tpsr_ros.pca_baseline import PCAModel
-from tpsr_ros.tpsr import TPSRConfig, TPSRModel
+from tpsr_ros.core.episodes import track_trajectory
+from tpsr_ros.core.pca_baseline import PCAModel
+from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel
+from tpsr_ros.io.model_io import load_model, read_metadata
+from tpsr_ros.io.trajectory import read_trajectory
 
 SMALL_OPTIONS = ["--obs-centers", "40", "--ht-centers", "80", "--rank", "3"]
 

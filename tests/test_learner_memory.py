@@ -9,11 +9,18 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from learner.memory import EXPERIMENTS, identical_from, measure, memory_steps, simulate, state_spread
+from learner.memory import (
+    EXPERIMENTS,
+    identical_from,
+    measure,
+    memory_steps,
+    simulate,
+    state_spread,
+)
 from learner.simulated import random_trajectory
-from tpsr_ros.errors import DataError
-from tpsr_ros.pca_baseline import PCAConfig, fit_pca
-from tpsr_ros.state_model import Track
+from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.pca_baseline import PCAConfig, fit_pca
+from tpsr_ros.core.state_model import Track
 
 
 @dataclass(frozen=True)

@@ -20,11 +20,11 @@ from learner.representations import TruePositionTracker
 from learner.simulated import random_trajectory
 from sim_node import RobotEnv, SimConfig, action_index
 from sim_node.generate import generate_bag
-from tpsr_ros.errors import ConfigError
-from tpsr_ros.fqi import FQIConfig
-from tpsr_ros.pca_baseline import PCAConfig
-from tpsr_ros.policy import Policy
-from tpsr_ros.tpsr import TPSRConfig
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.fqi import FQIConfig
+from tpsr_ros.core.pca_baseline import PCAConfig
+from tpsr_ros.core.tpsr import TPSRConfig
+from tpsr_ros.io.policy import Policy
 
 SMALL_FIT = ["--ht-centers", "150", "--obs-centers", "100"]
 

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from test_tpsr import SMALL, structured_episodes
 
-from tpsr_ros import npz_archive
-from tpsr_ros.errors import ModelFormatError
-from tpsr_ros.model_io import FORMAT_VERSION, load_model, read_metadata, save_model
-from tpsr_ros.pca_baseline import fit_pca
-from tpsr_ros.tpsr import TPSRModel, fit_tpsr
+from tpsr_ros.core.errors import ModelFormatError
+from tpsr_ros.core.pca_baseline import fit_pca
+from tpsr_ros.core.tpsr import TPSRModel, fit_tpsr
+from tpsr_ros.io import npz_archive
+from tpsr_ros.io.model_io import FORMAT_VERSION, load_model, read_metadata, save_model
 
 
 @pytest.fixture(scope="module")

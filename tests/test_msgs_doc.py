@@ -18,12 +18,12 @@ from pathlib import Path
 
 import pytest
 
-from tpsr_ros import messages as m
-from tpsr_ros.bag import BagWriter
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagWriter
+from tpsr_ros.io.qos import parse_qos_text
 from tpsr_ros.runtime import Node, NodeOptions, RosArgs, parse_ros_args
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
 from tpsr_ros.runtime.params import param_specs
-from tpsr_ros.runtime.qos import parse_qos_text
 
 DOC = Path(__file__).resolve().parent.parent / "msgs_doc"
 NAMESPACE = "/doc_ns"

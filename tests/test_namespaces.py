@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from tpsr_ros import messages as m
-from tpsr_ros.episodes import Topics, read_trajectory
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.trajectory import Topics, read_trajectory
 from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions, parse_ros_args
 from tpsr_ros.runtime.backend import open_transport
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
@@ -71,6 +71,7 @@ def test_sim_node_topics_follow_its_namespace_and_absolute_names_do_not():
             "/robot1/reward",
             "/robot1/clock",
             "/robot1/sim/episode_start",
+            "/robot1/sim/cmd_ignored",
             "/robot1/sim/reset",
             "/robot1/cmd_vel",
         }
@@ -87,7 +88,7 @@ def test_sim_node_topics_follow_its_namespace_and_absolute_names_do_not():
 def test_filter_node_in_a_namespace_accepts_a_model_trained_on_root_topics(tmp_path):
     from test_filter_node import fit_small_model
 
-    from tpsr_ros.errors import TpsrError
+    from tpsr_ros.core.errors import TpsrError
     from tpsr_ros.filter_node import FilterNode
 
     model = fit_small_model(tmp_path)

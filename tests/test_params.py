@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.runtime.params import (
     format_parameter_help,
     param,

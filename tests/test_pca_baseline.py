@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tpsr_ros.errors import ConfigError, DataError
-from tpsr_ros.pca_baseline import PCAConfig, PCAModel, fit_pca
-from tpsr_ros.state_model import StateModel
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
+from tpsr_ros.core.state_model import StateModel
 
 
 @pytest.fixture(scope="module")

@@ -7,10 +7,10 @@ import zipfile
 import numpy as np
 import pytest
 
-from tpsr_ros.errors import ModelFormatError
-from tpsr_ros.fqi import FQIConfig, fit_q
-from tpsr_ros.npz_archive import write_archive
-from tpsr_ros.policy import Policy, load_policy, save_policy
+from tpsr_ros.core.errors import ModelFormatError
+from tpsr_ros.core.fqi import FQIConfig, fit_q
+from tpsr_ros.io.npz_archive import write_archive
+from tpsr_ros.io.policy import Policy, load_policy, save_policy
 
 
 @pytest.fixture(scope="module")

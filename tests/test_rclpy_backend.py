@@ -20,9 +20,9 @@ import pytest
 
 pytest.importorskip("rclpy", reason="rclpy not importable (pip install 'tpsr-ros[ros]')")
 
-from tpsr_ros import messages as m
-from tpsr_ros.bag import BagReader, BagWriter
-from tpsr_ros.errors import MessageError
+from tpsr_ros.core.errors import MessageError
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagReader, BagWriter
 from tpsr_ros.runtime import (
     LATCHED_QOS,
     SENSOR_DATA_QOS,
@@ -254,7 +254,7 @@ def test_every_type_we_publish_has_an_rclpy_class_with_the_same_cdr():
     """
     from rclpy.serialization import deserialize_message
 
-    from tpsr_ros.diagnostics import DIAGNOSTICS_TYPE
+    from tpsr_ros.runtime.diagnostics import DIAGNOSTICS_TYPE
     from tpsr_ros.runtime.rclpy_backend import from_rclpy, message_class
 
     samples = _published_samples()
@@ -269,7 +269,12 @@ def test_every_type_we_publish_has_an_rclpy_class_with_the_same_cdr():
 
 def _published_samples() -> list[tuple[str, object]]:
     """One message of every type our nodes publish."""
-    from tpsr_ros.diagnostics import DIAGNOSTICS_TYPE, OK, diagnostic_array, diagnostic_status
+    from tpsr_ros.runtime.diagnostics import (
+        DIAGNOSTICS_TYPE,
+        OK,
+        diagnostic_array,
+        diagnostic_status,
+    )
 
     image = np.arange(16 * 16 * 3, dtype=np.uint8).reshape(16, 16, 3)
     return [
@@ -526,7 +531,7 @@ def test_every_published_type_crosses_between_rclpy_and_the_dds_backend(
 ):
     """Our DDS backend's bytes reach typed rclpy subscriptions, and rclpy's typed
     publishers (Fast DDS's own serialisation) reach our DDS backend, field for field."""
-    from tpsr_ros.runtime.qos import Durability, History, Reliability
+    from tpsr_ros.io.qos import Durability, History, Reliability
     from tpsr_ros.runtime.rclpy_backend import from_rclpy, message_class, to_rclpy, to_rclpy_qos
 
     dds, ros = mixed_pair
@@ -627,7 +632,7 @@ def test_the_filter_node_swaps_its_policy_at_runtime_only_for_one_that_fits(ros_
         assert set_policy(second).successful
         assert node.policy is not before and node.params.policy == str(second)
         state = np.ones(node.model.state_dim)
-        from tpsr_ros.policy import load_policy
+        from tpsr_ros.io.policy import load_policy
 
         assert node.policy.action(state) == load_policy(second).action(state)
         assert not set_policy("").successful  # a pure filter has no /cmd_vel publisher

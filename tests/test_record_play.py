@@ -2,24 +2,29 @@
 
 Each test gets its own ROS_DOMAIN_ID (derived from the pid) and restricts Cyclone DDS to
 the loopback interface with CYCLONEDDS_URI, so parallel runs and other machines never
-cross-talk. Waiting is on conditions (log lines, process exits, file contents), except
-the 5 s recording window the acceptance test asks for.
+cross-talk. Processes are started with the launcher (tpsr_ros.runtime.launcher); waiting
+is on conditions (subscriptions matched in the graph, messages received, process exits,
+file contents), never on log lines, except the 5 s recording window the acceptance test
+asks for.
 """
 
+import contextlib
 import itertools
 import os
-import signal
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 
-from tpsr_ros import messages as m
-from tpsr_ros.bag import BagReader, BagWriter
-from tpsr_ros.errors import BagError
+from sim_node.topics import SimTopics
+from tpsr_ros.core.errors import BagError
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagReader, BagWriter
+from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions
+from tpsr_ros.runtime.backend import open_transport
+from tpsr_ros.runtime.launcher import Launch, NodeProcess
 
 S = 10**9
 LOOPBACK = (
@@ -51,10 +56,21 @@ BACKENDS = [
 ]
 
 
+def unused_domain(seed: int) -> int:
+    """A domain id in 20..219 that no participant of this process has configured yet.
+
+    Cyclone keeps one configuration per domain and process: a probe node in a domain that
+    an earlier test opened without the loopback URI would not discover the children.
+    """
+    from tpsr_ros.runtime import dds
+
+    return next(d for k in range(200) if (d := (seed + k) % 200 + 20) not in dds._DOMAINS)
+
+
 @pytest.fixture
 def graph_env():
     pytest.importorskip("cyclonedds")
-    domain = (os.getpid() * 11 + 3 * next(_COUNTER)) % 200 + 20
+    domain = unused_domain(os.getpid() * 11 + 3 * next(_COUNTER))
     return {
         **os.environ,
         "ROS_DOMAIN_ID": str(domain),
@@ -64,64 +80,38 @@ def graph_env():
     }
 
 
-@dataclass
-class Proc:
-    """A node process whose stderr goes to a file we can poll."""
-
-    popen: subprocess.Popen[bytes]
-    log: Path
-
-    @classmethod
-    def start(cls, tmp: Path, name: str, env: dict[str, str], *args: str) -> "Proc":
-        log = tmp / f"{name}.log"
-        with log.open("wb") as sink:
-            popen = subprocess.Popen(
-                [sys.executable, "-m", *args], stdout=sink, stderr=sink, env=env
-            )
-        return cls(popen, log)
-
-    def text(self) -> str:
-        return self.log.read_text(errors="replace")
-
-    def wait_for(self, needle: str, timeout: float = 30.0) -> str:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            text = self.text()
-            if needle in text:
-                return text
-            if self.popen.poll() is not None:
-                break
-            time.sleep(0.02)
-        raise AssertionError(f"{needle!r} never appeared; log:\n{self.text()}")
-
-    def stop(self, sig: int = signal.SIGINT, timeout: float = 30.0) -> int:
-        if self.popen.poll() is None:
-            self.popen.send_signal(sig)
-        return self.popen.wait(timeout)
-
-    def kill(self) -> None:
-        if self.popen.poll() is None:
-            self.popen.kill()
-            self.popen.wait(10)
-
-
-READY = "spinning until SIGINT/SIGTERM"
-
-
 def start_recorder(tmp: Path, env: dict[str, str], bag: Path, *topics: str, name="rec"):
-    proc = Proc.start(
-        tmp, name, env, "tpsr_ros.record", "-o", str(bag), *topics,
-        "--ros-args", "--log-level", "debug",
-    )
-    proc.wait_for(READY)
-    return proc
+    """The recorder; the nodes it records wait for its subscriptions (wait_for_subscribers)."""
+    args = ["-o", str(bag), *topics, "--ros-args", "--log-level", "debug"]
+    return NodeProcess(name, "tpsr_ros.record", args, log_path=tmp / f"{name}.log", env=env)
 
 
 def start_sim(tmp: Path, env: dict[str, str], *params: str, name="sim"):
-    args = ["sim_node", "--ros-args", "--log-level", "debug"]
+    args = ["--ros-args", "--log-level", "debug"]
     for p in params:
         args += ["-p", p]
-    return Proc.start(tmp, name, env, *args)
+    return NodeProcess(name, "sim_node", args, log_path=tmp / f"{name}.log", env=env)
+
+
+@contextlib.contextmanager
+def probe_node(env: dict[str, str]):
+    """A node in this process on the test's domain and backend, to watch the graph."""
+    keys = ("ROS_DOMAIN_ID", "CYCLONEDDS_URI")
+    saved = {key: os.environ.get(key) for key in keys}
+    os.environ.update({key: env[key] for key in keys if key in env})
+    node = None
+    try:
+        transport = open_transport(env["TPSR_TRANSPORT"], "probe", "/")
+        node = Node(NodeOptions(name="probe"), transport=transport)
+        yield node
+    finally:
+        if node is not None:
+            node.close()
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
 
 
 def published_steps(log: str) -> int:
@@ -149,17 +139,27 @@ def test_sim_recorded_for_5_s_then_replayed_into_a_second_recording(
 ):
     env = {**graph_env, "TPSR_TRANSPORT": backend}
     bag1, bag2 = tmp_path / "run", tmp_path / "replay"
-    recorder = start_recorder(tmp_path, env, bag1)
-    sim = start_sim(tmp_path, env, "rate:=50", "mode:=explore", "wait_for_subscribers:=1")
-    try:
-        sim.wait_for("episode starts")
-        time.sleep(5.0)  # the acceptance test: record the running sim for 5 s
-        assert sim.stop() == 0
-        steps = published_steps(sim.text())
-        assert recorder.stop() == 0
-    finally:
-        sim.kill()
-        recorder.kill()
+    with probe_node(env) as probe:
+        # the probe subscribes every topic of the sim too, so wait_for_subscribers:=2 (the
+        # probe and the recorder) holds the start-up reset until the recorder has them all
+        starts: list = []
+        probe.create_subscription("/sim/episode_start", m.POSE_TYPE, starts.append, LATCHED_QOS)
+        for topic, msgtype in SimTopics().types().items():
+            probe.create_subscription(topic, msgtype, lambda data: None, raw=True)
+        launch = Launch(tmp_path, env=env, spin=probe.spin_once, timeout_s=30)
+        with launch:
+            recorder = launch.start(
+                "rec", "tpsr_ros.record", ["-o", str(bag1), "--ros-args", "--log-level", "debug"]
+            )
+            sim = launch.start("sim", "sim_node", [
+                "--ros-args", "--log-level", "debug",
+                "-p", "rate:=50", "-p", "mode:=explore", "-p", "wait_for_subscribers:=2",
+            ])
+            launch.wait("the simulator's start-up reset", lambda: len(starts) >= 1)
+            time.sleep(5.0)  # the acceptance test: record the running sim for 5 s
+            assert sim.stop() == 0
+            steps = published_steps(sim.text())
+            assert recorder.stop() == 0
     assert steps >= 100, sim.text()
 
     with BagReader(bag1) as reader:
@@ -175,9 +175,9 @@ def test_sim_recorded_for_5_s_then_replayed_into_a_second_recording(
 
     # play it back (5x faster) while a second recorder runs: identical payloads
     recorder2 = start_recorder(tmp_path, env, bag2, name="rec2")
-    player = Proc.start(
-        tmp_path, "play", env, "tpsr_ros.play", str(bag1), "--rate", "5",
-        "--wait-for-subscribers", "1",
+    player = NodeProcess(
+        "play", "tpsr_ros.play", [str(bag1), "--rate", "5", "--wait-for-subscribers", "1"],
+        log_path=tmp_path / "play.log", env=env,
     )
     try:
         assert player.popen.wait(60) == 0, player.text()

@@ -23,8 +23,8 @@ from cyclonedds.builtin import (
 from cyclonedds.core import Policy
 from cyclonedds.domain import DomainParticipant
 
-from tpsr_ros import messages as m
-from tpsr_ros.errors import ConfigError, MessageError
+from tpsr_ros.core.errors import ConfigError, MessageError
+from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import LATCHED_QOS, SENSOR_DATA_QOS, Node, NodeOptions
 from tpsr_ros.runtime.dds import DdsTransport, domain_id_from_env
 from tpsr_ros.runtime.dds_types import dds_type_name, idl_struct, ros_type_name

@@ -8,7 +8,14 @@ import time
 import numpy as np
 import pytest
 
-from tpsr_ros import messages as m
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.qos import (
+    DEFAULT_QOS,
+    QoSProfile,
+    adapt_to_publishers,
+    compatible,
+    parse_qos_text,
+)
 from tpsr_ros.runtime import (
     LATCHED_QOS,
     SENSOR_DATA_QOS,
@@ -18,13 +25,6 @@ from tpsr_ros.runtime import (
 )
 from tpsr_ros.runtime.backend import choose_backend
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
-from tpsr_ros.runtime.qos import (
-    DEFAULT_QOS,
-    QoSProfile,
-    adapt_to_publishers,
-    compatible,
-    parse_qos_text,
-)
 from tpsr_ros.runtime.transport import pad_cdr
 
 

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from sim_node import ACTIONS, VELOCITIES, RobotEnv, SimConfig, action_index, random_rollout
-from sim_node.actions import action_indices
 from sim_node.env import step_reward
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.actions import action_indices
+from tpsr_ros.core.errors import ConfigError
 
 L, R = 45.0, 1.0
 ENVIRONMENTS = ("full", "partial", "distractors")

@@ -8,9 +8,9 @@ import sys
 import numpy as np
 import pytest
 
-from sim_node.actions import ACTIONS
 from sim_node.node import SimNode
-from tpsr_ros import messages as m
+from tpsr_ros.core.actions import ACTIONS
+from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions, parse_ros_args
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
 
@@ -218,21 +218,54 @@ def test_bad_parameter_message_is_one_line_on_stderr():
     assert result.stderr.startswith("python -m sim_node: error: parameter 'mode'")
 
 
-def test_sigterm_stops_the_node_gracefully_and_logs_the_count():
+def test_ignored_commands_are_announced_on_the_graph():
+    bus = InprocBus()
+    probe = Probe(bus)
+    ignored: list = []
+    probe.node.create_subscription("/sim/cmd_ignored", m.HEADER_TYPE, ignored.append)
+    sim = start_sim(bus, "-p", "mode:=command", "-p", "episode_steps:=2")
+    assert spin_both(sim, probe, lambda: len(probe.got["/sim/episode_start"]) == 1)
+    for _ in range(3):  # two steps, then the third command is past the episode's end
+        probe.cmd.publish(m.twist_msg(3.0, 0.0))
+        spin_both(sim, probe, lambda: False, timeout=0.05)
+    assert spin_both(sim, probe, lambda: len(ignored) == 1)
+    assert len(probe.got["/reward"]) == 2 and sim.ignored_commands == 1
+    sim.close()
+    assert ignored[0].frame_id == "episode_steps" and ignored[0].stamp.sec == 2  # t_2
+
+
+def test_sigterm_stops_the_node_gracefully_and_logs_the_count(tmp_path, monkeypatch):
+    """SIGTERM once the node is spinning: a /clock message seen in the graph, not a log line."""
     import os
     import signal
 
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "sim_node", "--ros-args", "-p", "rate:=100",
-         "--log-level", "debug"],
-        stderr=subprocess.PIPE, text=True,
-        env={**os.environ, "TPSR_TRANSPORT": "inproc"},
+    pytest.importorskip("cyclonedds")
+    from tpsr_ros.runtime.dds import DdsTransport
+    from tpsr_ros.runtime.launcher import Launch
+
+    loopback = (
+        "<CycloneDDS><Domain id='any'><General><Interfaces>"
+        "<NetworkInterface address='127.0.0.1' multicast='true'/>"
+        "</Interfaces></General></Domain></CycloneDDS>"
     )
-    line = proc.stderr.readline()
-    while "spinning until SIGINT/SIGTERM" not in line:  # signal handlers are installed
-        assert line, "sim_node exited early"
-        line = proc.stderr.readline()
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=20)
-    assert proc.returncode == 0
+    from tpsr_ros.runtime import dds
+
+    # a domain this process has not configured yet (Cyclone keeps one config per domain)
+    domain = next(d for k in range(90) if (d := (os.getpid() + k) % 90 + 140) not in dds._DOMAINS)
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    monkeypatch.setenv("CYCLONEDDS_URI", loopback)
+    probe = Node(NodeOptions(name="probe"), transport=DdsTransport("probe"))
+    clocks: list = []
+    probe.create_subscription("/clock", m.CLOCK_TYPE, clocks.append)
+    env = {**os.environ, "TPSR_TRANSPORT": "dds"}
+    try:
+        with Launch(tmp_path, env=env, spin=probe.spin_once, timeout_s=30) as launch:
+            sim = launch.start(
+                "sim", "sim_node", ["--ros-args", "-p", "rate:=100", "--log-level", "debug"]
+            )
+            launch.wait("the running node's /clock", lambda: len(clocks) >= 2)
+            assert sim.stop(sig=signal.SIGTERM) == 0
+    finally:
+        probe.close()
+    err = sim.text()
     assert "published" in err and "steps and 1 resets" in err

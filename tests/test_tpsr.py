@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from learning_fixtures import literal_algorithm3
 
-from tpsr_ros.errors import ConfigError, DataError
-from tpsr_ros.features import constant_vector, rbf_features
-from tpsr_ros.tpsr import TPSRConfig, fit_tpsr, top_singular_triplets
-from tpsr_ros.whitening import Whitening
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.features import constant_vector, rbf_features
+from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr, top_singular_triplets
+from tpsr_ros.core.whitening import Whitening
 
 
 def structured_episodes(n_episodes: int, k: int = 12, n_actions: int = 3, seed: int = 0):

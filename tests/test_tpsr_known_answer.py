@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from learning_fixtures import POMDP, episodes_from_symbols, example_pomdp
 
-from tpsr_ros.filtering import observation_weights
-from tpsr_ros.tpsr import TPSRConfig, TPSRModel, fit_tpsr
+from tpsr_ros.core.filtering import observation_weights
+from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr
 
 SIZES = (3_000, 30_000, 300_000)
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tpsr_ros.errors import ConfigError, DataError
-from tpsr_ros.whitening import Whitening
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.whitening import Whitening
 
 
 def planted(n: int = 4000, b: int = 30, seed: int = 0):
@@ -101,7 +101,7 @@ def test_non_finite_and_mismatched_data():
 def test_wide_data_take_the_lanczos_path_with_the_dense_result():
     # histories of several images are wider than DENSE_MAX_DIM: no covariance is formed,
     # and the eigenpairs agree with the dense eigendecomposition to machine precision
-    from tpsr_ros import whitening
+    from tpsr_ros.core import whitening
 
     rng = np.random.default_rng(4)
     b = whitening.DENSE_MAX_DIM + 200

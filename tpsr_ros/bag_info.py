@@ -12,14 +12,14 @@ from __future__ import annotations
 import datetime as dt
 from pathlib import Path
 
-from tpsr_ros.bag import BagReader, read_bag_metadata
 from tpsr_ros.cli import ArgumentParser, run_cli
-from tpsr_ros.runtime.qos import from_bag_qos
+from tpsr_ros.core.units import NS_PER_S as _NS
+from tpsr_ros.io.bag import BagReader, read_bag_metadata
+from tpsr_ros.io.qos import from_bag_qos
 
 __all__ = ["format_info", "main"]
 
 PROG = "python -m tpsr_ros.bag_info"
-_NS = 1_000_000_000
 
 
 def _size(n: float) -> str:

@@ -41,9 +41,9 @@ from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
-from tpsr_ros.bag import rosbag2_metadata
 from tpsr_ros.cli import ArgumentParser, run_cli
-from tpsr_ros.errors import BagError
+from tpsr_ros.core.errors import BagError
+from tpsr_ros.io.bag import rosbag2_metadata
 
 __all__ = ["RecoveryReport", "main", "recover_bag"]
 

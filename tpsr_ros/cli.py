@@ -7,7 +7,7 @@ import sys
 from collections.abc import Callable
 from typing import NoReturn
 
-from tpsr_ros.errors import TpsrError
+from tpsr_ros.core.errors import TpsrError
 
 __all__ = ["ArgumentParser", "non_negative_int", "positive_float", "positive_int", "run_cli"]
 

@@ -4,12 +4,12 @@
 
 Boilerplate around three ROS-free parts (see msgs_doc/filter_node.md for the interface):
 
-- :class:`tpsr_ros.pairing.ExactTimeSynchronizer` pairs ``/camera/image_raw`` and ``/action``
+- :class:`tpsr_ros.runtime.pairing.ExactTimeSynchronizer` pairs ``/camera/image_raw`` and ``/action``
   by identical header stamp in a bounded buffer (like message_filters' ExactTime);
-- :class:`tpsr_ros.online.OnlineTracker` applies Algorithm 4 with the model's stateless
+- :class:`tpsr_ros.core.online.OnlineTracker` applies Algorithm 4 with the model's stateless
   update, with the offline tracker's rules (start from ``b_*``, restart at gaps), so the
   states published on ``/tpsr/state`` equal offline tracking of the same steps bit for bit;
-- the greedy policy (:func:`tpsr_ros.policy.load_policy`) turns each state into a
+- the greedy policy (:func:`tpsr_ros.io.policy.load_policy`) turns each state into a
   ``/cmd_vel`` command.
 
 Re-initialisation (state ``b_*``, next step starts a segment): on an episode start
@@ -23,7 +23,7 @@ Faults never stop the node: undecodable messages, images of the wrong encoding, 
 frame or data length, actions that are not finite or not one of the 25 actions are
 rejected (counted per reason, at most one warning per topic every 5 s); incomplete,
 duplicated, late and out-of-order messages are counted by the synchroniser; degenerate
-normalisers are recovered by the guard of :mod:`tpsr_ros.filtering` and counted.
+normalisers are recovered by the guard of :mod:`tpsr_ros.core.filtering` and counted.
 ``/diagnostics`` reports it all once a second.
 """
 
@@ -36,28 +36,17 @@ from typing import Any
 
 import numpy as np
 
-from sim_node.actions import ACTIONS
-from tpsr_ros import messages as m
-from tpsr_ros.diagnostics import (
-    DIAGNOSTICS_TYPE,
-    ERROR,
-    OK,
-    WARN,
-    RollingPercentiles,
-    diagnostic_array,
-    diagnostic_status,
-)
-from tpsr_ros.episodes import (
+from tpsr_ros.core.actions import ACTIONS
+from tpsr_ros.core.episodes import (
     DEFAULT_ACTION_TOLERANCE,
-    DEFAULT_IMAGE_SHAPE,
     image_to_observation,
     velocities_to_actions,
 )
-from tpsr_ros.errors import ConfigError, MessageError, TpsrError
-from tpsr_ros.model_io import load_model, model_fingerprint, read_metadata
-from tpsr_ros.online import OnlineTracker
-from tpsr_ros.pairing import ExactTimeSynchronizer, Outcome
-from tpsr_ros.policy import TRUE_POSITION, Policy, load_policy
+from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
+from tpsr_ros.core.online import OnlineTracker
+from tpsr_ros.core.units import NS_PER_S as _NS
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.filter_inputs import FilterInputs, load_filter_inputs
 from tpsr_ros.runtime import (
     DEFAULT_QOS,
     LATCHED_QOS,
@@ -70,7 +59,16 @@ from tpsr_ros.runtime import (
     param,
     run_node,
 )
-from tpsr_ros.state_model import StateModel
+from tpsr_ros.runtime.diagnostics import (
+    DIAGNOSTICS_TYPE,
+    ERROR,
+    OK,
+    WARN,
+    RollingPercentiles,
+    diagnostic_array,
+    diagnostic_status,
+)
+from tpsr_ros.runtime.pairing import ExactTimeSynchronizer, Outcome
 
 __all__ = [
     "ACTION_TOPIC",
@@ -106,7 +104,6 @@ WARN_PERIOD_S = 5.0
 """At most one warning per topic and kind (rejection, drop, duplicate...) in this many seconds."""
 SETTLE_S = 0.25
 """Once the command's subscribers are matched, time for their side of discovery to finish."""
-_NS = 1_000_000_000
 _RECOVERY_ERROR_RUN = 10
 
 
@@ -159,87 +156,21 @@ class FilterNodeParams:
 # -- loading and the start-up checks ------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class FilterInputs:
-    """The model and policy a filter node runs, checked against each other and its topics."""
-
-    model: StateModel
-    fingerprint: str
-    metadata: dict[str, Any]
-    image_shape: tuple[int, int]
-    policy: Policy | None
-
-
-def _training_topics(metadata: dict[str, Any]) -> set[tuple[str, str]]:
-    bags = metadata.get("training", {}).get("bags") or []
-    found = set()
-    for bag in bags:
-        topics = bag.get("topics") if isinstance(bag, dict) else None
-        if isinstance(topics, dict) and topics.get("image") and topics.get("action"):
-            found.add((str(topics["image"]), str(topics["action"])))
-    return found
-
-
 def load_inputs(
     params: FilterNodeParams,
     image_topic: str = "/" + IMAGE_TOPIC,
     action_topic: str = "/" + ACTION_TOPIC,
     namespace: str = "/",
 ) -> FilterInputs:
-    """Load the model (and policy) and refuse a combination the node cannot run.
-
-    Refused, each with a one-line :class:`~tpsr_ros.errors.TpsrError`: no model; an
-    unreadable model or policy; a true-position policy (it needs the ground truth); a policy
-    trained for another model (fingerprint), or for other state dimension or number of
-    actions, or another environment than the model's; a model whose images are not
-    ``H x W x 3``; and, unless ``check_topics`` is false, a model trained on other topics:
-    every training bag recorded in the model names its image and action topics, and each
-    pair must equal ``(image_topic, action_topic)``, the node's fully resolved subscription
-    names (after namespace and ``-r`` remapping), either as recorded or moved into the
-    node's ``namespace`` (a model trained on ``/camera/image_raw`` runs a filter in
-    ``/robot1`` on ``/robot1/camera/image_raw``). A model recording no topics is accepted.
-    """
-    if not params.model:
-        raise ConfigError("no model given: pass -p model:=MODEL (a file from `learner fit`)")
-    model = load_model(params.model)
-    metadata = read_metadata(params.model)
-    fingerprint = model_fingerprint(model)
-    training = metadata.get("training", {})
-    shape = tuple(training.get("image_shape") or DEFAULT_IMAGE_SHAPE)
-    if len(shape) != 2 or shape[0] * shape[1] * 3 != model.obs_size:
-        raise ConfigError(
-            f"model {params.model} takes {model.obs_size} observation values, not the rgb8 "
-            f"pixels of {shape} images"
-        )
-    if params.check_topics:
-        subscribed = (image_topic, action_topic)
-        prefix = namespace.rstrip("/")
-        for pair in sorted(_training_topics(metadata)):
-            if pair != subscribed and (prefix + pair[0], prefix + pair[1]) != subscribed:
-                raise ConfigError(
-                    f"model {params.model} was trained on {pair[0]} and {pair[1]}, but the "
-                    f"node subscribes {subscribed[0]} and {subscribed[1]} (remap with -r, or "
-                    "-p check_topics:=false to accept)"
-                )
-    policy = None
-    if params.policy:
-        policy = load_policy(params.policy)
-        if policy.representation == TRUE_POSITION:
-            raise ConfigError(
-                f"policy {params.policy} acts on the true position, which the filter node "
-                "does not have; use a policy fitted on this model's states"
-            )
-        policy.check_model(fingerprint, f"model {params.model}")
-        if policy.state_dim != model.state_dim or policy.n_actions != model.n_actions:
-            raise ConfigError(
-                f"policy {params.policy} takes {policy.state_dim}-dimensional states and "
-                f"{policy.n_actions} actions, the model has {model.state_dim} and "
-                f"{model.n_actions}"
-            )
-        environment = training.get("environment")
-        if isinstance(environment, str):
-            policy.check_environment(environment)
-    return FilterInputs(model, fingerprint, metadata, (int(shape[0]), int(shape[1])), policy)
+    """:func:`tpsr_ros.io.filter_inputs.load_filter_inputs` with the node's parameters."""
+    return load_filter_inputs(
+        params.model,
+        params.policy,
+        check_topics=params.check_topics,
+        image_topic=image_topic,
+        action_topic=action_topic,
+        namespace=namespace,
+    )
 
 
 class _Rejected(Exception):

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tpsr_ros.cli import ArgumentParser
-from tpsr_ros.errors import TpsrError
+from tpsr_ros.core.errors import TpsrError
 
 __all__ = ["EXECUTABLES", "LaunchError", "LaunchedNode", "main", "parse_launch"]
 

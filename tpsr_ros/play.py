@@ -26,18 +26,18 @@ import time
 from pathlib import Path
 from typing import Any
 
-from tpsr_ros.bag import BagReader
 from tpsr_ros.cli import ArgumentParser, non_negative_int, positive_float
-from tpsr_ros.errors import BagError, TpsrError
-from tpsr_ros.messages import CLOCK_TYPE, clock_msg, jazzy_typestore
+from tpsr_ros.core.errors import BagError, TpsrError
+from tpsr_ros.core.units import NS_PER_S as _NS
+from tpsr_ros.io.bag import BagReader
+from tpsr_ros.io.messages import CLOCK_TYPE, clock_msg, jazzy_typestore
+from tpsr_ros.io.qos import from_bag_qos
 from tpsr_ros.runtime import DEFAULT_QOS, Node, NodeOptions, Publisher, run_node
-from tpsr_ros.runtime.qos import from_bag_qos
 
 __all__ = ["PlayerNode", "header_stamp_ns", "main"]
 
 PROG = "python -m tpsr_ros.play"
 CLOCK_TOPIC = "/clock"
-_NS = 1_000_000_000
 
 
 def _starts_with_header(msgtype: str) -> bool:

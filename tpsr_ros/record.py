@@ -11,7 +11,7 @@ keep-all so the recorder never overwrites what it has not written yet. The offer
 profiles are stored in the bag, where ``python -m tpsr_ros.play`` reuses them.
 
 Messages are written as the CDR bytes received (``raw=True``), with the receive time as
-log time, through ``tpsr_ros.bag.BagWriter`` (the generator's bag module). The output
+log time, through ``tpsr_ros.io.bag.BagWriter`` (the generator's bag module). The output
 path must not exist; it is checked before anything subscribes. SIGINT or SIGTERM drains
 what has arrived and closes the bag cleanly. The bag is flushed every
 ``--flush-interval`` seconds (default 1), so after a hard kill (SIGKILL, power loss)
@@ -27,12 +27,12 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from tpsr_ros.bag import BagWriter, check_bag_path_free
 from tpsr_ros.cli import ArgumentParser, positive_float
-from tpsr_ros.errors import BagError, TpsrError
-from tpsr_ros.messages import jazzy_typestore
+from tpsr_ros.core.errors import BagError, TpsrError
+from tpsr_ros.io.bag import BagWriter, check_bag_path_free
+from tpsr_ros.io.messages import jazzy_typestore
+from tpsr_ros.io.qos import adapt_to_publishers, compatible, to_bag_qos
 from tpsr_ros.runtime import Node, NodeOptions, QoSProfile, run_node
-from tpsr_ros.runtime.qos import adapt_to_publishers, compatible, to_bag_qos
 
 __all__ = ["RecorderNode", "main"]
 

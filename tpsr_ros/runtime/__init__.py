@@ -3,8 +3,20 @@
 Nodes subclass :class:`Node` and start with :func:`run_node`; parameters are frozen
 dataclass fields declared with :func:`param`; ``TPSR_TRANSPORT=rclpy|dds|inproc`` picks
 the middleware (default: rclpy if importable, else dds). See ``msgs_doc/README.md``.
+:class:`Launch` starts node processes, waits on the graph and stops them
+(:mod:`tpsr_ros.runtime.launcher`).
 """
 
+from tpsr_ros.io.qos import (
+    DEFAULT_QOS,
+    LATCHED_QOS,
+    SENSOR_DATA_QOS,
+    Durability,
+    History,
+    QoSProfile,
+    Reliability,
+)
+from tpsr_ros.runtime.launcher import Launch, LaunchError, NodeProcess
 from tpsr_ros.runtime.node import (
     EndpointInfo,
     Logger,
@@ -17,15 +29,6 @@ from tpsr_ros.runtime.node import (
     run_node,
 )
 from tpsr_ros.runtime.params import NoParameters, ParamSpec, param, param_specs
-from tpsr_ros.runtime.qos import (
-    DEFAULT_QOS,
-    LATCHED_QOS,
-    SENSOR_DATA_QOS,
-    Durability,
-    History,
-    QoSProfile,
-    Reliability,
-)
 from tpsr_ros.runtime.ros_args import RosArgs, UsageError, parse_ros_args
 from tpsr_ros.runtime.transport import TopicEndpoint, Transport
 
@@ -36,10 +39,13 @@ __all__ = [
     "Durability",
     "EndpointInfo",
     "History",
+    "Launch",
+    "LaunchError",
     "Logger",
     "NoParameters",
     "Node",
     "NodeOptions",
+    "NodeProcess",
     "ParamSpec",
     "Publisher",
     "QoSProfile",

@@ -10,7 +10,7 @@ from __future__ import annotations
 import importlib
 import os
 
-from tpsr_ros.errors import ConfigError, TpsrError
+from tpsr_ros.core.errors import ConfigError, TpsrError
 from tpsr_ros.runtime.transport import Transport
 
 __all__ = ["BACKENDS", "TRANSPORT_ENV", "choose_backend", "open_transport"]

@@ -34,10 +34,11 @@ import threading
 import time
 from typing import Any, ClassVar
 
-from tpsr_ros.errors import ConfigError, MessageError, TpsrError
-from tpsr_ros.messages import jazzy_typestore
+from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
+from tpsr_ros.core.units import NS_PER_S
+from tpsr_ros.io.messages import jazzy_typestore
+from tpsr_ros.io.qos import Durability, History, QoSProfile, Reliability
 from tpsr_ros.runtime.dds_types import idl_struct, ros_type_name
-from tpsr_ros.runtime.qos import Durability, History, QoSProfile, Reliability
 from tpsr_ros.runtime.transport import (
     BytesCallback,
     PublisherHandle,
@@ -413,7 +414,7 @@ class DdsTransport(Transport):
         store = jazzy_typestore()
         now = time.time_ns()
         stamp = store.types["builtin_interfaces/msg/Time"](
-            sec=now // 1_000_000_000, nanosec=now % 1_000_000_000
+            sec=now // NS_PER_S, nanosec=now % NS_PER_S
         )
         msg = store.types[_LOG_TYPE](
             stamp=stamp,

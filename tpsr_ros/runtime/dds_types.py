@@ -16,8 +16,8 @@ from __future__ import annotations
 from functools import cache
 from typing import Any
 
-from tpsr_ros.errors import MessageError
-from tpsr_ros.messages import jazzy_typestore
+from tpsr_ros.core.errors import MessageError
+from tpsr_ros.io.messages import jazzy_typestore
 
 __all__ = ["dds_type_name", "idl_struct", "ros_type_name"]
 

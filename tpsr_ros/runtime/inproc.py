@@ -13,7 +13,7 @@ import threading
 from collections import deque
 from typing import ClassVar
 
-from tpsr_ros.runtime.qos import Durability, History, QoSProfile, compatible
+from tpsr_ros.io.qos import Durability, History, QoSProfile, compatible
 from tpsr_ros.runtime.transport import (
     BytesCallback,
     PublisherHandle,

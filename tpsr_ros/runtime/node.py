@@ -33,8 +33,10 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, NoReturn, TextIO
 
 from tpsr_ros.cli import ArgumentParser
-from tpsr_ros.errors import ConfigError, MessageError, TpsrError
-from tpsr_ros.messages import deserialize, serialize
+from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
+from tpsr_ros.core.units import NS_PER_S as _NS
+from tpsr_ros.io.messages import deserialize, serialize
+from tpsr_ros.io.qos import DEFAULT_QOS, QoSProfile
 from tpsr_ros.runtime.backend import choose_backend, open_transport
 from tpsr_ros.runtime.params import (
     NoParameters,
@@ -44,7 +46,6 @@ from tpsr_ros.runtime.params import (
     param_specs,
     resolve_parameters,
 )
-from tpsr_ros.runtime.qos import DEFAULT_QOS, QoSProfile
 from tpsr_ros.runtime.ros_args import (
     LOG_LEVELS,
     RosArgs,
@@ -67,7 +68,6 @@ __all__ = [
 ]
 
 _MAX_WAIT_S = 0.1  # bound on one blocking wait, so signals are handled promptly
-_NS = 1_000_000_000
 
 ROS_ARGS_HELP = """\
 ROS arguments (after --ros-args):

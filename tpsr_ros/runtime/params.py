@@ -16,12 +16,12 @@ from __future__ import annotations
 import dataclasses
 import re
 import typing
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.fields import option as param
 from tpsr_ros.runtime.ros_args import ParamOverride, ParamsFile, RosArgs, UsageError
 from tpsr_ros.safe_yaml import YamlInputError, load_yaml
 
@@ -43,14 +43,6 @@ MAX_PARAMS_FILE_BYTES = 2**20
 @dataclass(frozen=True)
 class NoParameters:
     """A node without parameters."""
-
-
-def param(default: Any, help: str, *, choices: Sequence[Any] | None = None) -> Any:
-    """Declare a parameter field, e.g. ``rate: float = param(10.0, "steps per second")``."""
-    metadata = {"help": help, "choices": tuple(choices) if choices is not None else None}
-    if isinstance(default, list):
-        default = tuple(default)
-    return dataclasses.field(default=default, metadata=metadata)
 
 
 @dataclass(frozen=True)

@@ -21,9 +21,9 @@ import importlib
 import threading
 from typing import Any, ClassVar
 
-from tpsr_ros.errors import MessageError, TpsrError
-from tpsr_ros.messages import deserialize, serialize
-from tpsr_ros.runtime.qos import Durability, History, QoSProfile, Reliability
+from tpsr_ros.core.errors import MessageError, TpsrError
+from tpsr_ros.io.messages import deserialize, serialize
+from tpsr_ros.io.qos import Durability, History, QoSProfile, Reliability
 from tpsr_ros.runtime.transport import (
     BytesCallback,
     ParameterCheck,

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.safe_yaml import YamlInputError, load_yaml
 
 __all__ = [

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar
 
-from tpsr_ros.runtime.qos import QoSProfile
+from tpsr_ros.io.qos import QoSProfile
 
 __all__ = [
     "PublisherHandle",

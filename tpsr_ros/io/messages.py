@@ -20,7 +20,8 @@ import numpy as np
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.store import Typestore
 
-from tpsr_ros.errors import MessageError
+from tpsr_ros.core.errors import MessageError
+from tpsr_ros.core.units import NS_PER_S as _NS
 
 __all__ = [
     "ACTION_TYPE",
@@ -58,9 +59,9 @@ POSE_TYPE = "geometry_msgs/msg/PoseStamped"
 REWARD_TYPE = "sensor_msgs/msg/JointState"
 STATE_TYPE = "sensor_msgs/msg/JointState"
 CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
+HEADER_TYPE = "std_msgs/msg/Header"
 
 REWARD_NAMES = ("reward", "wall_contact", "goal_zone")
-_NS = 1_000_000_000
 
 
 @cache
@@ -227,6 +228,11 @@ def state_msg(stamp_ns: int, state: np.ndarray, frame_id: str = "tpsr") -> Any:
 def state_to_array(msg: Any) -> np.ndarray:
     """Predictive state carried by a :func:`state_msg` message."""
     return np.asarray(msg.position, dtype=np.float64).copy()
+
+
+def header_msg(stamp_ns: int, frame_id: str) -> Any:
+    """Build a bare ``std_msgs/msg/Header``: a stamped event whose ``frame_id`` names it."""
+    return _header(stamp_ns, frame_id)
 
 
 def clock_msg(stamp_ns: int) -> Any:

@@ -3,11 +3,11 @@
 Fitted Q-iteration, evaluation, plots and the filter node only need: the state of a model
 that has seen nothing yet, a one-step update ``(state, action, observation) -> state`` and a
 batch version over a trajectory, the state dimension, and the data needed to save the model.
-Both :class:`tpsr_ros.tpsr.TPSRModel` and :class:`tpsr_ros.pca_baseline.PCAModel` satisfy
+Both :class:`tpsr_ros.core.tpsr.TPSRModel` and :class:`tpsr_ros.core.pca_baseline.PCAModel` satisfy
 :class:`StateModel`, so code written against it treats them alike.
 
 Conventions: an observation is a float64 vector of ``obs_size`` values produced by
-:func:`tpsr_ros.episodes.image_to_observation` (pixel values / 255); an action is an integer
+:func:`tpsr_ros.core.episodes.image_to_observation` (pixel values / 255); an action is an integer
 index ``0 .. n_actions - 1``. ``track`` returns, for step ``s``, the state *after* the pair
 ``(a_s, o_s)`` has been incorporated.
 """
@@ -19,7 +19,7 @@ from typing import Any, ClassVar, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-from tpsr_ros.errors import DataError
+from tpsr_ros.core.errors import DataError
 
 __all__ = ["StateModel", "Track", "UpdateInfo", "check_actions", "check_observations"]
 
@@ -32,7 +32,7 @@ class UpdateInfo:
         normalizer: ``b_inf^T B_ao b`` for a TPSR (the model's prediction of the observation
             given the state, before the guard); ``nan`` for models without one (PCA).
         recovered: the update could not be normalised and the filter restarted (see
-            :mod:`tpsr_ros.filtering`); a filter node counts these.
+            :mod:`tpsr_ros.core.filtering`); a filter node counts these.
 
     """
 
@@ -106,7 +106,7 @@ class StateModel(Protocol):
         ...
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """Return the numeric content, for :mod:`tpsr_ros.model_io` (no object arrays)."""
+        """Return the numeric content, for :mod:`tpsr_ros.io.model_io` (no object arrays)."""
         ...
 
 

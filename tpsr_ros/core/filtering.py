@@ -38,19 +38,17 @@ the guide found TPSRs remember for only a few steps anyway (section 4.4).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
-from tpsr_ros.errors import DataError
-from tpsr_ros.features import rbf_features
-from tpsr_ros.state_model import Track, UpdateInfo, check_actions, check_observations
-
-if TYPE_CHECKING:
-    from tpsr_ros.tpsr import TPSRModel
+from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.features import rbf_features
+from tpsr_ros.core.state_model import Track, UpdateInfo, check_actions, check_observations
 
 __all__ = [
     "NORMALIZER_RTOL",
+    "FilterParameters",
     "observation_weights",
     "track",
     "update",
@@ -61,7 +59,40 @@ NORMALIZER_RTOL = 1e-3
 """Relative threshold of the normaliser guard (see the module docstring)."""
 
 
-def observation_weights(model: TPSRModel, observations: np.ndarray) -> np.ndarray:
+class _KernelWidth(Protocol):
+    @property
+    def sigma_obs(self) -> float: ...
+
+
+class FilterParameters(Protocol):
+    """What Algorithm 4 reads of a TPSR (guide table 3.4), e.g. a
+    :class:`tpsr_ros.core.tpsr.TPSRModel`; this module does not depend on how it was fitted.
+    """
+
+    @property
+    def config(self) -> _KernelWidth: ...
+    @property
+    def obs_mean(self) -> np.ndarray: ...
+    @property
+    def obs_whitening(self) -> np.ndarray: ...
+    @property
+    def obs_centers(self) -> np.ndarray: ...
+    @property
+    def b_star(self) -> np.ndarray: ...
+    @property
+    def b_inf(self) -> np.ndarray: ...
+    @property
+    def B(self) -> np.ndarray: ...  # noqa: N802
+    @property
+    def state_dim(self) -> int: ...
+    @property
+    def n_actions(self) -> int: ...
+    @property
+    def obs_size(self) -> int: ...
+    def initial_state(self) -> np.ndarray: ...
+
+
+def observation_weights(model: FilterParameters, observations: np.ndarray) -> np.ndarray:
     """Compute steps 1-2: normalised kernel weights ``(T, l_O)`` of observations ``(T, k)``."""
     obs = check_observations(observations, model.obs_size)
     white = np.matmul((obs - model.obs_mean)[:, None, :], model.obs_whitening)[:, 0, :]
@@ -70,7 +101,7 @@ def observation_weights(model: TPSRModel, observations: np.ndarray) -> np.ndarra
     )
 
 
-def update_matrices(model: TPSRModel, actions: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def update_matrices(model: FilterParameters, actions: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Compute step 3 (eq. 3.9): ``B_{a_s o_s}`` of all steps ``(T, r, r)``, a matmul per action."""
     r = model.state_dim
     n_steps = weights.shape[0]
@@ -105,7 +136,7 @@ def _step(
     return (restarted if restarted is not None else b_star.copy()), z, True
 
 
-def _check_state(model: TPSRModel, state: np.ndarray) -> np.ndarray:
+def _check_state(model: FilterParameters, state: np.ndarray) -> np.ndarray:
     arr = np.asarray(state, dtype=np.float64)
     if arr.shape != (model.state_dim,):
         raise DataError(f"state of shape {arr.shape} is not ({model.state_dim},)")
@@ -115,7 +146,7 @@ def _check_state(model: TPSRModel, state: np.ndarray) -> np.ndarray:
 
 
 def update(
-    model: TPSRModel, state: np.ndarray, action: int, observation: np.ndarray
+    model: FilterParameters, state: np.ndarray, action: int, observation: np.ndarray
 ) -> tuple[np.ndarray, UpdateInfo]:
     """Algorithm 4: incorporate action ``action`` and observation ``(k,)`` into ``state (r,)``.
 
@@ -130,7 +161,7 @@ def update(
 
 
 def track(
-    model: TPSRModel,
+    model: FilterParameters,
     actions: np.ndarray,
     observations: np.ndarray,
     initial: np.ndarray | None = None,

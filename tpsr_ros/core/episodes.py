@@ -1,9 +1,9 @@
-"""From rosbag2 bags to a trajectory of steps and to the episodes of guide section 3.1.
+"""A trajectory of steps and the episodes of guide section 3.1 (numpy only).
 
-A *step* is one image and one action carrying the identical header stamp (DESIGN.md: step
-k's messages are all stamped t_k; the log time is ignored). Steps are sorted by stamp and
-split into *segments* of consecutive stamps (exactly ``step_ns`` apart): a gap, a step whose
-image or action is missing, and a bag boundary each end a segment. Every segment is cut
+A *trajectory* is a sequence of steps ``(a_k, o_k)`` split into *segments* of consecutive
+stamps (exactly ``step_ns`` apart). It comes from bags (:func:`tpsr_ros.io.trajectory.
+read_trajectory`: a gap, a step whose image or action is missing, and a bag boundary each
+end a segment) or from arrays (:meth:`Trajectory.from_arrays`). Every segment is cut
 from its start into non-overlapping *episodes* of ``m`` history steps, the current step and
 ``n`` test steps, and any remainder shorter than ``m + 1 + n`` is dropped, so no episode
 spans a gap or two bags.
@@ -12,7 +12,7 @@ Observations are float64 vectors of ``H * W * 3`` values: the rgb8 pixels in row
 ``(height, width, channel)`` order divided by 255, so in ``[0, 1]``
 (:func:`image_to_observation`). Whitening makes the learner insensitive to this scale, but
 training, tracking and the filter node must all use this one function. Actions are the
-indices of the nearest of the simulator's 25 velocity pairs (:mod:`sim_node.actions`);
+indices of the nearest of the simulator's 25 velocity pairs (:mod:`tpsr_ros.core.actions`);
 velocities farther than ``action_tolerance`` from every pair are refused. Ground truth
 (position, reward) is carried alongside for plots and evaluation, never used for learning;
 steps without it hold NaN.
@@ -20,68 +20,33 @@ steps without it hold NaN.
 
 from __future__ import annotations
 
-import json
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
+from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from tpsr_ros.bag import BagReader
-from tpsr_ros.errors import BagError, ConfigError, DataError, MessageError
-from tpsr_ros.messages import (
-    ACTION_TYPE,
-    IMAGE_TYPE,
-    POSE_TYPE,
-    REWARD_TYPE,
-    image_to_array,
-    pose_to_xy,
-    reward_to_sample,
-    stamp_of,
-    twist_to_xy,
-)
-from tpsr_ros.state_model import StateModel, Track
+from tpsr_ros.core.actions import action_indices
+from tpsr_ros.core.errors import ConfigError, DataError, MessageError
+from tpsr_ros.core.state_model import StateModel, Track
+from tpsr_ros.core.units import STEP_NS
 
 __all__ = [
     "DEFAULT_ACTION_TOLERANCE",
     "DEFAULT_IMAGE_SHAPE",
     "STEP_NS",
     "Episodes",
-    "Topics",
     "Trajectory",
     "image_to_observation",
     "images_to_observations",
     "make_episodes",
-    "read_trajectory",
     "track_trajectory",
     "velocities_to_actions",
 ]
 
-STEP_NS = 1_000_000_000
-"""Duration of one step (DESIGN.md: 1 s of simulation time)."""
 DEFAULT_IMAGE_SHAPE = (16, 16)
 DEFAULT_ACTION_TOLERANCE = 1.0
 """Largest distance (m/s, per component) of a velocity from its action; half the spacing is 1.5."""
-
-
-@dataclass(frozen=True)
-class Topics:
-    """Topic names read from bags (defaults from DESIGN.md)."""
-
-    image: str = field(default="/camera/image_raw", metadata={"help": "camera image topic"})
-    action: str = field(default="/action", metadata={"help": "executed action topic"})
-    pose: str = field(default="/ground_truth/pose", metadata={"help": "ground-truth pose topic"})
-    reward: str = field(default="/reward", metadata={"help": "reward topic"})
-
-    def types(self) -> dict[str, str]:
-        """Topic name to expected ROS type."""
-        return {
-            self.image: IMAGE_TYPE,
-            self.action: ACTION_TYPE,
-            self.pose: POSE_TYPE,
-            self.reward: REWARD_TYPE,
-        }
 
 
 def image_to_observation(rgb: np.ndarray) -> np.ndarray:
@@ -106,8 +71,6 @@ def velocities_to_actions(
     velocities: np.ndarray, tolerance: float = DEFAULT_ACTION_TOLERANCE
 ) -> np.ndarray:
     """Map velocities ``(T, 2)`` to action indices ``(T,)``: the nearest of the 25 pairs."""
-    from sim_node.actions import action_indices
-
     vel = np.asarray(velocities, dtype=np.float64).reshape(-1, 2)
     try:
         return np.asarray(action_indices(vel, tolerance), dtype=np.int64)
@@ -115,15 +78,12 @@ def velocities_to_actions(
         raise DataError(f"an action cannot be mapped to the 25 velocity pairs: {exc}") from None
 
 
-def _n_actions() -> int:
-    from sim_node.actions import NUM_ACTIONS
-
-    return int(NUM_ACTIONS)
-
-
 @dataclass(frozen=True, eq=False)
 class Trajectory:
-    """Steps read from one or more bags, in stamp order (bags in the order given).
+    """Steps in stamp order, read from bags or built from arrays.
+
+    :func:`tpsr_ros.io.trajectory.read_trajectory` reads bags (in the order given);
+    :meth:`from_arrays` takes any action and observation arrays.
 
     Attributes:
         stamps: ``(T,)`` int64 header stamps (ns).
@@ -149,6 +109,69 @@ class Trajectory:
     image_shape: tuple[int, int]
     n_actions: int
     sources: list[dict[str, Any]]
+
+    @classmethod
+    def from_arrays(
+        cls,
+        actions: np.ndarray,
+        observations: np.ndarray,
+        *,
+        stamps: np.ndarray | None = None,
+        n_actions: int | None = None,
+        step_ns: int = STEP_NS,
+        positions: np.ndarray | None = None,
+        rewards: np.ndarray | None = None,
+        image_shape: tuple[int, int] | None = None,
+    ) -> Trajectory:
+        """Build a trajectory of ``T`` steps from arrays: the front door for data not in bags.
+
+        Args:
+            actions: ``(T,)`` action indices ``a_k`` in ``0 .. n_actions - 1``.
+            observations: ``(T, k)`` observation vectors ``o_k`` (any real features; images
+                go through :func:`images_to_observations` first).
+            stamps: ``(T,)`` int stamps (ns); default ``1, 2, ... T`` steps. A stamp that is
+                not ``step_ns`` after the previous one starts a new segment (a gap).
+            n_actions: number of actions (default ``max(actions) + 1``).
+            step_ns: the step period (ns) that consecutive stamps are apart.
+            positions: ``(T, 2)`` ground-truth positions, for plots only (default NaN).
+            rewards: ``(T,)`` rewards, for planning only (default NaN).
+            image_shape: ``(H, W)`` if the observations are rgb8 images (default ``(1, k)``).
+
+        """
+        obs = np.asarray(observations, dtype=np.float64)
+        if obs.ndim != 2 or obs.shape[0] == 0:
+            raise DataError(f"observations must be a non-empty (T, k) array, got {obs.shape}")
+        n_steps = obs.shape[0]
+        acts = np.asarray(actions)
+        if acts.shape != (n_steps,) or acts.dtype.kind not in "iu":
+            raise DataError(
+                f"actions must be {n_steps} integer indices, got {acts.dtype} {acts.shape}"
+            )
+        acts = acts.astype(np.int64)
+        count = int(acts.max()) + 1 if n_actions is None else int(n_actions)
+        if acts.min() < 0 or acts.max() >= count:
+            raise DataError(f"action indices must lie in 0..{count - 1}")
+        if stamps is None:
+            stamp_arr = np.arange(1, n_steps + 1, dtype=np.int64) * int(step_ns)
+        else:
+            stamp_arr = np.asarray(stamps, dtype=np.int64)
+            if stamp_arr.shape != (n_steps,) or np.any(np.diff(stamp_arr) <= 0):
+                raise DataError(f"stamps must be {n_steps} increasing integers (ns)")
+        segments = np.concatenate([[0], np.cumsum(np.diff(stamp_arr) != step_ns)])
+        nan = np.full(n_steps, np.nan)
+        truth = np.column_stack([nan, nan]) if positions is None else positions
+        return cls(
+            stamps=stamp_arr,
+            observations=obs,
+            actions=acts,
+            velocities=np.full((n_steps, 2), np.nan),
+            positions=np.asarray(truth, dtype=np.float64),
+            rewards=nan if rewards is None else np.asarray(rewards, dtype=np.float64),
+            segments=segments.astype(np.int64),
+            image_shape=image_shape or (1, obs.shape[1]),
+            n_actions=count,
+            sources=[],
+        )
 
     def __len__(self) -> int:
         return int(self.stamps.shape[0])
@@ -177,157 +200,6 @@ class Trajectory:
 def _common(values: Iterable[Any]) -> Any:
     distinct = {v for v in values}
     return distinct.pop() if len(distinct) == 1 else sorted(map(str, distinct))
-
-
-def _bag_custom_data(reader: BagReader) -> tuple[str | None, Any]:
-    """Environment name and generator settings that ``sim_node.generate`` stores in a bag."""
-    custom = getattr(reader, "custom_data", None)
-    if not isinstance(custom, dict):
-        return None, None
-    env = custom.get("tpsr_ros.environment")
-    try:
-        generator = json.loads(custom["tpsr_ros.generator"])
-    except (KeyError, TypeError, ValueError):
-        generator = None
-    return (str(env) if env else None), generator
-
-
-def _read_bag(
-    path: Path, topics: Topics, image_shape: tuple[int, int] | None, require_ground_truth: bool
-) -> dict[str, Any]:
-    wanted = topics.types()
-    with BagReader(path) as reader:
-        counts = reader.message_counts
-        available = {t: ty for t, ty in reader.topics.items() if counts.get(t, 0) > 0}
-        required = [topics.image, topics.action]
-        if require_ground_truth:
-            required += [topics.pose, topics.reward]
-        if missing := [t for t in required if t not in available]:
-            raise BagError(
-                f"bag {str(path)!r} has no messages on topic(s) {missing} (it has "
-                f"{sorted(available)})"
-            )
-        for topic, msgtype in wanted.items():
-            if topic in available and available[topic] != msgtype:
-                raise BagError(
-                    f"topic {topic!r} of bag {str(path)!r} has type {available[topic]}, "
-                    f"expected {msgtype}"
-                )
-        data: dict[str, dict[int, Any]] = {t: {} for t in wanted}
-        for bag_msg in reader.messages([t for t in wanted if t in available]):
-            msg = bag_msg.decode()
-            stamp = stamp_of(msg)
-            if stamp in data[bag_msg.topic]:
-                raise BagError(
-                    f"bag {str(path)!r} has two messages on {bag_msg.topic!r} with stamp {stamp} ns"
-                )
-            try:
-                if bag_msg.topic == topics.image:
-                    value: Any = image_to_array(msg, shape=image_shape)
-                    image_shape = image_shape or value.shape[:2]
-                elif bag_msg.topic == topics.action:
-                    value = twist_to_xy(msg)
-                elif bag_msg.topic == topics.pose:
-                    value = pose_to_xy(msg)
-                else:
-                    value = reward_to_sample(msg).reward
-                if bag_msg.topic != topics.image and not np.isfinite(value).all():
-                    raise MessageError(f"value {value} is not finite")
-            except MessageError as exc:
-                raise MessageError(
-                    f"bag {str(path)!r}, topic {bag_msg.topic!r} at stamp {stamp} ns: {exc}"
-                ) from None
-            data[bag_msg.topic][stamp] = value
-        environment, generator = _bag_custom_data(reader)
-    return {
-        "data": data,
-        "environment": environment,
-        "generator": generator,
-        "image_shape": image_shape,
-    }
-
-
-def read_trajectory(
-    bags: Sequence[Path | str],
-    *,
-    topics: Topics | None = None,
-    image_shape: tuple[int, int] | None = DEFAULT_IMAGE_SHAPE,
-    step_ns: int = STEP_NS,
-    action_tolerance: float = DEFAULT_ACTION_TOLERANCE,
-    require_ground_truth: bool = False,
-) -> Trajectory:
-    """Read and pair the steps of ``bags`` (see the module docstring).
-
-    ``image_shape=None`` accepts any size, but all images must share it.
-    ``require_ground_truth`` also demands the pose and reward topics.
-    """
-    topics = topics or Topics()
-    if not bags:
-        raise ConfigError("no bag given")
-    if step_ns <= 0:
-        raise ConfigError(f"step duration must be positive, not {step_ns} ns")
-    parts: list[dict[str, np.ndarray]] = []
-    sources: list[dict[str, Any]] = []
-    shape = image_shape
-    segment_offset = 0
-    for bag in bags:
-        path = Path(bag)
-        read = _read_bag(path, topics, shape, require_ground_truth)
-        shape = read["image_shape"]
-        data = read["data"]
-        images, actions = data[topics.image], data[topics.action]
-        stamps = np.array(sorted(set(images) & set(actions)), dtype=np.int64)
-        if stamps.size == 0:
-            raise DataError(
-                f"bag {str(path)!r} has no image and action with the same stamp "
-                f"({len(images)} images, {len(actions)} actions)"
-            )
-        velocities = np.array([actions[s] for s in stamps], dtype=np.float64)
-        obs = images_to_observations(np.stack([images[s] for s in stamps]))
-        nan2 = (float("nan"), float("nan"))
-        positions = np.array([data[topics.pose].get(s, nan2) for s in stamps], dtype=np.float64)
-        rewards = np.array([data[topics.reward].get(s, np.nan) for s in stamps], dtype=np.float64)
-        if require_ground_truth and (np.isnan(positions).any() or np.isnan(rewards).any()):
-            raise DataError(f"bag {str(path)!r} lacks ground truth (pose or reward) for some steps")
-        breaks = np.diff(stamps) != step_ns
-        segments = segment_offset + np.concatenate([[0], np.cumsum(breaks)])
-        segment_offset = int(segments[-1]) + 1
-        parts.append(
-            {
-                "stamps": stamps,
-                "observations": obs,
-                "actions": velocities_to_actions(velocities, action_tolerance),
-                "velocities": velocities,
-                "positions": positions,
-                "rewards": rewards,
-                "segments": segments.astype(np.int64),
-            }
-        )
-        sources.append(
-            {
-                "path": str(path),
-                "steps": int(stamps.size),
-                "segments": int(breaks.sum()) + 1,
-                "unpaired_messages": int(len(images) + len(actions) - 2 * stamps.size),
-                "stamps_ns": [int(stamps[0]), int(stamps[-1])],
-                "environment": read["environment"],
-                "generator": read["generator"],
-                "topics": {
-                    "image": topics.image,
-                    "action": topics.action,
-                    "pose": topics.pose,
-                    "reward": topics.reward,
-                },
-            }
-        )
-    merged = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-    assert shape is not None
-    return Trajectory(
-        **merged,
-        image_shape=(int(shape[0]), int(shape[1])),
-        n_actions=_n_actions(),
-        sources=sources,
-    )
 
 
 @dataclass(frozen=True, eq=False)

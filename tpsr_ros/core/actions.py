@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError
 
 __all__ = ["ACTIONS", "NUM_ACTIONS", "VELOCITIES", "action_index", "action_indices"]
 

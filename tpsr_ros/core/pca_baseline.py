@@ -4,7 +4,7 @@ An observation-to-state mapping without memory (Jonschkowski and Brock 2015, as 
 the guide's figures 4.5, 4.7, 4.8): the state after ``(a_s, o_s)`` is
 ``(o_s - mean) @ components`` whatever came before, so actions and the previous state are
 ignored. The projection is not rescaled (principal component scores, as the guide plots
-them). It offers the :class:`tpsr_ros.state_model.StateModel` interface so fitted Q,
+them). It offers the :class:`tpsr_ros.core.state_model.StateModel` interface so fitted Q,
 evaluation, plots and the filter node treat it like a TPSR.
 """
 
@@ -16,9 +16,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from tpsr_ros.errors import ConfigError, DataError
-from tpsr_ros.state_model import Track, UpdateInfo, check_actions, check_observations
-from tpsr_ros.whitening import Whitening
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.fields import option
+from tpsr_ros.core.state_model import Track, UpdateInfo, check_actions, check_observations
+from tpsr_ros.core.whitening import Whitening
 
 __all__ = ["PCAConfig", "PCAModel", "fit_pca"]
 
@@ -27,12 +28,8 @@ __all__ = ["PCAConfig", "PCAModel", "fit_pca"]
 class PCAConfig:
     """Parameters of the PCA baseline (guide figure 4.5: dim 2)."""
 
-    dim: int = field(
-        default=2,
-        metadata={
-            "help": "PCA baseline: number of principal components (state dim)",
-            "cli": "--pca-dim",
-        },
+    dim: int = option(
+        2, "PCA baseline: number of principal components (state dim)", cli="--pca-dim"
     )
 
     def __post_init__(self) -> None:

@@ -35,7 +35,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse.linalg
 
-from tpsr_ros.errors import ConfigError, DataError
+from tpsr_ros.core.errors import ConfigError, DataError
 
 __all__ = [
     "DENSE_MAX_DIM",

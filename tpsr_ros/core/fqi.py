@@ -23,23 +23,19 @@ parameters over one long random trajectory (never embedded histories; guide 4.2)
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 from scipy.cluster.vq import kmeans2
 from scipy.spatial.distance import cdist
 
-from tpsr_ros.errors import ConfigError, DataError
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.fields import option as _param
 
 __all__ = ["FQIConfig", "QFunction", "fit_q"]
 
 _DIVERGED = 1e8  # |Q| can never exceed max|r| / (1 - gamma); far beyond it, the fit diverged
-
-
-def _param(default: Any, help: str) -> Any:
-    """Dataclass field with its command-line help (``learner policy`` builds options from it)."""
-    return field(default=default, metadata={"help": help})
 
 
 @dataclass(frozen=True)

@@ -2,9 +2,9 @@
 
 From episodes (history, current action-observation pair, test; guide section 3.1) the fit
 
-1. whitens histories, tests and current observations (Algorithm 1, :mod:`tpsr_ros.whitening`),
+1. whitens histories, tests and current observations (Algorithm 1, :mod:`tpsr_ros.core.whitening`),
 2. chooses kernel centres and computes the feature matrices (Algorithm 2,
-   :mod:`tpsr_ros.features`): ``phi_H`` and ``phi_T`` with the constant feature, ``phi_O``
+   :mod:`tpsr_ros.core.features`): ``phi_H`` and ``phi_T`` with the constant feature, ``phi_O``
    normalised,
 3. estimates ``P_H`` (eq. 3.1) and ``P_TH`` (eq. 3.2), normalised by ``1/t``,
 4. takes the compact rank-``r`` SVD ``P_TH ~ U S V^T``,
@@ -48,10 +48,12 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse.linalg
 
-from tpsr_ros.errors import ConfigError, DataError
-from tpsr_ros.features import CONSTANT_SCALE, rbf_features, select_centers
-from tpsr_ros.state_model import Track, UpdateInfo
-from tpsr_ros.whitening import Whitening, check_finite_matrix, flip_signs, single_blas_thread
+from tpsr_ros.core import filtering
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.features import CONSTANT_SCALE, rbf_features, select_centers
+from tpsr_ros.core.fields import option as _param
+from tpsr_ros.core.state_model import Track, UpdateInfo
+from tpsr_ros.core.whitening import Whitening, check_finite_matrix, flip_signs, single_blas_thread
 
 __all__ = [
     "DENSE_SVD_LIMIT",
@@ -69,11 +71,6 @@ EXTRA_SINGULAR_VALUES = 5
 """Singular values beyond the rank reported in the fit summary (to show the spectral gap)."""
 
 Progress = Callable[[str], None]
-
-
-def _param(default: Any, help: str, **cli: Any) -> Any:
-    """Dataclass field with its command-line help (``learner fit`` builds options from it)."""
-    return field(default=default, metadata={"help": help, **cli})
 
 
 @dataclass(frozen=True)
@@ -299,17 +296,13 @@ class TPSRModel:
     def update(
         self, state: np.ndarray, action: int, observation: np.ndarray
     ) -> tuple[np.ndarray, UpdateInfo]:
-        """Algorithm 4; see :func:`tpsr_ros.filtering.update`."""
-        from tpsr_ros import filtering
-
+        """Algorithm 4; see :func:`tpsr_ros.core.filtering.update`."""
         return filtering.update(self, state, action, observation)
 
     def track(
         self, actions: np.ndarray, observations: np.ndarray, initial: np.ndarray | None = None
     ) -> Track:
-        """Algorithm 4 over a trajectory; see :func:`tpsr_ros.filtering.track`."""
-        from tpsr_ros import filtering
-
+        """Algorithm 4 over a trajectory; see :func:`tpsr_ros.core.filtering.track`."""
         return filtering.track(self, actions, observations, initial)
 
     def parameters(self) -> dict[str, Any]:
@@ -384,35 +377,15 @@ class _Stopwatch:
             self._stage = None
 
 
-def fit_tpsr(
+def _check_data(
     history: np.ndarray,
     observation: np.ndarray,
     action: np.ndarray,
     test: np.ndarray,
-    *,
     n_actions: int,
-    config: TPSRConfig | None = None,
-    progress: Progress | None = None,
-) -> TPSRModel:
-    """Learn a TPSR from ``E`` episodes (guide Algorithms 1-3).
-
-    Args:
-        history: ``(E, m k)`` observations of each history, oldest first, concatenated.
-        observation: ``(E, k)`` current observation of each episode.
-        action: ``(E,)`` current action indices in ``0 .. n_actions - 1``.
-        test: ``(E, n k)`` observations of each test, concatenated.
-        n_actions: number of actions; every action must occur among the training episodes.
-        config: parameters (default :class:`TPSRConfig`).
-        progress: called with the name of each stage as it starts.
-
-    Raises:
-        DataError: non-finite or inconsistent data, too few episodes for the kernel
-            centres, rank above the usable singular values, an action without samples.
-
-    """
-    cfg = config if config is not None else TPSRConfig()
-    watch = _Stopwatch(progress)
-    watch.stage("checking data")
+    cfg: TPSRConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Validate the episodes (guide table 3.1) against the config: finite, shaped, enough."""
     observation = check_finite_matrix(observation, "current observations")
     n_episodes, k = observation.shape
     history = check_finite_matrix(history, "histories")
@@ -439,44 +412,108 @@ def fit_tpsr(
             f"'{cfg.center_selection}' centres with rank {cfg.rank} need at least {needed} "
             "(lower obs_centers/ht_centers or record more data)"
         )
+    return history, observation, action, test
 
-    watch.stage("whitening")
+
+@dataclass(frozen=True)
+class _Whitened:
+    """Algorithm 1's output: the fitted whitenings and the whitened episodes."""
+
+    history: Whitening
+    test: Whitening
+    obs: Whitening
+    h_white: np.ndarray
+    t_white: np.ndarray
+    o_white: np.ndarray
+    t0_white: np.ndarray
+    """Tests as ``P_TH`` correlates them (``t_white`` itself for ``after-current``)."""
+
+
+def _whiten(
+    history: np.ndarray, observation: np.ndarray, test: np.ndarray, cfg: TPSRConfig
+) -> _Whitened:
+    """Algorithm 1: whiten histories, tests (``d^H = d^T``) and observations (``d^O``).
+
+    With ``p_th_tests="from-current"`` the test window of ``P_TH`` (the current observation
+    and the first ``n - 1`` test observations) is whitened with the tests' whitening.
+    """
     wh_h, h_white = Whitening.fit_transform(history, cfg.ht_dim, what="histories")
     wh_t, t_white = Whitening.fit_transform(test, cfg.ht_dim, what="tests")
     wh_o, o_white = Whitening.fit_transform(observation, cfg.obs_dim, what="current observations")
     if cfg.p_th_tests == "from-current":
+        k = observation.shape[1]
         window = np.concatenate([observation, test[:, : (cfg.test_length - 1) * k]], axis=1)
         t0_white = wh_t.transform(window)
     else:
         t0_white = t_white
+    return _Whitened(wh_h, wh_t, wh_o, h_white, t_white, o_white, t0_white)
 
-    watch.stage("kernel centres")
+
+def _kernel_centres(
+    white: _Whitened, cfg: TPSRConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, slice]:
+    """Algorithm 2, centres: ``l^H``, ``l^T`` and ``l^O`` of them, and the training rows.
+
+    'first' centres are the first episodes, which then do not train (``t = |E| - max l``).
+    """
     select = cfg.center_selection
-    c_h = select_centers(h_white, cfg.ht_centers, select, seed=cfg.seed, what="history")
-    c_t = select_centers(t_white, cfg.ht_centers, select, seed=cfg.seed + 1, what="test")
-    c_o = select_centers(o_white, cfg.obs_centers, select, seed=cfg.seed + 2, what="observation")
+    c_h = select_centers(white.h_white, cfg.ht_centers, select, seed=cfg.seed, what="history")
+    c_t = select_centers(white.t_white, cfg.ht_centers, select, seed=cfg.seed + 1, what="test")
+    c_o = select_centers(
+        white.o_white, cfg.obs_centers, select, seed=cfg.seed + 2, what="observation"
+    )
+    n_centres = max(cfg.ht_centers, cfg.obs_centers)
     train = slice(n_centres, None) if select == "first" else slice(None)
-    n_train = int(h_white[train].shape[0])
-    a_train = action[train]
+    return c_h, c_t, c_o, train
 
-    watch.stage("features")
+
+def _features(
+    white: _Whitened,
+    centres: tuple[np.ndarray, np.ndarray, np.ndarray],
+    train: slice,
+    cfg: TPSRConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Algorithm 2, features of the training episodes: ``phi_H``, ``phi_T``, ``phi_T0``, ``phi_O``.
+
+    History and test features carry the constant feature; observation features are
+    normalised to sum 1. ``phi_T0`` are the test features of ``P_TH`` (``phi_T`` unless
+    ``from-current``).
+    """
+    c_h, c_t, c_o = centres
     norm_ht = cfg.normalize_ht_features
-    phi_h = rbf_features(h_white[train], c_h, cfg.sigma_ht, normalize=norm_ht, add_constant=True)
-    phi_t = rbf_features(t_white[train], c_t, cfg.sigma_ht, normalize=norm_ht, add_constant=True)
-    if t0_white is t_white:
+    phi_h = rbf_features(
+        white.h_white[train], c_h, cfg.sigma_ht, normalize=norm_ht, add_constant=True
+    )
+    phi_t = rbf_features(
+        white.t_white[train], c_t, cfg.sigma_ht, normalize=norm_ht, add_constant=True
+    )
+    if white.t0_white is white.t_white:
         phi_t0 = phi_t
     else:
         phi_t0 = rbf_features(
-            t0_white[train], c_t, cfg.sigma_ht, normalize=norm_ht, add_constant=True
+            white.t0_white[train], c_t, cfg.sigma_ht, normalize=norm_ht, add_constant=True
         )
-    phi_o = rbf_features(o_white[train], c_o, cfg.sigma_obs, normalize=True)
+    phi_o = rbf_features(white.o_white[train], c_o, cfg.sigma_obs, normalize=True)
+    return phi_h, phi_t, phi_t0, phi_o
 
-    watch.stage("P-statistics")
+
+def _p_statistics(phi_h: np.ndarray, phi_t0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eqs. 3.1 and 3.2: ``P_H`` ``(l_H + 1,)`` and ``P_TH`` ``(l_T + 1, l_H + 1)``, over ``t``."""
     p_h = phi_h.mean(axis=0)  # eq. 3.1, (l_H + 1,)
     p_th = phi_t0.T @ phi_h  # eq. 3.2, (l_T + 1, l_H + 1)
-    p_th /= n_train
+    p_th /= phi_h.shape[0]
+    return p_h, p_th
 
-    watch.stage("SVD")
+
+def _truncated_svd(
+    p_th: np.ndarray, cfg: TPSRConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Algorithm 3's compact rank-``r`` SVD ``P_TH ~ U S V^T``.
+
+    Returns ``U (l_T + 1, r)``, ``s (r,)``, ``V (l_H + 1, r)``, the singular values
+    computed (``r`` plus :data:`EXTRA_SINGULAR_VALUES`, to show the gap) and how many of
+    them are numerically non-zero; a rank above that is refused.
+    """
     n_sv = min(cfg.rank + EXTRA_SINGULAR_VALUES, min(p_th.shape))
     u, s_all, v = top_singular_triplets(p_th, n_sv, seed=cfg.seed)
     tol = max(p_th.shape) * np.finfo(np.float64).eps * float(s_all[0])
@@ -487,64 +524,135 @@ def fit_tpsr(
             f"{s_all[: cfg.rank].tolist()}); lower the rank or widen the history/test kernels"
         )
     r = cfg.rank
-    u, s, v = u[:, :r], s_all[:r], v[:, :r]
+    return u[:, :r], s_all[:r], v[:, :r], s_all, usable
 
-    watch.stage("parameters")
+
+def _parameters(
+    p_h: np.ndarray,
+    phi_h: np.ndarray,
+    phi_t: np.ndarray,
+    phi_o: np.ndarray,
+    actions: np.ndarray,
+    svd: tuple[np.ndarray, np.ndarray, np.ndarray],
+    n_actions: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Eqs. 3.5-3.7 (with 3.3): ``b_*``, ``b_inf`` and every ``B_ao'``; samples per action.
+
+    ``B_a[o'] = 1/t_a sum_{i in Y_a} phi_O[i, o'] outer(A_T[i], A_H[i])`` with
+    ``A_T = phi_T U`` and ``A_H = phi_H V S^-1``: one matrix product per action (see the
+    module docstring).
+    """
+    u, s, v = svd
+    n_train, r = phi_h.shape[0], s.shape[0]
     b_star = s * v[-1] * CONSTANT_SCALE  # eq. 3.5: S V^T e with e = (0, ..., 0, 1000)
     b_inf = (p_h @ v) / s  # eq. 3.6
     a_t = phi_t @ u  # (t, r): U^T phi_T, transposed
     a_h = phi_h @ v
     a_h /= s  # (t, r): phi_H^T V S^-1
     outer = (a_t[:, :, None] * a_h[:, None, :]).reshape(n_train, r * r)
-    counts = np.bincount(a_train, minlength=int(n_actions))
+    counts = np.bincount(actions, minlength=n_actions)
     if (missing := np.flatnonzero(counts == 0)).size:
         raise DataError(
             f"action(s) {missing.tolist()} never occur as the current action of a training "
             "episode; record more data or check the action mapping"
         )
-    big_b = np.empty((int(n_actions), phi_o.shape[1], r, r))
-    order = np.argsort(a_train, kind="stable")
+    big_b = np.empty((n_actions, phi_o.shape[1], r, r))
+    order = np.argsort(actions, kind="stable")
     bounds = np.concatenate([[0], np.cumsum(counts)])
-    for a in range(int(n_actions)):
+    for a in range(n_actions):
         rows = order[bounds[a] : bounds[a + 1]]
         block = phi_o[rows].T @ outer[rows]  # eqs. 3.3 and 3.7, (l_O, r^2)
         block /= counts[a]
         big_b[a] = block.reshape(-1, r, r)
+    return b_star, b_inf, big_b, counts
+
+
+def fit_tpsr(
+    history: np.ndarray,
+    observation: np.ndarray,
+    action: np.ndarray,
+    test: np.ndarray,
+    *,
+    n_actions: int,
+    config: TPSRConfig | None = None,
+    progress: Progress | None = None,
+) -> TPSRModel:
+    """Learn a TPSR from ``E`` episodes (guide Algorithms 1-3), one stage per step above.
+
+    Args:
+        history: ``(E, m k)`` observations of each history, oldest first, concatenated.
+        observation: ``(E, k)`` current observation of each episode.
+        action: ``(E,)`` current action indices in ``0 .. n_actions - 1``.
+        test: ``(E, n k)`` observations of each test, concatenated.
+        n_actions: number of actions; every action must occur among the training episodes.
+        config: parameters (default :class:`TPSRConfig`).
+        progress: called with the name of each stage as it starts.
+
+    Raises:
+        DataError: non-finite or inconsistent data, too few episodes for the kernel
+            centres, rank above the usable singular values, an action without samples.
+
+    """
+    cfg = config if config is not None else TPSRConfig()
+    watch = _Stopwatch(progress)
+    watch.stage("checking data")
+    history, observation, action, test = _check_data(
+        history, observation, action, test, n_actions, cfg
+    )
+    watch.stage("whitening")
+    white = _whiten(history, observation, test, cfg)
+    watch.stage("kernel centres")
+    c_h, c_t, c_o, train = _kernel_centres(white, cfg)
+    watch.stage("features")
+    phi_h, phi_t, phi_t0, phi_o = _features(white, (c_h, c_t, c_o), train, cfg)
+    watch.stage("P-statistics")
+    p_h, p_th = _p_statistics(phi_h, phi_t0)
+    watch.stage("SVD")
+    u, s, v, s_all, usable = _truncated_svd(p_th, cfg)
+    watch.stage("parameters")
+    b_star, b_inf, big_b, counts = _parameters(
+        p_h, phi_h, phi_t, phi_o, action[train], (u, s, v), int(n_actions)
+    )
     watch.stop()
 
     fit_info = {
-        "episodes": int(n_episodes),
-        "training_episodes": n_train,
+        "episodes": int(observation.shape[0]),
+        "training_episodes": int(phi_h.shape[0]),
         "samples_per_action": counts.tolist(),
         "usable_singular_values": usable,
         "timings": {name: round(sec, 6) for name, sec in watch.timings.items()},
     }
     return TPSRModel(
         config=cfg,
-        obs_mean=wh_o.mean_,
-        obs_whitening=np.ascontiguousarray(wh_o.matrix_),
+        obs_mean=white.obs.mean_,
+        obs_whitening=np.ascontiguousarray(white.obs.matrix_),
         obs_centers=c_o,
         b_star=b_star,
         b_inf=b_inf,
         B=big_b,
         singular_values=s_all,
         explained_variance={
-            "obs": wh_o.explained_variance_ratio_,
-            "history": wh_h.explained_variance_ratio_,
-            "test": wh_t.explained_variance_ratio_,
+            "obs": white.obs.explained_variance_ratio_,
+            "history": white.history.explained_variance_ratio_,
+            "test": white.test.explained_variance_ratio_,
         },
         fit_info=fit_info,
     )
 
 
 class EpisodeArrays(Protocol):
-    """What :func:`fit_tpsr_episodes` reads (e.g. :class:`tpsr_ros.episodes.Episodes`)."""
+    """What :func:`fit_tpsr_episodes` reads (e.g. :class:`tpsr_ros.core.episodes.Episodes`)."""
 
-    history: np.ndarray
-    observation: np.ndarray
-    action: np.ndarray
-    test: np.ndarray
-    n_actions: int
+    @property
+    def history(self) -> np.ndarray: ...
+    @property
+    def observation(self) -> np.ndarray: ...
+    @property
+    def action(self) -> np.ndarray: ...
+    @property
+    def test(self) -> np.ndarray: ...
+    @property
+    def n_actions(self) -> int: ...
 
 
 def fit_tpsr_episodes(

@@ -10,9 +10,9 @@ entry ``metadata``, a 0-d unicode array holding a JSON object::
      "created": "...", "software": {"tpsr_ros": "0.1.0", "numpy": "..."}}
 
 The archive layer (atomic no-clobber writes, ``allow_pickle=False`` reads, format name and
-version checks) is :mod:`tpsr_ros.npz_archive`. ``load_model`` also checks the method and
+version checks) is :mod:`tpsr_ros.io.npz_archive`. ``load_model`` also checks the method and
 that every required array is present with a real floating dtype, finite, and of
-consistent shape, naming the problem in a :class:`~tpsr_ros.errors.ModelFormatError`.
+consistent shape, naming the problem in a :class:`~tpsr_ros.core.errors.ModelFormatError`.
 """
 
 from __future__ import annotations
@@ -25,11 +25,11 @@ from typing import Any
 import numpy as np
 
 import tpsr_ros
-from tpsr_ros.errors import ModelFormatError, TpsrError
-from tpsr_ros.npz_archive import ShapeRule, check_output_path, read_archive, write_archive
-from tpsr_ros.pca_baseline import PCAModel
-from tpsr_ros.state_model import StateModel
-from tpsr_ros.tpsr import TPSRModel
+from tpsr_ros.core.errors import ModelFormatError, TpsrError
+from tpsr_ros.core.pca_baseline import PCAModel
+from tpsr_ros.core.state_model import StateModel
+from tpsr_ros.core.tpsr import TPSRModel
+from tpsr_ros.io.npz_archive import ShapeRule, check_output_path, read_archive, write_archive
 
 __all__ = [
     "FORMAT_NAME",

@@ -1,12 +1,12 @@
 """Greedy fitted-Q policies and their files.
 
-A policy is a :class:`~tpsr_ros.fqi.QFunction` over the states of one representation,
+A policy is a :class:`~tpsr_ros.core.fqi.QFunction` over the states of one representation,
 plus the name of that representation's model: its SHA-256 fingerprint
-(:func:`tpsr_ros.model_io.model_fingerprint`), or ``"true-position"`` for the
+(:func:`tpsr_ros.io.model_io.model_fingerprint`), or ``"true-position"`` for the
 ground-truth baseline. Whoever pairs a policy with a model (evaluation, filter node)
 checks the fingerprint and refuses a mismatch.
 
-File layout (:mod:`tpsr_ros.npz_archive`): arrays ``mean``, ``scale``, ``centers``,
+File layout (:mod:`tpsr_ros.io.npz_archive`): arrays ``mean``, ``scale``, ``centers``,
 ``width``, ``weights`` and JSON metadata ``{"format": "tpsr-ros policy",
 "format_version": 1, "representation", "model_fingerprint", "model_path",
 "environment", "fqi": {...}, "data": {...}, "state_dim", "n_actions", "n_centers",
@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 
 import tpsr_ros
-from tpsr_ros.errors import ModelFormatError
-from tpsr_ros.fqi import QFunction
-from tpsr_ros.npz_archive import ShapeRule, read_archive, write_archive
+from tpsr_ros.core.errors import ModelFormatError
+from tpsr_ros.core.fqi import QFunction
+from tpsr_ros.io.npz_archive import ShapeRule, read_archive, write_archive
 
 __all__ = [
     "FORMAT_NAME",

@@ -24,7 +24,7 @@ from rosbags.interfaces import (
     QosTime,
 )
 
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError
 
 __all__ = [
     "DEFAULT_QOS",

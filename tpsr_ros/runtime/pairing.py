@@ -36,7 +36,7 @@ from dataclasses import dataclass, fields
 from enum import Enum
 from typing import Any
 
-from tpsr_ros.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError
 
 __all__ = ["ExactTimeSynchronizer", "Outcome", "PairingStats", "Result"]
 

@@ -32,8 +32,8 @@ from rosbags.interfaces import Qos
 from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.rosbag2.metadata import dump_qos_v9
 
-from tpsr_ros.errors import BagError
-from tpsr_ros.messages import deserialize, jazzy_typestore, serialize
+from tpsr_ros.core.errors import BagError
+from tpsr_ros.io.messages import deserialize, jazzy_typestore, serialize
 from tpsr_ros.safe_yaml import YamlInputError, load_yaml
 
 __all__ = [

@@ -34,7 +34,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from tpsr_ros.errors import ModelFormatError
+from tpsr_ros.core.errors import ModelFormatError
 
 __all__ = [
     "MAX_ARRAY_BYTES",

@@ -28,8 +28,8 @@ from typing import Literal
 import numpy as np
 from scipy.cluster.vq import kmeans2
 
-from tpsr_ros.errors import ConfigError, DataError
-from tpsr_ros.whitening import check_finite_matrix
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.whitening import check_finite_matrix
 
 __all__ = [
     "CONSTANT_FEATURE",

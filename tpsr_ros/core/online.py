@@ -1,16 +1,16 @@
 """Algorithm 4 over a live stream of steps: the ROS-free core of the filter node.
 
 :class:`OnlineTracker` holds the current predictive state and applies the model's stateless
-update (:meth:`tpsr_ros.state_model.StateModel.update`, i.e. :func:`tpsr_ros.filtering.update`
+update (:meth:`tpsr_ros.core.state_model.StateModel.update`, i.e. :func:`tpsr_ros.core.filtering.update`
 for a TPSR) to one ``(stamp, action, observation)`` step at a time, with the same rules as
-offline tracking (:func:`tpsr_ros.episodes.track_trajectory`), so the states it produces are
+offline tracking (:func:`tpsr_ros.core.episodes.track_trajectory`), so the states it produces are
 bit for bit the offline ones for the same steps:
 
 - the first step of a *segment* starts from the model's initial state ``b_*``;
 - a new segment starts after :meth:`OnlineTracker.reinit` (a reset, a backwards jump of
   time) and at every *gap*: a step whose stamp is not exactly one step period after the
   previous step's (a step was lost, or the robot was reset in between);
-- the normaliser guard of :mod:`tpsr_ros.filtering` restarts from ``b_*`` when an update
+- the normaliser guard of :mod:`tpsr_ros.core.filtering` restarts from ``b_*`` when an update
   cannot be normalised; :attr:`OnlineTracker.recoveries` counts those steps.
 """
 
@@ -20,9 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tpsr_ros.episodes import STEP_NS
-from tpsr_ros.errors import ConfigError
-from tpsr_ros.state_model import StateModel
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.state_model import StateModel
+from tpsr_ros.core.units import STEP_NS
 
 __all__ = ["OnlineTracker", "StepInfo"]
 

@@ -5,7 +5,7 @@ ROS 2 nodes report their health on ``/diagnostics`` (robot_localization, drivers
 level (OK, WARN, ERROR, STALE), a name (``"<node>: <task>"``), a one-line message, a
 hardware id and string key-value pairs. ``rqt_robot_monitor``, ``ros2 topic echo
 /diagnostics`` and the diagnostic aggregator read them. The layouts come from the rosbags
-Jazzy typestore like every other message (:mod:`tpsr_ros.messages`).
+Jazzy typestore like every other message (:mod:`tpsr_ros.io.messages`).
 
 :class:`RollingPercentiles` keeps the last N samples of a quantity (e.g. processing
 latency) for p50/p99 reports.
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros.messages import jazzy_typestore, split_stamp
+from tpsr_ros.io.messages import jazzy_typestore, split_stamp
 
 __all__ = [
     "DIAGNOSTICS_TYPE",

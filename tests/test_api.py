@@ -1,0 +1,46 @@
+"""The array front door: Trajectory.from_arrays and fit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tpsr_ros import PCAConfig, TPSRConfig, Trajectory, fit, make_episodes
+from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.tpsr import fit_tpsr_episodes
+
+S = 10**9
+
+
+def test_from_arrays_splits_segments_at_gaps() -> None:
+    obs = np.arange(12.0).reshape(6, 2)
+    traj = Trajectory.from_arrays(
+        np.array([0, 1, 2, 0, 1, 2]), obs, stamps=np.array([1, 2, 3, 5, 6, 7]) * S
+    )
+    assert traj.segment_bounds() == [(0, 3), (3, 6)]
+    assert traj.n_actions == 3 and traj.image_shape == (1, 2)
+    assert np.isnan(traj.positions).all() and np.isnan(traj.rewards).all()
+    assert len(make_episodes(traj, 1, 1)) == 2  # one episode per segment, none across the gap
+
+
+def test_from_arrays_refuses_bad_input() -> None:
+    with pytest.raises(DataError):
+        Trajectory.from_arrays(np.array([0.5, 1.0]), np.zeros((2, 3)))
+    with pytest.raises(DataError):
+        Trajectory.from_arrays(np.array([0, 3]), np.zeros((2, 3)), n_actions=3)
+    with pytest.raises(DataError):
+        Trajectory.from_arrays(np.array([0, 1]), np.zeros((2, 3)), stamps=[2, 1])
+
+
+def test_fit_equals_the_episode_fit_and_fits_pca() -> None:
+    rng = np.random.default_rng(3)
+    actions = rng.integers(0, 2, size=900)
+    observations = np.eye(4)[np.cumsum(actions) % 4] + 0.1 * rng.normal(size=(900, 4))
+    traj = Trajectory.from_arrays(actions, observations)
+    config = TPSRConfig(obs_dim=4, ht_dim=4, obs_centers=20, ht_centers=40, rank=3)
+    model = fit(traj, config)
+    reference = fit_tpsr_episodes(make_episodes(traj, 1, 1), config=config)
+    np.testing.assert_array_equal(model.B, reference.B)
+    np.testing.assert_array_equal(model.b_star, reference.b_star)
+    pca = fit(traj, PCAConfig(dim=3))
+    assert pca.method == "pca" and pca.track(actions, observations).states.shape == (900, 3)
