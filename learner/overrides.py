@@ -1,13 +1,13 @@
 """``--set NAME=VALUE``: any fit or fitted-Q parameter of an experiment, by name.
 
-Names are the fields of :class:`~tpsr_ros.core.tpsr.TPSRConfig`, :class:`~tpsr_ros.core.pca_baseline.
-PCAConfig` and :class:`~tpsr_ros.core.fqi.FQIConfig`, qualified as ``tpsr.rank``, ``pca.dim`` or
-``fqi.ridge``; a bare name (``rank``, ``sigma_ht``) is enough where only one of the three
-has it, and ``-`` may stand for ``_`` (``ht-centers`` as in ``learner fit --ht-centers``).
-Values are converted to the field's type (integer, number, ``true``/``false``, one of the
-field's choices) and then validated by the config itself, so a ``--set`` value obeys the
-same rules as the command-line option of the same name.
-"""
+Names are the fields of :class:`~tpsr_ros.core.tpsr.TPSRConfig`,
+:class:`~tpsr_ros.core.pca_baseline.PCAConfig` and :class:`~tpsr_ros.core.fqi.FQIConfig`,
+qualified as ``tpsr.rank``, ``pca.dim`` or ``fqi.ridge``; a bare name (``rank``,
+``sigma_ht``) is enough where only one of the three has it, and ``-`` may stand for ``_``
+(``ht-centers`` as in ``learner fit --ht-centers``). Values are converted to the field's
+type (integer, number, ``true``/``false``, one of the field's choices) and then validated
+by the config itself, so a ``--set`` value obeys the same rules as the command-line option
+of the same name. """
 
 from __future__ import annotations
 

@@ -15,7 +15,10 @@ from tpsr_ros.io import messages as m
 __all__ = ["CMD_IGNORED_TOPIC", "SimTopics", "step_messages"]
 
 CMD_IGNORED_TOPIC = "sim/cmd_ignored"
-"""The node's announcement of a ``cmd_vel`` that took no step (``std_msgs/msg/Header``; relative)."""
+"""The node's announcement of a ``cmd_vel`` that took no step.
+
+A ``std_msgs/msg/Header``; the name is relative (it follows the node's namespace).
+"""
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from mcap.writer import CompressionType, IndexType, Writer
 
 from tpsr_ros.bag_recover import recover_bag
 from tpsr_ros.core.errors import BagError
-from tpsr_ros.safe_yaml import load_yaml
+from tpsr_ros.io.safe_yaml import load_yaml
 
 STRING_SCHEMA = b"string data\n"
 
@@ -145,7 +145,7 @@ def test_a_killed_recording_loses_only_its_incomplete_last_record(tmp_path):
 def test_bad_input_is_refused_without_touching_anything(tmp_path):
     bag, _ = _bag(tmp_path)
     (bag / "metadata.yaml").write_text("x: 1\n")
-    with pytest.raises(BagError, match="already has metadata.yaml"):
+    with pytest.raises(BagError, match=r"already has metadata\.yaml"):
         recover_bag(bag)
     lfs = tmp_path / "lfs"
     lfs.mkdir()

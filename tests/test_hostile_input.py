@@ -13,9 +13,9 @@ import pytest
 
 from tpsr_ros.core.errors import BagError
 from tpsr_ros.io.bag import BagReader
+from tpsr_ros.io.safe_yaml import rcl_scalar
 from tpsr_ros.runtime.params import param, resolve_parameters
 from tpsr_ros.runtime.ros_args import UsageError, parse_ros_args
-from tpsr_ros.safe_yaml import rcl_scalar
 
 BAGS = Path(__file__).resolve().parent.parent / "bags"
 LAUGHS = "\n".join(

@@ -4,8 +4,8 @@
 
 Boilerplate around three ROS-free parts (see msgs_doc/filter_node.md for the interface):
 
-- :class:`tpsr_ros.runtime.pairing.ExactTimeSynchronizer` pairs ``/camera/image_raw`` and ``/action``
-  by identical header stamp in a bounded buffer (like message_filters' ExactTime);
+- :class:`tpsr_ros.runtime.pairing.ExactTimeSynchronizer` pairs ``/camera/image_raw`` and
+  ``/action`` by identical header stamp in a bounded buffer (like message_filters' ExactTime);
 - :class:`tpsr_ros.core.online.OnlineTracker` applies Algorithm 4 with the model's stateless
   update, with the offline tracker's rules (start from ``b_*``, restart at gaps), so the
   states published on ``/tpsr/state`` equal offline tracking of the same steps bit for bit;

@@ -82,7 +82,7 @@ class FilterParameters(Protocol):
     @property
     def b_inf(self) -> np.ndarray: ...
     @property
-    def B(self) -> np.ndarray: ...  # noqa: N802
+    def B(self) -> np.ndarray: ...
     @property
     def state_dim(self) -> int: ...
     @property
@@ -101,7 +101,9 @@ def observation_weights(model: FilterParameters, observations: np.ndarray) -> np
     )
 
 
-def update_matrices(model: FilterParameters, actions: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def update_matrices(
+    model: FilterParameters, actions: np.ndarray, weights: np.ndarray
+) -> np.ndarray:
     """Compute step 3 (eq. 3.9): ``B_{a_s o_s}`` of all steps ``(T, r, r)``, a matmul per action."""
     r = model.state_dim
     n_steps = weights.shape[0]

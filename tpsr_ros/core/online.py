@@ -1,10 +1,11 @@
 """Algorithm 4 over a live stream of steps: the ROS-free core of the filter node.
 
-:class:`OnlineTracker` holds the current predictive state and applies the model's stateless
-update (:meth:`tpsr_ros.core.state_model.StateModel.update`, i.e. :func:`tpsr_ros.core.filtering.update`
-for a TPSR) to one ``(stamp, action, observation)`` step at a time, with the same rules as
-offline tracking (:func:`tpsr_ros.core.episodes.track_trajectory`), so the states it produces are
-bit for bit the offline ones for the same steps:
+:class:`OnlineTracker` holds the current predictive state and applies the model's
+stateless update (:meth:`tpsr_ros.core.state_model.StateModel.update`, i.e.
+:func:`tpsr_ros.core.filtering.update` for a TPSR) to one ``(stamp, action, observation)``
+step at a time, with the same rules as offline tracking
+(:func:`tpsr_ros.core.episodes.track_trajectory`), so the states it produces are bit for
+bit the offline ones for the same steps:
 
 - the first step of a *segment* starts from the model's initial state ``b_*``;
 - a new segment starts after :meth:`OnlineTracker.reinit` (a reset, a backwards jump of

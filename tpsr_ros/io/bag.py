@@ -3,7 +3,7 @@
 A bag is a rosbag2 directory (``metadata.yaml`` + ``<name>.mcap``, storage ``mcap``,
 serialisation ``cdr``), written with the ``mcap`` library (zstd chunks with CRCs) and
 read with ``rosbags``; ``ros2 bag``, ``rosbags`` and ``mcap`` all read it. Reading is
-bounded and checked: ``metadata.yaml`` through :mod:`tpsr_ros.safe_yaml`, damaged MCAP
+bounded and checked: ``metadata.yaml`` through :mod:`tpsr_ros.io.safe_yaml`, damaged MCAP
 bytes and chunk CRC mismatches as one-line ``BagError`` reports, and a bag that yields fewer
 messages than its metadata lists is refused.
 
@@ -34,7 +34,7 @@ from rosbags.rosbag2.metadata import dump_qos_v9
 
 from tpsr_ros.core.errors import BagError
 from tpsr_ros.io.messages import deserialize, jazzy_typestore, serialize
-from tpsr_ros.safe_yaml import YamlInputError, load_yaml
+from tpsr_ros.io.safe_yaml import YamlInputError, load_yaml
 
 __all__ = [
     "BagMessage",
@@ -336,7 +336,7 @@ class BagMessage:
 def read_bag_metadata(path: Path) -> dict[str, Any]:
     """The validated ``rosbag2_bagfile_information`` of the bag directory ``path``.
 
-    ``metadata.yaml`` is read bounded (:mod:`tpsr_ros.safe_yaml`: UTF-8, 16 MiB, no
+    ``metadata.yaml`` is read bounded (:mod:`tpsr_ros.io.safe_yaml`: UTF-8, 16 MiB, no
     aliases, shallow nesting); ``custom_data`` must be a mapping and
     ``relative_file_paths`` a list of names.
     """

@@ -22,8 +22,8 @@ from typing import Any
 
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.fields import option as param
+from tpsr_ros.io.safe_yaml import YamlInputError, load_yaml
 from tpsr_ros.runtime.ros_args import ParamOverride, ParamsFile, RosArgs, UsageError
-from tpsr_ros.safe_yaml import YamlInputError, load_yaml
 
 __all__ = [
     "NoParameters",

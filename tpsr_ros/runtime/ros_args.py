@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from tpsr_ros.core.errors import ConfigError
-from tpsr_ros.safe_yaml import YamlInputError, load_yaml
+from tpsr_ros.io.safe_yaml import YamlInputError, load_yaml
 
 __all__ = [
     "LOG_LEVELS",
