@@ -177,7 +177,7 @@ def test_ros_discovery_info_names_the_node_and_its_endpoints(domain):
         ours.close()
 
 
-def test_best_effort_writer_does_not_reach_reliable_reader(domain):
+def test_best_effort_writer_does_not_reach_reliable_reader(domain, capsys):
     a, b = node("be_writer"), node("reliable_reader")
     try:
         reliable, best_effort = [], []
@@ -189,6 +189,12 @@ def test_best_effort_writer_does_not_reach_reliable_reader(domain):
         assert b.wait_for(lambda: best_effort, 5)
         b.spin(timeout_s=0.1)
         assert reliable == [] and pub.get_subscription_count() == 1
+        # both sides are told, as rclpy tells its users: the mismatch is not silent
+        a.spin(timeout_s=0.1)
+        err = capsys.readouterr().err
+        assert "[reliable_reader]: /scan: a publisher was discovered whose QoS" in err
+        assert "[be_writer]: /scan: a subscription was discovered whose QoS" in err
+        assert err.count("reliability does not match") == 2
     finally:
         a.close()
         b.close()

@@ -30,8 +30,10 @@ or ``OFF`` (no discovery at all, not even on this host), and ``ROS_STATIC_PEERS`
 from __future__ import annotations
 
 import os
+import queue
 import threading
 import time
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
@@ -278,6 +280,19 @@ class _Reader(SubscriptionHandle):
             self.reader.__del__()
 
 
+# DDS QosPolicyId_t values (DDS 1.4, section 2.2.2.1.3) of the policies that decide matching
+_POLICY_NAMES = {
+    2: "durability",
+    3: "presentation",
+    4: "deadline",
+    5: "latency budget",
+    6: "ownership",
+    8: "liveliness",
+    11: "reliability",
+    12: "destination order",
+}
+
+
 class DdsTransport(Transport):
     """One DDS participant per node, as rmw_cyclonedds creates one per context."""
 
@@ -326,6 +341,8 @@ class DdsTransport(Transport):
         self._guard = GuardCondition(self._dp)
         self._waitset.attach(self._guard)
         self._lock = threading.Lock()
+        self._qos_events: queue.SimpleQueue[str] = queue.SimpleQueue()
+        self._warn: Callable[[str], None] | None = None
         self._topics: dict[str, tuple[str, Any]] = {}
         self._writers: list[_Writer] = []
         self._readers: list[_Reader] = []
@@ -371,14 +388,44 @@ class DdsTransport(Transport):
         self._topics[dds_name] = (msgtype, topic)
         return topic
 
-    def _make_writer(self, dds_name: str, msgtype: str, qos: QoSProfile) -> Any:
+    def _qos_listener(self, topic: str, ours: QoSProfile) -> Any:
+        """A listener that reports a peer whose QoS cannot match ours (like rclpy's warning).
+
+        Cyclone calls it on its own thread; the message is queued and logged by
+        :meth:`spin_once` on the node's thread.
+        """
+        from cyclonedds.core import Listener
+
+        def report(side: str, status: Any) -> None:
+            policy_id = int(status.last_policy_id)
+            policy = _POLICY_NAMES.get(policy_id, f"QoS policy {policy_id}")
+            self._qos_events.put(
+                f"{topic}: a {side} was discovered whose QoS is incompatible with ours "
+                f"({ours}): {policy} does not match, so no data flows between them"
+            )
+
+        return Listener(
+            on_offered_incompatible_qos=lambda _writer, status: report("subscription", status),
+            on_requested_incompatible_qos=lambda _reader, status: report("publisher", status),
+        )
+
+    def set_warning_sink(self, sink: Callable[[str], None]) -> None:
+        """Where warnings about the graph (incompatible QoS) go; the node's logger."""
+        self._warn = sink
+
+    def _make_writer(
+        self, dds_name: str, msgtype: str, qos: QoSProfile, topic_name: str | None = None
+    ) -> Any:
         from cyclonedds.pub import DataWriter
 
         topic = self._topic(dds_name, msgtype)
-        return DataWriter(self._dp, topic, _dds_qos(qos, _typehash(msgtype), writer=True))
+        listener = self._qos_listener(topic_name, qos) if topic_name else None
+        return DataWriter(
+            self._dp, topic, _dds_qos(qos, _typehash(msgtype), writer=True), listener=listener
+        )
 
     def create_publisher(self, topic: str, msgtype: str, qos: QoSProfile) -> PublisherHandle:
-        writer = _Writer(self, topic, self._make_writer("rt" + topic, msgtype, qos))
+        writer = _Writer(self, topic, self._make_writer("rt" + topic, msgtype, qos, topic))
         self._writers.append(writer)
         self._announce()
         return writer
@@ -389,7 +436,12 @@ class DdsTransport(Transport):
         from cyclonedds.sub import DataReader
 
         dds_topic = self._topic("rt" + topic, msgtype)
-        reader = DataReader(self._dp, dds_topic, _dds_qos(qos, _typehash(msgtype), writer=False))
+        reader = DataReader(
+            self._dp,
+            dds_topic,
+            _dds_qos(qos, _typehash(msgtype), writer=False),
+            listener=self._qos_listener(topic, qos),
+        )
         condition = self._ReadCondition(reader, self._any)
         self._waitset.attach(condition)
         handle = _Reader(self, topic, reader, condition, callback)
@@ -461,6 +513,10 @@ class DdsTransport(Transport):
     def spin_once(self, timeout_s: float) -> int:
         self._waitset.wait(max(0, int(timeout_s * 1e9)))
         self._guard.take()
+        while not self._qos_events.empty():
+            message = self._qos_events.get_nowait()
+            if self._warn is not None:
+                self._warn(message)
         count = 0
         for handle in list(self._readers):
             while not handle.closed:

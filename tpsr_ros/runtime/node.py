@@ -291,6 +291,7 @@ class Node:
         # lets this logger print
         self.logger.transport = transport
         getattr(transport, "set_log_level", lambda level: None)(self.options.log_level)
+        getattr(transport, "set_warning_sink", lambda sink: None)(self.logger.warning)
         try:
             self.transport.declare_parameters(
                 [
