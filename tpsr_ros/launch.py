@@ -11,20 +11,18 @@ one-line error:
 
 Each node runs as ``python -m MODULE ARGS --ros-args -r __node:=NAME [-r __ns:=NS]
 -p NAME:=VALUE -r FROM:=TO ROS_ARGS`` (the module of each executable is in
-:data:`EXECUTABLES`). Output is prefixed with ``[name]``. Ctrl-C (SIGINT) or SIGTERM stops
-every node with SIGINT, in reverse order of start; when one node exits with an error, the
-others are stopped and the launcher exits with that status.
+:data:`EXECUTABLES`), started by :class:`tpsr_ros.runtime.launcher.Launch` (so a node gets
+SIGTERM if the launcher dies). Output is prefixed with ``[name]``. Ctrl-C (SIGINT) or
+SIGTERM stops every node with SIGINT, in reverse order of start; when one node exits with
+an error, the others are stopped and the launcher exits with status 1.
 """
 
 from __future__ import annotations
 
-import os
 import re
 import signal
-import subprocess
 import sys
 import threading
-import time
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,6 +30,7 @@ from pathlib import Path
 
 from tpsr_ros.cli import ArgumentParser
 from tpsr_ros.core.errors import TpsrError
+from tpsr_ros.runtime.launcher import Launch
 
 __all__ = ["EXECUTABLES", "LaunchError", "LaunchedNode", "main", "parse_launch"]
 
@@ -168,55 +167,27 @@ def parse_launch(path: Path | str, overrides: dict[str, str] | None = None) -> l
     return nodes
 
 
-class _Running:
-    """The node processes; their output prefixed with the node name."""
+def _start_nodes(nodes: Sequence[LaunchedNode]) -> Launch:
+    """Start every node through the runtime launcher, its output prefixed with ``[name]``.
 
-    def __init__(self, nodes: Sequence[LaunchedNode]) -> None:
-        self.procs: list[tuple[LaunchedNode, subprocess.Popen[bytes]]] = []
-        self.lock = threading.Lock()
-        for node in nodes:
-            popen = subprocess.Popen(
-                [sys.executable, *node.command()],
-                stdout=subprocess.PIPE,
-                stderr=subprocess.STDOUT,
-                env={**os.environ, "PYTHONUNBUFFERED": "1"},
-            )
-            self.procs.append((node, popen))
-            threading.Thread(target=self._copy, args=(node.name, popen), daemon=True).start()
+    The nodes get SIGTERM if this launcher dies; stopping goes in reverse order of start.
+    """
+    lock = threading.Lock()
+
+    def echo(name: str, line: str) -> None:
+        with lock:
+            print(f"[{name}] {line}", flush=True)
+
+    launch = Launch(None, on_output=echo)
+    for node in nodes:
+        command = node.command()
+        process = launch.start(node.name, node.module, command[2:])
+        with lock:
             print(
-                f"[{PROG}] started {node.name} (pid {popen.pid}): "
-                f"python {' '.join(node.command())}",
+                f"[{PROG}] started {node.name} (pid {process.pid}): python {' '.join(command)}",
                 flush=True,
             )
-
-    def _copy(self, name: str, popen: subprocess.Popen[bytes]) -> None:
-        assert popen.stdout is not None
-        for raw in popen.stdout:
-            line = raw.decode(errors="replace").rstrip("\n")
-            with self.lock:
-                print(f"[{name}] {line}", flush=True)
-
-    def failed(self) -> tuple[str, int] | None:
-        for node, popen in self.procs:
-            code = popen.poll()
-            if code is not None and code != 0:
-                return node.name, code
-        return None
-
-    def all_exited(self) -> bool:
-        return all(popen.poll() is not None for _, popen in self.procs)
-
-    def stop(self, timeout_s: float = 20.0) -> None:
-        for _, popen in reversed(self.procs):
-            if popen.poll() is None:
-                popen.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + timeout_s
-        for _, popen in reversed(self.procs):
-            try:
-                popen.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                popen.kill()
-                popen.wait(5)
+    return launch
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -242,19 +213,20 @@ def main(argv: list[str] | None = None) -> None:
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
-    running = _Running(nodes)
+    launch = _start_nodes(nodes)
     code = 0
     try:
         while not stop.wait(0.1):
-            failed = running.failed()
+            exited = launch.exited()
+            failed = next(((name, c) for name, c in exited.items() if c != 0), None)
             if failed is not None:
                 print(f"[{PROG}] {failed[0]} exited with status {failed[1]}; stopping", flush=True)
                 code = 1
                 break
-            if running.all_exited():
+            if len(exited) == len(launch.processes):
                 break
     finally:
-        running.stop()
+        launch.stop()
     sys.exit(code)
 
 

@@ -4,7 +4,9 @@ One launcher for everything that spawns nodes (``learner closed-loop``, the mult
 tests, the benchmarks), like a small ``ros2 launch``:
 
 - :class:`NodeProcess` runs ``python -m MODULE ARGS...`` with its own environment; stdout
-  and stderr go to one log file. On Linux the child gets SIGTERM if this process dies
+  and stderr go to one log file, and/or line by line to an ``on_output`` callback (how
+  ``python -m tpsr_ros.launch`` prefixes each node's output, like ``ros2 launch``).
+  On Linux the child gets SIGTERM if this process dies
   (``prctl(PR_SET_PDEATHSIG)``), so a crashed or killed parent leaves no orphan.
   :meth:`NodeProcess.stop` sends SIGINT (a node's graceful shutdown), waits, and kills it
   if it does not exit.
@@ -24,10 +26,13 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
+from typing import IO
 
 from tpsr_ros.core.errors import TpsrError
 
@@ -54,7 +59,12 @@ class LaunchError(TpsrError):
 
 
 class NodeProcess:
-    """``python -m module args...`` as a child process logging to ``log_path``."""
+    """``python -m module args...`` as a child process.
+
+    Its stdout and stderr (merged) go to ``log_path`` if given; with ``on_output`` they
+    are read through a pipe by a thread that also calls ``on_output(line)`` for each line
+    (without its newline). With neither, the child inherits this process's output.
+    """
 
     def __init__(
         self,
@@ -62,24 +72,78 @@ class NodeProcess:
         module: str,
         args: Sequence[str] = (),
         *,
-        log_path: Path | str,
+        log_path: Path | str | None = None,
         env: Mapping[str, str] | None = None,
         die_with_parent: bool = True,
+        on_output: Callable[[str], None] | None = None,
     ) -> None:
         self.name = name
         self.module = module
         self.command = ["python", "-m", module, *args]
-        self.log_path = Path(log_path)
+        self.log_path = None if log_path is None else Path(log_path)
+        self.on_output = on_output
+        self._recent: deque[str] = deque(maxlen=200)
+        self._pump: threading.Thread | None = None
         environment = {**(os.environ if env is None else env), "PYTHONUNBUFFERED": "1"}
         if die_with_parent:
             argv = [sys.executable, "-c", _LAUNCH, str(os.getpid()), module, *args]
         else:
             argv = [sys.executable, "-m", module, *args]
-        with self.log_path.open("wb") as sink:
-            self.popen = subprocess.Popen(
-                argv, stdin=subprocess.DEVNULL, stdout=sink, stderr=subprocess.STDOUT,
-                env=environment,
+        if on_output is None and self.log_path is not None:
+            with self.log_path.open("wb") as sink:
+                self.popen = self._spawn(argv, environment, sink)
+        elif on_output is None:
+            self.popen = self._spawn(argv, environment, None)
+        else:
+            sink = None if self.log_path is None else self.log_path.open("wb")
+            try:
+                self.popen = self._spawn(argv, environment, subprocess.PIPE)
+            except BaseException:
+                if sink is not None:
+                    sink.close()
+                raise
+            assert self.popen.stdout is not None
+            self._pump = threading.Thread(
+                target=self._copy_output, args=(self.popen.stdout, sink),
+                name=f"{name} output", daemon=True,
             )  # fmt: skip
+            self._pump.start()
+
+    @staticmethod
+    def _spawn(
+        argv: list[str], env: dict[str, str], stdout: IO[bytes] | int | None
+    ) -> subprocess.Popen[bytes]:
+        """Start the child, stderr merged into stdout (unless inherited)."""
+        return subprocess.Popen(
+            argv, stdin=subprocess.DEVNULL, stdout=stdout,
+            stderr=None if stdout is None else subprocess.STDOUT, env=env,
+        )  # fmt: skip
+
+    def _copy_output(self, stream: IO[bytes], sink: IO[bytes] | None) -> None:
+        """Reader thread: each line to the log file, the recent lines and ``on_output``."""
+        assert self.on_output is not None
+        try:
+            for raw in stream:
+                if sink is not None:
+                    sink.write(raw)
+                    sink.flush()
+                line = raw.decode("utf-8", errors="replace").rstrip("\r\n")
+                self._recent.append(line)
+                self.on_output(line)
+        finally:
+            stream.close()
+            if sink is not None:
+                sink.close()
+
+    def _drain(self, timeout_s: float = 5.0) -> None:
+        """After the exit: let the reader thread pass on the last lines."""
+        if self._pump is not None:
+            self._pump.join(timeout_s)
+
+    @property
+    def pid(self) -> int:
+        """Process id of the child."""
+        return int(self.popen.pid)
 
     @property
     def returncode(self) -> int | None:
@@ -91,7 +155,9 @@ class NodeProcess:
         return self.popen.poll() is None
 
     def text(self) -> str:
-        """Everything the process has written so far."""
+        """Everything the process has written so far (without a log file: its last lines)."""
+        if self.log_path is None:
+            return "\n".join(self._recent)
         try:
             return self.log_path.read_text(encoding="utf-8", errors="replace")
         except FileNotFoundError:
@@ -104,9 +170,11 @@ class NodeProcess:
     def wait(self, timeout_s: float) -> int:
         """Wait for the process to exit by itself; its exit status."""
         try:
-            return self.popen.wait(timeout_s)
+            code = self.popen.wait(timeout_s)
         except subprocess.TimeoutExpired:
             raise LaunchError(f"{self.name} did not exit within {timeout_s:g} s") from None
+        self._drain()
+        return code
 
     def stop(self, timeout_s: float = 20.0, sig: int = signal.SIGINT) -> int:
         """Send ``sig`` (SIGINT: a node's graceful shutdown), wait; SIGKILL if it hangs."""
@@ -117,7 +185,9 @@ class NodeProcess:
                 self.popen.wait(timeout_s)
             except subprocess.TimeoutExpired:
                 self.kill()
-        return int(self.popen.wait())
+        code = int(self.popen.wait())
+        self._drain()
+        return code
 
     def kill(self) -> None:
         """SIGKILL, and reap the process."""
@@ -125,29 +195,34 @@ class NodeProcess:
             with contextlib.suppress(ProcessLookupError):
                 self.popen.kill()
         self.popen.wait(10)
+        self._drain()
 
 
 class Launch:
-    """The node processes of one run, their logs in ``log_dir``.
+    """The node processes of one run, their logs in ``log_dir`` (None: no log files).
 
     ``spin(timeout_s)`` is what :meth:`wait` does between checks, typically the
     ``spin_once`` of the caller's own node so that its subscriptions receive messages;
-    default: sleep.
+    default: sleep. ``on_output(name, line)``, if given, receives every line each process
+    writes (from one reader thread per process).
     """
 
     def __init__(
         self,
-        log_dir: Path | str,
+        log_dir: Path | str | None,
         *,
         env: Mapping[str, str] | None = None,
         spin: Callable[[float], object] | None = None,
         timeout_s: float = 60.0,
+        on_output: Callable[[str, str], None] | None = None,
     ) -> None:
-        self.log_dir = Path(log_dir)
-        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.log_dir = None if log_dir is None else Path(log_dir)
+        if self.log_dir is not None:
+            self.log_dir.mkdir(parents=True, exist_ok=True)
         self.env = dict(os.environ if env is None else env)
         self.spin = spin or time.sleep
         self.timeout_s = timeout_s
+        self.on_output = on_output
         self.processes: dict[str, NodeProcess] = {}
 
     def start(
@@ -161,12 +236,23 @@ class Launch:
         """Start ``python -m module args...`` as ``name`` (log ``log_dir/name.log``)."""
         if name in self.processes:
             raise LaunchError(f"a process named {name!r} was already started")
+        on_output = self.on_output
         process = NodeProcess(
-            name, module, args, log_path=self.log_dir / f"{name}.log",
+            name, module, args,
+            log_path=None if self.log_dir is None else self.log_dir / f"{name}.log",
             env=self.env if env is None else env,
+            on_output=None if on_output is None else (lambda line: on_output(name, line)),
         )  # fmt: skip
         self.processes[name] = process
         return process
+
+    def exited(self) -> dict[str, int]:
+        """Exit statuses of the processes that have exited, in order of start."""
+        return {
+            name: code
+            for name, process in self.processes.items()
+            if (code := process.returncode) is not None
+        }
 
     def wait(
         self, what: str, condition: Callable[[], bool], timeout_s: float | None = None
