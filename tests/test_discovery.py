@@ -11,9 +11,6 @@ from __future__ import annotations
 
 import itertools
 import os
-import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -25,6 +22,7 @@ from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import Node, NodeOptions
 from tpsr_ros.runtime.dds import DdsTransport, discovery_config, discovery_range_from_env
+from tpsr_ros.runtime.launcher import NodeProcess
 
 pytestmark = pytest.mark.dds
 _COUNTER = itertools.count()
@@ -81,25 +79,12 @@ def test_a_bad_static_peer_is_refused_in_one_line(ros_env):
         DdsTransport("bad_peer", "/")
 
 
-class Sim:
-    """sim_node in explore mode as a process on a given backend."""
-
-    def __init__(self, tmp: Path, backend: str) -> None:
-        self.log = tmp / f"sim_{backend}.log"
-        with self.log.open("wb") as sink:
-            self.popen = subprocess.Popen(
-                [sys.executable, "-m", "sim_node", "--ros-args", "-p", "rate:=20"],
-                stdout=sink, stderr=sink, env={**os.environ, "TPSR_TRANSPORT": backend},
-            )
-
-    def stop(self) -> int:
-        if self.popen.poll() is None:
-            self.popen.send_signal(signal.SIGINT)
-        try:
-            return self.popen.wait(30)
-        except subprocess.TimeoutExpired:
-            self.popen.kill()
-            return self.popen.wait(10)
+def start_sim(tmp: Path, backend: str) -> NodeProcess:
+    """sim_node in explore mode as a process on a given backend (the runtime launcher)."""
+    return NodeProcess(
+        f"sim_{backend}", "sim_node", ["--ros-args", "-p", "rate:=20"],
+        log_path=tmp / f"sim_{backend}.log", env={**os.environ, "TPSR_TRANSPORT": backend},
+    )  # fmt: skip
 
 
 def _observe(node: Node, seconds: float) -> tuple[set[str], list[int]]:
@@ -120,7 +105,7 @@ def test_localhost_on_both_sides_a_real_rclpy_node_sees_our_dds_sim(ros_env, tmp
     ros_env.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     from tpsr_ros.runtime.rclpy_backend import RclpyTransport
 
-    sim = Sim(tmp_path, "dds")
+    sim = start_sim(tmp_path, "dds")
     observer = Node(NodeOptions(name="observer"), transport=RclpyTransport("observer", "/"))
     try:
         topics, images = _observe(observer, 30)
@@ -129,7 +114,7 @@ def test_localhost_on_both_sides_a_real_rclpy_node_sees_our_dds_sim(ros_env, tmp
     finally:
         observer.close()
         assert sim.stop() == 0
-    assert SIM_TOPICS <= topics and SIM_TOPICS <= set(listed), (topics, sim.log.read_text())
+    assert SIM_TOPICS <= topics and SIM_TOPICS <= set(listed), (topics, sim.text())
     assert listed["/camera/image_raw"] == ["sensor_msgs/msg/Image"]
     assert ("sim_node", "/") in nodes
     assert len(images) >= 3 and images == sorted(images)
@@ -139,14 +124,14 @@ def test_localhost_on_both_sides_a_real_rclpy_node_sees_our_dds_sim(ros_env, tmp
 @needs_rclpy
 def test_localhost_on_both_sides_our_dds_node_sees_a_real_rclpy_sim(ros_env, tmp_path):
     ros_env.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    sim = Sim(tmp_path, "rclpy")
+    sim = start_sim(tmp_path, "rclpy")
     observer = Node(NodeOptions(name="observer"), transport=DdsTransport("observer", "/"))
     try:
         topics, images = _observe(observer, 30)
     finally:
         observer.close()
         assert sim.stop() == 0
-    assert SIM_TOPICS <= topics, (topics, sim.log.read_text())
+    assert SIM_TOPICS <= topics, (topics, sim.text())
     assert len(images) >= 3
 
 
@@ -161,7 +146,7 @@ def test_our_dds_nodes_across_processes_follow_the_range(ros_env, tmp_path, disc
                                                          found):
     ros_env.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", discovery)
     ros_env.setenv("ROS_STATIC_PEERS", peers)
-    sim = Sim(tmp_path, "dds")
+    sim = start_sim(tmp_path, "dds")
     observer = Node(NodeOptions(name="observer"), transport=DdsTransport("observer", "/"))
     try:
         topics, images = _observe(observer, 15 if found else 4)
