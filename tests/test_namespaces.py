@@ -1,19 +1,14 @@
 """Namespaces: ``-r __ns:=/robot1`` moves a node's (relative) topics under /robot1/.
 
-Two simulators and one filter node run side by side as processes, on the DDS backend and
-on real rclpy; the recorder records a robot's namespaced topics and the learner reads
-them back.
+Two simulators and one filter node run side by side as processes (started by the runtime
+launcher; every wait is on the graph), on the DDS backend and on real rclpy; the recorder
+records a robot's namespaced topics and the learner reads them back.
 """
 
 from __future__ import annotations
 
 import itertools
 import os
-import signal
-import subprocess
-import sys
-import time
-from pathlib import Path
 
 import pytest
 
@@ -22,9 +17,9 @@ from tpsr_ros.io.trajectory import Topics, read_trajectory
 from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions, parse_ros_args
 from tpsr_ros.runtime.backend import open_transport
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
+from tpsr_ros.runtime.launcher import Launch
 
 S = 10**9
-READY = "spinning until SIGINT/SIGTERM"
 LOOPBACK = (
     "<CycloneDDS><Domain id='any'><General><Interfaces>"
     "<NetworkInterface address='127.0.0.1' multicast='true'/>"
@@ -115,35 +110,6 @@ def test_filter_node_in_a_namespace_accepts_a_model_trained_on_root_topics(tmp_p
         FilterNode.preflight(elsewhere)
 
 
-class Proc:
-    def __init__(self, tmp: Path, name: str, env: dict[str, str], *args: str) -> None:
-        self.log = tmp / f"{name}.log"
-        with self.log.open("wb") as sink:
-            self.popen = subprocess.Popen(
-                [sys.executable, "-m", *args], stdout=sink, stderr=sink, env=env
-            )
-
-    def text(self) -> str:
-        return self.log.read_text(errors="replace")
-
-    def wait_for(self, needle: str, timeout: float = 60.0) -> None:
-        deadline = time.monotonic() + timeout
-        while needle not in self.text():
-            assert self.popen.poll() is None and time.monotonic() < deadline, (
-                f"{needle!r} never appeared:\n{self.text()}"
-            )
-            time.sleep(0.05)
-
-    def stop(self) -> int:
-        if self.popen.poll() is None:
-            self.popen.send_signal(signal.SIGINT)
-        try:
-            return self.popen.wait(30)
-        except subprocess.TimeoutExpired:
-            self.popen.kill()
-            return self.popen.wait(10)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_two_robots_run_side_by_side(backend, tmp_path, monkeypatch):
@@ -162,20 +128,7 @@ def test_two_robots_run_side_by_side(backend, tmp_path, monkeypatch):
         "PYTHONUNBUFFERED": "1",
     }.items():
         monkeypatch.setenv(key, value)
-    env = dict(os.environ)
     debug = ["--log-level", "debug"]
-    procs = {
-        "recorder": Proc(tmp_path, "rec", env, "tpsr_ros.record", "-o", str(tmp_path / "bag"),
-                         "camera/image_raw", "action", "ground_truth/pose", "reward",
-                         "clock", "sim/episode_start", "--ros-args", "-r", "__ns:=/robot1", *debug),
-    }
-    procs["recorder"].wait_for(READY)
-    procs.update({
-        name: Proc(tmp_path, name, env, "sim_node", "--ros-args", "-r", f"__ns:=/{name}",
-                   "-p", "mode:=command", "-p", "episode_steps:=5", "-p", f"seed:={seed}",
-                   "-p", f"wait_for_subscribers:={1 if name == 'robot1' else 0}", *debug)
-        for name, seed in (("robot1", 1), ("robot2", 2))
-    })
     observer = Node(
         NodeOptions(name="observer"), transport=open_transport(backend, "observer", "/")
     )
@@ -193,24 +146,40 @@ def test_two_robots_run_side_by_side(backend, tmp_path, monkeypatch):
         observer.create_subscription(f"/{robot}/sim/episode_start", m.POSE_TYPE,
                                      keep(f"/{robot}/sim/episode_start"), LATCHED_QOS)
     cmd2 = observer.create_publisher("/robot2/cmd_vel", m.TWIST_TYPE)
+    launch = Launch(tmp_path, env=dict(os.environ), spin=observer.spin_once, timeout_s=60)
     try:
-        assert observer.wait_for(
-            lambda: got["/robot1/sim/episode_start"] and got["/robot2/sim/episode_start"]
-            and cmd2.get_subscription_count() == 1, 60
+        launch.start("recorder", "tpsr_ros.record", [
+            "-o", str(tmp_path / "bag"), "camera/image_raw", "action", "ground_truth/pose",
+            "reward", "clock", "sim/episode_start", "--ros-args", "-r", "__ns:=/robot1", *debug,
+        ])  # fmt: skip
+        for name, seed in (("robot1", 1), ("robot2", 2)):
+            launch.start(name, "sim_node", [
+                "--ros-args", "-r", f"__ns:=/{name}", "-p", "mode:=command",
+                "-p", "episode_steps:=5", "-p", f"seed:={seed}",
+                "-p", f"wait_for_subscribers:={1 if name == 'robot1' else 0}", *debug,
+            ])  # fmt: skip
+        # robot1 holds its start-up reset until each of its topics has a subscription: for
+        # action, pose, reward and clock only the recorder's, so its episode start means
+        # the recorder has subscribed
+        launch.wait(
+            "both episode starts and robot2's /cmd_vel subscription",
+            lambda: bool(got["/robot1/sim/episode_start"] and got["/robot2/sim/episode_start"]
+                         and cmd2.get_subscription_count() == 1),
         )
         # robot1's own filter (in /robot1, model trained on root topics) drives it
-        procs["filter"] = Proc(
-            tmp_path, "filter", env, "tpsr_ros.filter_node", "--ros-args",
-            "-r", "__ns:=/robot1", "-p", f"model:={model}", "-p", f"policy:={policy}",
-            "-p", "wait_for_subscribers:=1", *debug,
-        )
-        assert observer.wait_for(lambda: len(got["/robot1/tpsr/state"]) == 5, 60), got
+        launch.start("filter", "tpsr_ros.filter_node", [
+            "--ros-args", "-r", "__ns:=/robot1", "-p", f"model:={model}",
+            "-p", f"policy:={policy}", "-p", "wait_for_subscribers:=1", *debug,
+        ])  # fmt: skip
+        launch.wait("robot1's 5 states", lambda: len(got["/robot1/tpsr/state"]) == 5)
         # robot2 only moves when commanded on its own /robot2/cmd_vel
         for _ in range(2):
             before = len(got["/robot2/camera/image_raw"])
             cmd2.publish(m.twist_msg(3.0, 0.0))
-            assert observer.wait_for(
-                lambda before=before: len(got["/robot2/camera/image_raw"]) == before + 1, 30
+            launch.wait(
+                "robot2's next image",
+                lambda before=before: len(got["/robot2/camera/image_raw"]) == before + 1,
+                timeout_s=30,
             )
         observer.spin(timeout_s=0.3)
         assert got["/robot1/camera/image_raw"] == [k * S for k in range(1, 6)]
@@ -223,7 +192,8 @@ def test_two_robots_run_side_by_side(backend, tmp_path, monkeypatch):
                              "/tpsr/state", "/sim/episode_start"}
     finally:
         observer.close()
-        codes = {name: proc.stop() for name, proc in reversed(procs.items())}
+        codes = launch.stop(timeout_s=30)  # the filter first, the recorder last
+    procs = launch.processes
     assert codes == dict.fromkeys(procs, 0), {n: p.text()[-2000:] for n, p in procs.items()}
     # the recorder got robot1's steps under their namespaced names; the learner reads them
     topics = Topics(image="/robot1/camera/image_raw", action="/robot1/action",
