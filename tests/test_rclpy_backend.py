@@ -9,11 +9,9 @@ from __future__ import annotations
 
 import itertools
 import os
-import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -32,11 +30,11 @@ from tpsr_ros.runtime import (
     parse_ros_args,
 )
 from tpsr_ros.runtime.backend import choose_backend
+from tpsr_ros.runtime.launcher import Launch
 from tpsr_ros.runtime.transport import pad_cdr
 
 pytestmark = pytest.mark.rclpy
 S = 10**9
-READY = "rclpy transport ready; spinning until SIGINT/SIGTERM"
 _COUNTER = itertools.count()
 
 
@@ -403,48 +401,14 @@ def _rosout_qos():
 # -- every node as a process on rclpy -------------------------------------------------------
 
 
-class Proc:
-    """A node process whose stderr goes to a file we can poll."""
-
-    def __init__(
-        self, tmp: Path, name: str, env: dict[str, str], *args: str, params=()
-    ) -> None:
-        self.log = tmp / f"{name}.log"
-        ros_args = ["--ros-args", "--log-level", "debug"]
-        for p in params:
-            ros_args += ["-p", p]
-        with self.log.open("wb") as sink:
-            self.popen = subprocess.Popen(
-                [sys.executable, "-m", *args, *ros_args],
-                stdout=sink, stderr=sink, env=env,
-            )
-
-    def text(self) -> str:
-        return self.log.read_text(errors="replace")
-
-    def wait_for(self, needle: str, timeout: float = 60.0) -> str:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if needle in (text := self.text()):
-                return text
-            if self.popen.poll() is not None:
-                break
-            time.sleep(0.05)
-        raise AssertionError(f"{needle!r} never appeared; log:\n{self.text()}")
-
-    def stop(self) -> int:
-        if self.popen.poll() is None:
-            self.popen.send_signal(signal.SIGINT)
-        try:
-            return self.popen.wait(30)
-        except subprocess.TimeoutExpired:
-            self.popen.kill()
-            self.popen.wait(10)
-            raise
-
-
 @pytest.mark.slow
 def test_every_node_runs_on_rclpy_and_the_filter_survives_a_rejected_image(ros_env, tmp_path):
+    """Every node as a process on rclpy, started by the runtime launcher.
+
+    A probe node waits on the graph: the simulator's ``/sim/cmd_ignored`` for the end of
+    the filter's 3 lockstep steps, the recorder's subscription to a topic it discovers,
+    the player's ``/clock``. The warnings the nodes log are what the test then checks.
+    """
     from test_filter_node import fit_small_model, random_policy
 
     model = fit_small_model(tmp_path)
@@ -453,37 +417,56 @@ def test_every_node_runs_on_rclpy_and_the_filter_survives_a_rejected_image(ros_e
     with BagWriter(bag) as writer:
         writer.add_topic("/clock", m.CLOCK_TYPE)
         writer.write_message("/clock", S, m.clock_msg(S))
-    procs = {
-        "sim_node": Proc(tmp_path, "sim", ros_env, "sim_node",
-                         params=("mode:=command", "episode_steps:=3")),
-        "tpsr_filter": Proc(tmp_path, "filter", ros_env, "tpsr_ros.filter_node",
-                            params=(f"model:={model}", f"policy:={policy}")),
-        "recorder": Proc(tmp_path, "rec", ros_env, "tpsr_ros.record", "-o",
-                         str(tmp_path / "rec")),
-        "player": Proc(tmp_path, "play", ros_env, "tpsr_ros.play", str(bag), "--loop"),
-    }
+
+    def ros_args(*params: str) -> list[str]:
+        args = ["--ros-args", "--log-level", "debug"]
+        for p in params:
+            args += ["-p", p]
+        return args
+
+    probe = rclpy_node("feeder")
+    ignored: list[str] = []
+    ignored_sub = probe.create_subscription(
+        "/sim/cmd_ignored", m.HEADER_TYPE, lambda msg: ignored.append(msg.frame_id)
+    )
+    clocks: list[int] = []
+    probe.create_subscription("/clock", m.CLOCK_TYPE, lambda msg: clocks.append(m.stamp_of(msg)))
+    image = probe.create_publisher("/camera/image_raw", m.IMAGE_TYPE)
+    reset = probe.create_publisher("/sim/reset", m.POSE_TYPE)
+    launch = Launch(tmp_path, env=ros_env, spin=probe.spin_once, timeout_s=60)
     try:
-        for proc in procs.values():
-            proc.wait_for(READY)
-        # the filter drove 3 lockstep steps (debug: the 4th command is ignored)
-        procs["sim_node"].wait_for("/cmd_vel ignored: episode_steps (3) reached")
+        launch.start("sim_node", "sim_node", ros_args("mode:=command", "episode_steps:=3"))
+        # the filter starts only once the probe hears the simulator's announcements
+        launch.wait("the simulator's /sim/cmd_ignored to match the probe",
+                    lambda: ignored_sub.get_publisher_count() >= 1)
+        launch.start("tpsr_filter", "tpsr_ros.filter_node",
+                     ros_args(f"model:={model}", f"policy:={policy}"))
+        launch.start("recorder", "tpsr_ros.record", ["-o", str(tmp_path / "rec"), *ros_args()])
+        launch.start("player", "tpsr_ros.play", [str(bag), "--loop", *ros_args()])
+        # the filter drove 3 lockstep steps: the simulator ignores its 4th command
+        launch.wait("the simulator to ignore the command after step 3",
+                    lambda: "episode_steps" in ignored)
+        # the recorder runs its discovery: it subscribes the probe's /sim/reset (as does the
+        # simulator); the player plays: more /clock messages than the simulator's 4 (its
+        # start-up reset and 3 steps)
+        launch.wait("the recorder to subscribe /sim/reset",
+                    lambda: reset.get_subscription_count() >= 2)
+        launch.wait("the player's /clock", lambda: len(clocks) > 4)
         # after info and debug lines, a warning from each: a wrong-sized image for the
-        # filter, a reset outside the room for the simulator; both run on
-        feeder = rclpy_node("feeder")
-        try:
-            image = feeder.create_publisher("/camera/image_raw", m.IMAGE_TYPE)
-            reset = feeder.create_publisher("/sim/reset", m.POSE_TYPE)
-            deadline = time.monotonic() + 30
-            while not ("[WARN]" in procs["tpsr_filter"].text()
-                       and "[WARN]" in procs["sim_node"].text()):
-                assert time.monotonic() < deadline, procs["tpsr_filter"].text()
-                image.publish(m.image_msg(S, np.zeros((8, 8, 3), np.uint8)))
-                reset.publish(m.pose_msg(S, 100.0, 5.0))
-                feeder.spin_once(0.1)
-        finally:
-            feeder.close()
+        # filter, a reset outside the room for the simulator; both run on (the warnings,
+        # which exist only in the logs, are what is tested here)
+        procs = launch.processes
+        deadline = time.monotonic() + 30
+        while not ("[WARN]" in procs["tpsr_filter"].text()
+                   and "[WARN]" in procs["sim_node"].text()):
+            assert time.monotonic() < deadline, procs["tpsr_filter"].text()
+            image.publish(m.image_msg(S, np.zeros((8, 8, 3), np.uint8)))
+            reset.publish(m.pose_msg(S, 100.0, 5.0))
+            probe.spin_once(0.1)
     finally:
-        codes = {name: proc.stop() for name, proc in procs.items()}
+        probe.close()
+        codes = {name: proc.stop(30) for name, proc in launch.processes.items()}
+    procs = launch.processes
     logs = {name: proc.text() for name, proc in procs.items()}
     assert codes == dict.fromkeys(procs, 0), logs
     for text in logs.values():
