@@ -41,9 +41,20 @@ def _rclpy_available() -> bool:
 needs_rclpy = pytest.mark.skipif(not _rclpy_available(), reason="rclpy not importable")
 
 
+def unused_domain(seed: int) -> int:
+    """A domain id in 20..219 that no participant of this process has configured yet.
+
+    Cyclone keeps one configuration per domain and process: in a domain an earlier test
+    opened, the discovery variables (and a bad static peer) would never be read.
+    """
+    from tpsr_ros.runtime import dds
+
+    return next(d for k in range(200) if (d := (seed + k) % 200 + 20) not in dds._DOMAINS)
+
+
 @pytest.fixture
 def ros_env(monkeypatch):
-    monkeypatch.setenv("ROS_DOMAIN_ID", str((os.getpid() * 23 + 3 * next(_COUNTER)) % 200 + 20))
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(unused_domain(os.getpid() * 23 + 3 * next(_COUNTER))))
     monkeypatch.delenv("CYCLONEDDS_URI", raising=False)
     monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)
     monkeypatch.delenv("ROS_STATIC_PEERS", raising=False)
