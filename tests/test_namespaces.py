@@ -119,7 +119,13 @@ def test_two_robots_run_side_by_side(backend, tmp_path, monkeypatch):
 
     model = fit_small_model(tmp_path)
     policy = random_policy(model, tmp_path / "policy.npz")
-    domain = (os.getpid() * 17 + 7 * next(_COUNTER)) % 200 + 20
+    seed = os.getpid() * 17 + 7 * next(_COUNTER)
+    used: set[int] = set()
+    if backend == "dds":  # Cyclone keeps a domain's first configuration in this process
+        from tpsr_ros.runtime import dds
+
+        used = set(dds._DOMAINS)
+    domain = next(d for k in range(200) if (d := (seed + k) % 200 + 20) not in used)
     for key, value in {
         "ROS_DOMAIN_ID": str(domain),
         "TPSR_TRANSPORT": backend,
