@@ -9,6 +9,8 @@ from __future__ import annotations
 import ast
 import itertools
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -24,7 +26,7 @@ from tpsr_ros.record import RecorderNode
 from tpsr_ros.runtime import Node, NodeOptions, parse_node_args
 from tpsr_ros.runtime.backend import choose_backend, open_transport
 from tpsr_ros.runtime.diagnostics import DIAGNOSTICS_TYPE, status_values
-from tpsr_ros.runtime.launcher import Launch
+from tpsr_ros.runtime.launcher import Launch, NodeProcess
 from tpsr_ros.runtime.params import param_specs
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -170,3 +172,50 @@ def test_the_launch_file_runs_the_closed_loop(tmp_path, monkeypatch):
     assert states == [k * 10**9 for k in range(1, 6)]
     # one command per step and the ignored 6th (the first may precede the recorder's match)
     assert counts["/cmd_vel"] in (5, 6)
+
+
+def test_a_node_process_passes_each_output_line_to_a_callback_and_its_log(tmp_path):
+    """The runtime launcher's pipe mode (how ``tpsr_ros.launch`` prefixes node output)."""
+    expected = subprocess.run(
+        [sys.executable, "-m", "sim_node", "--help"], capture_output=True, text=True, timeout=60
+    ).stdout.splitlines()
+    lines: list[str] = []
+    proc = NodeProcess("help", "sim_node", ["--help"], log_path=tmp_path / "help.log",
+                       on_output=lines.append)
+    assert proc.wait(60) == 0
+    assert lines == expected and len(expected) > 3
+    assert proc.text().splitlines() == expected
+    quiet: list[str] = []
+    unlogged = NodeProcess("bad", "sim_node", ["--ros-args", "-p", "mode:=fly"],
+                           on_output=quiet.append)
+    assert unlogged.wait(60) == 2
+    assert len(quiet) == 1 and "parameter 'mode'" in quiet[0]
+    assert unlogged.log_path is None and unlogged.tail(1) == quiet[0]
+
+
+@pytest.mark.slow
+def test_when_a_node_fails_the_others_are_stopped_and_the_launcher_exits_1(tmp_path):
+    text = (
+        "<launch><node pkg='tpsr_ros' exec='sim_node'/>"
+        "<node pkg='tpsr_ros' exec='filter_node' name='tpsr_filter'>"
+        f"<param name='model' value='{tmp_path / 'missing.npz'}'/></node></launch>"
+    )
+    (tmp_path / "fails.launch.xml").write_text(text)
+    env = {
+        **os.environ,
+        "ROS_DOMAIN_ID": str((os.getpid() * 29 + 13 * next(_COUNTER)) % 200 + 20),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "CYCLONEDDS_URI": LOOPBACK,
+    }
+    runner = NodeProcess("launch", "tpsr_ros.launch", [str(tmp_path / "fails.launch.xml")],
+                         log_path=tmp_path / "launch.log", env=env)
+    try:
+        code = runner.wait(90)
+    finally:
+        runner.kill()
+    out = runner.text()
+    assert code == 1, out
+    assert "[tpsr_filter] python -m tpsr_ros.filter_node: error:" in out
+    assert "[python -m tpsr_ros.launch] tpsr_filter exited with status 1; stopping" in out
+    # the simulator was stopped with SIGINT and said so, its lines prefixed
+    assert "[sim_node] " in out and "steps and 1 resets" in out
