@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from graph_support import BACKENDS, LOOPBACK
 
 from learner.cli import main as learner_main
 from learner.closed_loop import ClosedLoopError, run_closed_loop
@@ -32,29 +33,6 @@ from tpsr_ros.io.trajectory import read_trajectory
 pytestmark = pytest.mark.dds
 
 
-def _rclpy_available() -> bool:
-    try:
-        import rclpy  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-BACKENDS = [
-    pytest.param("dds", marks=pytest.mark.dds),
-    pytest.param(
-        "rclpy",
-        marks=[
-            pytest.mark.rclpy,
-            pytest.mark.skipif(not _rclpy_available(), reason="rclpy not importable"),
-        ],
-    ),
-]
-LOOPBACK = (
-    "<CycloneDDS><Domain id='any'><General><Interfaces>"
-    "<NetworkInterface address='127.0.0.1' multicast='true'/>"
-    "</Interfaces></General></Domain></CycloneDDS>"
-)
 
 
 @pytest.fixture(scope="module")

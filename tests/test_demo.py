@@ -8,16 +8,12 @@ import subprocess
 import sys
 
 import pytest
+from graph_support import LOOPBACK
 
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.messages import stamp_of
 
 pytestmark = [pytest.mark.dds, pytest.mark.slow]
-LOOPBACK = (
-    "<CycloneDDS><Domain id='any'><General><Interfaces>"
-    "<NetworkInterface address='127.0.0.1' multicast='true'/>"
-    "</Interfaces></General></Domain></CycloneDDS>"
-)
 
 
 def test_the_demo_runs_end_to_end(tmp_path):

@@ -9,12 +9,12 @@ Each test has its own ROS_DOMAIN_ID and sets no CYCLONEDDS_URI (it would overrid
 
 from __future__ import annotations
 
-import itertools
 import os
 import time
 from pathlib import Path
 
 import pytest
+from graph_support import fresh_domain, rclpy_available
 
 pytest.importorskip("cyclonedds")
 
@@ -25,36 +25,18 @@ from tpsr_ros.runtime.dds import DdsTransport, discovery_config, discovery_range
 from tpsr_ros.runtime.launcher import NodeProcess
 
 pytestmark = pytest.mark.dds
-_COUNTER = itertools.count()
 SIM_TOPICS = {"/camera/image_raw", "/action", "/ground_truth/pose", "/reward", "/clock",
               "/sim/episode_start"}
 
 
-def _rclpy_available() -> bool:
-    try:
-        import rclpy  # noqa: F401
-    except ImportError:
-        return False
-    return True
+needs_rclpy = pytest.mark.skipif(not rclpy_available(), reason="rclpy not importable")
 
 
-needs_rclpy = pytest.mark.skipif(not _rclpy_available(), reason="rclpy not importable")
-
-
-def unused_domain(seed: int) -> int:
-    """A domain id in 20..219 that no participant of this process has configured yet.
-
-    Cyclone keeps one configuration per domain and process: in a domain an earlier test
-    opened, the discovery variables (and a bad static peer) would never be read.
-    """
-    from tpsr_ros.runtime import dds
-
-    return next(d for k in range(200) if (d := (seed + k) % 200 + 20) not in dds._DOMAINS)
 
 
 @pytest.fixture
 def ros_env(monkeypatch):
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(unused_domain(os.getpid() * 23 + 3 * next(_COUNTER))))
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain(23)))
     monkeypatch.delenv("CYCLONEDDS_URI", raising=False)
     monkeypatch.delenv("ROS_LOCALHOST_ONLY", raising=False)
     monkeypatch.delenv("ROS_STATIC_PEERS", raising=False)

@@ -7,7 +7,6 @@ cannot run in one line, and ``python -m tpsr_ros.launch`` runs the closed loop f
 from __future__ import annotations
 
 import ast
-import itertools
 import os
 import subprocess
 import sys
@@ -15,6 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
+from graph_support import LOOPBACK, fresh_domain
 
 from sim_node.node import SimNode
 from tpsr_ros.filter_node import FilterNode
@@ -33,12 +33,6 @@ ROOT = Path(__file__).resolve().parent.parent
 LAUNCH = ROOT / "launch" / "closed_loop.launch.xml"
 NODE_CLASSES = {"sim_node": SimNode, "filter_node": FilterNode, "record": RecorderNode,
                 "play": PlayerNode}
-LOOPBACK = (
-    "<CycloneDDS><Domain id='any'><General><Interfaces>"
-    "<NetworkInterface address='127.0.0.1' multicast='true'/>"
-    "</Interfaces></General></Domain></CycloneDDS>"
-)
-_COUNTER = itertools.count()
 
 
 def test_the_executables_are_the_ones_colcon_installs():
@@ -99,20 +93,6 @@ def test_what_the_launcher_cannot_run_is_refused_in_one_line(tmp_path, overrides
     assert message in str(info.value) and "\n" not in str(info.value)
 
 
-def _fresh_domain(seed: int, backend: str) -> int:
-    """A domain id in 20..219; on the DDS backend one this process has not configured yet.
-
-    Cyclone keeps one configuration per domain and process: a probe in a domain an earlier
-    test opened without the loopback URI would not discover the launched nodes.
-    """
-    used: set[int] = set()
-    if backend == "dds":
-        from tpsr_ros.runtime import dds
-
-        used = set(dds._DOMAINS)
-    return next(d for k in range(200) if (d := (seed + k) % 200 + 20) not in used)
-
-
 @pytest.mark.slow
 def test_the_launch_file_runs_the_closed_loop(tmp_path, monkeypatch):
     """The launch file's closed loop runs its episode; its end is seen in the graph.
@@ -131,7 +111,7 @@ def test_the_launch_file_runs_the_closed_loop(tmp_path, monkeypatch):
     monkeypatch.delenv("TPSR_TRANSPORT", raising=False)
     backend, _ = choose_backend()
     for key, value in {
-        "ROS_DOMAIN_ID": str(_fresh_domain(os.getpid() * 19 + 11 * next(_COUNTER), backend)),
+        "ROS_DOMAIN_ID": str(fresh_domain(19)),
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
         "CYCLONEDDS_URI": LOOPBACK,
         "PYTHONUNBUFFERED": "1",
@@ -203,7 +183,7 @@ def test_when_a_node_fails_the_others_are_stopped_and_the_launcher_exits_1(tmp_p
     (tmp_path / "fails.launch.xml").write_text(text)
     env = {
         **os.environ,
-        "ROS_DOMAIN_ID": str((os.getpid() * 29 + 13 * next(_COUNTER)) % 200 + 20),
+        "ROS_DOMAIN_ID": str(fresh_domain(29)),
         "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
         "CYCLONEDDS_URI": LOOPBACK,
     }

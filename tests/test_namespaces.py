@@ -7,10 +7,10 @@ records a robot's namespaced topics and the learner reads them back.
 
 from __future__ import annotations
 
-import itertools
 import os
 
 import pytest
+from graph_support import BACKENDS, LOOPBACK, fresh_domain
 
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.trajectory import Topics, read_trajectory
@@ -20,32 +20,8 @@ from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
 from tpsr_ros.runtime.launcher import Launch
 
 S = 10**9
-LOOPBACK = (
-    "<CycloneDDS><Domain id='any'><General><Interfaces>"
-    "<NetworkInterface address='127.0.0.1' multicast='true'/>"
-    "</Interfaces></General></Domain></CycloneDDS>"
-)
-_COUNTER = itertools.count()
 
 
-def _rclpy_available() -> bool:
-    try:
-        import rclpy  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-BACKENDS = [
-    pytest.param("dds", marks=pytest.mark.dds),
-    pytest.param(
-        "rclpy",
-        marks=[
-            pytest.mark.rclpy,
-            pytest.mark.skipif(not _rclpy_available(), reason="rclpy not importable"),
-        ],
-    ),
-]
 
 
 def test_sim_node_topics_follow_its_namespace_and_absolute_names_do_not():
@@ -119,13 +95,7 @@ def test_two_robots_run_side_by_side(backend, tmp_path, monkeypatch):
 
     model = fit_small_model(tmp_path)
     policy = random_policy(model, tmp_path / "policy.npz")
-    seed = os.getpid() * 17 + 7 * next(_COUNTER)
-    used: set[int] = set()
-    if backend == "dds":  # Cyclone keeps a domain's first configuration in this process
-        from tpsr_ros.runtime import dds
-
-        used = set(dds._DOMAINS)
-    domain = next(d for k in range(200) if (d := (seed + k) % 200 + 20) not in used)
+    domain = fresh_domain(17)  # Cyclone keeps a domain's first configuration
     for key, value in {
         "ROS_DOMAIN_ID": str(domain),
         "TPSR_TRANSPORT": backend,

@@ -7,7 +7,6 @@ Skipped, with the reason, only where rclpy cannot be imported (no wheels for thi
 
 from __future__ import annotations
 
-import itertools
 import os
 import subprocess
 import sys
@@ -15,6 +14,7 @@ import time
 
 import numpy as np
 import pytest
+from graph_support import LOOPBACK, fresh_domain
 
 pytest.importorskip("rclpy", reason="rclpy not importable (pip install 'tpsr-ros[ros]')")
 
@@ -35,11 +35,6 @@ from tpsr_ros.runtime.transport import pad_cdr
 
 pytestmark = pytest.mark.rclpy
 S = 10**9
-_COUNTER = itertools.count()
-
-
-def fresh_domain() -> int:
-    return (os.getpid() * 13 + 5 * next(_COUNTER)) % 200 + 20
 
 
 @pytest.fixture
@@ -479,11 +474,6 @@ def test_every_node_runs_on_rclpy_and_the_filter_survives_a_rejected_image(ros_e
 
 # -- rclpy <-> our DDS backend ------------------------------------------------------------
 
-LOOPBACK = (
-    "<CycloneDDS><Domain id='any'><General><Interfaces>"
-    "<NetworkInterface address='127.0.0.1' multicast='true'/>"
-    "</Interfaces></General></Domain></CycloneDDS>"
-)
 
 
 @pytest.fixture

@@ -9,7 +9,6 @@ asks for.
 """
 
 import contextlib
-import itertools
 import os
 import subprocess
 import sys
@@ -17,6 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
+from graph_support import BACKENDS, LOOPBACK, fresh_domain
 
 from sim_node.topics import SimTopics
 from tpsr_ros.core.errors import BagError
@@ -27,50 +27,17 @@ from tpsr_ros.runtime.backend import open_transport
 from tpsr_ros.runtime.launcher import Launch, NodeProcess
 
 S = 10**9
-LOOPBACK = (
-    "<CycloneDDS><Domain id='any'><General><Interfaces>"
-    "<NetworkInterface address='127.0.0.1' multicast='true'/>"
-    "</Interfaces></General></Domain></CycloneDDS>"
-)
 STEP_TOPICS = ("/camera/image_raw", "/action", "/ground_truth/pose", "/reward")
-_COUNTER = itertools.count()
 
 
-def _rclpy_available() -> bool:
-    try:
-        import rclpy  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
-BACKENDS = [
-    pytest.param("dds", marks=pytest.mark.dds),
-    pytest.param(
-        "rclpy",
-        marks=[
-            pytest.mark.rclpy,
-            pytest.mark.skipif(not _rclpy_available(), reason="rclpy (ROS 2) not importable"),
-        ],
-    ),
-]
-
-
-def unused_domain(seed: int) -> int:
-    """A domain id in 20..219 that no participant of this process has configured yet.
-
-    Cyclone keeps one configuration per domain and process: a probe node in a domain that
-    an earlier test opened without the loopback URI would not discover the children.
-    """
-    from tpsr_ros.runtime import dds
-
-    return next(d for k in range(200) if (d := (seed + k) % 200 + 20) not in dds._DOMAINS)
 
 
 @pytest.fixture
 def graph_env():
     pytest.importorskip("cyclonedds")
-    domain = unused_domain(os.getpid() * 11 + 3 * next(_COUNTER))
+    domain = fresh_domain(11)
     return {
         **os.environ,
         "ROS_DOMAIN_ID": str(domain),
