@@ -17,12 +17,12 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from sim_node.batch_cdr import chunk_payloads
 from sim_node.config import Environment, SimConfig
 from sim_node.rollout import Rollout, iter_random_rollout
-from sim_node.topics import SimTopics, step_messages
+from sim_node.topics import SimTopics
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
 from tpsr_ros.io.bag import BagWriter, check_bag_path_free
-from tpsr_ros.io.messages import RewardSample
 
 __all__ = ["generate_bag", "main"]
 
@@ -30,17 +30,12 @@ PROG = "python -m sim_node.generate"
 
 
 def _write_chunk(writer: BagWriter, topics: SimTopics, part: Rollout) -> None:
-    for i in range(len(part)):
-        reward = RewardSample(
-            reward=float(part.rewards[i]),
-            wall_contact=bool(part.wall_contact[i]),
-            goal_zone=bool(part.goal_zone[i]),
-        )
-        stamp = int(part.stamps_ns[i])
-        for topic, _, msg in step_messages(
-            topics, stamp, part.images[i], part.commands[i], part.positions[i], reward
-        ):
-            writer.write_message(topic, stamp, msg)
+    """Write every message of the chunk's steps, in step order (CDR built per chunk)."""
+    payloads = chunk_payloads(topics, part)
+    order = list(topics.types())
+    for i, stamp in enumerate(part.stamps_ns.tolist()):
+        for topic in order:
+            writer.write(topic, stamp, payloads[topic][i])
 
 
 def generate_bag(

@@ -126,3 +126,25 @@ def test_generated_bag_records_its_settings(tmp_path):
         assert '"seed": 7' in reader.custom_data["tpsr_ros.generator"]
     with pytest.raises(BagError, match="already exists"):
         generate_bag(out, SimConfig(), 10, seed=7)
+
+
+@pytest.mark.parametrize("environment", ["full", "distractors"])
+def test_chunk_payloads_are_exactly_what_rosbags_serialises(environment):
+    # the generator writes CDR built per chunk with numpy; it must be rosbags' bytes
+    from sim_node.batch_cdr import chunk_payloads
+    from sim_node.rollout import random_rollout
+    from sim_node.topics import SimTopics, step_messages
+    from tpsr_ros.io.messages import RewardSample, serialize
+
+    config = SimConfig(environment=environment, start_time_ns=1_700_000_000_123_456_789)
+    part = random_rollout(config, 400, seed=5)
+    assert part.wall_contact.any() and part.goal_zone.any()  # every reward value occurs
+    topics = SimTopics()
+    payloads = chunk_payloads(topics, part)
+    for i in range(len(part)):
+        reward = RewardSample(float(part.rewards[i]), bool(part.wall_contact[i]),
+                              bool(part.goal_zone[i]))
+        expected = step_messages(topics, int(part.stamps_ns[i]), part.images[i],
+                                 part.commands[i], part.positions[i], reward)
+        for topic, msgtype, msg in expected:
+            assert payloads[topic][i] == serialize(msg, msgtype), (topic, i)
