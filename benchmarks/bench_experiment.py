@@ -30,7 +30,7 @@ def main() -> None:
     best = max(summarise(rows), key=lambda t: (t["method"] == "tpsr", t["episodes"]))
     print(
         f"  sanity: TPSR mean at {best['episodes']} episodes = {best['mean']:.1f} "
-        f"({margin_text(best)} SEMs)"
+        f"(margin {margin_text(best)}, in SEMs)"
     )
 
 
