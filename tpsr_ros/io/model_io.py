@@ -29,7 +29,13 @@ from tpsr_ros.core.errors import ModelFormatError, TpsrError
 from tpsr_ros.core.pca_baseline import PCAModel
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.tpsr import TPSRModel
-from tpsr_ros.io.npz_archive import ShapeRule, check_output_path, read_archive, write_archive
+from tpsr_ros.io.npz_archive import (
+    ShapeRule,
+    check_output_path,
+    metadata_size,
+    read_archive,
+    write_archive,
+)
 
 __all__ = [
     "FORMAT_NAME",
@@ -88,13 +94,6 @@ def _open_arrays(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     )
 
 
-def _positive_int(path: Path, where: dict[str, Any], key: str) -> int:
-    value = where.get(key)
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ModelFormatError(f"the metadata of {str(path)!r} lacks a valid {key!r} entry")
-    return value
-
-
 def _expected_shapes(path: Path, metadata: dict[str, Any]) -> dict[str, ShapeRule]:
     """The shape of every array, implied by the metadata alone (checked before reading)."""
     method = _check_metadata(path, metadata)
@@ -102,9 +101,9 @@ def _expected_shapes(path: Path, metadata: dict[str, Any]) -> dict[str, ShapeRul
     observation = metadata.get("observation")
     if not isinstance(observation, dict):
         raise ModelFormatError(f"the metadata of {str(path)!r} lacks a valid 'observation' entry")
-    k = _positive_int(path, observation, "size")
+    k = metadata_size(path, observation, "size")
     if method == "pca":
-        dim = _positive_int(path, parameters, "dim")
+        dim = metadata_size(path, parameters, "dim")
         return {
             "mean": (k,),
             "components": (k, dim),
@@ -112,9 +111,9 @@ def _expected_shapes(path: Path, metadata: dict[str, Any]) -> dict[str, ShapeRul
             "explained_variance_ratio": (dim,),
             "n_actions": (),
         }
-    n_actions = _positive_int(path, metadata, "n_actions")
+    n_actions = metadata_size(path, metadata, "n_actions")
     r, d_o, d_ht, l_o = (
-        _positive_int(path, parameters, key) for key in ("rank", "obs_dim", "ht_dim", "obs_centers")
+        metadata_size(path, parameters, key) for key in ("rank", "obs_dim", "ht_dim", "obs_centers")
     )
     return {
         "obs_mean": (k,),

@@ -45,6 +45,7 @@ __all__ = [
     "ShapeRule",
     "check_output_path",
     "jsonable",
+    "metadata_size",
     "read_archive",
     "write_archive",
 ]
@@ -211,6 +212,14 @@ def _inspect(archive: zipfile.ZipFile, path: Path) -> dict[str, ArrayHeader]:
             )
         headers[name] = (shape, dtype)
     return headers
+
+
+def metadata_size(path: Path, where: dict[str, Any], key: str) -> int:
+    """``where[key]`` as a positive integer (an array length), or a ``ModelFormatError``."""
+    value = where.get(key)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ModelFormatError(f"the metadata of {str(path)!r} lacks a valid {key!r} entry")
+    return value
 
 
 def _check_shapes(

@@ -26,7 +26,7 @@ import numpy as np
 import tpsr_ros
 from tpsr_ros.core.errors import ModelFormatError
 from tpsr_ros.core.fqi import QFunction
-from tpsr_ros.io.npz_archive import ShapeRule, read_archive, write_archive
+from tpsr_ros.io.npz_archive import ShapeRule, metadata_size, read_archive, write_archive
 
 __all__ = [
     "FORMAT_NAME",
@@ -148,13 +148,11 @@ def _expected_shapes(path: Path, metadata: dict[str, Any]) -> dict[str, ShapeRul
     Files written before ``n_centers`` was recorded leave the number of centres free (the
     archive's size limit still bounds it, and the arrays must agree with each other).
     """
-    sizes = {key: metadata.get(key) for key in ("state_dim", "n_actions", "n_centers")}
-    for key, value in sizes.items():
-        if key == "n_centers" and value is None:
-            continue
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ModelFormatError(f"the metadata of {str(path)!r} lacks a valid {key!r} entry")
-    dim, actions, centers = sizes.values()
+    dim = metadata_size(path, metadata, "state_dim")
+    actions = metadata_size(path, metadata, "n_actions")
+    centers = (
+        None if metadata.get("n_centers") is None else metadata_size(path, metadata, "n_centers")
+    )
     return {
         "mean": (dim,),
         "scale": (dim,),
