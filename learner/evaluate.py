@@ -76,21 +76,15 @@ class Evaluation:
 
 
 def evaluate(
-    policy: Policy,
-    tracker: Tracker,
-    environment: Environment | str,
-    *,
-    seed: int = EVALUATION_SEED,
-    starts: Sequence[tuple[float, float]] = START_POSITIONS,
-    steps: int = STEPS,
-    on_trial: Callable[[int, Trial], None] | None = None,
+    policy: Policy, tracker: Tracker, environment: Environment | str, **protocol: Any
 ) -> Evaluation:
-    """Run the standard protocol with ``policy`` choosing from ``tracker``'s states."""
+    """Run the standard protocol with ``policy`` choosing from ``tracker``'s states.
+
+    ``protocol`` takes the keyword options of :func:`run_protocol` (seed, starts, steps,
+    on_trial); the policy must belong to the tracker's model.
+    """
     policy.check_model(tracker.fingerprint)
-    return run_protocol(
-        policy.action, tracker, environment, seed=seed, starts=starts, steps=steps,
-        on_trial=on_trial,
-    )
+    return run_protocol(policy.action, tracker, environment, **protocol)
 
 
 def run_protocol(
@@ -105,8 +99,8 @@ def run_protocol(
 ) -> Evaluation:
     """The standard protocol for any controller ``choose(state) -> action index``.
 
-    ``evaluate`` runs it for a fitted-Q policy; the floor baselines (:mod:`learner.floors`)
-    for state-blind controllers.
+    :func:`evaluate` runs it for a fitted-Q policy, the floor baselines
+    (:mod:`learner.floors`) for state-blind controllers.
     """
     env = RobotEnv(SimConfig(environment=environment), seed=seed)
     env.reset()  # the start-up reset of a freshly started sim_node

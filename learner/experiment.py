@@ -57,6 +57,7 @@ __all__ = [
     "ExperimentConfig",
     "Row",
     "default_config",
+    "difference_in_sems",
     "plot_summary",
     "register",
     "run",
@@ -178,6 +179,27 @@ def _trials(evaluation: Evaluation) -> str:
     return ";".join(f"{t.reward:g}" for t in evaluation.trials)
 
 
+def _row(
+    config: ExperimentConfig,
+    method: str,
+    episodes: int,
+    repetition: int,
+    extra: dict[str, Any],
+    **result: Any,
+) -> Row:
+    """A run's row: its identity and seeds, ``result`` and every parameter it used."""
+    return Row(
+        environment=config.environment,
+        method=method,
+        episodes=episodes,
+        repetition=repetition,
+        train_seed=config.train_seed(episodes, repetition),
+        rl_seed=config.rl_seed,
+        parameters=_parameters(config, method, extra),
+        **result,
+    )
+
+
 def _floor_row(config: ExperimentConfig, method: str, episodes: int, repetition: int) -> Row:
     """A floor's run: state-blind, so it needs no training data and no fitted Q."""
     start = time.perf_counter()
@@ -190,22 +212,21 @@ def _floor_row(config: ExperimentConfig, method: str, episodes: int, repetition:
             random_floor(config.environment, policy_seed),
             {"policy_seed": policy_seed},
         )
-    return Row(
-        config.environment,
+    nan = float("nan")
+    return _row(
+        config,
         method,
         episodes,
         repetition,
-        config.train_seed(episodes, repetition),
-        config.rl_seed,
-        evaluation.score,
-        _trials(evaluation),
-        round(time.perf_counter() - start, 3),
-        float("nan"),
-        0,
-        float("nan"),
-        float("nan"),
-        "ok",
-        _parameters(config, method, extra),
+        extra,
+        score=evaluation.score,
+        trial_rewards=_trials(evaluation),
+        fit_seconds=round(time.perf_counter() - start, 3),
+        fqi_ridge=nan,
+        recoveries=0,
+        r2_x=nan,
+        r2_y=nan,
+        status="ok",
     )
 
 
@@ -245,22 +266,20 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             fit_seconds, recoveries, r2 = time.perf_counter() - start, 0, np.full(2, np.nan)
             score, trials, ridge, status = float("nan"), "", config.fqi.ridge, f"error: {exc}"
         rows.append(
-            Row(
-                config.environment,
+            _row(
+                config,
                 method,
                 episodes,
                 repetition,
-                train_seed,
-                config.rl_seed,
-                score,
-                trials,
-                round(fit_seconds, 3),
-                ridge,
-                recoveries,
-                round(float(r2[0]), 4),
-                round(float(r2[1]), 4),
-                status,
-                _parameters(config, method, {}),
+                {},
+                score=score,
+                trial_rewards=trials,
+                fit_seconds=round(fit_seconds, 3),
+                fqi_ridge=ridge,
+                recoveries=recoveries,
+                r2_x=round(float(r2[0]), 4),
+                r2_y=round(float(r2[1]), 4),
+                status=status,
             )
         )
     return rows
@@ -329,13 +348,20 @@ def summarise(rows: Sequence[Row]) -> list[dict[str, Any]]:
         if entry["method"] in FLOORS or not floors:
             continue
         best = max(floors, key=lambda t: t["mean"])
-        spread = np.hypot(np.nan_to_num(entry["sem"]), np.nan_to_num(best["sem"]))
-        difference = entry["mean"] - best["mean"]
         entry["floor"] = best["method"]
-        entry["margin_sem"] = (
-            float(difference / spread) if spread > 0 else float(np.sign(difference) * np.inf)
-        )
+        entry["margin_sem"] = difference_in_sems(entry, best)
     return table
+
+
+def difference_in_sems(a: dict[str, Any], b: dict[str, Any]) -> float:
+    """``(mean_a - mean_b) / sqrt(SEM_a^2 + SEM_b^2)`` of two summary entries.
+
+    A missing SEM (one run) counts as 0; with both 0 the result is +-inf (or nan when the
+    means are equal).
+    """
+    spread = float(np.hypot(np.nan_to_num(a["sem"]), np.nan_to_num(b["sem"])))
+    difference = a["mean"] - b["mean"]
+    return difference / spread if spread > 0 else float(np.sign(difference) * np.inf)
 
 
 def margin_text(entry: dict[str, Any]) -> str:

@@ -31,6 +31,7 @@ from typing import Any
 from learner.experiment import (
     Row,
     default_config,
+    difference_in_sems,
     margin_text,
     plot_summary,
     run_experiment,
@@ -71,17 +72,6 @@ def _entries(table: Table, method: str) -> list[dict[str, Any]]:
     return [t for t in table if t["method"] == method and math.isfinite(t["mean"])]
 
 
-def _difference_sems(a: dict[str, Any], b: dict[str, Any]) -> float:
-    """``(a - b) / SEM of the difference`` for two summary entries."""
-    spread = math.hypot(_finite(a["sem"]), _finite(b["sem"]))
-    difference = a["mean"] - b["mean"]
-    return difference / spread if spread > 0 else math.copysign(math.inf, difference)
-
-
-def _finite(value: float) -> float:
-    return value if math.isfinite(value) else 0.0
-
-
 def _works(entry: dict[str, Any]) -> bool:
     return bool(entry.get("floor")) and entry["margin_sem"] > FLOOR_SEMS
 
@@ -111,7 +101,7 @@ def _tpsr_slightly_below_pca(table: Table) -> tuple[str, str]:
     pairs = _pairs(table, "tpsr", "pca")
     if not pairs:
         return "not measured", NOT_REPRODUCED
-    gaps = [_difference_sems(t, p) for t, p in pairs]
+    gaps = [difference_in_sems(t, p) for t, p in pairs]
     text = _gap_text(pairs, gaps)
     if not all(_works(t) for t, _ in pairs):
         return text, NOT_REPRODUCED
@@ -160,7 +150,7 @@ def _pca_near_floor(table: Table) -> tuple[str, str]:
 def _tpsr_beats_pca(table: Table) -> tuple[str, str]:
     """Reproduced where the TPSR works and beats PCA at every data size."""
     pairs = _pairs(table, "tpsr", "pca")
-    gaps = [_difference_sems(t, p) for t, p in pairs]
+    gaps = [difference_in_sems(t, p) for t, p in pairs]
     ok = pairs and all(
         g > DIFFERENCE_SEMS and _works(t) for (t, _), g in zip(pairs, gaps, strict=True)
     )
