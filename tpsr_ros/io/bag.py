@@ -374,19 +374,21 @@ def _count(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and value >= 0
 
 
+def _nested(info: dict[str, Any], key: str, field: str) -> Any:
+    """``info[key][field]`` (0 when absent, None when ``info[key]`` is not a mapping)."""
+    outer = info.get(key) or {}
+    return outer.get(field, 0) if isinstance(outer, dict) else None
+
+
 def _check_counts(meta_path: Path, info: dict[str, Any]) -> None:
     """Refuse metadata whose counts, times and topic entries are not what rosbag2 writes."""
     where = f"{str(meta_path)!r}"
     numbers = {
         "message_count": info.get("message_count", 0),
-        "duration.nanoseconds": (info.get("duration") or {}).get("nanoseconds", 0)
-        if isinstance(info.get("duration") or {}, dict)
-        else None,
-        "starting_time.nanoseconds_since_epoch": (info.get("starting_time") or {}).get(
-            "nanoseconds_since_epoch", 0
-        )
-        if isinstance(info.get("starting_time") or {}, dict)
-        else None,
+        "duration.nanoseconds": _nested(info, "duration", "nanoseconds"),
+        "starting_time.nanoseconds_since_epoch": _nested(
+            info, "starting_time", "nanoseconds_since_epoch"
+        ),
     }
     for name, value in numbers.items():
         if not _count(value):
