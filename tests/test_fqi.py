@@ -79,3 +79,51 @@ def test_fit_is_deterministic_for_a_seed():
     a = fit_q(*data, n_actions=3, config=FQIConfig(centers=20, seed=3))
     b = fit_q(*data, n_actions=3, config=FQIConfig(centers=20, seed=3))
     assert np.array_equal(a.weights, b.weights) and np.array_equal(a.centers, b.centers)
+
+
+def _plane_world(n: int = 3000, seed: int = 3):
+    """A 2-d state mixed by a fixed linear map; reward for ending with x0 + x1 > 1."""
+    rng = np.random.default_rng(seed)
+    states = rng.uniform(-2, 2, size=(n, 2))
+    actions = rng.integers(0, 3, size=n)
+    moved = states + 0.5 * (actions[:, None] - 1.0)
+    rewards = (moved.sum(axis=1) > 1).astype(float)
+    return states, actions, rewards, moved
+
+
+def test_an_ensemble_is_the_mean_of_its_members():
+    s, a, r, s_next = _plane_world()
+    config = FQIConfig(centers=15, ensemble=3, seed=4)
+    ensemble = fit_q(s, a, r, s_next, 3, config)
+    members = [
+        fit_q(s, a, r, s_next, 3, FQIConfig(centers=15, seed=4 + m)) for m in range(3)
+    ]
+    probe = np.random.default_rng(5).uniform(-2, 2, size=(40, 2))
+    mean = np.mean([q.values(probe) for q in members], axis=0)
+    assert ensemble.members == 3 and len(ensemble.centers) == sum(len(q.centers) for q in members)
+    assert np.allclose(ensemble.values(probe), mean, rtol=1e-12, atol=1e-12)
+    assert np.allclose(ensemble.features(probe).sum(axis=1), 1.0)
+
+
+def test_whitened_planner_units_are_white_and_invariant_to_a_linear_map():
+    """Whitening makes fitted Q blind to an invertible linear map of the states."""
+    s, a, r, s_next = _plane_world()
+    mix = np.array([[3.0, 0.2], [-1.0, 0.05]])  # scales differing 60-fold, correlated
+    config = FQIConfig(centers=15, ridge=0.1, state_scaling="whiten")
+    plain = fit_q(s, a, r, s_next, 3, config)
+    mixed = fit_q(s @ mix, a, r, s_next @ mix, 3, config)
+    units = mixed.planner_units(np.vstack([s, s_next]) @ mix)
+    assert np.allclose(np.cov(units, rowvar=False), np.eye(2), atol=1e-9)
+    probe = np.random.default_rng(6).uniform(-2, 2, size=(40, 2))
+    assert np.allclose(mixed.values(probe @ mix), plain.values(probe), atol=1e-6)
+    standardised = fit_q(s @ mix, a, r, s_next @ mix, 3, FQIConfig(centers=15, ridge=0.1))
+    assert not np.allclose(standardised.values(probe @ mix), plain.values(probe), atol=1e-6)
+
+
+def test_new_planner_options_are_checked():
+    with pytest.raises(ConfigError, match="state_scaling"):
+        FQIConfig(state_scaling="sphere")
+    with pytest.raises(ConfigError, match="at least one member"):
+        FQIConfig(ensemble=0)
+    with pytest.raises(ConfigError, match="width_scale"):
+        FQIConfig(width_scale=0.0)

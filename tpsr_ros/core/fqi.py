@@ -24,7 +24,7 @@ parameters over one long random trajectory (never embedded histories; guide 4.2)
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from scipy.cluster.vq import kmeans2
@@ -49,6 +49,15 @@ class FQIConfig:
     tolerance: float = _param(1e-6, "stop when the weights change less than this (relative)")
     kmeans_samples: int = _param(5000, "states sampled for k-means")
     seed: int = _param(0, "seed of the k-means sample and initialisation")
+    width_scale: float = _param(
+        1.0, "RBF width as a multiple of the mean nearest-centre distance"
+    )
+    state_scaling: Literal["standardise", "whiten"] = _param(
+        "standardise",
+        "planner units: per-dimension z-scores, or whitened principal axes",
+        choices=("standardise", "whiten"),
+    )
+    ensemble: int = _param(1, "fitted-Q members averaged, each with its own k-means centres")
 
     def __post_init__(self) -> None:
         if self.centers < 2:
@@ -57,6 +66,12 @@ class FQIConfig:
             raise ConfigError(f"discount {self.discount} must be in [0, 1)")
         if self.ridge < 0 or self.iterations < 1 or self.tolerance <= 0:
             raise ConfigError("ridge >= 0, iterations >= 1 and tolerance > 0 are required")
+        if self.state_scaling not in ("standardise", "whiten"):
+            raise ConfigError(f"state_scaling {self.state_scaling!r}: standardise or whiten")
+        if self.ensemble < 1:
+            raise ConfigError("the fitted-Q ensemble needs at least one member")
+        if not self.width_scale > 0:
+            raise ConfigError(f"width_scale {self.width_scale} must be positive")
         if self.kmeans_samples < self.centers or self.seed < 0:
             raise ConfigError("kmeans_samples must be >= centers and seed >= 0")
 
@@ -67,13 +82,31 @@ class FQIConfig:
 
 @dataclass(frozen=True)
 class QFunction:
-    """A fitted Q-function: Q(s, a) = normalised_rbf(standardise(s)) @ weights[:, a]."""
+    """A fitted Q-function: the mean of ``M`` members' normalised-RBF regressions.
+
+    ``z = ((s - mean) @ rotation) / scale`` maps a state to planner units (``rotation`` is
+    the identity when states are standardised, the principal axes when whitened); member
+    ``m`` owns ``group_sizes[m]`` consecutive rows of ``centers`` with width ``width[m]``,
+    and Q(s, a) = mean_m phi_m(z) . w_m[:, a]. One member is the guide's planner.
+    """
 
     mean: np.ndarray  # (r,)
     scale: np.ndarray  # (r,)
-    centers: np.ndarray  # (c, r), in standardised units
-    width: float
+    centers: np.ndarray  # (c, r), in planner units
+    width: np.ndarray  # (M,), one per member (a float for one member)
     weights: np.ndarray  # (c, n_actions)
+    rotation: np.ndarray | None = None  # (r, r); None: the identity
+    group_sizes: np.ndarray | None = None  # (M,) centres per member; None: one member
+
+    def __post_init__(self) -> None:
+        width = np.atleast_1d(np.asarray(self.width, dtype=np.float64))
+        sizes = np.array([len(self.centers)] if self.group_sizes is None else self.group_sizes)
+        if width.ndim != 1 or sizes.shape != width.shape or sizes.min() < 1:
+            raise DataError("one width and a positive centre count per ensemble member")
+        if int(sizes.sum()) != len(self.centers):
+            raise DataError(f"group sizes sum to {sizes.sum()}, not {len(self.centers)} centres")
+        object.__setattr__(self, "width", width)
+        object.__setattr__(self, "group_sizes", sizes.astype(np.int64))
 
     @property
     def state_dim(self) -> int:
@@ -85,13 +118,32 @@ class QFunction:
         """Number of actions."""
         return int(self.weights.shape[1])
 
+    @property
+    def members(self) -> int:
+        """Number M of averaged members."""
+        return len(self.width)
+
+    def planner_units(self, states: np.ndarray) -> np.ndarray:
+        """States ``(T, r)`` centred, rotated and scaled as the centres are."""
+        centred = np.asarray(states, dtype=np.float64) - self.mean
+        if self.rotation is not None:
+            centred = centred @ self.rotation
+        return centred / self.scale
+
     def features(self, states: np.ndarray) -> np.ndarray:
-        """Normalised RBF features ``(T, c)`` of states ``(T, r)``."""
-        z = (np.asarray(states, dtype=np.float64) - self.mean) / self.scale
-        sq = cdist(z, self.centers, "sqeuclidean") / (2.0 * self.width**2)
-        sq -= sq.min(axis=1, keepdims=True)  # exact nearest-centre limit, never 0/0
+        """Normalised RBF features ``(T, c)`` of states ``(T, r)``, each member's summing to 1/M."""
+        sizes = self.group_sizes
+        widths = np.repeat(self.width, sizes)
+        sq = cdist(self.planner_units(states), self.centers, "sqeuclidean") / (2.0 * widths**2)
+        if self.members == 1:  # the guide's planner, summed exactly as it always was
+            sq -= sq.min(axis=1, keepdims=True)  # exact nearest-centre limit, never 0/0
+            activation = np.exp(-sq)
+            return activation / activation.sum(axis=1, keepdims=True)
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        sq -= np.repeat(np.minimum.reduceat(sq, starts, axis=1), sizes, axis=1)
         activation = np.exp(-sq)
-        return activation / activation.sum(axis=1, keepdims=True)
+        totals = np.add.reduceat(activation, starts, axis=1) * self.members
+        return activation / np.repeat(totals, sizes, axis=1)
 
     def values(self, states: np.ndarray) -> np.ndarray:
         """Q-values ``(T, n_actions)`` of states ``(T, r)``."""
@@ -105,11 +157,65 @@ class QFunction:
         return np.argmax(self.values(states), axis=1)
 
 
-def _standardise(states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _scaling(
+    states: np.ndarray, how: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(mean, scale, rotation)``: per-dimension standardising, or whitening on principal axes.
+
+    A (near-)constant direction keeps scale 1, so it stays (near) 0 instead of blowing up.
+    """
     mean = states.mean(axis=0)
-    scale = states.std(axis=0)
-    scale[scale < 1e-12 * max(1.0, float(np.abs(mean).max()))] = 1.0  # constant dimension
-    return mean, scale
+    rotation = None
+    if how == "whiten":
+        variances, rotation = np.linalg.eigh(np.cov(states, rowvar=False).reshape(len(mean), -1))
+        scale = np.sqrt(np.clip(variances, 0.0, None))
+        floor = 1e-9 * max(float(scale.max()), 1e-300)
+    else:
+        scale = states.std(axis=0)
+        floor = 1e-12 * max(1.0, float(np.abs(mean).max()))
+    scale[scale < floor] = 1.0  # constant direction
+    return mean, scale, rotation
+
+
+def _centres(z: np.ndarray, config: FQIConfig, seed: int) -> tuple[np.ndarray, float]:
+    """k-means centres of a seeded sample of ``z`` and their RBF width."""
+    rng = np.random.default_rng(seed)
+    sample = z[rng.choice(len(z), size=min(len(z), config.kmeans_samples), replace=False)]
+    centers, _ = kmeans2(sample, config.centers, minit="++", seed=rng)
+    centers = np.unique(centers, axis=0)  # k-means can merge centres on degenerate data
+    if len(centers) < 2:
+        raise DataError("the states do not vary: cannot place RBF centres")
+    gaps = cdist(centers, centers)
+    np.fill_diagonal(gaps, np.inf)
+    return centers, config.width_scale * float(gaps.min(axis=1).mean())
+
+
+def _iterate(
+    phi: np.ndarray,
+    phi_next: np.ndarray,
+    actions: np.ndarray,
+    rewards: np.ndarray,
+    n_actions: int,
+    config: FQIConfig,
+) -> np.ndarray:
+    """Q-iteration weights ``(c, n_actions)`` on fixed features (one ridge system per action)."""
+    eye = config.ridge * np.eye(phi.shape[1])
+    groups = [np.flatnonzero(actions == a) for a in range(n_actions)]
+    # ridge solution operator of each action's block, computed once: (c, n_a)
+    solvers = [np.linalg.solve(phi[g].T @ phi[g] + eye, phi[g].T) for g in groups]
+    weights = np.zeros((phi.shape[1], n_actions))
+    for _ in range(config.iterations):
+        target = rewards + config.discount * (phi_next @ weights).max(axis=1)
+        new = np.column_stack([solvers[a] @ target[g] for a, g in enumerate(groups)])
+        if not np.all(np.isfinite(new)) or np.abs(new).max() > _DIVERGED:
+            raise DataError(
+                "fitted Q-iteration diverged (weights grew without bound); increase the ridge"
+            )
+        change = float(np.abs(new - weights).max())
+        weights = new
+        if change < config.tolerance * max(1.0, float(np.abs(weights).max())):
+            break
+    return weights
 
 
 def fit_q(
@@ -120,7 +226,11 @@ def fit_q(
     n_actions: int,
     config: FQIConfig | None = None,
 ) -> QFunction:
-    """Fit Q from ``states (T, r)``, ``actions (T,)``, ``rewards (T,)``, ``next_states (T, r)``."""
+    """Fit Q from ``states (T, r)``, ``actions (T,)``, ``rewards (T,)``, ``next_states (T, r)``.
+
+    Each of the ``config.ensemble`` members has its own k-means centres (seed ``seed + m``)
+    and its own Q-iteration; the returned Q-function averages them.
+    """
     config = config or FQIConfig()
     states = np.asarray(states, dtype=np.float64)
     next_states = np.asarray(next_states, dtype=np.float64)
@@ -141,35 +251,21 @@ def fit_q(
     if missing:
         raise DataError(f"actions {missing} never occur in the transitions")
 
-    rng = np.random.default_rng(config.seed)
-    mean, scale = _standardise(np.vstack([states, next_states]))
-    z = (states - mean) / scale
-    sample = z[rng.choice(len(z), size=min(len(z), config.kmeans_samples), replace=False)]
-    centers, _ = kmeans2(sample, config.centers, minit="++", seed=rng)
-    centers = np.unique(centers, axis=0)  # k-means can merge centres on degenerate data
-    if len(centers) < 2:
-        raise DataError("the states do not vary: cannot place RBF centres")
-    gaps = cdist(centers, centers)
-    np.fill_diagonal(gaps, np.inf)
-    width = float(gaps.min(axis=1).mean())
-    q = QFunction(mean, scale, centers, width, np.zeros((len(centers), n_actions)))
-
-    phi = q.features(states)
-    phi_next = q.features(next_states)
-    eye = config.ridge * np.eye(len(centers))
-    groups = [np.flatnonzero(actions == a) for a in range(n_actions)]
-    # ridge solution operator of each action's block, computed once: (c, n_a)
-    solvers = [np.linalg.solve(phi[g].T @ phi[g] + eye, phi[g].T) for g in groups]
-    weights = q.weights
-    for _ in range(config.iterations):
-        target = rewards + config.discount * (phi_next @ weights).max(axis=1)
-        new = np.column_stack([solvers[a] @ target[g] for a, g in enumerate(groups)])
-        if not np.all(np.isfinite(new)) or np.abs(new).max() > _DIVERGED:
-            raise DataError(
-                "fitted Q-iteration diverged (weights grew without bound); increase the ridge"
-            )
-        change = float(np.abs(new - weights).max())
-        weights = new
-        if change < config.tolerance * max(1.0, float(np.abs(weights).max())):
-            break
-    return QFunction(mean, scale, centers, width, weights)
+    mean, scale, rotation = _scaling(np.vstack([states, next_states]), config.state_scaling)
+    frame = QFunction(mean, scale, np.zeros((1, len(mean))), 1.0, np.zeros((1, 1)), rotation)
+    z = frame.planner_units(states)
+    members = [_centres(z, config, config.seed + m) for m in range(config.ensemble)]
+    weights = []
+    for centers, width in members:
+        member = QFunction(mean, scale, centers, width, np.zeros((len(centers), 1)), rotation)
+        phi, phi_next = member.features(states), member.features(next_states)
+        weights.append(_iterate(phi, phi_next, actions, rewards, n_actions, config))
+    return QFunction(
+        mean,
+        scale,
+        np.vstack([c for c, _ in members]),
+        np.array([w for _, w in members]),
+        np.vstack(weights),
+        rotation,
+        np.array([len(c) for c, _ in members]),
+    )

@@ -264,7 +264,7 @@ def read_archive(
     path: Path | str,
     *,
     format_name: str,
-    format_version: int,
+    format_version: int | tuple[int, ...],
     expected_shapes: Callable[[dict[str, Any]], Mapping[str, ShapeRule]] | None = None,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Read and check an archive of ``format_name`` at ``format_version``.
@@ -316,14 +316,19 @@ def _short(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def _check_format(path: Path, metadata: dict[str, Any], format_name: str, version: int) -> None:
+def _check_format(
+    path: Path, metadata: dict[str, Any], format_name: str, version: int | tuple[int, ...]
+) -> None:
     what = format_name.removeprefix("tpsr-ros ")
+    readable = version if isinstance(version, tuple) else (version,)
     if metadata.get("format") != format_name:
         raise ModelFormatError(
             f"{str(path)!r} is a {_short(metadata.get('format'))} file, not a {format_name!r} file"
         )
-    if metadata.get("format_version") != version:
+    found = metadata.get("format_version")
+    if type(found) is not int or found not in readable:
+        shown = " or ".join(map(str, readable))
         raise ModelFormatError(
-            f"{str(path)!r} has {what} format version {_short(metadata.get('format_version'))}; "
-            f"this tpsr-ros reads version {version}"
+            f"{str(path)!r} has {what} format version {_short(found)}; "
+            f"this tpsr-ros reads version {shown}"
         )

@@ -6,11 +6,12 @@ plus the name of that representation's model: its SHA-256 fingerprint
 ground-truth baseline. Whoever pairs a policy with a model (evaluation, filter node)
 checks the fingerprint and refuses a mismatch.
 
-File layout (:mod:`tpsr_ros.io.npz_archive`): arrays ``mean``, ``scale``, ``centers``,
-``width``, ``weights`` and JSON metadata ``{"format": "tpsr-ros policy",
-"format_version": 1, "representation", "model_fingerprint", "model_path",
+File layout (:mod:`tpsr_ros.io.npz_archive`): float64 arrays ``mean``, ``scale``,
+``rotation``, ``centers``, ``width`` (one per fitted-Q member), ``weights``, int64
+``group_sizes`` (centres per member) and JSON metadata ``{"format": "tpsr-ros policy",
+"format_version": 2, "representation", "model_fingerprint", "model_path",
 "environment", "fqi": {...}, "data": {...}, "state_dim", "n_actions", "n_centers",
-...}``.
+"members", ...}``. Version 1 files (one member, no rotation) still load.
 """
 
 from __future__ import annotations
@@ -39,10 +40,10 @@ __all__ = [
 ]
 
 FORMAT_NAME = "tpsr-ros policy"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 TRUE_POSITION = "true-position"
 REPRESENTATIONS = ("tpsr", "pca", TRUE_POSITION)
-_ARRAYS = ("mean", "scale", "centers", "width", "weights")
 MAX_MAGNITUDE = 1e100
 """Bound on every stored value: fitted Q squares widths and distances, which must not overflow."""
 
@@ -122,9 +123,11 @@ def save_policy(policy: Policy, path: Path | str, *, force: bool = False) -> Pat
     arrays = {
         "mean": q.mean,
         "scale": q.scale,
+        "rotation": np.eye(q.state_dim) if q.rotation is None else q.rotation,
         "centers": q.centers,
-        "width": np.array(q.width, dtype=np.float64),
+        "width": q.width,
         "weights": q.weights,
+        "group_sizes": q.group_sizes,
     }
     metadata = {
         **policy.metadata,
@@ -136,6 +139,7 @@ def save_policy(policy: Policy, path: Path | str, *, force: bool = False) -> Pat
         "state_dim": policy.state_dim,
         "n_actions": policy.n_actions,
         "n_centers": int(q.centers.shape[0]),
+        "members": q.members,
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "software": {"tpsr_ros": tpsr_ros.__version__, "numpy": np.__version__},
     }
@@ -147,19 +151,24 @@ def _expected_shapes(path: Path, metadata: dict[str, Any]) -> dict[str, ShapeRul
 
     Files written before ``n_centers`` was recorded leave the number of centres free (the
     archive's size limit still bounds it, and the arrays must agree with each other).
+    Version 1 files have one member, a scalar width and no rotation or group sizes.
     """
     dim = metadata_size(path, metadata, "state_dim")
     actions = metadata_size(path, metadata, "n_actions")
     centers = (
         None if metadata.get("n_centers") is None else metadata_size(path, metadata, "n_centers")
     )
-    return {
+    shapes: dict[str, ShapeRule] = {
         "mean": (dim,),
         "scale": (dim,),
         "centers": (centers, dim),
         "width": (),
         "weights": (centers, actions),
     }
+    if metadata.get("format_version") == 1:
+        return shapes
+    members = metadata_size(path, metadata, "members")
+    return {**shapes, "width": (members,), "rotation": (dim, dim), "group_sizes": (members,)}
 
 
 def load_policy(path: Path | str) -> Policy:
@@ -168,9 +177,10 @@ def load_policy(path: Path | str) -> Policy:
     metadata, arrays = read_archive(
         path,
         format_name=FORMAT_NAME,
-        format_version=FORMAT_VERSION,
+        format_version=READABLE_VERSIONS,
         expected_shapes=lambda meta: _expected_shapes(path, meta),
     )
+    sizes = arrays.pop("group_sizes", None)
     for name, array in arrays.items():
         if array.dtype != np.float64 or not np.all(np.isfinite(array)):
             raise ModelFormatError(f"array {name!r} of {str(path)!r} is not finite float64")
@@ -182,7 +192,15 @@ def load_policy(path: Path | str) -> Policy:
         if metadata.get(key) is not None and not isinstance(metadata.get(key), str):
             raise ModelFormatError(f"the metadata of {str(path)!r} lacks a valid {key!r} entry")
     mean, scale, centers, weights = (arrays[k] for k in ("mean", "scale", "centers", "weights"))
+    width = np.atleast_1d(arrays["width"])
+    rotation = arrays.get("rotation")
     dim = mean.shape[0] if mean.ndim == 1 else -1
+    if sizes is None:
+        sizes = np.array([len(centers)])
+    elif sizes.dtype != np.int64 or np.any(sizes < 1) or sizes.sum() != len(centers):
+        raise ModelFormatError(
+            f"{str(path)!r}: 'group_sizes' must be positive int64 counts summing to the centres"
+        )
     consistent = (
         mean.ndim == 1
         and scale.shape == mean.shape
@@ -191,8 +209,8 @@ def load_policy(path: Path | str) -> Policy:
         and centers.shape[1] == dim
         and weights.ndim == 2
         and weights.shape[0] == centers.shape[0]
-        and arrays["width"].shape == ()
-        and float(arrays["width"]) > 1.0 / MAX_MAGNITUDE
+        and width.shape == sizes.shape
+        and np.all(width > 1.0 / MAX_MAGNITUDE)
         and np.all(scale > 1.0 / MAX_MAGNITUDE)
         and metadata.get("state_dim") == dim
         and metadata.get("n_actions") == weights.shape[1]
@@ -202,7 +220,9 @@ def load_policy(path: Path | str) -> Policy:
     fingerprint = metadata.get("model_fingerprint")
     if not isinstance(fingerprint, str) or not fingerprint:
         raise ModelFormatError(f"{str(path)!r} does not name the model it belongs to")
-    q = QFunction(mean, scale, centers, float(arrays["width"]), weights)
+    if rotation is not None and np.array_equal(rotation, np.eye(dim)):
+        rotation = None  # standardised states: skip the identity product
+    q = QFunction(mean, scale, centers, width, weights, rotation, sizes)
     known = {f.name for f in dataclasses.fields(Policy)} | {"format", "format_version"}
     return Policy(
         q=q,
