@@ -30,6 +30,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "learner.evaluate",
     "learner.closed_loop",
     "learner.experiment",
+    "learner.study",
     "learner.report",
     "learner.memory",
     "learner.demo",

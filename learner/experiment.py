@@ -56,6 +56,8 @@ __all__ = [
     "METHODS",
     "ExperimentConfig",
     "Row",
+    "add_grid_options",
+    "config_from_args",
     "default_config",
     "difference_in_sems",
     "plot_summary",
@@ -432,14 +434,8 @@ def format_table(table: Sequence[dict[str, Any]]) -> list[str]:
     return lines
 
 
-def register(subparsers: Any) -> None:
-    """Add the ``experiment`` subcommand."""
-    doc = "run the guide's learning-planning loop (figure 4.2) for one environment"
-    parser = subparsers.add_parser(
-        "experiment",
-        help=doc,
-        description=doc[0].upper() + doc[1:] + ". " + __doc__.split("\n\n")[1],
-    )
+def add_grid_options(parser: argparse.ArgumentParser) -> None:
+    """Options shared by ``experiment`` and ``study``: data sizes, repetitions, seeds, --set."""
     parser.add_argument("--environment", required=True, choices=[e.value for e in Environment])
     parser.add_argument(
         "--episodes",
@@ -456,14 +452,6 @@ def register(subparsers: Any) -> None:
         default=0,
         metavar="K",
         help="index of the first repetition (rerun rows alone)",
-    )
-    parser.add_argument(
-        "--methods",
-        nargs="+",
-        choices=METHODS,
-        default=list(METHODS),
-        help="floors (constant, random), learned representations (tpsr, pca) and the "
-        "ceiling (true-position); default: all",
     )
     parser.add_argument(
         "--set",
@@ -484,13 +472,6 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--rl-seed", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0, help="base of every training seed")
     parser.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1)
-    parser.add_argument(
-        "-o",
-        "--output",
-        type=Path,
-        default=Path("results"),
-        help="directory for experiment_<env>.csv/.png (default: results)",
-    )
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
     parser.add_argument(
         "--p-th-tests",
@@ -498,15 +479,43 @@ def register(subparsers: Any) -> None:
         default="after-current",
         help="TPSR P_TH test window (see learner fit)",
     )
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``experiment`` subcommand."""
+    doc = "run the guide's learning-planning loop (figure 4.2) for one environment"
+    parser = subparsers.add_parser(
+        "experiment",
+        help=doc,
+        description=doc[0].upper() + doc[1:] + ". " + __doc__.split("\n\n")[1],
+    )
+    add_grid_options(parser)
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        choices=METHODS,
+        default=list(METHODS),
+        help="floors (constant, random), learned representations (tpsr, pca) and the "
+        "ceiling (true-position); default: all",
+    )
+    parser.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=Path("results"),
+        help="directory for experiment_<env>.csv/.png (default: results)",
+    )
     parser.set_defaults(run=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run the grid, write CSV and PNG, print the summary."""
+def config_from_args(
+    args: argparse.Namespace, methods: Sequence[str], assignments: Sequence[str]
+) -> ExperimentConfig:
+    """The grid the options of :func:`add_grid_options` describe, with ``assignments`` applied."""
     overrides: dict[str, Any] = {
         "repetitions": args.repetitions,
         "first_repetition": args.first_repetition,
-        "methods": tuple(args.methods),
+        "methods": tuple(methods),
         "rl_seed": args.rl_seed,
         "seed": args.seed,
     }
@@ -516,12 +525,17 @@ def run(args: argparse.Namespace) -> int:
         "pca": base.pca,
         "fqi": base.fqi,
     }
-    overrides.update(apply_overrides(configs, args.assignments))
+    overrides.update(apply_overrides(configs, assignments))
     if args.episodes:
         overrides["episodes"] = tuple(args.episodes)
     if args.rl_steps:
         overrides["rl_steps"] = args.rl_steps
-    config = default_config(args.environment, **overrides)
+    return default_config(args.environment, **overrides)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the grid, write CSV and PNG, print the summary."""
+    config = config_from_args(args, args.methods, args.assignments)
     csv_path = args.output / f"experiment_{args.environment}.csv"
     png_path = args.output / f"experiment_{args.environment}.png"
     for path in (csv_path, png_path):

@@ -21,7 +21,13 @@ from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.pca_baseline import PCAConfig
 from tpsr_ros.core.tpsr import TPSRConfig
 
-__all__ = ["CONFIG_CLASSES", "apply_overrides", "parameter_names", "parse_assignment"]
+__all__ = [
+    "CONFIG_CLASSES",
+    "apply_overrides",
+    "parameter_names",
+    "parse_assignment",
+    "resolve",
+]
 
 CONFIG_CLASSES: Mapping[str, type] = {"tpsr": TPSRConfig, "pca": PCAConfig, "fqi": FQIConfig}
 _BOOLEANS = {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}
@@ -44,7 +50,7 @@ def parse_assignment(text: str) -> tuple[str, str]:
     return name.strip().replace("-", "_"), value.strip()
 
 
-def _resolve(name: str) -> tuple[str, str]:
+def resolve(name: str) -> tuple[str, str]:
     """``(group, field)`` for a qualified or unambiguous bare name."""
     names = parameter_names()
     if name in names:
@@ -90,7 +96,7 @@ def apply_overrides(configs: Mapping[str, Any], assignments: Iterable[str]) -> d
     changes: dict[str, dict[str, Any]] = {group: {} for group in CONFIG_CLASSES}
     for text in assignments:
         name, value = parse_assignment(text)
-        group, field = _resolve(name)
+        group, field = resolve(name)
         changes[group][field] = _convert(group, field, value)
     result = dict(configs)
     for group, values in changes.items():
