@@ -65,7 +65,7 @@ def test_bad_values_are_refused(text, message):
 
 def test_a_bad_value_is_refused_before_any_run(tmp_path, capsys):
     out = tmp_path / "results"
-    with pytest.raises(ConfigError, match="pca.dim=0: PCA dim must be a positive integer"):
+    with pytest.raises(ConfigError, match=r"pca\.dim=0: PCA dim must be a positive integer"):
         main(["study", *GRID, "--vary", "pca.dim=2,0", "-o", str(out)])
     assert "run/s" not in capsys.readouterr().err  # refused before the first grid started
     assert not (out / "study_full_pca_dim.csv").exists()
