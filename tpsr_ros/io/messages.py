@@ -47,6 +47,8 @@ __all__ = [
     "stamp_of",
     "state_msg",
     "state_to_array",
+    "twist_components",
+    "twist_from_components",
     "twist_msg",
     "twist_stamped_msg",
     "twist_to_xy",
@@ -168,6 +170,31 @@ def twist_to_xy(msg: Any) -> tuple[float, float]:
     if not (np.isfinite(vx) and np.isfinite(vy)):
         raise MessageError(f"velocity ({vx}, {vy}) is not finite")
     return vx, vy
+
+
+def twist_components(msg: Any, components: tuple[str, ...]) -> np.ndarray:
+    """Chosen components (``"linear.x"``, ``"angular.z"``...) of a Twist or TwistStamped."""
+    twist = msg.twist if hasattr(msg, "twist") else msg
+    values = np.empty(len(components))
+    for i, name in enumerate(components):
+        part, axis = name.split(".")
+        values[i] = float(getattr(getattr(twist, part), axis))
+    if not np.isfinite(values).all():
+        shown = dict(zip(components, values.tolist(), strict=True))
+        raise MessageError(f"command {shown} is not finite")
+    return values
+
+
+def twist_from_components(values: dict[str, float]) -> Any:
+    """``geometry_msgs/msg/Twist`` with the given components (``"linear.x"``...), others 0."""
+    parts: dict[str, dict[str, float]] = {"linear": {}, "angular": {}}
+    for name, value in values.items():
+        part, axis = name.split(".")
+        parts[part][axis] = float(value)
+    return _t(TWIST_TYPE)(
+        linear=_vector3(**{a: parts["linear"].get(a, 0.0) for a in "xyz"}),
+        angular=_vector3(**{a: parts["angular"].get(a, 0.0) for a in "xyz"}),
+    )
 
 
 def pose_msg(stamp_ns: int, x: float, y: float, frame_id: str = "map") -> Any:
