@@ -3,7 +3,7 @@
 A robot records its camera and its velocity commands at their own rates and clocks. The
 learner and the filter node need steps ``(a_k, o_k)`` one period apart. The rules, shared by
 offline reading (:func:`resample_grid`, vectorised) and the filter node
-(:class:`tpsr_ros.runtime.grid.GridStepper`, one message at a time):
+(:class:`GridStepper`, one message at a time, in arrival order):
 
 - **grid**: step times ``t_k = origin + k * period`` with ``origin`` = the first image time
   plus half the camera period (so image stamp jitter below half a camera period never
@@ -20,6 +20,8 @@ order; an image not newer than the one before is dropped (:func:`increasing`).
 
 from __future__ import annotations
 
+import bisect
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,7 +30,15 @@ import numpy as np
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.units import NS_PER_S
 
-__all__ = ["GridConfig", "ResampledSteps", "grid_origin", "increasing", "resample_grid"]
+__all__ = [
+    "GridConfig",
+    "GridStep",
+    "GridStepper",
+    "ResampledSteps",
+    "grid_origin",
+    "increasing",
+    "resample_grid",
+]
 
 
 @dataclass(frozen=True)
@@ -149,3 +159,87 @@ def resample_grid(
         stale_image=int(np.count_nonzero(~image_ok)),
         no_command=int(np.count_nonzero(image_ok & ~command_ok)),
     )
+
+
+@dataclass(frozen=True)
+class GridStep:
+    """One step of :class:`GridStepper`: its time, image (as given) and command (as given)."""
+
+    stamp: int
+    image: Any
+    command: Any
+
+
+class GridStepper:
+    """The rules of :func:`resample_grid`, applied to messages as they arrive.
+
+    Feed commands with :meth:`add_command` and images with :meth:`add_image`; each image
+    completes the grid steps before it and returns them. Given the messages of a bag in
+    its order, the steps equal :func:`resample_grid`'s (the commands of a step must have
+    arrived before the image that completes it). Counters: ``images``, ``commands``,
+    ``images_out_of_order`` (not newer than the previous image: dropped),
+    ``camera_gaps`` and ``command_gaps`` (grid steps that were gaps), ``steps``.
+    """
+
+    def __init__(self, config: GridConfig, command_history: int = 256) -> None:
+        self.config = config
+        self._commands: deque[tuple[int, Any]] = deque(maxlen=command_history)
+        self.images = self.commands = self.images_out_of_order = 0
+        self.camera_gaps = self.command_gaps = self.steps = 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget grid, last image and commands: a new grid starts at the next image."""
+        self.origin: int | None = None
+        self._next = 0
+        self.last_image: tuple[int, Any] | None = None
+        self._commands.clear()
+
+    @property
+    def last_image_time(self) -> int | None:
+        """Time of the newest image (ns), or None."""
+        return None if self.last_image is None else self.last_image[0]
+
+    def add_command(self, time_ns: int, command: Any) -> None:
+        """A command in force from ``time_ns`` on (kept in time order)."""
+        self.commands += 1
+        times = [t for t, _ in self._commands]
+        self._commands.insert(bisect.bisect_right(times, time_ns), (int(time_ns), command))
+
+    def _command_at(self, time_ns: int) -> Any | None:
+        times = [t for t, _ in self._commands]
+        index = bisect.bisect_right(times, time_ns) - 1
+        if index < 0 or time_ns - times[index] > self.config.command_timeout_ns:
+            return None
+        return self._commands[index][1]
+
+    def add_image(self, time_ns: int, image: Any) -> list[GridStep]:
+        """Add an image; return the grid steps it completes (those before ``time_ns``)."""
+        time_ns = int(time_ns)
+        if self.last_image is not None and time_ns <= self.last_image[0]:
+            self.images_out_of_order += 1
+            return []
+        self.images += 1
+        steps: list[GridStep] = []
+        if self.origin is None:
+            self.origin = grid_origin(time_ns, self.config)
+            self._next = 0
+        elif self.last_image is not None:
+            step = self.config.step_ns
+            last_time, last = self.last_image
+            due = -(-(time_ns - self.origin) // step)  # grid points before time_ns
+            while self._next < due:
+                t = self.origin + self._next * step
+                if t - last_time > self.config.image_timeout_ns:
+                    self.camera_gaps += due - self._next  # camera silence up to this image
+                    self._next = due
+                    break
+                command = self._command_at(t)
+                if command is None:
+                    self.command_gaps += 1
+                else:
+                    steps.append(GridStep(t, last, command))
+                    self.steps += 1
+                self._next += 1
+        self.last_image = (time_ns, image)
+        return steps
