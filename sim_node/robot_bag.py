@@ -73,6 +73,7 @@ class RobotBagConfig:
     environment: str = "full"
     command_jitter: float = 0.6
     jpeg_quality: int = 90
+    command_topic: str = "/cmd_vel"
 
     def __post_init__(self) -> None:
         if self.encoding not in ENCODINGS:
@@ -174,7 +175,9 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
         records.append((int(image_logs[i]), 0, config.image_topic, serialize(msg, msgtype)))
     for i in range(command_s.size):
         twist = twist_from_components({"linear.x": commands[i, 0], "linear.y": commands[i, 1]})
-        records.append((int(command_logs[i]), 1, "/cmd_vel", serialize(twist, TWIST_TYPE)))
+        records.append(
+            (int(command_logs[i]), 1, config.command_topic, serialize(twist, TWIST_TYPE))
+        )
     for i in range(odom_s.size):
         msg = _odometry(int(odom_stamps[i]), *odom_xy[i])
         records.append((int(odom_stamps[i]) + 1_000_000, 2, "/odom", serialize(msg, ODOM_TYPE)))
@@ -190,7 +193,7 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
     with BagWriter(output) as writer:
         writer.set_custom_data("tpsr_ros.robot_bag", json.dumps(asdict(config)))
         writer.add_topic(config.image_topic, image_type)
-        writer.add_topic("/cmd_vel", TWIST_TYPE)
+        writer.add_topic(config.command_topic, TWIST_TYPE)
         writer.add_topic("/odom", ODOM_TYPE)
         writer.add_topic("/reward", REWARD_TYPE)
         for log_time, _, topic, data in records:

@@ -327,6 +327,17 @@ class FilterNode(Node):
             else None
         )
         self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
+        if (
+            self.cmd_pub is not None
+            and self.cmd_pub.topic == self.action_topic
+            and COMMAND_TYPES[p.command_type] != (self.spec.action_type if self.spec else "")
+        ):
+            raise ConfigError(
+                f"the node's commands and its command input are both {self.action_topic}, "
+                f"but of types {COMMAND_TYPES[p.command_type]} and "
+                f"{self.spec.action_type if self.spec else m.ACTION_TYPE}: set command_type "
+                "to the input's type or remap one of them"
+            )
         if self.spec is None:
             self.image_type, self.action_type = m.IMAGE_TYPE, m.ACTION_TYPE
             on_image, on_action = self._on_image, self._on_action
