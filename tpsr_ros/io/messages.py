@@ -12,6 +12,7 @@ Message choices (see msgs_doc/topics.md):
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 from functools import cache
 from typing import Any
@@ -35,6 +36,7 @@ __all__ = [
     "RewardSample",
     "clock_msg",
     "deserialize",
+    "header_stamp_ns",
     "image_msg",
     "image_to_array",
     "jazzy_typestore",
@@ -95,6 +97,22 @@ def stamp_of(msg: Any) -> int:
     """Stamp of a message with a ``header`` (or a Clock) in integer nanoseconds."""
     stamp = msg.clock if hasattr(msg, "clock") else msg.header.stamp
     return int(stamp.sec) * _NS + int(stamp.nanosec)
+
+
+def header_stamp_ns(data: bytes | memoryview) -> int:
+    """Stamp of serialised CDR bytes of a message that starts with a ``std_msgs/Header``.
+
+    Reads only the encapsulation header and the stamp (``int32 sec``, ``uint32 nanosec``),
+    so a reader can place large messages (images) in time without deserialising them.
+    """
+    raw = bytes(data[:12])
+    if len(raw) < 12 or raw[0] != 0 or raw[1] not in (0, 1):
+        raise MessageError("the CDR data is too short or not plain CDR")
+    order = "<" if raw[1] == 1 else ">"
+    sec, nanosec = struct.unpack(order + "iI", raw[4:12])
+    if sec < 0 or nanosec >= _NS:
+        raise MessageError(f"header stamp {sec} s {nanosec} ns is not a valid time")
+    return sec * _NS + nanosec
 
 
 def serialize(msg: Any, msgtype: str) -> bytes:

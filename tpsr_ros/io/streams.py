@@ -39,9 +39,15 @@ from tpsr_ros.core.images import Preprocessing
 from tpsr_ros.core.resample import GridConfig, increasing, resample_grid
 from tpsr_ros.core.units import NS_PER_S
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.io.images import IMAGE_TYPE, IMAGE_TYPES, decode_image
+from tpsr_ros.io.images import IMAGE_TYPES, decode_image
 from tpsr_ros.io.images import image_observations as _observations
-from tpsr_ros.io.messages import REWARD_TYPE, TWIST_TYPE, twist_components
+from tpsr_ros.io.messages import (
+    REWARD_TYPE,
+    TWIST_TYPE,
+    deserialize,
+    header_stamp_ns,
+    twist_components,
+)
 from tpsr_ros.io.stream_spec import COMMAND_TYPES, StreamSpec
 
 __all__ = [
@@ -105,11 +111,12 @@ class _Streams:
     action_type: str
     image_times: np.ndarray  # (I,) of the images kept (increasing)
     image_numbers: np.ndarray  # (I,) their message index on the topic
-    image_shape: tuple[int, ...] | None  # (H, W, C) of the first image, raw types only
     command_times: np.ndarray
     commands: np.ndarray  # (C, len(components))
-    pose_times: np.ndarray
-    poses: np.ndarray
+    pose_topic: str | None
+    pose_type: str
+    pose_times: np.ndarray  # sorted
+    pose_data: list[bytes]  # CDR, decoded only around the step times
     reward_times: np.ndarray
     rewards: np.ndarray
     environment: str | None
@@ -178,34 +185,29 @@ def _read_streams(
         command_times: list[int] = []
         commands: list[np.ndarray] = []
         pose_times: list[int] = []
-        poses: list[tuple[float, float]] = []
+        pose_data: list[bytes] = []
         reward_times: list[int] = []
         rewards: list[float] = []
-        image_shape = None
         for bag_msg in reader.messages(wanted):
             topic = bag_msg.topic
             index = numbers[topic]
             numbers[topic] += 1
             try:
-                msg = bag_msg.decode()
-                if topic == image_topic:
-                    if image_type == IMAGE_TYPE:
-                        shape = decode_image(msg, image_type).shape  # validates raw fields
-                        image_shape = image_shape or shape
-                        if shape != image_shape:
-                            raise MessageError(f"image is {shape}, earlier ones {image_shape}")
-                    image_times.append(_time(msg, bag_msg.log_time_ns))
+                if topic == image_topic:  # placed in time now, decoded only if a step uses it
+                    image_times.append(_fast_time(bag_msg))
+                elif topic == pose_topic:
+                    pose_times.append(_fast_time(bag_msg))
+                    pose_data.append(bag_msg.data)
                 elif topic == action_topic:
+                    msg = bag_msg.decode()
                     commands.append(twist_components(msg, components))
                     command_times.append(
                         bag_msg.log_time_ns
                         if action_type == TWIST_TYPE
                         else _time(msg, bag_msg.log_time_ns)
                     )
-                elif topic == pose_topic:
-                    pose_times.append(_time(msg, bag_msg.log_time_ns))
-                    poses.append(_pose_xy(msg, available[topic]))
                 else:
+                    msg = bag_msg.decode()
                     if tuple(msg.name[:1]) != ("reward",) or len(msg.position) < 1:
                         raise MessageError("a reward message names 'reward' first")
                     reward_times.append(_time(msg, bag_msg.log_time_ns))
@@ -225,16 +227,43 @@ def _read_streams(
         action_type=action_type,
         image_times=times[keep],
         image_numbers=np.flatnonzero(keep),
-        image_shape=image_shape,
         command_times=command_t[order],
         commands=np.array(commands, dtype=np.float64).reshape(-1, len(components))[order],
+        pose_topic=pose_topic if pose_topic in wanted else None,
+        pose_type=available.get(pose_topic or "", ""),
         pose_times=pose_t[pose_order],
-        poses=np.array(poses, dtype=np.float64).reshape(-1, 2)[pose_order],
+        pose_data=[pose_data[i] for i in pose_order.tolist()],
         reward_times=np.array(reward_times, dtype=np.int64),
         rewards=np.array(rewards, dtype=np.float64),
         environment=str(environment) if environment else None,
         dropped_images=int(times.size - keep.sum()),
     )
+
+
+def _fast_time(bag_msg: Any) -> int:
+    """Header stamp read from the CDR bytes, or the log time where the stamp is zero."""
+    stamp = header_stamp_ns(bag_msg.data)
+    return stamp if stamp > 0 else int(bag_msg.log_time_ns)
+
+
+def _poses_at(streams: _Streams, at: np.ndarray) -> np.ndarray:
+    """Ground-truth (x, y) interpolated at ``at``; only the poses around each time are decoded."""
+    times = streams.pose_times
+    out = np.full((at.size, 2), np.nan)
+    if times.size == 0 or streams.pose_topic is None:
+        return out
+    after = np.clip(np.searchsorted(times, at, side="left"), 0, times.size - 1)
+    needed = np.unique(np.concatenate([after, np.maximum(after - 1, 0)]))
+    values = np.empty((needed.size, 2))
+    for row, index in enumerate(needed.tolist()):
+        try:
+            msg = deserialize(streams.pose_data[index], streams.pose_type)
+            values[row] = _pose_xy(msg, streams.pose_type)
+        except MessageError as exc:
+            raise MessageError(
+                f"bag {str(streams.path)!r}, topic {streams.pose_topic!r}: {exc}"
+            ) from None
+    return _interpolate(times[needed], values, at)
 
 
 def _decode_images(
@@ -349,7 +378,7 @@ def fit_stream_spec(
     else:
         codebook = fit_codebook(commands[:, columns], varying, options.actions, options.seed)
     first = streams[0]
-    shape = first.image_shape or _first_pixels(first, image_topic).shape
+    shape = _first_pixels(first, image_topic).shape
     grey = shape[2] == 1 if options.grey is None else options.grey
     height, width = options.image_size or shape[:2]
     return StreamSpec(
@@ -446,7 +475,7 @@ def read_stream_trajectory(
             streams.image_numbers[steps.image_index],
             spec.preprocessing,
         )
-        positions = _interpolate(streams.pose_times, streams.poses, steps.stamps)
+        positions = _poses_at(streams, steps.stamps)
         if require_ground_truth and np.isnan(positions).all():
             raise DataError(
                 f"bag {str(path)!r}: the poses on {pose_topic!r} cover none of the steps"
