@@ -426,12 +426,20 @@ class FilterNode(Node):
             arrivals.popleft()
 
     def _count_lost(self, which: str, stamp: int) -> None:
-        """Steps missing between consecutive stamps of a simulator stream (stamps t0 + k T)."""
+        """Steps the middleware lost on a simulator stream, from the gaps in its stamps.
+
+        Simulator step k is stamped k periods after time 0 or after its episode start
+        (DESIGN.md), so a stamp n periods after the previous one on the topic (or after
+        time 0, or the last episode start) means n - 1 lost steps. A backwards jump of
+        time starts the count afresh from time 0.
+        """
         last = self._last_input_stamp[which]
+        if last is None or stamp < last - round(self.params.jump_threshold * _NS):
+            last = 0
         step = self.tracker.step_ns
-        if last is not None and stamp > last and (stamp - last) % step == 0:
+        if stamp > last and (stamp - last) % step == 0:
             self.lost[which] += (stamp - last) // step - 1
-        if last is None or stamp > last:
+        if stamp > last:
             self._last_input_stamp[which] = stamp
 
     def _on_image(self, data: bytes) -> None:
