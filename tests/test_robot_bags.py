@@ -4,6 +4,8 @@ simulator bags still giving bit-identical models through the exact-stamp pairing
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -14,12 +16,13 @@ from sim_node.generate import generate_bag
 from sim_node.robot_bag import START_S, RobotBagConfig, write_robot_bag
 from sim_node.rollout import random_rollout
 from tpsr_ros.core.episodes import Trajectory, make_episodes
-from tpsr_ros.core.errors import DataError, MessageError
+from tpsr_ros.core.errors import DataError, MessageError, ModelFormatError
 from tpsr_ros.core.images import Preprocessing, preprocess_images
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
 from tpsr_ros.io import messages as msgs
 from tpsr_ros.io.bag import BagReader, BagWriter
 from tpsr_ros.io.model_io import load_model, model_fingerprint, model_stream_spec, read_metadata
+from tpsr_ros.io.npz_archive import write_archive
 from tpsr_ros.io.streams import FitOptions, fit_stream_spec, read_stream_trajectory
 
 S = 10**9
@@ -136,7 +139,29 @@ def test_fit_info_plot_policy_need_no_options_again(robot, capsys):
     )
     assert code == 0, err
     code, out, _ = run_entry(["info", str(model)], capsys)
-    assert code == 0
+    assert code == 0 and f"input: camera {CAMERA} (sensor_msgs/msg/Image) as 8x8 colour" in out
+    assert "25 kmeans actions over linear.x, linear.y; steps of 1 s" in out
+
+
+def test_a_model_whose_input_entry_is_wrong_is_refused(robot):
+    model = robot["tmp"] / "m_input.npz"
+    argv = ["fit", str(robot["bag"]), "--image-topic", CAMERA, *ROBOT, "--image-size", "8",
+            "--actions", "25", "-o", str(model), *SMALL]
+    assert main(argv) == 0
+    metadata = read_metadata(model)
+    arrays = load_model(model).to_arrays()
+    for change, reason in [
+        ({"codebook": {**metadata["input"]["codebook"], "codes": [[1.0, 2.0]]}},
+         "has 25 actions, but its codebook 1 codes"),
+        ({"image": {**metadata["input"]["image"], "height": 9}}, "its input preprocessing makes"),
+        ({"grid": {**metadata["input"]["grid"], "step_period_s": -1}}, "step_period_s -1"),
+        ({"action": {"topic": "/cmd_vel", "type": "std_msgs/msg/String"}}, "command type"),
+    ]:
+        broken = {**metadata, "input": {**metadata["input"], **change}}
+        path = robot["tmp"] / "broken.npz"
+        write_archive(path, arrays, broken, force=True)
+        with pytest.raises(ModelFormatError, match=re.escape(reason)):
+            load_model(path)
 
 
 def test_a_bag_without_ground_truth_plots_by_time(robot, tmp_path, capsys):
