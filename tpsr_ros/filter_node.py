@@ -2,7 +2,12 @@
 
     python -m tpsr_ros.filter_node --ros-args -p model:=MODEL [-p policy:=POLICY]
 
-Boilerplate around three ROS-free parts (see msgs_doc/filter_node.md for the interface):
+Boilerplate around three ROS-free parts (see msgs_doc/filter_node.md for the interface).
+A model learned from robot bags (``learner fit --step-period``) brings its own inputs: the
+node subscribes its camera and command topics and types, and
+:class:`tpsr_ros.core.resample.GridStepper` replaces the pairing below: steps on the model's
+grid with the latest image and the command in force, the offline rules one message at a
+time (states equal ``learner plot``'s). For simulator models:
 
 - :class:`tpsr_ros.runtime.pairing.ExactTimeSynchronizer` pairs ``/camera/image_raw`` and
   ``/action`` by identical header stamp in a bounded buffer (like message_filters' ExactTime);
@@ -24,7 +29,9 @@ frame or data length, actions that are not finite or not one of the 25 actions a
 rejected (counted per reason, at most one warning per topic every 5 s); incomplete,
 duplicated, late and out-of-order messages are counted by the synchroniser; degenerate
 normalisers are recovered by the guard of :mod:`tpsr_ros.core.filtering` and counted.
-``/diagnostics`` reports it all once a second.
+``/diagnostics`` reports it all once a second, with the input rates, the time since each
+input last delivered (WARN when one is silent, STALE when both are) and the steps lost in
+the middleware (gaps in the simulator's stamps).
 """
 
 from __future__ import annotations
