@@ -17,7 +17,7 @@ from tpsr_ros.cli import positive_int
 from tpsr_ros.core.codebook import COMPONENTS, DEFAULT_COMPONENTS
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError
-from tpsr_ros.io.model_io import model_stream_spec
+from tpsr_ros.io.model_io import model_stream_spec, read_metadata
 from tpsr_ros.io.stream_spec import StreamSpec
 from tpsr_ros.io.streams import FitOptions, read_stream_trajectory
 from tpsr_ros.io.trajectory import Topics, read_trajectory
@@ -28,6 +28,7 @@ __all__ = [
     "image_size",
     "read_for_model",
     "recorded_topic",
+    "require_simulator_model",
     "topic",
 ]
 
@@ -197,3 +198,18 @@ def read_for_model(
         reward_topic=reward,
         require_ground_truth=require_ground_truth,
     )
+
+
+def require_simulator_model(model_path: Path | str) -> None:
+    """Refuse a model learned from robot bags where the simulator's actions are meant.
+
+    The simulator executes the 25 pairs by index; a robot model's action indices name its
+    own codebook, so driving the simulator with them would be silently wrong.
+    """
+    spec = model_stream_spec(model_path, read_metadata(model_path))
+    if spec is not None and spec.codebook.kind != "sim":
+        raise ConfigError(
+            f"model {str(model_path)!r} was learned from robot bags ({len(spec.codebook)} "
+            f"{spec.codebook.kind} actions over {', '.join(spec.codebook.components)}); the "
+            "simulator's protocol needs a model of its own 25 actions"
+        )
