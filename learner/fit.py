@@ -25,7 +25,7 @@ from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
 from tpsr_ros.io.model_io import check_output_path, save_model
 from tpsr_ros.io.stream_spec import StreamSpec
-from tpsr_ros.io.streams import fit_stream_spec, read_stream_trajectory
+from tpsr_ros.io.streams import DEFAULT_POSE_FRAME, fit_stream_spec, read_stream_trajectory
 from tpsr_ros.io.trajectory import Topics, read_trajectory
 
 __all__ = [
@@ -81,6 +81,15 @@ def add_topic_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup)
             metavar="TOPIC",
             help=f"{f.metadata.get('help', '')} (default: {f.default}, or the model's)",
         )
+
+
+    parser.add_argument(
+        "--pose-frame",
+        default=None,
+        metavar="FRAME",
+        help="with a tf2_msgs/TFMessage pose topic (/tf): the child frame whose transforms "
+        f"are the ground truth (default: {DEFAULT_POSE_FRAME}, or the model's)",
+    )
 
 
 def topics_from_args(args: argparse.Namespace) -> Topics:
@@ -153,7 +162,11 @@ def run(args: argparse.Namespace) -> int:
         )
         _say(_spec_line(spec))
         trajectory = read_stream_trajectory(
-            args.bags, spec, pose_topic=topics.pose, reward_topic=topics.reward
+            args.bags,
+            spec,
+            pose_topic=topics.pose,
+            reward_topic=topics.reward,
+            pose_frame=args.pose_frame or DEFAULT_POSE_FRAME,
         )
         _say(_commands_line(trajectory, spec))
     timings["reading bags"] = time.perf_counter() - start

@@ -19,7 +19,7 @@ from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.io.model_io import model_stream_spec, read_metadata
 from tpsr_ros.io.stream_spec import StreamSpec
-from tpsr_ros.io.streams import FitOptions, read_stream_trajectory
+from tpsr_ros.io.streams import DEFAULT_POSE_FRAME, FitOptions, read_stream_trajectory
 from tpsr_ros.io.trajectory import Topics, read_trajectory
 
 __all__ = [
@@ -155,7 +155,7 @@ def topic(args: argparse.Namespace, name: str) -> str:
 
 
 def recorded_topic(metadata: dict[str, Any], name: str) -> str | None:
-    """The ``name`` topic recorded by the model's first training bag, if any."""
+    """The ``name`` topic (or ``pose_frame``) recorded by the model's first training bag."""
     bags = metadata.get("training", {}).get("bags") if isinstance(metadata, dict) else None
     if isinstance(bags, list) and bags and isinstance(bags[0], dict):
         topics = bags[0].get("topics")
@@ -191,12 +191,14 @@ def read_for_model(
             )
     pose = getattr(args, "pose_topic", None) or recorded_topic(metadata, "pose")
     reward = getattr(args, "reward_topic", None) or recorded_topic(metadata, "reward")
+    frame = getattr(args, "pose_frame", None) or recorded_topic(metadata, "pose_frame")
     return read_stream_trajectory(
         bags,
         spec,
         pose_topic=pose,
         reward_topic=reward,
         require_ground_truth=require_ground_truth,
+        pose_frame=frame or DEFAULT_POSE_FRAME,
     )
 
 

@@ -261,3 +261,39 @@ def test_simulator_bags_give_the_model_of_the_unchanged_core_path(tmp_path):
     expected = fit_tpsr_episodes(make_episodes(reference, 1, 1), config=tpsr)
     assert model_fingerprint(load_model(model_path)) == model_fingerprint(expected)
     assert "input" not in read_metadata(model_path)  # read as simulator bags always were
+
+
+def test_ground_truth_from_tf_equals_odometry(robot, tmp_path):
+    types = msgs.jazzy_typestore().types
+    tf_bag = tmp_path / "tf"
+    with BagReader(robot["bag"]) as reader, BagWriter(tf_bag) as writer:
+        writer.add_topic(CAMERA, reader.topics[CAMERA])
+        writer.add_topic("/cmd_vel", reader.topics["/cmd_vel"])
+        writer.add_topic("/tf", "tf2_msgs/msg/TFMessage")
+        for m in reader.messages([CAMERA, "/cmd_vel", "/odom"]):
+            if m.topic != "/odom":
+                writer.write(m.topic, m.log_time_ns, m.data)
+                continue
+            odom = m.decode()
+            p = odom.pose.pose.position
+
+            def transform(child, dx, p=p, odom=odom):
+                return types["geometry_msgs/msg/TransformStamped"](
+                    header=odom.header,
+                    child_frame_id=child,
+                    transform=types["geometry_msgs/msg/Transform"](
+                        translation=types["geometry_msgs/msg/Vector3"](x=p.x + dx, y=p.y, z=0.0),
+                        rotation=odom.pose.pose.orientation,
+                    ),
+                )
+
+            tf = types["tf2_msgs/msg/TFMessage"](
+                transforms=[transform("camera_link", 0.3), transform("base_link", 0.0)]
+            )
+            writer.write_message("/tf", m.log_time_ns, tf)
+    spec = fit_stream_spec([robot["bag"]], options(), image_topic=CAMERA, action_topic="/cmd_vel")
+    odom = read_stream_trajectory([robot["bag"]], spec, pose_topic="/odom")
+    from_tf = read_stream_trajectory([tf_bag], spec, pose_topic="/tf", require_ground_truth=True)
+    np.testing.assert_allclose(from_tf.positions, odom.positions, rtol=0, atol=1e-12)
+    camera = read_stream_trajectory([tf_bag], spec, pose_topic="/tf", pose_frame="camera_link")
+    np.testing.assert_allclose(camera.positions[:, 0], odom.positions[:, 0] + 0.3, atol=1e-9)

@@ -93,7 +93,8 @@ class Trajectory:
         stamps: ``(T,)`` int64 header stamps (ns).
         observations: ``(T, k)`` float64, see :func:`image_to_observation`.
         actions: ``(T,)`` int64 action indices.
-        velocities: ``(T, 2)`` commanded velocities as recorded.
+        velocities: ``(T, 2)`` commanded velocities as recorded (robot bags: ``(T, d)``, the
+            command components of the action codebook).
         positions: ``(T, 2)`` true position (NaN where no pose has the step's stamp).
         rewards: ``(T,)`` reward (NaN where missing).
         segments: ``(T,)`` int64 segment number, increasing; consecutive stamps share one.

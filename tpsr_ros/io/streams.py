@@ -11,8 +11,10 @@ take it from the model; a bag or stream that does not fit it is refused with the
 encoding or ``CompressedImage``; time = header stamp, or log time where the stamp is zero),
 commands (``Twist``: log time, when it was commanded; ``TwistStamped``: header stamp, or
 log time where zero), optional ground truth (``PoseStamped``, ``Odometry``,
-``TransformStamped``; interpolated at the step times) and reward (``JointState`` as the
-simulator writes it: the reward of a step is the last one stamped within the step).
+``TransformStamped``, ``PoseWithCovarianceStamped``, or ``tf2_msgs/TFMessage`` (``/tf``:
+the transforms whose child frame is ``pose_frame``); interpolated at the step times) and
+reward (``JointState`` as the simulator writes it: the reward of a step is the last one
+stamped within the step).
 :func:`fit_stream_spec` first makes the spec from the training bags (camera period,
 constant command components, k-means codebook).
 """
@@ -52,18 +54,24 @@ from tpsr_ros.io.stream_spec import COMMAND_TYPES, StreamSpec
 
 __all__ = [
     "COMMAND_TYPES",
+    "DEFAULT_POSE_FRAME",
     "POSE_TYPES",
+    "TF_TYPE",
     "FitOptions",
     "StreamSpec",
     "fit_stream_spec",
     "read_stream_trajectory",
 ]
 
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+TRANSFORM_TYPE = "geometry_msgs/msg/TransformStamped"
+DEFAULT_POSE_FRAME = "base_link"
 POSE_TYPES = (
     "geometry_msgs/msg/PoseStamped",
     "nav_msgs/msg/Odometry",
     "geometry_msgs/msg/TransformStamped",
     "geometry_msgs/msg/PoseWithCovarianceStamped",
+    TF_TYPE,
 )
 MIN_FRESH_FRACTION = 0.5
 """Fewer grid steps with a new image than this fraction: the step period is refused."""
@@ -117,6 +125,7 @@ class _Streams:
     pose_type: str
     pose_times: np.ndarray  # sorted
     pose_data: list[bytes]  # CDR, decoded only around the step times
+    pose_values: np.ndarray | None  # (P, 2) already decoded (tf: transforms of one frame)
     reward_times: np.ndarray
     rewards: np.ndarray
     environment: str | None
@@ -168,6 +177,7 @@ def _read_streams(
     reward_topic: str | None,
     components: tuple[str, ...],
     require_pose: bool,
+    pose_frame: str = DEFAULT_POSE_FRAME,
 ) -> _Streams:
     with BagReader(path) as reader:
         counts = reader.message_counts
@@ -186,6 +196,8 @@ def _read_streams(
         commands: list[np.ndarray] = []
         pose_times: list[int] = []
         pose_data: list[bytes] = []
+        tf_values: list[tuple[float, float]] = []
+        is_tf = bool(pose_topic) and available.get(pose_topic or "") == TF_TYPE
         reward_times: list[int] = []
         rewards: list[float] = []
         for bag_msg in reader.messages(wanted):
@@ -195,6 +207,11 @@ def _read_streams(
             try:
                 if topic == image_topic:  # placed in time now, decoded only if a step uses it
                     image_times.append(_fast_time(bag_msg))
+                elif topic == pose_topic and is_tf:  # the transforms to the pose frame
+                    for transform in bag_msg.decode().transforms:
+                        if transform.child_frame_id == pose_frame:
+                            pose_times.append(_time(transform, bag_msg.log_time_ns))
+                            tf_values.append(_pose_xy(transform, TRANSFORM_TYPE))
                 elif topic == pose_topic:
                     pose_times.append(_fast_time(bag_msg))
                     pose_data.append(bag_msg.data)
@@ -232,7 +249,10 @@ def _read_streams(
         pose_topic=pose_topic if pose_topic in wanted else None,
         pose_type=available.get(pose_topic or "", ""),
         pose_times=pose_t[pose_order],
-        pose_data=[pose_data[i] for i in pose_order.tolist()],
+        pose_data=[pose_data[i] for i in pose_order.tolist()] if pose_data else [],
+        pose_values=(
+            np.array(tf_values, dtype=np.float64).reshape(-1, 2)[pose_order] if is_tf else None
+        ),
         reward_times=np.array(reward_times, dtype=np.int64),
         rewards=np.array(rewards, dtype=np.float64),
         environment=str(environment) if environment else None,
@@ -252,6 +272,8 @@ def _poses_at(streams: _Streams, at: np.ndarray) -> np.ndarray:
     out = np.full((at.size, 2), np.nan)
     if times.size == 0 or streams.pose_topic is None:
         return out
+    if streams.pose_values is not None:
+        return _interpolate(times, streams.pose_values, at)
     after = np.clip(np.searchsorted(times, at, side="left"), 0, times.size - 1)
     needed = np.unique(np.concatenate([after, np.maximum(after - 1, 0)]))
     values = np.empty((needed.size, 2))
@@ -412,6 +434,7 @@ def read_stream_trajectory(
     pose_topic: str | None = None,
     reward_topic: str | None = None,
     require_ground_truth: bool = False,
+    pose_frame: str = DEFAULT_POSE_FRAME,
 ) -> Trajectory:
     """Read ``bags`` onto the spec's step grid (see the module docstring and core.resample).
 
@@ -436,6 +459,7 @@ def read_stream_trajectory(
             reward_topic=reward_topic,
             components=codebook.components,
             require_pose=require_ground_truth,
+            pose_frame=pose_frame,
         )
         for what, got, expected in (
             ("camera", streams.image_type, spec.image_type),
@@ -516,6 +540,7 @@ def read_stream_trajectory(
                     "image": spec.image_topic,
                     "action": spec.action_topic,
                     "pose": pose_topic,
+                    "pose_frame": pose_frame,
                     "reward": reward_topic,
                 },
             }
