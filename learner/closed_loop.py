@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, Evaluation, Trial
+from learner.streams import require_simulator_model
 from sim_node import Environment
 from sim_node.topics import CMD_IGNORED_TOPIC
 from tpsr_ros.core.errors import ModelFormatError, TpsrError
@@ -283,6 +284,7 @@ def _check_inputs(
         )
     policy.check_environment(environment)
     model = policy.model_path(model_path).resolve()
+    require_simulator_model(model)
     load_filter_inputs(str(model), str(policy_path))
     return policy_path, model
 

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from learner.representations import Tracker, load_tracker
+from learner.streams import require_simulator_model
 from sim_node import Environment, RobotEnv, SimConfig
 from tpsr_ros.core.errors import ModelFormatError
 from tpsr_ros.io.policy import TRUE_POSITION, Policy, load_policy
@@ -147,6 +148,7 @@ def register(subparsers: Any) -> None:
 def _tracker_for(policy: Policy, model: str | None) -> Tracker:
     if policy.representation == TRUE_POSITION:
         return load_tracker(TRUE_POSITION)
+    require_simulator_model(policy.model_path(model))
     return load_tracker(policy.model_path(model))
 
 

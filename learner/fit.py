@@ -17,12 +17,15 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from learner.streams import add_stream_options, fit_options_from_args
 from tpsr_ros.cli import positive_int
-from tpsr_ros.core.episodes import make_episodes
+from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
 from tpsr_ros.io.model_io import check_output_path, save_model
+from tpsr_ros.io.stream_spec import StreamSpec
+from tpsr_ros.io.streams import DEFAULT_POSE_FRAME, fit_stream_spec, read_stream_trajectory
 from tpsr_ros.io.trajectory import Topics, read_trajectory
 
 __all__ = [
@@ -69,20 +72,34 @@ def config_from_args(cls: type[C], args: argparse.Namespace) -> C:
 
 
 def add_topic_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """``--image-topic`` etc. from :class:`Topics`."""
+    """``--image-topic`` etc. from :class:`Topics` (None when not given: see topics_from_args)."""
     for f in dataclasses.fields(Topics):
         parser.add_argument(
             f"--{f.name}-topic",
             dest=f"{f.name}_topic",
-            default=f.default,
+            default=None,
             metavar="TOPIC",
-            help=f"{f.metadata.get('help', '')} (default: %(default)s)",
+            help=f"{f.metadata.get('help', '')} (default: {f.default}, or the model's)",
         )
 
 
+    parser.add_argument(
+        "--pose-frame",
+        default=None,
+        metavar="FRAME",
+        help="with a tf2_msgs/TFMessage pose topic (/tf): the child frame whose transforms "
+        f"are the ground truth (default: {DEFAULT_POSE_FRAME}, or the model's)",
+    )
+
+
 def topics_from_args(args: argparse.Namespace) -> Topics:
-    """Return the :class:`Topics` chosen with :func:`add_topic_options`."""
-    return Topics(**{f.name: getattr(args, f"{f.name}_topic") for f in dataclasses.fields(Topics)})
+    """Return the :class:`Topics` chosen with :func:`add_topic_options` (defaults filled in)."""
+    return Topics(
+        **{
+            f.name: getattr(args, f"{f.name}_topic", None) or f.default
+            for f in dataclasses.fields(Topics)
+        }
+    )
 
 
 def register(subparsers: Any) -> None:
@@ -115,6 +132,9 @@ def register(subparsers: Any) -> None:
     add_config_options(parser.add_argument_group("TPSR parameters (guide table 3.5)"), TPSRConfig)
     add_config_options(parser.add_argument_group("PCA baseline"), PCAConfig)
     add_topic_options(parser.add_argument_group("topics"))
+    add_stream_options(
+        parser.add_argument_group("robot bags: camera and commands resampled onto a step grid")
+    )
     parser.set_defaults(run=run)
 
 
@@ -129,9 +149,26 @@ def run(args: argparse.Namespace) -> int:
     pca_config = config_from_args(PCAConfig, args)
     timings: dict[str, float] = {}
 
+    stream_options = fit_options_from_args(args)
     _say(f"reading {len(args.bags)} bag(s)")
     start = time.perf_counter()
-    trajectory = read_trajectory(args.bags, topics=topics_from_args(args))
+    topics = topics_from_args(args)
+    spec: StreamSpec | None = None
+    if stream_options is None:
+        trajectory = read_trajectory(args.bags, topics=topics)
+    else:
+        spec = fit_stream_spec(
+            args.bags, stream_options, image_topic=topics.image, action_topic=topics.action
+        )
+        _say(_spec_line(spec))
+        trajectory = read_stream_trajectory(
+            args.bags,
+            spec,
+            pose_topic=topics.pose,
+            reward_topic=topics.reward,
+            pose_frame=args.pose_frame or DEFAULT_POSE_FRAME,
+        )
+        _say(_commands_line(trajectory, spec))
     timings["reading bags"] = time.perf_counter() - start
     episodes = make_episodes(
         trajectory,
@@ -163,11 +200,32 @@ def run(args: argparse.Namespace) -> int:
     }
     _say(f"writing {output}")
     start = time.perf_counter()
-    save_model(model, output, training=training, force=args.force)
+    save_model(model, output, training=training, inputs=spec, force=args.force)
     timings["writing"] = time.perf_counter() - start
     for line in summary_lines(model, training, timings, output):
         print(line)
     return 0
+
+
+def _spec_line(spec: StreamSpec) -> str:
+    prep, grid = spec.preprocessing, spec.grid.as_dict()
+    return (
+        f"steps of {grid['step_period_s']:g} s (camera period {grid['camera_period_s']:.3g} s); "
+        f"observations {prep.width}x{prep.height} {'grey' if prep.grey else 'colour'}; "
+        f"{len(spec.codebook)} actions over {', '.join(spec.codebook.components)} "
+        f"({spec.codebook.kind})"
+    )
+
+
+def _commands_line(trajectory: Trajectory, spec: StreamSpec) -> str:
+    sources = trajectory.sources
+    far = sum(int(s.get("far_commands", 0)) for s in sources)
+    worst = max(float(s.get("worst_command_distance", 0.0)) for s in sources)
+    gaps = sum(int(s.get("camera_gaps", 0)) + int(s.get("command_gaps", 0)) for s in sources)
+    return (
+        f"commands: {far} of {len(trajectory)} farther than {spec.codebook.far_distance:.3g} "
+        f"from every code (worst {worst:.3g}); {gaps} grid steps were gaps"
+    )
 
 
 def _fmt(values: Any) -> str:

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from tpsr_ros.io.model_io import load_model, read_metadata
+from tpsr_ros.io.model_io import load_model, model_stream_spec, read_metadata
 
 __all__ = ["info_lines", "register", "run"]
 
@@ -59,6 +59,18 @@ def info_lines(path: Path, metadata: dict[str, Any]) -> list[str]:
             f"{training.get('environment')}, stamps {training.get('stamps_ns')} ns"
         )
         lines.append(f"bags: {', '.join(map(str, bags))}")
+    spec = model_stream_spec(path, metadata)
+    if spec is not None:
+        prep, grid = spec.preprocessing, spec.grid.as_dict()
+        book = spec.codebook
+        lines.append(
+            f"input: camera {spec.image_topic} ({spec.image_type}) as {prep.width}x"
+            f"{prep.height} {'grey' if prep.grey else 'colour'}; commands {spec.action_topic} "
+            f"({spec.action_type}) as {len(book)} {book.kind} actions over "
+            f"{', '.join(book.components)}; steps of {grid['step_period_s']:g} s (image "
+            f"timeout {grid['image_timeout_s']:g} s, command timeout "
+            f"{grid['command_timeout_s']:g} s)"
+        )
     if "singular_values" in summary:
         lines.append(f"singular values of P_TH: {_short(summary['singular_values'])}")
     for key, ev in summary.get("explained_variance", {}).items():

@@ -19,12 +19,14 @@ import numpy as np
 
 from learner.fit import add_config_options, add_topic_options, config_from_args, topics_from_args
 from learner.representations import Tracker, load_tracker
+from learner.streams import read_for_model
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import DataError
 from tpsr_ros.core.fqi import FQIConfig, fit_q
+from tpsr_ros.io.model_io import read_metadata
 from tpsr_ros.io.npz_archive import check_output_path
-from tpsr_ros.io.policy import Policy, save_policy
+from tpsr_ros.io.policy import TRUE_POSITION, Policy, save_policy
 from tpsr_ros.io.trajectory import read_trajectory
 
 __all__ = ["fit_policy", "register", "run", "transitions"]
@@ -114,7 +116,11 @@ def run(args: argparse.Namespace) -> int:
     output = check_output_path(args.output, force=args.force)
     config = config_from_args(FQIConfig, args)
     tracker = load_tracker(args.model)
-    trajectory = _first_steps(read_trajectory(args.bags, topics=topics_from_args(args)), args.steps)
+    if str(args.model) == TRUE_POSITION:
+        read = read_trajectory(args.bags, topics=topics_from_args(args))
+    else:  # a model reads bags as its training bags were read (its input spec, if any)
+        read = read_for_model(args.model, read_metadata(args.model), args.bags, args)
+    trajectory = _first_steps(read, args.steps)
     environment = trajectory.summary()["environment"]
     if not isinstance(environment, str):
         environment = None  # unknown or mixed: evaluation will not check it

@@ -16,11 +16,11 @@ from typing import Any
 
 import numpy as np
 
-from learner.fit import add_topic_options, topics_from_args
+from learner.fit import add_topic_options
+from learner.streams import read_for_model
 from tpsr_ros.core.episodes import track_trajectory
 from tpsr_ros.core.errors import DataError
-from tpsr_ros.io.model_io import check_output_path, load_model
-from tpsr_ros.io.trajectory import read_trajectory
+from tpsr_ros.io.model_io import check_output_path, load_model, model_stream_spec, read_metadata
 
 __all__ = ["affine_r2", "plot_states", "register", "run"]
 
@@ -45,7 +45,11 @@ def plot_states(
     max_pairs: int = 3,
     title: str = "",
 ) -> None:
-    """Scatter dimension pairs of ``states (T, r)`` coloured by reward, x and y; write a PNG."""
+    """Scatter dimension pairs of ``states (T, r)`` coloured by reward, x and y; write a PNG.
+
+    Colourings without data (no reward, no ground truth) are left out; with neither, the
+    states are coloured by time (step number).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -57,16 +61,19 @@ def plot_states(
         pairs = list(itertools.combinations(range(min(r, 3)), 2))[:max_pairs]
     else:
         pairs = [(-1, 0)]  # the single dimension against the step index
-    fig, axes = plt.subplots(len(pairs), 3, figsize=(12, 4 * len(pairs)), squeeze=False)
     finite = np.isfinite(rewards)
     low = min(float(np.nanmin(rewards)) if finite.any() else -1.0, -1e-9)
     high = max(float(np.nanmax(rewards)) if finite.any() else 1.0, 1e-9)
+    steps = np.arange(states.shape[0])
     colourings = [
         ("reward", rewards, TwoSlopeNorm(vmin=low, vcenter=0.0, vmax=high)),
         ("true x", positions[:, 0], None),
         ("true y", positions[:, 1], None),
     ]
-    steps = np.arange(states.shape[0])
+    colourings = [c for c in colourings if np.isfinite(c[1]).any()] or [("time", steps, None)]
+    fig, axes = plt.subplots(
+        len(pairs), len(colourings), figsize=(4 * len(colourings), 4 * len(pairs)), squeeze=False
+    )
     for row, (i, j) in enumerate(pairs):
         xs = steps if i < 0 else states[:, i]
         for col, (name, colour, norm) in enumerate(colourings):
@@ -102,7 +109,7 @@ def register(subparsers: Any) -> None:
         type=Path,
         nargs="+",
         metavar="BAG",
-        help="bag(s) with images, actions, ground-truth pose and reward",
+        help="bag(s) with images and actions (and ground-truth pose and reward, if any)",
     )
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="PNG")
     parser.add_argument("--force", action="store_true", help="overwrite an existing PNG")
@@ -117,19 +124,30 @@ def run(args: argparse.Namespace) -> int:
         raise DataError(f"output file {str(output)!r} already exists; use --force to overwrite it")
     check_output_path(output, force=True)
     model = load_model(args.model)
-    trajectory = read_trajectory(
-        args.bags, topics=topics_from_args(args), require_ground_truth=True
+    metadata = read_metadata(args.model)
+    # simulator models demand ground truth as always; robot models plot without it
+    exact = model_stream_spec(args.model, metadata) is None
+    trajectory = read_for_model(
+        args.model, metadata, args.bags, args, require_ground_truth=exact
     )
     tracked = track_trajectory(model, trajectory)
-    r2 = affine_r2(tracked.states, trajectory.positions)
+    known = np.isfinite(trajectory.positions).all(axis=1)
+    r2 = affine_r2(tracked.states[known], trajectory.positions[known]) if known.sum() > 2 else None
+    fit_line = "" if r2 is None else f" (R^2 of x, y from an affine map: {r2[0]:.3f}, {r2[1]:.3f})"
     plot_states(
         tracked.states,
         trajectory.positions,
         trajectory.rewards,
         output,
-        title=f"{model.method} states over {len(trajectory)} steps "
-        f"(R^2 of x, y from an affine map: {r2[0]:.3f}, {r2[1]:.3f})",
+        title=f"{model.method} states over {len(trajectory)} steps{fit_line}",
     )
     print(f"wrote {output}: {len(trajectory)} steps, {int(tracked.recovered.sum())} recoveries")
-    print(f"R^2 of true position from states (affine least squares): x {r2[0]:.3f}, y {r2[1]:.3f}")
+    if r2 is None:
+        print("no ground-truth pose in the bag(s): states coloured by time, no R^2")
+    else:
+        partial = "" if known.all() else f" (over the {int(known.sum())} steps with a pose)"
+        print(
+            f"R^2 of true position from states (affine least squares): x {r2[0]:.3f}, "
+            f"y {r2[1]:.3f}{partial}"
+        )
     return 0

@@ -61,3 +61,43 @@ def test_the_user_api_is_the_package() -> None:
     from tpsr_ros.core.tpsr import TPSRModel
 
     assert tpsr_ros.TPSRModel is TPSRModel
+
+
+def _robot_commands() -> list[str]:
+    text = README.read_text(encoding="utf-8")
+    section = text[text.index("## Learning from your robot's bag") :]
+    match = re.search(r"```sh\n(.*?)```", section, re.DOTALL)
+    assert match is not None, "no sh block in the README's robot section"
+    return match.group(1).replace("\\\n", " ").strip().splitlines()
+
+
+def test_the_readme_robot_bag_commands_run(tmp_path) -> None:
+    import os
+    import shlex
+    import subprocess
+    import sys
+
+    commands = _robot_commands()
+    assert [c.split()[:3] for c in commands] == [
+        ["python", "-m", "sim_node.robot_bag"],
+        ["python", "-m", "learner"],
+        ["python", "-m", "learner"],
+        ["python", "-m", "learner"],
+    ]
+    root = README.parent
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    small = {"--steps 9000": "--steps 900"}  # the same commands on a small bag
+    outputs = []
+    for command in commands:
+        for long, short in small.items():
+            command = command.replace(long, short)
+        argv = [sys.executable, *shlex.split(command)[1:]]
+        if argv[3:4] == ["fit"]:
+            argv += ["--obs-centers", "40", "--ht-centers", "80", "--rank", "3"]
+        done = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True)
+        assert done.returncode == 0, (command, done.stderr[-2000:])
+        outputs.append(done.stdout + done.stderr)
+    assert "25 actions over linear.x, linear.y (kmeans)" in outputs[1]
+    assert "R^2 of true position from states" in outputs[2]
+    for name in ("robot_bag", "robot_model.npz", "robot_states.png", "robot_policy.npz"):
+        assert (tmp_path / name).exists(), name

@@ -2,7 +2,12 @@
 
     python -m tpsr_ros.filter_node --ros-args -p model:=MODEL [-p policy:=POLICY]
 
-Boilerplate around three ROS-free parts (see msgs_doc/filter_node.md for the interface):
+Boilerplate around three ROS-free parts (see msgs_doc/filter_node.md for the interface).
+A model learned from robot bags (``learner fit --step-period``) brings its own inputs: the
+node subscribes its camera and command topics and types, and
+:class:`tpsr_ros.core.resample.GridStepper` replaces the pairing below: steps on the model's
+grid with the latest image and the command in force, the offline rules one message at a
+time (states equal ``learner plot``'s). For simulator models:
 
 - :class:`tpsr_ros.runtime.pairing.ExactTimeSynchronizer` pairs ``/camera/image_raw`` and
   ``/action`` by identical header stamp in a bounded buffer (like message_filters' ExactTime);
@@ -24,13 +29,16 @@ frame or data length, actions that are not finite or not one of the 25 actions a
 rejected (counted per reason, at most one warning per topic every 5 s); incomplete,
 duplicated, late and out-of-order messages are counted by the synchroniser; degenerate
 normalisers are recovered by the guard of :mod:`tpsr_ros.core.filtering` and counted.
-``/diagnostics`` reports it all once a second.
+``/diagnostics`` reports it all once a second, with the input rates, the time since each
+input last delivered (WARN when one is silent, STALE when both are) and the steps lost in
+the middleware (gaps in the simulator's stamps).
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -43,10 +51,14 @@ from tpsr_ros.core.episodes import (
     velocities_to_actions,
 )
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
+from tpsr_ros.core.images import preprocess_images
 from tpsr_ros.core.online import OnlineTracker
+from tpsr_ros.core.resample import GridStep, GridStepper
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io import messages as m
-from tpsr_ros.io.filter_inputs import FilterInputs, load_filter_inputs
+from tpsr_ros.io.filter_inputs import FilterInputs, input_topics, load_filter_inputs
+from tpsr_ros.io.images import decode_image
+from tpsr_ros.io.stream_spec import TWIST_STAMPED_TYPE
 from tpsr_ros.runtime import (
     DEFAULT_QOS,
     LATCHED_QOS,
@@ -63,6 +75,7 @@ from tpsr_ros.runtime.diagnostics import (
     DIAGNOSTICS_TYPE,
     ERROR,
     OK,
+    STALE,
     WARN,
     RollingPercentiles,
     diagnostic_array,
@@ -98,6 +111,9 @@ STATE_TOPIC = "tpsr/state"
 CMD_VEL_TOPIC = "cmd_vel"
 DIAGNOSTICS_TOPIC = "/diagnostics"
 REJECT_REASONS = ("undecodable", "encoding", "size", "data", "frame", "action")
+COMMAND_TYPES = {"twist": m.TWIST_TYPE, "twist_stamped": TWIST_STAMPED_TYPE}
+RATE_WINDOW_S = 10.0
+"""Input rates on /diagnostics count the messages of the last this many seconds."""
 CLOCK_QOS = QoSProfile(Reliability.BEST_EFFORT, Durability.VOLATILE, History.KEEP_LAST, 10)
 """Best effort, so /clock from any publisher matches (rosbag2 publishes it best-effort)."""
 WARN_PERIOD_S = 5.0
@@ -139,11 +155,19 @@ class FilterNodeParams:
         0, "hold the first command until /cmd_vel and /tpsr/state each have this many subscriptions"
     )
     diagnostics_period: float = param(1.0, "s between /diagnostics reports")
+    command_type: str = param(
+        "twist",
+        "type of the /cmd_vel commands: twist (geometry_msgs/Twist) or twist_stamped",
+        choices=tuple(COMMAND_TYPES),
+    )
+    input_timeout: float = param(
+        3.0, "s; an input silent for longer makes /diagnostics WARN, all inputs silent STALE"
+    )
 
     def __post_init__(self) -> None:
         if self.queue_size < 1:
             raise ConfigError(f"queue_size must be >= 1, got {self.queue_size}")
-        for name in ("step_period", "diagnostics_period"):
+        for name in ("step_period", "diagnostics_period", "input_timeout"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name} must be a positive number of seconds, got {value}")
@@ -253,11 +277,8 @@ class FilterNode(Node):
         # so the check sees exactly the names setup() will subscribe.
         probe = object.__new__(cls)
         probe.options, probe.name, probe.namespace = options, options.name, options.namespace
-        return (
-            probe.resolve_topic(IMAGE_TOPIC),
-            probe.resolve_topic(ACTION_TOPIC),
-            options.namespace,
-        )
+        image, action = input_topics(options.params.model) or (IMAGE_TOPIC, ACTION_TOPIC)
+        return (probe.resolve_topic(image), probe.resolve_topic(action), options.namespace)
 
     @classmethod
     def preflight(cls, options: NodeOptions) -> None:
@@ -267,12 +288,25 @@ class FilterNode(Node):
     def setup(self) -> None:
         """Load and check the model and policy; create the endpoints and timers."""
         p: FilterNodeParams = self.params
-        self.image_topic = self.resolve_topic(IMAGE_TOPIC)
-        self.action_topic = self.resolve_topic(ACTION_TOPIC)
+        image_name, action_name = input_topics(p.model) or (IMAGE_TOPIC, ACTION_TOPIC)
+        self.image_topic = self.resolve_topic(image_name)
+        self.action_topic = self.resolve_topic(action_name)
         self.inputs = load_inputs(p, self.image_topic, self.action_topic, self.namespace)
         self.model = self.inputs.model
         self.policy = self.inputs.policy
-        self.tracker = OnlineTracker(self.model, round(p.step_period * _NS))
+        self.spec = self.inputs.spec
+        step_ns = self.spec.grid.step_ns if self.spec else round(p.step_period * _NS)
+        self.tracker = OnlineTracker(self.model, step_ns)
+        self.grid = GridStepper(self.spec.grid) if self.spec else None
+        self.lost = {"image": 0, "action": 0}
+        self._last_input_stamp: dict[str, int | None] = {"image": None, "action": None}
+        self._arrivals: dict[str, deque[float]] = {
+            "image": deque(maxlen=100_000),
+            "action": deque(maxlen=100_000),
+        }
+        self._last_arrival: dict[str, float | None] = {"image": None, "action": None}
+        self._last_image_arrival_ns: int | None = None
+        self.far_commands = 0
         self.sync = ExactTimeSynchronizer(
             2, queue_size=p.queue_size, jump_threshold_ns=round(p.jump_threshold * _NS)
         )
@@ -286,7 +320,7 @@ class FilterNode(Node):
         self._recovery_run = 0
         self._action_cache: dict[tuple[float, float], int] = {}
         self._last_report = (time.monotonic(), 0, self._problem_counts())
-        self._pending_command: int | None = None
+        self._pending_command: tuple[int, int | None] | None = None
         self._ready_since: float | None = None
         self.commands_ready = self.policy is None
 
@@ -295,14 +329,33 @@ class FilterNode(Node):
         )
         self.state_pub = self.create_publisher(STATE_TOPIC, m.STATE_TYPE)
         self.cmd_pub = (
-            self.create_publisher(CMD_VEL_TOPIC, m.TWIST_TYPE) if self.policy is not None else None
+            self.create_publisher(CMD_VEL_TOPIC, COMMAND_TYPES[p.command_type])
+            if self.policy is not None
+            else None
         )
         self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
+        if (
+            self.cmd_pub is not None
+            and self.cmd_pub.topic == self.action_topic
+            and COMMAND_TYPES[p.command_type] != (self.spec.action_type if self.spec else "")
+        ):
+            raise ConfigError(
+                f"the node's commands and its command input are both {self.action_topic}, "
+                f"but of types {COMMAND_TYPES[p.command_type]} and "
+                f"{self.spec.action_type if self.spec else m.ACTION_TYPE}: set command_type "
+                "to the input's type or remap one of them"
+            )
+        if self.spec is None:
+            self.image_type, self.action_type = m.IMAGE_TYPE, m.ACTION_TYPE
+            on_image, on_action = self._on_image, self._on_action
+        else:
+            self.image_type, self.action_type = self.spec.image_type, self.spec.action_type
+            on_image, on_action = self._on_grid_image, self._on_grid_command
         self.image_sub = self.create_subscription(
-            IMAGE_TOPIC, m.IMAGE_TYPE, self._on_image, sensor, raw=True
+            image_name, self.image_type, on_image, sensor, raw=True
         )
         self.action_sub = self.create_subscription(
-            ACTION_TOPIC, m.ACTION_TYPE, self._on_action, sensor, raw=True
+            action_name, self.action_type, on_action, sensor, raw=True
         )
         self.reset_topic = self.create_subscription(
             RESET_TOPIC, m.POSE_TYPE, self._on_reset, LATCHED_QOS, raw=True
@@ -314,9 +367,14 @@ class FilterNode(Node):
         if self.policy is not None:
             self._ready_timer = self.create_timer(0.01, self._check_ready)
         what = "pure filter" if self.policy is None else f"policy {p.policy}"
+        how = (
+            "pairing"
+            if self.spec is None
+            else f"steps of {self.spec.grid.step_ns / _NS:g} s from"
+        )
         self.logger.info(
             f"model {p.model} ({self.model.method}, {self.model.state_dim}-d states, "
-            f"{self.inputs.fingerprint[:12]}); {what}; pairing {self.image_topic} and "
+            f"{self.inputs.fingerprint[:12]}); {what}; {how} {self.image_topic} and "
             f"{self.action_topic}"
         )
 
@@ -344,7 +402,15 @@ class FilterNode(Node):
             "gaps": self.tracker.gaps,
             "recoveries": self.tracker.recoveries,
             "errors": self.errors,
+            "lost_images": self.lost["image"],
+            "lost_actions": self.lost["action"],
         }
+        if self.grid is not None:
+            counts["dropped"] = self.grid.images_out_of_order
+            counts["out_of_order"] = self.grid.images_out_of_order
+            counts["camera_gaps"] = self.grid.camera_gaps
+            counts["command_gaps"] = self.grid.command_gaps
+            counts["far_commands"] = self.far_commands
         counts.update({f"rejected_{reason}": n for reason, n in self.rejected.items()})
         return counts
 
@@ -357,8 +423,35 @@ class FilterNode(Node):
             self._reject(topic, "undecodable", str(exc))
             return None
 
+    def _arrived(self, which: str) -> None:
+        """Note an input message's arrival (rates and staleness on /diagnostics)."""
+        now = time.monotonic()
+        self._last_arrival[which] = now
+        arrivals = self._arrivals[which]
+        arrivals.append(now)
+        while arrivals[0] < now - RATE_WINDOW_S:
+            arrivals.popleft()
+
+    def _count_lost(self, which: str, stamp: int) -> None:
+        """Steps the middleware lost on a simulator stream, from the gaps in its stamps.
+
+        Simulator step k is stamped k periods after time 0 or after its episode start
+        (DESIGN.md), so a stamp n periods after the previous one on the topic (or after
+        time 0, or the last episode start) means n - 1 lost steps. A backwards jump of
+        time starts the count afresh from time 0.
+        """
+        last = self._last_input_stamp[which]
+        if last is None or stamp < last - round(self.params.jump_threshold * _NS):
+            last = 0
+        step = self.tracker.step_ns
+        if stamp > last and (stamp - last) % step == 0:
+            self.lost[which] += (stamp - last) // step - 1
+        if stamp > last:
+            self._last_input_stamp[which] = stamp
+
     def _on_image(self, data: bytes) -> None:
         start = time.perf_counter()
+        self._arrived("image")
         msg = self._decode(data, m.IMAGE_TYPE, self.image_topic)
         if msg is None:
             return
@@ -367,10 +460,12 @@ class FilterNode(Node):
         except _Rejected as exc:
             self._reject(self.image_topic, exc.reason, str(exc))
             return
+        self._count_lost("image", m.stamp_of(msg))
         self._add(0, m.stamp_of(msg), image, self.image_topic, start)
 
     def _on_action(self, data: bytes) -> None:
         start = time.perf_counter()
+        self._arrived("action")
         msg = self._decode(data, m.ACTION_TYPE, self.action_topic)
         if msg is None:
             return
@@ -379,7 +474,81 @@ class FilterNode(Node):
         except _Rejected as exc:
             self._reject(self.action_topic, exc.reason, str(exc))
             return
+        self._count_lost("action", m.stamp_of(msg))
         self._add(1, m.stamp_of(msg), action, self.action_topic, start)
+
+    # -- robot streams on the model's step grid (tpsr_ros.core.resample) ----------------
+
+    def _stream_time(self, msg: Any) -> int:
+        """Header stamp, or for unstamped messages the stream time now.
+
+        The stream's clock is the camera's: the newest image stamp plus the time elapsed
+        since it arrived (an unstamped command is placed between the images it arrived
+        between, as its log time places it in a bag).
+        """
+        header = getattr(msg, "header", None)
+        if header is not None:
+            stamp = int(header.stamp.sec) * _NS + int(header.stamp.nanosec)
+            if stamp > 0:
+                return stamp
+        assert self.grid is not None
+        last = self.grid.last_image_time
+        if last is None or self._last_image_arrival_ns is None:
+            return time.time_ns()
+        return last + max(1, time.monotonic_ns() - self._last_image_arrival_ns)
+
+    def _on_grid_image(self, data: bytes) -> None:
+        start = time.perf_counter()
+        assert self.grid is not None and self.spec is not None
+        self._arrived("image")
+        msg = self._decode(data, self.image_type, self.image_topic)
+        if msg is None:
+            return
+        stamp = self._stream_time(msg)
+        last = self.grid.last_image_time
+        if last is not None and stamp < last - round(self.params.jump_threshold * _NS):
+            self.grid.reset()
+            self.sync.stats.time_jumps += 1
+            self._reinit(f"camera time jumped back to {stamp / _NS:.3f} s")
+        steps = self.grid.add_image(stamp, msg)
+        self._last_image_arrival_ns = time.monotonic_ns()
+        for step in steps:
+            self._grid_step(step, start)
+
+    def _grid_step(self, step: GridStep, start: float) -> None:
+        assert self.spec is not None
+        try:
+            pixels = decode_image(step.image, self.image_type)
+            observation = preprocess_images(pixels[None], self.spec.preprocessing)[0]
+        except MessageError as exc:
+            text = str(exc)
+            reason = "encoding" if "encoding" in text or "format" in text else "data"
+            self._reject(self.image_topic, reason, text)
+            return
+        self._process(step.stamp, int(step.command), observation, start)
+
+    def _on_grid_command(self, data: bytes) -> None:
+        assert self.grid is not None and self.spec is not None
+        self._arrived("action")
+        msg = self._decode(data, self.action_type, self.action_topic)
+        if msg is None:
+            return
+        codebook = self.spec.codebook
+        try:
+            values = m.twist_components(msg, codebook.components)
+            index, distance = codebook.assign(values[None])
+        except TpsrError as exc:
+            self._reject(self.action_topic, "action", str(exc))
+            return
+        if distance[0] > codebook.far_distance:
+            self.far_commands += 1
+            self._warn(
+                self.action_topic,
+                "far",
+                f"command {values.tolist()} is {distance[0]:.3g} from its nearest action "
+                f"(more than {codebook.far_distance:.3g})",
+            )
+        self.grid.add_command(self._stream_time(msg), int(index[0]))
 
     def _add(self, index: int, stamp: int, item: Any, topic: str, start: float) -> None:
         dropped_before = self.sync.stats.dropped
@@ -396,11 +565,11 @@ class FilterNode(Node):
         elif result.outcome is Outcome.PAIRED:
             assert result.items is not None
             image, action = result.items
-            self._process(stamp, int(action), image, start)
+            self._process(stamp, int(action), image_to_observation(image), start)
 
-    def _process(self, stamp: int, action: int, image: np.ndarray, start: float) -> None:
+    def _process(self, stamp: int, action: int, observation: np.ndarray, start: float) -> None:
         try:
-            info = self.tracker.step(stamp, action, image_to_observation(image))
+            info = self.tracker.step(stamp, action, observation)
         except Exception as exc:  # never let one step stop the node
             self.errors += 1
             self.tracker.reinit()
@@ -418,7 +587,7 @@ class FilterNode(Node):
             self._recovery_run = 0
         self.state_pub.publish(m.state_msg(stamp, info.state))
         if self.policy is not None:
-            self._command(info.state)
+            self._command(info.state, stamp)
         self.latency.add(time.perf_counter() - start)
 
     def _on_reset(self, data: bytes) -> None:
@@ -432,6 +601,8 @@ class FilterNode(Node):
             self.logger.debug(f"episode start at {stamp / _NS:.3f} s is not newer: ignored")
             return
         self.sync.start_after(stamp)
+        for which in self._last_input_stamp:  # step 1 of the episode comes one period later
+            self._last_input_stamp[which] = stamp
         self._reinit(f"episode start at {stamp / _NS:.3f} s")
         self.resets += 1
 
@@ -451,18 +622,28 @@ class FilterNode(Node):
 
     # -- commands -------------------------------------------------------------------------
 
-    def _command(self, state: np.ndarray) -> None:
+    def _command(self, state: np.ndarray, stamp: int | None = None) -> None:
         assert self.policy is not None
-        self._pending_command = self.policy.action(state)
+        self._pending_command = (self.policy.action(state), stamp)
         if self.commands_ready:
             self._send_pending()
 
     def _send_pending(self) -> None:
         if self._pending_command is None or self.cmd_pub is None:
             return
-        vx, vy = ACTIONS[self._pending_command]
+        action, stamp = self._pending_command
         self._pending_command = None
-        self.cmd_pub.publish(m.twist_msg(float(vx), float(vy)))
+        if self.spec is None:
+            vx, vy = ACTIONS[action]
+            twist = m.twist_msg(float(vx), float(vy))
+        else:  # the code itself: never outside the codebook
+            twist = m.twist_from_components(self.spec.codebook.command(action))
+        if self.params.command_type == "twist_stamped":
+            header = m.header_msg(stamp if stamp is not None else time.time_ns(), "base_link")
+            msg = m.jazzy_typestore().types[TWIST_STAMPED_TYPE](header=header, twist=twist)
+        else:
+            msg = twist
+        self.cmd_pub.publish(msg)
         self.commands += 1
 
     def _subscribers_matched(self) -> bool:
@@ -510,12 +691,34 @@ class FilterNode(Node):
             "resets": self.resets,
             "stale_resets": self.stale_resets,
             **self._problem_counts(),
+            **self._input_health(now),
             "last_stamp_s": "none" if last is None else f"{last / _NS:.9f}",
             "state_dim": self.model.state_dim,
             "model": self.inputs.fingerprint[:12],
             "policy": "none" if self.policy is None else self.params.policy,
         }
         return values
+
+    def _input_health(self, now: float) -> dict[str, Any]:
+        values: dict[str, Any] = {}
+        for which, topic in (("image", self.image_topic), ("action", self.action_topic)):
+            recent = [t for t in self._arrivals[which] if t >= now - RATE_WINDOW_S]
+            span = min(RATE_WINDOW_S, now - recent[0]) if len(recent) > 1 else 0.0
+            values[f"{which}_rate_hz"] = (len(recent) - 1) / span if span > 0 else 0.0
+            last = self._last_arrival[which]
+            values[f"{which}_age_s"] = "never" if last is None else round(now - last, 3)
+            values[f"{which}_topic"] = topic
+        return values
+
+    def _silent(self) -> list[tuple[str, float]]:
+        """Inputs that delivered before but nothing for longer than ``input_timeout``."""
+        now = time.monotonic()
+        out = []
+        for which, topic in (("image", self.image_topic), ("action", self.action_topic)):
+            last = self._last_arrival[which]
+            if last is not None and now - last > self.params.input_timeout:
+                out.append((topic, now - last))
+        return out
 
     def health(self, values: dict[str, Any]) -> tuple[int, str]:
         """Level and message of the report: what got worse since the previous report."""
@@ -530,8 +733,14 @@ class FilterNode(Node):
             return ERROR, f"the last {self._recovery_run} updates all needed recovery"
         if rejected_now and self.tracker.steps == steps_then:
             return ERROR, f"every message rejected ({rejected_now} since the last report)"
+        silent = self._silent()
+        if silent and len(silent) == 2:
+            age = min(a for _, a in silent)
+            return STALE, f"inputs silent for {age:.1f} s (no {silent[0][0]}, no {silent[1][0]})"
         if grown:
             return WARN, "since the last report: " + ", ".join(grown)
+        if silent:
+            return WARN, f"{silent[0][0]} silent for {silent[0][1]:.1f} s"
         if self.tracker.steps == 0:
             return OK, "waiting for paired images and actions"
         return OK, "tracking"

@@ -28,6 +28,7 @@ import numpy as np
 
 from tpsr_ros.core.actions import action_indices
 from tpsr_ros.core.errors import ConfigError, DataError, MessageError
+from tpsr_ros.core.images import Preprocessing, preprocess_images
 from tpsr_ros.core.state_model import StateModel, Track
 from tpsr_ros.core.units import STEP_NS
 
@@ -56,15 +57,18 @@ def image_to_observation(rgb: np.ndarray) -> np.ndarray:
         raise MessageError(
             f"an observation image must be (H, W, 3) uint8, got {arr.shape} {arr.dtype}"
         )
-    return arr.reshape(-1).astype(np.float64) / 255.0
+    return images_to_observations(arr[None])[0]
 
 
 def images_to_observations(images: np.ndarray) -> np.ndarray:
-    """Convert ``(T, H, W, 3)`` uint8 images to observations ``(T, H*W*3)`` (one conversion)."""
+    """Convert ``(T, H, W, 3)`` uint8 images to observations ``(T, H*W*3)`` (one conversion).
+
+    The identity case of :func:`tpsr_ros.core.images.preprocess_images` (pixels / 255).
+    """
     arr = np.asarray(images)
     if arr.dtype != np.uint8 or arr.ndim != 4 or arr.shape[3] != 3:
         raise MessageError(f"images must be (T, H, W, 3) uint8, got {arr.shape} {arr.dtype}")
-    return arr.reshape(arr.shape[0], -1).astype(np.float64) / 255.0
+    return preprocess_images(arr, Preprocessing(arr.shape[1], arr.shape[2]))
 
 
 def velocities_to_actions(
@@ -89,7 +93,8 @@ class Trajectory:
         stamps: ``(T,)`` int64 header stamps (ns).
         observations: ``(T, k)`` float64, see :func:`image_to_observation`.
         actions: ``(T,)`` int64 action indices.
-        velocities: ``(T, 2)`` commanded velocities as recorded.
+        velocities: ``(T, 2)`` commanded velocities as recorded (robot bags: ``(T, d)``, the
+            command components of the action codebook).
         positions: ``(T, 2)`` true position (NaN where no pose has the step's stamp).
         rewards: ``(T,)`` reward (NaN where missing).
         segments: ``(T,)`` int64 segment number, increasing; consecutive stamps share one.

@@ -10,12 +10,19 @@ from dataclasses import dataclass
 from typing import Any
 
 from tpsr_ros.core.episodes import DEFAULT_IMAGE_SHAPE
-from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError, TpsrError
 from tpsr_ros.core.state_model import StateModel
-from tpsr_ros.io.model_io import load_model, model_fingerprint, read_metadata
+from tpsr_ros.io.model_io import load_model, model_fingerprint, model_stream_spec, read_metadata
 from tpsr_ros.io.policy import TRUE_POSITION, Policy, load_policy
+from tpsr_ros.io.stream_spec import StreamSpec
 
-__all__ = ["ACTION_TOPIC", "IMAGE_TOPIC", "FilterInputs", "load_filter_inputs"]
+__all__ = [
+    "ACTION_TOPIC",
+    "IMAGE_TOPIC",
+    "FilterInputs",
+    "input_topics",
+    "load_filter_inputs",
+]
 
 IMAGE_TOPIC = "/camera/image_raw"
 ACTION_TOPIC = "/action"
@@ -30,6 +37,23 @@ class FilterInputs:
     metadata: dict[str, Any]
     image_shape: tuple[int, int]
     policy: Policy | None
+    spec: StreamSpec | None = None
+    """The input streams of a model learned on the step grid; None: exact-stamp pairing."""
+
+
+def input_topics(model_path: str) -> tuple[str, str] | None:
+    """Camera and command topics a step-grid model reads, relative (no leading ``/``).
+
+    None for exact-pairing models and for a model that cannot be read (loading it
+    reports why).
+    """
+    try:
+        spec = model_stream_spec(model_path, read_metadata(model_path)) if model_path else None
+    except TpsrError:
+        return None
+    if spec is None:
+        return None
+    return spec.image_topic.lstrip("/"), spec.action_topic.lstrip("/")
 
 
 def _training_topics(metadata: dict[str, Any]) -> set[tuple[str, str]]:
@@ -70,8 +94,11 @@ def load_filter_inputs(
     metadata = read_metadata(model_path)
     fingerprint = model_fingerprint(model)
     training = metadata.get("training", {})
+    spec = model_stream_spec(model_path, metadata)
     shape = tuple(training.get("image_shape") or DEFAULT_IMAGE_SHAPE)
-    if len(shape) != 2 or shape[0] * shape[1] * 3 != model.obs_size:
+    if spec is not None:
+        shape = (spec.preprocessing.height, spec.preprocessing.width)
+    elif len(shape) != 2 or shape[0] * shape[1] * 3 != model.obs_size:
         raise ConfigError(
             f"model {model_path} takes {model.obs_size} observation values, not the rgb8 "
             f"pixels of {shape} images"
@@ -104,4 +131,6 @@ def load_filter_inputs(
         environment = training.get("environment")
         if isinstance(environment, str):
             policy.check_environment(environment)
-    return FilterInputs(model, fingerprint, metadata, (int(shape[0]), int(shape[1])), policy)
+    return FilterInputs(
+        model, fingerprint, metadata, (int(shape[0]), int(shape[1])), policy, spec
+    )

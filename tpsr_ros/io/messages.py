@@ -12,6 +12,7 @@ Message choices (see msgs_doc/topics.md):
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 from functools import cache
 from typing import Any
@@ -35,6 +36,7 @@ __all__ = [
     "RewardSample",
     "clock_msg",
     "deserialize",
+    "header_stamp_ns",
     "image_msg",
     "image_to_array",
     "jazzy_typestore",
@@ -47,6 +49,8 @@ __all__ = [
     "stamp_of",
     "state_msg",
     "state_to_array",
+    "twist_components",
+    "twist_from_components",
     "twist_msg",
     "twist_stamped_msg",
     "twist_to_xy",
@@ -93,6 +97,22 @@ def stamp_of(msg: Any) -> int:
     """Stamp of a message with a ``header`` (or a Clock) in integer nanoseconds."""
     stamp = msg.clock if hasattr(msg, "clock") else msg.header.stamp
     return int(stamp.sec) * _NS + int(stamp.nanosec)
+
+
+def header_stamp_ns(data: bytes | memoryview) -> int:
+    """Stamp of serialised CDR bytes of a message that starts with a ``std_msgs/Header``.
+
+    Reads only the encapsulation header and the stamp (``int32 sec``, ``uint32 nanosec``),
+    so a reader can place large messages (images) in time without deserialising them.
+    """
+    raw = bytes(data[:12])
+    if len(raw) < 12 or raw[0] != 0 or raw[1] not in (0, 1):
+        raise MessageError("the CDR data is too short or not plain CDR")
+    order = "<" if raw[1] == 1 else ">"
+    sec, nanosec = struct.unpack(order + "iI", raw[4:12])
+    if sec < 0 or nanosec >= _NS:
+        raise MessageError(f"header stamp {sec} s {nanosec} ns is not a valid time")
+    return sec * _NS + nanosec
 
 
 def serialize(msg: Any, msgtype: str) -> bytes:
@@ -168,6 +188,31 @@ def twist_to_xy(msg: Any) -> tuple[float, float]:
     if not (np.isfinite(vx) and np.isfinite(vy)):
         raise MessageError(f"velocity ({vx}, {vy}) is not finite")
     return vx, vy
+
+
+def twist_components(msg: Any, components: tuple[str, ...]) -> np.ndarray:
+    """Chosen components (``"linear.x"``, ``"angular.z"``...) of a Twist or TwistStamped."""
+    twist = msg.twist if hasattr(msg, "twist") else msg
+    values = np.empty(len(components))
+    for i, name in enumerate(components):
+        part, axis = name.split(".")
+        values[i] = float(getattr(getattr(twist, part), axis))
+    if not np.isfinite(values).all():
+        shown = dict(zip(components, values.tolist(), strict=True))
+        raise MessageError(f"command {shown} is not finite")
+    return values
+
+
+def twist_from_components(values: dict[str, float]) -> Any:
+    """``geometry_msgs/msg/Twist`` with the given components (``"linear.x"``...), others 0."""
+    parts: dict[str, dict[str, float]] = {"linear": {}, "angular": {}}
+    for name, value in values.items():
+        part, axis = name.split(".")
+        parts[part][axis] = float(value)
+    return _t(TWIST_TYPE)(
+        linear=_vector3(**{a: parts["linear"].get(a, 0.0) for a in "xyz"}),
+        angular=_vector3(**{a: parts["angular"].get(a, 0.0) for a in "xyz"}),
+    )
 
 
 def pose_msg(stamp_ns: int, x: float, y: float, frame_id: str = "map") -> Any:

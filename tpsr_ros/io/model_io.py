@@ -7,7 +7,14 @@ entry ``metadata``, a 0-d unicode array holding a JSON object::
      "parameters": {...every parameter...}, "summary": {...singular values, explained
      variance, timings...}, "n_actions": 25, "observation": {"size": 768, ...},
      "training": {...bags, steps, episodes, stamps, environment, topics...},
+     "input": {...} (models learned with --step-period only),
      "created": "...", "software": {"tpsr_ros": "0.1.0", "numpy": "..."}}
+
+``input`` (:class:`tpsr_ros.io.stream_spec.StreamSpec`) is what a model learned from robot bags
+remembers about its streams: camera topic, type and preprocessing, command topic, type and
+action codebook, and the step grid. Models without it (all older files, and every model
+learned by exact-stamp pairing of simulator bags) read 16x16 rgb8 images and the
+simulator's 25 actions, as before; :func:`model_stream_spec` returns None for them.
 
 The archive layer (atomic no-clobber writes, ``allow_pickle=False`` reads, format name and
 version checks) is :mod:`tpsr_ros.io.npz_archive`. ``load_model`` also checks the method and
@@ -25,7 +32,7 @@ from typing import Any
 import numpy as np
 
 import tpsr_ros
-from tpsr_ros.core.errors import ModelFormatError, TpsrError
+from tpsr_ros.core.errors import ConfigError, ModelFormatError, TpsrError
 from tpsr_ros.core.pca_baseline import PCAModel
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.tpsr import TPSRModel
@@ -36,6 +43,7 @@ from tpsr_ros.io.npz_archive import (
     read_archive,
     write_archive,
 )
+from tpsr_ros.io.stream_spec import StreamSpec
 
 __all__ = [
     "FORMAT_NAME",
@@ -44,6 +52,7 @@ __all__ = [
     "check_output_path",
     "load_model",
     "model_fingerprint",
+    "model_stream_spec",
     "read_metadata",
     "save_model",
 ]
@@ -63,10 +72,19 @@ def save_model(
     path: Path | str,
     *,
     training: dict[str, Any] | None = None,
+    inputs: StreamSpec | None = None,
     force: bool = False,
 ) -> Path:
-    """Write ``model`` to ``path`` atomically; ``training`` describes the data (bags, stamps...)."""
-    metadata = {
+    """Write ``model`` to ``path`` atomically.
+
+    ``training`` describes the data (bags, stamps...); ``inputs`` the streams of a model
+    learned on the step grid (stored as ``"input"``; checked against the model first).
+    """
+    scaling = "rgb8 pixel values / 255, row-major (height, width, channel)"
+    if inputs is not None:
+        _check_inputs(inputs, model.obs_size, model.n_actions, "the model to save")
+        scaling = "pixels resized by area averaging, / max value, row-major (h, w, channel)"
+    metadata: dict[str, Any] = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
         "method": model.method,
@@ -76,13 +94,42 @@ def save_model(
         "state_dim": model.state_dim,
         "observation": {
             "size": model.obs_size,
-            "scaling": "rgb8 pixel values / 255, row-major (height, width, channel)",
+            "scaling": scaling,
         },
         "training": training or {},
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "software": {"tpsr_ros": tpsr_ros.__version__, "numpy": np.__version__},
     }
+    if inputs is not None:
+        metadata["input"] = inputs.as_dict()
     return write_archive(path, model.to_arrays(), metadata, force=force)
+
+
+def _check_inputs(spec: StreamSpec, obs_size: int, n_actions: int, what: str) -> None:
+    if spec.preprocessing.size != obs_size:
+        raise ModelFormatError(
+            f"{what} takes {obs_size} observation values, but its input preprocessing makes "
+            f"{spec.preprocessing.size}"
+        )
+    if len(spec.codebook) != n_actions:
+        raise ModelFormatError(
+            f"{what} has {n_actions} actions, but its codebook {len(spec.codebook)} codes"
+        )
+
+
+def model_stream_spec(path: Path | str, metadata: dict[str, Any]) -> StreamSpec | None:
+    """The validated ``"input"`` entry of a model's metadata; None for exact-pairing models."""
+    if "input" not in metadata:
+        return None
+    try:
+        spec = StreamSpec.from_dict(metadata["input"])
+    except ConfigError as exc:
+        raise ModelFormatError(f"the input entry of {str(path)!r} is invalid: {exc}") from None
+    observation = metadata.get("observation")
+    size = observation.get("size") if isinstance(observation, dict) else None
+    size = size if isinstance(size, int) else -1
+    _check_inputs(spec, size, metadata["n_actions"], repr(str(path)))
+    return spec
 
 
 def _open_arrays(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -146,6 +193,7 @@ def read_metadata(path: Path | str) -> dict[str, Any]:
     path = Path(path)
     metadata, _ = _open_arrays(path)
     _check_metadata(path, metadata)
+    model_stream_spec(path, metadata)
     return metadata
 
 
@@ -154,6 +202,7 @@ def load_model(path: Path | str) -> TPSRModel | PCAModel:
     path = Path(path)
     metadata, arrays = _open_arrays(path)
     method = _check_metadata(path, metadata)
+    model_stream_spec(path, metadata)
     required = _REQUIRED_ARRAYS[method]
     if missing := [name for name in required if name not in arrays]:
         raise ModelFormatError(f"{str(path)!r} lacks the {method} arrays {missing}")

@@ -49,8 +49,17 @@ class Topics:
     """Topic names read from bags (defaults from DESIGN.md)."""
 
     image: str = field(default="/camera/image_raw", metadata={"help": "camera image topic"})
-    action: str = field(default="/action", metadata={"help": "executed action topic"})
-    pose: str = field(default="/ground_truth/pose", metadata={"help": "ground-truth pose topic"})
+    action: str = field(
+        default="/action",
+        metadata={"help": "executed action topic (TwistStamped; Twist too with --step-period)"},
+    )
+    pose: str = field(
+        default="/ground_truth/pose",
+        metadata={
+            "help": "ground-truth pose topic (PoseStamped; with --step-period also Odometry, "
+            "TransformStamped, PoseWithCovarianceStamped)"
+        },
+    )
     reward: str = field(default="/reward", metadata={"help": "reward topic"})
 
     def types(self) -> dict[str, str]:

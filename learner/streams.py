@@ -1,0 +1,217 @@
+"""Robot bags in the learner: the ``fit`` options of the step grid, and bags read for a model.
+
+``learner fit --step-period SECONDS`` resamples the camera and command streams onto a step
+grid (:mod:`tpsr_ros.core.resample`) and remembers its topics, preprocessing, grid and
+action codebook in the model (:class:`tpsr_ros.io.streams.StreamSpec`). ``learner plot`` and
+``learner policy`` then read bags with :func:`read_for_model`: the model's own spec for such
+models, the exact-stamp pairing of simulator bags for the others.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from tpsr_ros.cli import positive_int
+from tpsr_ros.core.codebook import COMPONENTS, DEFAULT_COMPONENTS
+from tpsr_ros.core.episodes import Trajectory
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.io.model_io import model_stream_spec, read_metadata
+from tpsr_ros.io.stream_spec import StreamSpec
+from tpsr_ros.io.streams import DEFAULT_POSE_FRAME, FitOptions, read_stream_trajectory
+from tpsr_ros.io.trajectory import Topics, read_trajectory
+
+__all__ = [
+    "add_stream_options",
+    "fit_options_from_args",
+    "image_size",
+    "read_for_model",
+    "recorded_topic",
+    "require_simulator_model",
+    "topic",
+]
+
+GRID_ONLY = ("image_size", "grey", "actions", "components", "image_timeout", "command_timeout")
+
+
+def image_size(text: str) -> tuple[int, int]:
+    """argparse type: ``N`` (N x N) or ``WxH``; returns ``(height, width)``."""
+    parts = text.lower().split("x")
+    if len(parts) == 1:
+        side = positive_int(parts[0])
+        return side, side
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"{text!r} is not N or WxH")
+    width, height = positive_int(parts[0]), positive_int(parts[1])
+    return height, width
+
+
+def _components(text: str) -> tuple[str, ...]:
+    names = tuple(n.strip() for n in text.split(",") if n.strip())
+    if not names or any(n not in COMPONENTS for n in names):
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not a comma-separated list of {', '.join(COMPONENTS)}"
+        )
+    return names
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not 1e-6 <= value <= 1e5:
+        raise argparse.ArgumentTypeError(f"{text} s is not in [1e-6, 1e5]")
+    return value
+
+
+def add_stream_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """The options of robot bags (``learner fit``)."""
+    parser.add_argument(
+        "--step-period",
+        type=_seconds,
+        default=None,
+        metavar="SECONDS",
+        help="resample camera and commands onto steps this far apart (robot bags); without "
+        "it, images and actions are paired by identical stamp (simulator bags)",
+    )
+    parser.add_argument(
+        "--image-size",
+        type=image_size,
+        default=None,
+        metavar="N|WxH",
+        help="observation pixels, resized by area averaging (default: the camera's size)",
+    )
+    parser.add_argument(
+        "--grey",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="grey (luma) observations (default: grey for a grey camera, colour otherwise)",
+    )
+    parser.add_argument(
+        "--actions",
+        type=positive_int,
+        default=None,
+        metavar="K",
+        help="learn a codebook of K actions from the commands (k-means, seeded by --seed); "
+        "default: the simulator's 25 pairs, for simulator bags only",
+    )
+    parser.add_argument(
+        "--components",
+        type=_components,
+        default=DEFAULT_COMPONENTS,
+        metavar="C,C...",
+        help="command components of the actions; constant ones drop out (default: "
+        f"{','.join(DEFAULT_COMPONENTS)})",
+    )
+    parser.add_argument(
+        "--image-timeout",
+        type=_seconds,
+        default=None,
+        metavar="SECONDS",
+        help="a step whose latest image is older is a gap (camera silence; default: one step)",
+    )
+    parser.add_argument(
+        "--command-timeout",
+        type=_seconds,
+        default=None,
+        metavar="SECONDS",
+        help="a command stays in force this long; a step with none in force is a gap "
+        "(default: two steps)",
+    )
+
+
+def fit_options_from_args(args: argparse.Namespace) -> FitOptions | None:
+    """The :class:`FitOptions` of the command line; None without ``--step-period``."""
+    if args.step_period is None:
+        given = [
+            f"--{n.replace('_', '-')}"
+            for n in GRID_ONLY
+            if getattr(args, n) not in (None, DEFAULT_COMPONENTS)
+        ]
+        if given:
+            raise ConfigError(
+                f"{', '.join(given)} need --step-period (exact-stamp pairing reads simulator "
+                "bags as they are)"
+            )
+        return None
+    return FitOptions(
+        step_period=args.step_period,
+        image_size=args.image_size,
+        grey=args.grey,
+        components=tuple(args.components),
+        actions=args.actions,
+        image_timeout=args.image_timeout,
+        command_timeout=args.command_timeout,
+        seed=int(args.seed) if isinstance(getattr(args, "seed", None), int) else 0,
+    )
+
+
+def topic(args: argparse.Namespace, name: str) -> str:
+    """The ``--NAME-topic`` given, or its default from :class:`Topics`."""
+    value = getattr(args, f"{name}_topic", None)
+    return str(value) if value else str(getattr(Topics(), name))
+
+
+def recorded_topic(metadata: dict[str, Any], name: str) -> str | None:
+    """The ``name`` topic (or ``pose_frame``) recorded by the model's first training bag."""
+    bags = metadata.get("training", {}).get("bags") if isinstance(metadata, dict) else None
+    if isinstance(bags, list) and bags and isinstance(bags[0], dict):
+        topics = bags[0].get("topics")
+        if isinstance(topics, dict) and isinstance(topics.get(name), str):
+            return str(topics[name])
+    return None
+
+
+def read_for_model(
+    model_path: Path | str,
+    metadata: dict[str, Any],
+    bags: list[Path],
+    args: argparse.Namespace,
+    *,
+    require_ground_truth: bool = False,
+) -> Trajectory:
+    """Read ``bags`` as the model's training bags were read.
+
+    A model with an input spec takes its camera and command topics from it (``--image-topic``
+    and ``--action-topic``, if given, must agree); the pose and reward topics are the ones
+    given, else the ones of its training bags. Other models pair the topics given by stamp.
+    """
+    spec: StreamSpec | None = model_stream_spec(model_path, metadata)
+    if spec is None:
+        topics = Topics(**{n: topic(args, n) for n in ("image", "action", "pose", "reward")})
+        return read_trajectory(bags, topics=topics, require_ground_truth=require_ground_truth)
+    for name, own in (("image", spec.image_topic), ("action", spec.action_topic)):
+        given = getattr(args, f"{name}_topic", None)
+        if given and given != own:
+            raise ConfigError(
+                f"model {str(model_path)!r} reads {name} topic {own}, not {given} (omit "
+                f"--{name}-topic: the model remembers it)"
+            )
+    pose = getattr(args, "pose_topic", None) or recorded_topic(metadata, "pose")
+    reward = getattr(args, "reward_topic", None) or recorded_topic(metadata, "reward")
+    frame = getattr(args, "pose_frame", None) or recorded_topic(metadata, "pose_frame")
+    return read_stream_trajectory(
+        bags,
+        spec,
+        pose_topic=pose,
+        reward_topic=reward,
+        require_ground_truth=require_ground_truth,
+        pose_frame=frame or DEFAULT_POSE_FRAME,
+    )
+
+
+def require_simulator_model(model_path: Path | str) -> None:
+    """Refuse a model learned from robot bags where the simulator's actions are meant.
+
+    The simulator executes the 25 pairs by index; a robot model's action indices name its
+    own codebook, so driving the simulator with them would be silently wrong.
+    """
+    spec = model_stream_spec(model_path, read_metadata(model_path))
+    if spec is not None and spec.codebook.kind != "sim":
+        raise ConfigError(
+            f"model {str(model_path)!r} was learned from robot bags ({len(spec.codebook)} "
+            f"{spec.codebook.kind} actions over {', '.join(spec.codebook.components)}); the "
+            "simulator's protocol needs a model of its own 25 actions"
+        )

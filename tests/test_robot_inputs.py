@@ -1,0 +1,225 @@
+"""The pieces of robot-bag learning, against known answers: image decoding and the one
+preprocessing (area averaging, grey), the action codebook, and the step grid (offline,
+vectorised, and online, one message at a time, giving the same steps)."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+
+from tpsr_ros.core.actions import ACTIONS
+from tpsr_ros.core.codebook import ActionCodebook, fit_codebook, sim_codebook
+from tpsr_ros.core.episodes import images_to_observations
+from tpsr_ros.core.errors import ConfigError, DataError, MessageError
+from tpsr_ros.core.images import LUMA, Preprocessing, area_weights, preprocess_images
+from tpsr_ros.core.resample import GridConfig, GridStepper, resample_grid
+from tpsr_ros.io.images import COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, decode_image
+from tpsr_ros.io.messages import jazzy_typestore
+
+MS = 10**6
+S = 10**9
+
+
+def raw_msg(pixels: np.ndarray, encoding: str, **changes):
+    """A sensor_msgs/Image of ``pixels`` (H, W, C) as given (bytes little endian)."""
+    data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
+    height, width = pixels.shape[:2]
+    fields = {
+        "header": jazzy_typestore().types["std_msgs/msg/Header"](
+            stamp=jazzy_typestore().types["builtin_interfaces/msg/Time"](sec=1, nanosec=0),
+            frame_id="cam",
+        ),
+        "height": height,
+        "width": width,
+        "encoding": encoding,
+        "is_bigendian": 0,
+        "step": data.size // height,
+        "data": data,
+    }
+    fields.update(changes)
+    return jazzy_typestore().types[IMAGE_TYPE](**fields)
+
+
+def compressed_msg(data: bytes, fmt: str = "jpeg"):
+    header = raw_msg(np.zeros((1, 1, 3), np.uint8), "rgb8").header
+    return jazzy_typestore().types[COMPRESSED_IMAGE_TYPE](
+        header=header, format=fmt, data=np.frombuffer(data, dtype=np.uint8)
+    )
+
+
+def encoded(rgb: np.ndarray, fmt: str) -> bytes:
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(rgb).save(buffer, format=fmt)
+    return buffer.getvalue()
+
+
+RGB = np.random.default_rng(0).integers(0, 256, size=(6, 10, 3), dtype=np.uint8)
+
+
+# -- decoding -------------------------------------------------------------------------------
+
+
+def test_every_raw_encoding_decodes_to_rgb_or_grey():
+    assert np.array_equal(decode_image(raw_msg(RGB, "rgb8"), IMAGE_TYPE), RGB)
+    assert np.array_equal(decode_image(raw_msg(RGB[:, :, ::-1], "bgr8"), IMAGE_TYPE), RGB)
+    alpha = np.full((6, 10, 1), 7, np.uint8)
+    rgba = np.concatenate([RGB, alpha], axis=2)
+    assert np.array_equal(decode_image(raw_msg(rgba, "rgba8"), IMAGE_TYPE), RGB)
+    bgra = np.concatenate([RGB[:, :, ::-1], alpha], axis=2)
+    assert np.array_equal(decode_image(raw_msg(bgra, "bgra8"), IMAGE_TYPE), RGB)
+    grey = RGB[:, :, :1]
+    assert np.array_equal(decode_image(raw_msg(grey, "mono8"), IMAGE_TYPE), grey)
+    deep = (RGB[:, :, :1].astype(np.uint16) * 257).astype("<u2")
+    assert np.array_equal(decode_image(raw_msg(deep, "mono16"), IMAGE_TYPE), deep)
+    big = raw_msg(deep.astype(">u2"), "mono16", is_bigendian=1)
+    assert np.array_equal(decode_image(big, IMAGE_TYPE), deep)
+
+
+def test_png_is_lossless_and_jpeg_close():
+    png = decode_image(compressed_msg(encoded(RGB, "PNG"), "png"), COMPRESSED_IMAGE_TYPE)
+    assert np.array_equal(png, RGB)
+    smooth = np.repeat(np.repeat(RGB[:2, :2], 8, axis=0), 8, axis=1)
+    jpeg = decode_image(compressed_msg(encoded(smooth, "JPEG")), COMPRESSED_IMAGE_TYPE)
+    assert jpeg.shape == smooth.shape and jpeg.dtype == np.uint8
+    assert np.abs(jpeg.astype(int) - smooth).mean() < 12
+
+
+@pytest.mark.parametrize(
+    ("msg", "rule"),
+    [
+        (raw_msg(RGB, "yuv422"), "encoding 'yuv422' is not one of"),
+        (raw_msg(RGB, "rgb8", step=31), "step 31 does not match width 10 x 3 bytes"),
+        (raw_msg(RGB, "rgb8", data=np.zeros(17, np.uint8)), "holds 17 bytes, expected 6 x 30"),
+        (raw_msg(RGB, "rgb8", width=0), "image size 6x0 is empty"),
+        (compressed_msg(encoded(RGB, "JPEG")[:40]), "corrupt jpeg image"),
+        (compressed_msg(b"\x00" * 64), "corrupt jpeg image"),
+        (compressed_msg(encoded(RGB, "PNG"), "tiff"), "format 'tiff' is not jpeg or png"),
+    ],
+)
+def test_bad_images_are_refused_naming_the_rule(msg, rule):
+    msgtype = COMPRESSED_IMAGE_TYPE if hasattr(msg, "format") else IMAGE_TYPE
+    with pytest.raises(MessageError, match=rule) as exc:
+        decode_image(msg, msgtype)
+    assert "\n" not in str(exc.value)
+
+
+# -- preprocessing --------------------------------------------------------------------------
+
+
+def test_same_size_colour_is_pixels_over_255_bit_for_bit():
+    images = np.random.default_rng(1).integers(0, 256, (5, 16, 16, 3), dtype=np.uint8)
+    expected = images.reshape(5, -1).astype(np.float64) / 255.0  # every model before
+    assert np.array_equal(preprocess_images(images, Preprocessing(16, 16)), expected)
+    assert np.array_equal(images_to_observations(images), expected)
+
+
+def test_area_averaging_equals_block_means_of_an_upsampled_image():
+    # 40 -> 16 is 2.5 input pixels per output pixel: upsampled 2x, it is an exact 5x5 mean
+    image = np.random.default_rng(2).integers(0, 256, (1, 40, 30, 3), dtype=np.uint8)
+    up = np.repeat(np.repeat(image[0].astype(np.float64), 2, axis=0), 2, axis=1)  # 80 x 60
+    blocks = up.reshape(16, 5, 12, 5, 3).mean(axis=(1, 3))
+    got = preprocess_images(image, Preprocessing(16, 12)).reshape(16, 12, 3)
+    np.testing.assert_allclose(got, blocks / 255.0, rtol=0, atol=1e-12)
+    weights = area_weights(40, 16)
+    np.testing.assert_allclose(weights.sum(axis=1), 1.0)
+    assert weights[0, :3].tolist() == [0.4, 0.4, 0.2]
+
+
+def test_grey_is_luma_and_a_grey_camera_cannot_give_colour():
+    image = RGB[None, :4, :4]
+    grey = preprocess_images(image, Preprocessing(4, 4, grey=True))
+    expected = (image.astype(np.float64) @ LUMA).reshape(1, -1) / 255.0
+    np.testing.assert_allclose(grey, expected, rtol=0, atol=1e-12)
+    mono = image[..., :1]
+    assert preprocess_images(mono, Preprocessing(4, 4, grey=True)).shape == (1, 16)
+    with pytest.raises(MessageError, match="grey image cannot give colour"):
+        preprocess_images(mono, Preprocessing(4, 4))
+    deep = (mono.astype(np.uint16) * 257)
+    np.testing.assert_allclose(
+        preprocess_images(deep, Preprocessing(4, 4, grey=True)),
+        preprocess_images(mono, Preprocessing(4, 4, grey=True)),
+        atol=1e-12,
+    )
+
+
+def test_a_batch_and_single_images_give_identical_observations():
+    images = np.random.default_rng(3).integers(0, 256, (7, 40, 40, 3), dtype=np.uint8)
+    for prep in (Preprocessing(16, 16), Preprocessing(9, 13, grey=True)):
+        batch = preprocess_images(images, prep)
+        for i in range(len(images)):
+            assert np.array_equal(batch[i], preprocess_images(images[i : i + 1], prep)[0])
+
+
+# -- codebook -------------------------------------------------------------------------------
+
+
+def test_kmeans_codebook_recovers_the_simulator_pairs_from_jittered_commands():
+    rng = np.random.default_rng(4)
+    truth = rng.integers(0, 25, size=800)
+    commands = ACTIONS[truth] + rng.uniform(-0.6, 0.6, size=(800, 2))
+    book = fit_codebook(commands, ("linear.x", "linear.y"), 25, seed=0)
+    index, distance = book.assign(commands)
+    np.testing.assert_allclose(book.codes[index], ACTIONS[truth], atol=0.15)
+    assert distance.max() < book.far_distance < 1.6
+    again = fit_codebook(commands, ("linear.x", "linear.y"), 25, seed=0)
+    assert np.array_equal(again.codes, book.codes)  # seeded
+    far = book.assign(np.array([[20.0, 0.0]]))[1]
+    assert far[0] > book.far_distance  # reported as far by the reader, not hidden
+    assert ActionCodebook.from_dict(book.as_dict()).codes.tolist() == book.codes.tolist()
+
+
+def test_codebook_refusals():
+    with pytest.raises(DataError, match=r"3 commands \(2 distinct\) are fewer than the 5"):
+        fit_codebook(np.array([[1.0], [1.0], [2.0]]), ("linear.x",), 5, seed=0)
+    with pytest.raises(ConfigError, match="components"):
+        ActionCodebook("kmeans", ("linear.w",), np.zeros((2, 1)))
+    assert sim_codebook().assign(np.array([[2.7, -5.6]]))[0].tolist() == [5 * 3 + 0]
+
+
+# -- the step grid --------------------------------------------------------------------------
+
+GRID = GridConfig(
+    step_ns=S, camera_period_ns=250 * MS, image_timeout_ns=S, command_timeout_ns=2 * S
+)
+
+
+def test_grid_takes_the_latest_image_and_the_command_in_force():
+    images = np.array([0, 250, 500, 750, 1000, 2600, 2850, 3100]) * MS + 20 * MS
+    commands = np.array([100, 900, 1900]) * MS
+    steps = resample_grid(images, commands, GRID)
+    # grid: 145 ms, 1145, 2145 (camera silent 1020 -> 2620: stale), 3145 > last image
+    assert steps.grid_steps == 3
+    assert steps.stamps.tolist() == [145 * MS, 1145 * MS]
+    assert steps.image_index.tolist() == [0, 4]
+    assert steps.command_index.tolist() == [0, 1]
+    assert (steps.stale_image, steps.no_command) == (1, 0)
+
+
+def test_online_stepper_equals_offline_resampling():
+    rng = np.random.default_rng(5)
+    frames = np.cumsum(rng.uniform(0.2, 0.3, 400)) * S
+    frames[150:] += 3 * S  # a camera silence
+    images = (frames + rng.integers(5 * MS, 40 * MS, 400)).astype(np.int64)
+    images = np.maximum.accumulate(images) + np.arange(400)  # strictly increasing
+    commands = np.sort(rng.uniform(0, images[-1], 150)).astype(np.int64)
+    commands = np.delete(commands, np.s_[60:80])  # a command silence
+    offline = resample_grid(images, commands, GRID)
+    stepper = GridStepper(GRID)
+    online = []
+    events = sorted(
+        [(t, 0, i) for i, t in enumerate(images)] + [(t, 1, i) for i, t in enumerate(commands)]
+    )
+    for t, kind, i in events:
+        if kind == 1:
+            stepper.add_command(t, i)
+        else:
+            online += stepper.add_image(t, i)
+    assert [s.stamp for s in online] == offline.stamps.tolist()
+    assert [s.image for s in online] == offline.image_index.tolist()
+    assert [s.command for s in online] == offline.command_index.tolist()
+    assert stepper.camera_gaps == offline.stale_image > 0
+    assert stepper.command_gaps == offline.no_command > 0

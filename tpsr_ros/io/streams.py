@@ -1,0 +1,559 @@
+"""What a model reads from a robot, and reading it from bags onto the step grid.
+
+A :class:`StreamSpec` is everything a model learned with ``learner fit --step-period``
+remembers about its inputs (stored in the model metadata under ``"input"``): camera topic
+and type, the preprocessing (:mod:`tpsr_ros.core.images`), command topic and type, the
+action codebook (:mod:`tpsr_ros.core.codebook`) and the step grid
+(:mod:`tpsr_ros.core.resample`). ``learner plot``, ``learner policy`` and the filter node
+take it from the model; a bag or stream that does not fit it is refused with the reason.
+
+:func:`read_stream_trajectory` reads bags with a spec: images (``Image`` in any supported
+encoding or ``CompressedImage``; time = header stamp, or log time where the stamp is zero),
+commands (``Twist``: log time, when it was commanded; ``TwistStamped``: header stamp, or
+log time where zero), optional ground truth (``PoseStamped``, ``Odometry``,
+``TransformStamped``, ``PoseWithCovarianceStamped``, or ``tf2_msgs/TFMessage`` (``/tf``:
+the transforms whose child frame is ``pose_frame``); interpolated at the step times) and
+reward (``JointState`` as the simulator writes it: the reward of a step is the last one
+stamped within the step).
+:func:`fit_stream_spec` first makes the spec from the training bags (camera period,
+constant command components, k-means codebook).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tpsr_ros.core.actions import NUM_ACTIONS
+from tpsr_ros.core.codebook import (
+    COMPONENTS,
+    DEFAULT_COMPONENTS,
+    fit_codebook,
+    sim_codebook,
+)
+from tpsr_ros.core.episodes import Trajectory
+from tpsr_ros.core.errors import BagError, ConfigError, DataError, MessageError
+from tpsr_ros.core.images import Preprocessing
+from tpsr_ros.core.resample import GridConfig, increasing, resample_grid
+from tpsr_ros.core.units import NS_PER_S
+from tpsr_ros.io.bag import BagReader
+from tpsr_ros.io.images import IMAGE_TYPES, decode_image
+from tpsr_ros.io.images import image_observations as _observations
+from tpsr_ros.io.messages import (
+    REWARD_TYPE,
+    TWIST_TYPE,
+    deserialize,
+    header_stamp_ns,
+    twist_components,
+)
+from tpsr_ros.io.stream_spec import COMMAND_TYPES, StreamSpec
+
+__all__ = [
+    "COMMAND_TYPES",
+    "DEFAULT_POSE_FRAME",
+    "POSE_TYPES",
+    "TF_TYPE",
+    "FitOptions",
+    "StreamSpec",
+    "fit_stream_spec",
+    "read_stream_trajectory",
+]
+
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+TRANSFORM_TYPE = "geometry_msgs/msg/TransformStamped"
+DEFAULT_POSE_FRAME = "base_link"
+POSE_TYPES = (
+    "geometry_msgs/msg/PoseStamped",
+    "nav_msgs/msg/Odometry",
+    "geometry_msgs/msg/TransformStamped",
+    "geometry_msgs/msg/PoseWithCovarianceStamped",
+    TF_TYPE,
+)
+MIN_FRESH_FRACTION = 0.5
+"""Fewer grid steps with a new image than this fraction: the step period is refused."""
+CHUNK_IMAGES = 512
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """What ``learner fit`` is told about the streams of robot bags."""
+
+    step_period: float = field(metadata={"help": "s between steps"})
+    image_size: tuple[int, int] | None = None
+    """(height, width) of the observations; None keeps the camera's size."""
+    grey: bool | None = None
+    """Grey observations; None: grey for a grey camera, colour otherwise."""
+    components: tuple[str, ...] = DEFAULT_COMPONENTS
+    actions: int | None = None
+    """K of the k-means codebook; None: the simulator's 25 pairs (simulator bags only)."""
+    image_timeout: float | None = None
+    """s; default: one step period."""
+    command_timeout: float | None = None
+    """s; default: two step periods."""
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("step_period", "image_timeout", "command_timeout"):
+            value = getattr(self, name)
+            if value is not None and not (np.isfinite(value) and 1e-6 <= value <= 1e5):
+                raise ConfigError(f"{name.replace('_', '-')} must be in [1e-6, 1e5] s, not {value}")
+        if bad := [c for c in self.components if c not in COMPONENTS]:
+            raise ConfigError(f"command components {bad} are not among {list(COMPONENTS)}")
+        if not self.components or len(set(self.components)) != len(self.components):
+            raise ConfigError(f"command components {list(self.components)} are empty or repeat")
+        if self.actions is not None and not 1 <= self.actions <= 10_000:
+            raise ConfigError(f"--actions must be 1..10000, not {self.actions}")
+
+
+# -- reading one bag ---------------------------------------------------------------------
+
+
+@dataclass
+class _Streams:
+    path: Path
+    image_type: str
+    action_type: str
+    image_times: np.ndarray  # (I,) of the images kept (increasing)
+    image_numbers: np.ndarray  # (I,) their message index on the topic
+    command_times: np.ndarray
+    commands: np.ndarray  # (C, len(components))
+    pose_topic: str | None
+    pose_type: str
+    pose_times: np.ndarray  # sorted
+    pose_data: list[bytes]  # CDR, decoded only around the step times
+    pose_values: np.ndarray | None  # (P, 2) already decoded (tf: transforms of one frame)
+    reward_times: np.ndarray
+    rewards: np.ndarray
+    environment: str | None
+    dropped_images: int
+
+
+def _time(msg: Any, log_time: int) -> int:
+    stamp = msg.header.stamp
+    value = int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+    return value if value > 0 else int(log_time)
+
+
+def _pose_xy(msg: Any, msgtype: str) -> tuple[float, float]:
+    if msgtype == "geometry_msgs/msg/TransformStamped":
+        point = msg.transform.translation
+    elif msgtype == "geometry_msgs/msg/PoseStamped":
+        point = msg.pose.position
+    else:
+        point = msg.pose.pose.position
+    return float(point.x), float(point.y)
+
+
+def _where(path: Path, topic: str, index: int) -> str:
+    return f"bag {str(path)!r}, topic {topic!r}, message {index}"
+
+
+def _check_types(
+    path: Path, available: dict[str, str], topic: str, allowed: Sequence[str], what: str
+) -> str:
+    if topic not in available:
+        raise BagError(
+            f"bag {str(path)!r} has no messages on the {what} topic {topic!r} (it has "
+            f"{sorted(available)})"
+        )
+    if available[topic] not in allowed:
+        raise BagError(
+            f"topic {topic!r} of bag {str(path)!r} has type {available[topic]}; a {what} "
+            f"topic must be one of {', '.join(allowed)}"
+        )
+    return available[topic]
+
+
+def _read_streams(
+    path: Path,
+    *,
+    image_topic: str,
+    action_topic: str,
+    pose_topic: str | None,
+    reward_topic: str | None,
+    components: tuple[str, ...],
+    require_pose: bool,
+    pose_frame: str = DEFAULT_POSE_FRAME,
+) -> _Streams:
+    with BagReader(path) as reader:
+        counts = reader.message_counts
+        available = {t: ty for t, ty in reader.topics.items() if counts.get(t, 0) > 0}
+        image_type = _check_types(path, available, image_topic, IMAGE_TYPES, "camera")
+        action_type = _check_types(path, available, action_topic, COMMAND_TYPES, "command")
+        wanted = [image_topic, action_topic]
+        if pose_topic and (require_pose or pose_topic in available):
+            _check_types(path, available, pose_topic, POSE_TYPES, "ground-truth pose")
+            wanted.append(pose_topic)
+        if reward_topic and available.get(reward_topic) == REWARD_TYPE:
+            wanted.append(reward_topic)
+        numbers = dict.fromkeys(wanted, 0)
+        image_times: list[int] = []
+        command_times: list[int] = []
+        commands: list[np.ndarray] = []
+        pose_times: list[int] = []
+        pose_data: list[bytes] = []
+        tf_values: list[tuple[float, float]] = []
+        is_tf = bool(pose_topic) and available.get(pose_topic or "") == TF_TYPE
+        reward_times: list[int] = []
+        rewards: list[float] = []
+        for bag_msg in reader.messages(wanted):
+            topic = bag_msg.topic
+            index = numbers[topic]
+            numbers[topic] += 1
+            try:
+                if topic == image_topic:  # placed in time now, decoded only if a step uses it
+                    image_times.append(_fast_time(bag_msg))
+                elif topic == pose_topic and is_tf:  # the transforms to the pose frame
+                    for transform in bag_msg.decode().transforms:
+                        if transform.child_frame_id == pose_frame:
+                            pose_times.append(_time(transform, bag_msg.log_time_ns))
+                            tf_values.append(_pose_xy(transform, TRANSFORM_TYPE))
+                elif topic == pose_topic:
+                    pose_times.append(_fast_time(bag_msg))
+                    pose_data.append(bag_msg.data)
+                elif topic == action_topic:
+                    msg = bag_msg.decode()
+                    commands.append(twist_components(msg, components))
+                    command_times.append(
+                        bag_msg.log_time_ns
+                        if action_type == TWIST_TYPE
+                        else _time(msg, bag_msg.log_time_ns)
+                    )
+                else:
+                    msg = bag_msg.decode()
+                    if tuple(msg.name[:1]) != ("reward",) or len(msg.position) < 1:
+                        raise MessageError("a reward message names 'reward' first")
+                    reward_times.append(_time(msg, bag_msg.log_time_ns))
+                    rewards.append(float(msg.position[0]))
+            except MessageError as exc:
+                raise MessageError(f"{_where(path, topic, index)}: {exc}") from None
+        environment = reader.custom_data.get("tpsr_ros.environment") or None
+    times = np.array(image_times, dtype=np.int64)
+    keep = increasing(times)
+    command_t = np.array(command_times, dtype=np.int64)
+    order = np.argsort(command_t, kind="stable")
+    pose_t = np.array(pose_times, dtype=np.int64)
+    pose_order = np.argsort(pose_t, kind="stable")
+    return _Streams(
+        path=path,
+        image_type=image_type,
+        action_type=action_type,
+        image_times=times[keep],
+        image_numbers=np.flatnonzero(keep),
+        command_times=command_t[order],
+        commands=np.array(commands, dtype=np.float64).reshape(-1, len(components))[order],
+        pose_topic=pose_topic if pose_topic in wanted else None,
+        pose_type=available.get(pose_topic or "", ""),
+        pose_times=pose_t[pose_order],
+        pose_data=[pose_data[i] for i in pose_order.tolist()] if pose_data else [],
+        pose_values=(
+            np.array(tf_values, dtype=np.float64).reshape(-1, 2)[pose_order] if is_tf else None
+        ),
+        reward_times=np.array(reward_times, dtype=np.int64),
+        rewards=np.array(rewards, dtype=np.float64),
+        environment=str(environment) if environment else None,
+        dropped_images=int(times.size - keep.sum()),
+    )
+
+
+def _fast_time(bag_msg: Any) -> int:
+    """Header stamp read from the CDR bytes, or the log time where the stamp is zero."""
+    stamp = header_stamp_ns(bag_msg.data)
+    return stamp if stamp > 0 else int(bag_msg.log_time_ns)
+
+
+def _poses_at(streams: _Streams, at: np.ndarray) -> np.ndarray:
+    """Ground-truth (x, y) interpolated at ``at``; only the poses around each time are decoded."""
+    times = streams.pose_times
+    out = np.full((at.size, 2), np.nan)
+    if times.size == 0 or streams.pose_topic is None:
+        return out
+    if streams.pose_values is not None:
+        return _interpolate(times, streams.pose_values, at)
+    after = np.clip(np.searchsorted(times, at, side="left"), 0, times.size - 1)
+    needed = np.unique(np.concatenate([after, np.maximum(after - 1, 0)]))
+    values = np.empty((needed.size, 2))
+    for row, index in enumerate(needed.tolist()):
+        try:
+            msg = deserialize(streams.pose_data[index], streams.pose_type)
+            values[row] = _pose_xy(msg, streams.pose_type)
+        except MessageError as exc:
+            raise MessageError(
+                f"bag {str(streams.path)!r}, topic {streams.pose_topic!r}: {exc}"
+            ) from None
+    return _interpolate(times[needed], values, at)
+
+
+def _decode_images(
+    path: Path, topic: str, msgtype: str, numbers: np.ndarray, preprocessing: Preprocessing
+) -> np.ndarray:
+    """Observations of the messages ``numbers`` (sorted message indices) of ``topic``."""
+    out = np.empty((numbers.size, preprocessing.size))
+    wanted = {int(n): i for i, n in enumerate(numbers.tolist())}
+    batch: list[np.ndarray] = []
+    rows: list[int] = []
+
+    def flush() -> None:
+        out[rows] = _observations(batch, preprocessing)
+        batch.clear()
+        rows.clear()
+
+    with BagReader(path) as reader:
+        for index, bag_msg in enumerate(reader.messages([topic])):
+            if index not in wanted:
+                continue
+            try:
+                pixels = decode_image(bag_msg.decode(), msgtype)
+                if pixels.shape[2] == 1 and not preprocessing.grey:
+                    raise MessageError("a grey image cannot give the model's colour observations")
+            except MessageError as exc:
+                raise MessageError(f"{_where(path, topic, index)}: {exc}") from None
+            batch.append(pixels)
+            rows.append(wanted[index])
+            if len(batch) >= CHUNK_IMAGES:
+                flush()
+    if batch:
+        flush()
+    return out
+
+
+def _interpolate(times: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Linear interpolation per column; NaN outside the recorded times."""
+    out = np.full((at.size, values.shape[1]), np.nan)
+    if times.size == 0:
+        return out
+    inside = (at >= times[0]) & (at <= times[-1])
+    for column in range(values.shape[1]):
+        out[inside, column] = np.interp(at[inside], times, values[:, column])
+    return out
+
+
+def _step_rewards(times: np.ndarray, rewards: np.ndarray, at: np.ndarray, step: int) -> np.ndarray:
+    """The last reward stamped in ``(t - step, t]`` for every step time ``t`` (else NaN)."""
+    order = np.argsort(times, kind="stable")
+    times, rewards = times[order], rewards[order]
+    last = np.searchsorted(times, at, side="right") - 1
+    ok = (last >= 0) & (times[np.maximum(last, 0)] > at - step) if times.size else last >= 0
+    out = np.full(at.size, np.nan)
+    out[ok] = rewards[last[ok]]
+    return out
+
+
+# -- the spec of the training bags --------------------------------------------------------
+
+
+def fit_stream_spec(
+    bags: Sequence[Path | str],
+    options: FitOptions,
+    *,
+    image_topic: str,
+    action_topic: str,
+) -> StreamSpec:
+    """The spec learned from the training bags: camera period, components and codebook."""
+    if not bags:
+        raise ConfigError("no bag given")
+    streams = [
+        _read_streams(
+            Path(b),
+            image_topic=image_topic,
+            action_topic=action_topic,
+            pose_topic=None,
+            reward_topic=None,
+            components=tuple(options.components),
+            require_pose=False,
+        )
+        for b in bags
+    ]
+    types = {(s.image_type, s.action_type) for s in streams}
+    if len(types) > 1:
+        raise DataError(f"the bags carry different camera or command types: {sorted(types)}")
+    gaps = np.concatenate([np.diff(s.image_times) for s in streams])
+    if gaps.size == 0:
+        raise DataError(f"the bags hold fewer than two images on {image_topic!r}")
+    step_ns = round(options.step_period * NS_PER_S)
+    grid = GridConfig(
+        step_ns=step_ns,
+        camera_period_ns=int(np.median(gaps)),
+        image_timeout_ns=round((options.image_timeout or options.step_period) * NS_PER_S),
+        command_timeout_ns=round((options.command_timeout or 2 * options.step_period) * NS_PER_S),
+    )
+    commands = np.concatenate([s.commands for s in streams])
+    varying = tuple(c for i, c in enumerate(options.components) if np.ptp(commands[:, i]) > 0)
+    if not varying:
+        raise DataError(
+            f"every command component {list(options.components)} on {action_topic!r} is "
+            "constant: there is nothing to learn actions from"
+        )
+    columns = [options.components.index(c) for c in varying]
+    environment = {s.environment for s in streams}
+    if options.actions is None:
+        if environment == {None} or None in environment:
+            raise DataError(
+                f"the commands on {action_topic!r} are continuous: give --actions K to learn "
+                "a codebook of K actions (only simulator bags have the 25 fixed pairs)"
+            )
+        codebook = sim_codebook()
+    else:
+        codebook = fit_codebook(commands[:, columns], varying, options.actions, options.seed)
+    first = streams[0]
+    shape = _first_pixels(first, image_topic).shape
+    grey = shape[2] == 1 if options.grey is None else options.grey
+    height, width = options.image_size or shape[:2]
+    return StreamSpec(
+        image_topic=image_topic,
+        image_type=first.image_type,
+        action_topic=action_topic,
+        action_type=first.action_type,
+        preprocessing=Preprocessing(height, width, bool(grey)),
+        codebook=codebook,
+        grid=grid,
+    )
+
+
+def _first_pixels(streams: _Streams, topic: str) -> np.ndarray:
+    """Decoded pixels of the first image kept on ``topic`` (its size and colour)."""
+    first = int(streams.image_numbers[0]) if streams.image_numbers.size else 0
+    with BagReader(streams.path) as reader:
+        for index, bag_msg in enumerate(reader.messages([topic])):
+            if index == first:
+                try:
+                    return decode_image(bag_msg.decode(), streams.image_type)
+                except MessageError as exc:
+                    raise MessageError(f"{_where(streams.path, topic, index)}: {exc}") from None
+    raise DataError(f"bag {str(streams.path)!r} has no image on {topic!r}")
+
+
+def read_stream_trajectory(
+    bags: Sequence[Path | str],
+    spec: StreamSpec,
+    *,
+    pose_topic: str | None = None,
+    reward_topic: str | None = None,
+    require_ground_truth: bool = False,
+    pose_frame: str = DEFAULT_POSE_FRAME,
+) -> Trajectory:
+    """Read ``bags`` onto the spec's step grid (see the module docstring and core.resample).
+
+    Every bag starts its own grid and segments. ``require_ground_truth`` demands the pose
+    topic. Refused with a one-line error: a camera or command topic missing or of another
+    type than the spec's, an undecodable or inconsistent message, a step period at which
+    most steps have no new image, a bag with no usable step.
+    """
+    if not bags:
+        raise ConfigError("no bag given")
+    codebook = spec.codebook
+    parts: list[dict[str, np.ndarray]] = []
+    sources: list[dict[str, Any]] = []
+    segment_offset = 0
+    for bag in bags:
+        path = Path(bag)
+        streams = _read_streams(
+            path,
+            image_topic=spec.image_topic,
+            action_topic=spec.action_topic,
+            pose_topic=pose_topic,
+            reward_topic=reward_topic,
+            components=codebook.components,
+            require_pose=require_ground_truth,
+            pose_frame=pose_frame,
+        )
+        for what, got, expected in (
+            ("camera", streams.image_type, spec.image_type),
+            ("command", streams.action_type, spec.action_type),
+        ):
+            if got != expected:
+                raise DataError(
+                    f"bag {str(path)!r}: the model's {what} topic carries {expected}, this bag's "
+                    f"carries {got}"
+                )
+        if codebook.kind == "sim" and streams.environment is None:
+            raise DataError(
+                f"bag {str(path)!r} does not come from sim_node, but the model's actions are "
+                "the simulator's 25 pairs"
+            )
+        steps = resample_grid(streams.image_times, streams.command_times, spec.grid)
+        period = spec.grid.step_ns / NS_PER_S
+        if steps.grid_steps == 0 or steps.fresh < MIN_FRESH_FRACTION * steps.grid_steps:
+            raise DataError(
+                f"bag {str(path)!r}, topic {spec.image_topic!r}: only {steps.fresh} of "
+                f"{steps.grid_steps} steps of {period:g} s have a new image (the camera's "
+                f"median period is {_median_period(streams.image_times):g} s); use a longer "
+                "--step-period"
+            )
+        if steps.stamps.size == 0:
+            raise DataError(
+                f"bag {str(path)!r}: no step of {period:g} s has both an image and a command in "
+                f"force ({steps.stale_image} camera gaps, {steps.no_command} without a command "
+                f"on {spec.action_topic!r})"
+            )
+        commands = streams.commands[steps.command_index]
+        actions, distance = codebook.assign(commands)
+        observations = _decode_images(
+            path,
+            spec.image_topic,
+            spec.image_type,
+            streams.image_numbers[steps.image_index],
+            spec.preprocessing,
+        )
+        positions = _poses_at(streams, steps.stamps)
+        if require_ground_truth and np.isnan(positions).all():
+            raise DataError(
+                f"bag {str(path)!r}: the poses on {pose_topic!r} cover none of the steps"
+            )
+        rewards = _step_rewards(
+            streams.reward_times, streams.rewards, steps.stamps, spec.grid.step_ns
+        )
+        breaks = np.diff(steps.stamps) != spec.grid.step_ns
+        segments = segment_offset + np.concatenate([[0], np.cumsum(breaks)])
+        segment_offset = int(segments[-1]) + 1
+        far = distance > codebook.far_distance
+        parts.append(
+            {
+                "stamps": steps.stamps,
+                "observations": observations,
+                "actions": actions,
+                "velocities": commands,
+                "positions": positions,
+                "rewards": rewards,
+                "segments": segments.astype(np.int64),
+            }
+        )
+        sources.append(
+            {
+                "path": str(path),
+                "steps": int(steps.stamps.size),
+                "segments": int(breaks.sum()) + 1,
+                "grid_steps": steps.grid_steps,
+                "camera_gaps": steps.stale_image,
+                "command_gaps": steps.no_command,
+                "images_out_of_order": streams.dropped_images,
+                "far_commands": int(far.sum()),
+                "worst_command_distance": float(distance.max()),
+                "stamps_ns": [int(steps.stamps[0]), int(steps.stamps[-1])],
+                "environment": streams.environment,
+                "generator": None,
+                "topics": {
+                    "image": spec.image_topic,
+                    "action": spec.action_topic,
+                    "pose": pose_topic,
+                    "pose_frame": pose_frame,
+                    "reward": reward_topic,
+                },
+            }
+        )
+    merged = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+    prep = spec.preprocessing
+    return Trajectory(
+        **merged,
+        image_shape=(prep.height, prep.width),
+        n_actions=len(codebook) if codebook.kind == "kmeans" else NUM_ACTIONS,
+        sources=sources,
+    )
+
+
+def _median_period(times: np.ndarray) -> float:
+    return float(np.median(np.diff(times))) / NS_PER_S if times.size > 1 else float("nan")
