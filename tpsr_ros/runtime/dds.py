@@ -40,6 +40,12 @@ from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.units import NS_PER_S
 from tpsr_ros.io.messages import jazzy_typestore
 from tpsr_ros.io.qos import Durability, History, QoSProfile, Reliability
+from tpsr_ros.runtime.allocator import tune_allocator
+from tpsr_ros.runtime.dds_tuning import (
+    config_is_loopback,
+    large_message_config,
+    socket_buffer_problem,
+)
 from tpsr_ros.runtime.dds_types import idl_struct, ros_type_name
 from tpsr_ros.runtime.transport import (
     BytesCallback,
@@ -54,6 +60,7 @@ __all__ = [
     "DdsTransport",
     "discovery_config",
     "discovery_range_from_env",
+    "domain_config",
     "domain_id_from_env",
     "localhost_only_from_env",
 ]
@@ -156,24 +163,42 @@ def _static_peers_from_env() -> list[str]:
 _DOMAINS: dict[int, Any] = {}
 
 
-def _configure_domain(domain_id: int, domain_cls: Any) -> None:
-    """Create the process's Cyclone domain ``domain_id`` once, with our configuration.
+def domain_config() -> str:
+    """The Cyclone configuration our domains get: fragments joined by commas, later wins.
 
-    The user's ``CYCLONEDDS_URI`` comes first (or else what ROS 2's discovery variables
-    ask for, :func:`discovery_config`), then our writer-linger setting. The domain lives until the
-    process exits: deleting it would delete every participant in it, ours or not. If the
-    domain already exists (a participant was created elsewhere first) it is left alone.
+    First our large-message tuning (:func:`~tpsr_ros.runtime.dds_tuning.large_message_config`),
+    so the user can override any of it; then the user's ``CYCLONEDDS_URI`` (or else what
+    ROS 2's discovery variables ask for, :func:`discovery_config`); then our writer-linger
+    setting.
+    """
+    user = os.environ.get("CYCLONEDDS_URI", "").strip()
+    if user:
+        loopback = config_is_loopback(user)
+    else:
+        discovery_range = discovery_range_from_env()
+        user = discovery_config(discovery_range, _static_peers_from_env())
+        loopback = discovery_range == "LOCALHOST"
+    fragments = [large_message_config(loopback=loopback), user, _LINGER_CONFIG]
+    return ",".join(f for f in fragments if f)
+
+
+def _configure_domain(domain_id: int, domain_cls: Any) -> str | None:
+    """Create the process's Cyclone domain ``domain_id`` once, with :func:`domain_config`.
+
+    The domain lives until the process exits: deleting it would delete every participant
+    in it, ours or not. If the domain already exists (a participant was created elsewhere
+    first) it is left alone. Returns a warning about the host's socket buffer limit when it
+    is too small for large messages, the first time only.
     """
     if domain_id in _DOMAINS:
-        return
-    fragments = [os.environ.get("CYCLONEDDS_URI", "").strip()]
-    if not fragments[0]:
-        fragments = [discovery_config(discovery_range_from_env(), _static_peers_from_env())]
-    fragments.append(_LINGER_CONFIG)
+        return None
+    config = domain_config()  # a bad environment variable raises ConfigError here
+    tune_allocator()
     try:
-        _DOMAINS[domain_id] = domain_cls(domain_id, ",".join(f for f in fragments if f))
+        _DOMAINS[domain_id] = domain_cls(domain_id, config)
     except Exception:
         _DOMAINS[domain_id] = None
+    return socket_buffer_problem()
 
 
 def _typehash(msgtype: str) -> bytes:
@@ -331,7 +356,7 @@ class DdsTransport(Transport):
         self._ReadCondition = ReadCondition
         self.node_name, self.namespace = node_name, namespace
         self.domain_id = domain_id_from_env() if domain_id is None else domain_id
-        _configure_domain(self.domain_id, Domain)
+        startup_warning = _configure_domain(self.domain_id, Domain)
         userdata = f"enclave={enclave};".encode()
         try:
             self._dp = DomainParticipant(self.domain_id, qos=Qos(Policy.Userdata(data=userdata)))
@@ -342,6 +367,8 @@ class DdsTransport(Transport):
         self._waitset.attach(self._guard)
         self._lock = threading.Lock()
         self._qos_events: queue.SimpleQueue[str] = queue.SimpleQueue()
+        if startup_warning:
+            self._qos_events.put(startup_warning)
         self._warn: Callable[[str], None] | None = None
         self._topics: dict[str, tuple[str, Any]] = {}
         self._writers: list[_Writer] = []
@@ -410,8 +437,18 @@ class DdsTransport(Transport):
         )
 
     def set_warning_sink(self, sink: Callable[[str], None]) -> None:
-        """Where warnings about the graph (incompatible QoS) go; the node's logger."""
+        """Where warnings (incompatible QoS, host limits) go; the node's logger.
+
+        Warnings queued before the sink was set (at start-up) are passed on now.
+        """
         self._warn = sink
+        self._flush_warnings()
+
+    def _flush_warnings(self) -> None:
+        while not self._qos_events.empty():
+            message = self._qos_events.get_nowait()
+            if self._warn is not None:
+                self._warn(message)
 
     def _make_writer(
         self, dds_name: str, msgtype: str, qos: QoSProfile, topic_name: str | None = None
@@ -513,10 +550,7 @@ class DdsTransport(Transport):
     def spin_once(self, timeout_s: float) -> int:
         self._waitset.wait(max(0, int(timeout_s * 1e9)))
         self._guard.take()
-        while not self._qos_events.empty():
-            message = self._qos_events.get_nowait()
-            if self._warn is not None:
-                self._warn(message)
+        self._flush_warnings()
         count = 0
         for handle in list(self._readers):
             while not handle.closed:

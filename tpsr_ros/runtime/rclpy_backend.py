@@ -24,6 +24,7 @@ from typing import Any, ClassVar
 from tpsr_ros.core.errors import MessageError, TpsrError
 from tpsr_ros.io.messages import deserialize, serialize
 from tpsr_ros.io.qos import Durability, History, QoSProfile, Reliability
+from tpsr_ros.runtime.allocator import tune_allocator
 from tpsr_ros.runtime.transport import (
     BytesCallback,
     ParameterCheck,
@@ -156,6 +157,7 @@ class RclpyTransport(Transport):
         from rclpy.signals import SignalHandlerOptions
 
         self._rclpy = rclpy
+        tune_allocator()
         self.context = rclpy.Context()
         try:
             rclpy.init(
