@@ -12,7 +12,8 @@ Message choices (see msgs_doc/topics.md):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import struct
+from dataclasses import dataclass, replace
 from functools import cache
 from typing import Any
 
@@ -95,13 +96,65 @@ def stamp_of(msg: Any) -> int:
     return int(stamp.sec) * _NS + int(stamp.nanosec)
 
 
+# Below this many bytes of trailing byte data the generic path is as fast.
+_SPLICE_MIN_BYTES = 1 << 16
+_EMPTY_BYTES = np.zeros(0, dtype=np.uint8)
+
+
+@cache
+def _trailing_byte_field(msgtype: str) -> str | None:
+    """Name of ``msgtype``'s last field when it is an unbounded uint8/byte sequence.
+
+    Such a field (``Image.data``, ``CompressedImage.data``) ends the CDR stream and needs
+    no alignment, so its bytes can be appended to the serialised rest unchanged.
+    """
+    fields = jazzy_typestore().fielddefs.get(msgtype, (None, []))[1]
+    if not fields:
+        return None
+    name, (kind, spec) = fields[-1]
+    if kind.name != "SEQUENCE" or spec[1]:
+        return None
+    sub_kind, sub_spec = spec[0]
+    if sub_kind.name == "BASE" and sub_spec[0] in ("uint8", "byte", "char"):
+        return str(name)
+    return None
+
+
+def _spliced(msg: Any, msgtype: str, field: str) -> bytes | None:
+    """CDR of ``msg`` built with one copy of its large trailing byte field, else None."""
+    payload = getattr(msg, field)
+    if not isinstance(payload, np.ndarray) or payload.dtype != np.uint8 or payload.ndim != 1:
+        return None
+    if payload.size < _SPLICE_MIN_BYTES:
+        return None
+    head = jazzy_typestore().serialize_cdr(replace(msg, **{field: _EMPTY_BYTES}), msgtype)
+    # the head ends with the sequence's 4-byte length (0), which is rewritten here
+    length = struct.pack("<I" if head[1] == 1 else ">I", payload.size)
+    return b"".join((head[:-4], length, np.ascontiguousarray(payload).data))
+
+
 def serialize(msg: Any, msgtype: str) -> bytes:
-    """Serialise to ROS 2 CDR (little endian, with the 4-byte encapsulation header)."""
+    """Serialise to ROS 2 CDR (little endian, with the 4-byte encapsulation header).
+
+    A message ending in a large byte array (an image) is built with one copy of the
+    array into the result; everything else goes through the rosbags serialiser.
+    """
+    field = _trailing_byte_field(msgtype)
+    if field is not None:
+        spliced = _spliced(msg, msgtype, field)
+        if spliced is not None:
+            return spliced
     return bytes(jazzy_typestore().serialize_cdr(msg, msgtype))
 
 
 def deserialize(data: bytes | memoryview, msgtype: str) -> Any:
-    """Deserialise ROS 2 CDR bytes; malformed bytes raise ``MessageError``."""
+    """Deserialise ROS 2 CDR bytes; malformed bytes raise ``MessageError``.
+
+    Arrays in the result are read-only numpy views of ``data`` (no copy of an image's
+    pixels): ``bytes`` are immutable, so the views cannot change under the message.
+    """
+    if isinstance(data, bytes):
+        data = memoryview(data)  # rosbags slices a memoryview without copying
     try:
         return jazzy_typestore().deserialize_cdr(data, msgtype)
     except Exception as exc:  # rosbags raises assorted low-level errors on garbage
