@@ -18,26 +18,49 @@ what has arrived and closes the bag cleanly. The bag is flushed every
 ``python -m tpsr_ros.bag_recover BAG`` rebuilds a readable bag holding everything up to
 the last flush. A topic published with two types is an error: the recorder stops and
 closes the bag (what it holds stays readable) and exits with status 1.
+
+Nothing is lost silently. Messages the middleware reports lost before the recorder got
+them (DDS sample-lost events; Fast DDS's message-lost event under rclpy; best-effort
+samples Cyclone rejected because the recorder fell 256 samples behind) are counted per
+topic and logged as they happen; messages the recorder refuses (larger than
+``--max-message-size``, or an ``Image`` that cannot be a whole image: truncated data,
+rows shorter than width x bytes per pixel) are logged with their index and counted.
+The counts go to ``/diagnostics`` every second, to the bag's ``custom_data``
+(``recorder.lost_messages``, ``recorder.rejected_messages`` and per topic
+``recorder.by_topic``) and to the end-of-run line.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from tpsr_ros.cli import ArgumentParser, positive_float
-from tpsr_ros.core.errors import BagError, TpsrError
+from tpsr_ros.cli import ArgumentParser, positive_float, positive_int
+from tpsr_ros.core.errors import BagError, MessageError, TpsrError
 from tpsr_ros.io.bag import BagWriter, check_bag_path_free
-from tpsr_ros.io.messages import jazzy_typestore
+from tpsr_ros.io.messages import IMAGE_TYPE, deserialize, image_problem, jazzy_typestore
 from tpsr_ros.io.qos import adapt_to_publishers, compatible, to_bag_qos
-from tpsr_ros.runtime import Node, NodeOptions, QoSProfile, run_node
+from tpsr_ros.runtime import Node, NodeOptions, QoSProfile, Subscription, run_node
+from tpsr_ros.runtime.diagnostics import (
+    DIAGNOSTICS_TYPE,
+    OK,
+    WARN,
+    diagnostic_array,
+    diagnostic_status,
+)
 
 __all__ = ["RecorderNode", "main"]
 
 PROG = "python -m tpsr_ros.record"
 EXCLUDED_BY_DEFAULT = ("/rosout", "/parameter_events")
+DIAGNOSTICS_TOPIC = "/diagnostics"
+# unread samples the middleware may hold per topic while the recorder is busy (DDS backend)
+CACHE_SAMPLES = 256
+DEFAULT_MAX_MESSAGE_BYTES = 256 * 1024 * 1024
+_LOGGED_REJECTIONS = 5  # per topic; later ones are counted only
 
 
 def _hidden(topic: str) -> bool:
@@ -69,6 +92,13 @@ class RecorderNode(Node):
             help="s between flushes to disk; a hard kill loses at most this much (default 1)",
         )
         parser.add_argument(
+            "--max-message-size",
+            type=positive_int,
+            default=DEFAULT_MAX_MESSAGE_BYTES,
+            metavar="BYTES",
+            help="refuse (count and log) larger messages (default 256 MiB)",
+        )
+        parser.add_argument(
             "--include-hidden-topics",
             action="store_true",
             help="also record topics with a component starting with '_'",
@@ -92,12 +122,20 @@ class RecorderNode(Node):
         self.subscribed: dict[str, str] = {}
         self.qos: dict[str, QoSProfile] = {}
         self.counts: dict[str, int] = defaultdict(int)
+        self.lost: dict[str, int] = defaultdict(int)
+        self.rejected: dict[str, int] = defaultdict(int)
+        self.subscriptions: dict[str, Subscription] = {}
+        self.max_message_size = int(args.max_message_size)
         self._warned: set[tuple[str, str]] = set()
         self._closed_bag = False
         self.exit_code = 0
+        # a busy recorder holds back reliable publishers instead of buffering without bound
+        getattr(self.transport, "limit_keep_all_readers", lambda n: None)(CACHE_SAMPLES)
+        self.diagnostics = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
         self._first_scan = self.create_timer(0.001, self._scan_now)
         self.create_timer(args.polling_interval / 1000.0, self.discover)
         self.create_timer(args.flush_interval, self.writer.flush)
+        self.create_timer(1.0, self.publish_diagnostics)
         what = "all topics" if self.wanted is None else ", ".join(sorted(self.wanted))
         self.logger.info(f"recording {what} to {args.output}")
 
@@ -119,11 +157,19 @@ class RecorderNode(Node):
 
     def discover(self) -> None:
         """Subscribe to every selected topic that has publishers and is not recorded yet."""
+        self.check_losses()
         by_topic: dict[str, list[Any]] = defaultdict(list)
         for endpoint in self.transport.publishers():
             if self._selected(endpoint.topic):
                 by_topic[endpoint.topic].append(endpoint)
+        own = by_topic.get(DIAGNOSTICS_TOPIC, [])
+        for e in own:  # the recorder's own /diagnostics publisher is not recorded
+            if e.msgtype == DIAGNOSTICS_TYPE and e.qos == self.diagnostics.qos:
+                own.remove(e)
+                break
         for topic, endpoints in sorted(by_topic.items()):
+            if not endpoints:
+                continue
             types = sorted({e.msgtype for e in endpoints})
             if len(types) > 1:
                 raise BagError(f"topic type clash: {topic} is published as {' and '.join(types)}")
@@ -149,22 +195,91 @@ class RecorderNode(Node):
                 continue
             qos = adapt_to_publishers(e.qos for e in endpoints)
             self.writer.add_topic(topic, msgtype, [to_bag_qos(e.qos) for e in endpoints])
-            self.create_subscription(
-                topic, msgtype, self._writer_for(topic), qos, raw=True
+            self.subscriptions[topic] = self.create_subscription(
+                topic, msgtype, self._writer_for(topic, msgtype), qos, raw=True
             )
             self.subscribed[topic] = msgtype
             self.qos[topic] = qos
             self.logger.info(f"subscribed to {topic} ({msgtype}; {qos})")
 
-    def _writer_for(self, topic: str) -> Any:
+    def _writer_for(self, topic: str, msgtype: str) -> Any:
         write = self.writer.write
-        counts = self.counts
+        counts, rejected = self.counts, self.rejected
+        max_size = self.max_message_size
+        is_image = msgtype == IMAGE_TYPE
+        own_reports = topic == DIAGNOSTICS_TOPIC and msgtype == DIAGNOSTICS_TYPE
 
         def on_message(data: bytes) -> None:
-            write(topic, time.time_ns(), data)
+            received = time.time_ns()
+            if own_reports and self._is_own_report(data):
+                return
+            problem = None
+            if len(data) > max_size:
+                problem = f"{len(data)} bytes is over --max-message-size {max_size}"
+            elif is_image:
+                problem = _image_cdr_problem(data)
+            if problem is not None:
+                self._reject(topic, counts[topic] + rejected[topic], problem)
+                return
+            write(topic, received, data)
             counts[topic] += 1
 
         return on_message
+
+    @property
+    def _status_name(self) -> str:
+        return f"{self.fully_qualified_name.lstrip('/')}: recording"
+
+    def _is_own_report(self, data: bytes) -> bool:
+        """Whether a /diagnostics message is this recorder's own (not recorded)."""
+        try:
+            statuses = deserialize(data, DIAGNOSTICS_TYPE).status
+        except MessageError:
+            return False
+        return bool(statuses) and all(s.name == self._status_name for s in statuses)
+
+    def _reject(self, topic: str, index: int, problem: str) -> None:
+        self.rejected[topic] += 1
+        count = self.rejected[topic]
+        if count <= _LOGGED_REJECTIONS:
+            more = f" (further rejections on {topic} are only counted)" * (
+                count == _LOGGED_REJECTIONS
+            )
+            self.logger.warning(
+                f"rejected message {index} on {topic}: {problem}; not recorded{more}"
+            )
+
+    def check_losses(self) -> None:
+        """Log (and count) what the middleware reports lost since the last check."""
+        for topic, subscription in self.subscriptions.items():
+            total = subscription.get_lost_count()
+            if total > self.lost[topic]:
+                self.logger.warning(
+                    f"lost {total - self.lost[topic]} messages on {topic} before they reached "
+                    f"the recorder (reported by the middleware; {total} on this topic so far)"
+                )
+                self.lost[topic] = total
+
+    def totals(self) -> tuple[int, int, int]:
+        """(recorded, lost, rejected) messages over all topics."""
+        return sum(self.counts.values()), sum(self.lost.values()), sum(self.rejected.values())
+
+    def publish_diagnostics(self) -> None:
+        """One ``DiagnosticStatus``: WARN once anything was lost or rejected, else OK."""
+        self.check_losses()
+        recorded, lost, rejected = self.totals()
+        values: dict[str, Any] = {"bag": str(self.writer.path)}
+        for topic in sorted(self.subscribed):
+            values[f"{topic} recorded"] = self.counts[topic]
+            values[f"{topic} lost"] = self.lost[topic]
+            values[f"{topic} rejected"] = self.rejected[topic]
+        status = diagnostic_status(
+            WARN if lost or rejected else OK,
+            self._status_name,
+            f"recorded {recorded}, lost {lost}, rejected {rejected}",
+            values,
+        )
+        self.diagnostics.publish(diagnostic_array(time.time_ns(), [status]))
 
     def on_shutdown(self) -> None:
         """Write what has already arrived, then close the bag (it stays readable)."""
@@ -175,12 +290,31 @@ class RecorderNode(Node):
             for _ in range(1000):  # drain everything the middleware already holds
                 if self.transport.spin_once(0.0) == 0:
                     break
+            self.check_losses()
+            recorded, lost, rejected = self.totals()
+            self.writer.set_custom_data("recorder.lost_messages", str(lost))
+            self.writer.set_custom_data("recorder.rejected_messages", str(rejected))
+            by_topic = {
+                t: {"recorded": self.counts[t], "lost": self.lost[t], "rejected": self.rejected[t]}
+                for t in sorted(self.subscribed)
+            }
+            self.writer.set_custom_data("recorder.by_topic", json.dumps(by_topic))
         finally:
             self.writer.close()
-        total = sum(self.counts.values())
-        self.logger.info(
-            f"recorded {total} messages on {len(self.subscribed)} topics to {self.writer.path}"
+        recorded, lost, rejected = self.totals()
+        line = (
+            f"recorded {recorded} messages on {len(self.subscribed)} topics to "
+            f"{self.writer.path}; lost {lost} (reported by the middleware), rejected {rejected}"
         )
+        (self.logger.warning if lost or rejected else self.logger.info)(line)
+
+
+def _image_cdr_problem(data: bytes) -> str | None:
+    """Why CDR bytes of an ``Image`` are not a whole image (cheap: pixels are not copied)."""
+    try:
+        return image_problem(deserialize(data, IMAGE_TYPE))
+    except MessageError as exc:
+        return str(exc)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -37,6 +37,7 @@ __all__ = [
     "clock_msg",
     "deserialize",
     "image_msg",
+    "image_problem",
     "image_to_array",
     "jazzy_typestore",
     "pose_msg",
@@ -198,6 +199,34 @@ def image_to_array(
     if frame_id is not None and msg.header.frame_id != frame_id:
         raise MessageError(f"image frame {msg.header.frame_id!r} is not {frame_id!r}")
     return data.reshape(height, width, 3)
+
+
+# bytes per pixel of the sensor_msgs/image_encodings a camera driver publishes
+_BYTES_PER_PIXEL = {
+    "rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "mono16": 2,
+    "rgb16": 6, "bgr16": 6, "rgba16": 8, "bgra16": 8, "8UC1": 1, "8UC3": 3, "8UC4": 4,
+    "16UC1": 2, "32FC1": 4, "bayer_rggb8": 1, "bayer_bggr8": 1, "bayer_gbrg8": 1,
+    "bayer_grbg8": 1, "yuv422": 2, "uyvy": 2, "yuyv": 2,
+}  # fmt: skip
+
+
+def image_problem(msg: Any) -> str | None:
+    """Why an ``Image`` message cannot be a whole image (None when it can).
+
+    Rows must hold their pixels (``step`` >= ``width`` x bytes per pixel of a known
+    encoding; drivers may pad rows, so a larger step is fine) and ``data`` must hold
+    exactly ``step`` x ``height`` bytes (fewer: truncated).
+    """
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    size = len(msg.data)
+    per_pixel = _BYTES_PER_PIXEL.get(str(msg.encoding))
+    if per_pixel is not None and step < width * per_pixel:
+        return (
+            f"step {step} is less than width {width} x {per_pixel} bytes of {msg.encoding}"
+        )
+    if size != step * height:
+        return f"data holds {size} bytes, not step {step} x height {height} = {step * height}"
+    return None
 
 
 def _vector3(x: float, y: float, z: float = 0.0) -> Any:

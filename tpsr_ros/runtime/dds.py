@@ -205,7 +205,9 @@ def _typehash(msgtype: str) -> bytes:
     return f"typehash={jazzy_typestore().hash_rihs01(msgtype)};".encode()
 
 
-def _dds_qos(profile: QoSProfile, userdata: bytes, *, writer: bool) -> Any:
+def _dds_qos(
+    profile: QoSProfile, userdata: bytes, *, writer: bool, max_samples: int | None = None
+) -> Any:
     from cyclonedds.core import Policy, Qos
     from cyclonedds.util import duration
 
@@ -236,6 +238,8 @@ def _dds_qos(profile: QoSProfile, userdata: bytes, *, writer: bool) -> Any:
     policies.append(Policy.Userdata(data=userdata))
     if writer:
         policies.append(Policy.WriterDataLifecycle(autodispose=False))
+    elif max_samples is not None and profile.history is History.KEEP_ALL:
+        policies.append(Policy.ResourceLimits(max_samples=max_samples))
     return Qos(*policies)
 
 
@@ -285,16 +289,51 @@ class _Writer(PublisherHandle):
             self.writer.__del__()
 
 
+class _LossCounter:
+    """Samples Cyclone reports lost for one reader, counted on Cyclone's listener thread.
+
+    SAMPLE_LOST counts always. SAMPLE_REJECTED (the reader's cache is at its resource
+    limit) is a loss only for a best-effort reader: a reliable writer sends a rejected
+    sample again, so nothing is lost there, only delayed. Cyclone does not report samples
+    that a remote writer dropped from its own keep-last history before this reader had
+    them (the GAP it receives raises no status), so those cannot be counted here.
+    """
+
+    def __init__(self, best_effort: bool) -> None:
+        self.best_effort = best_effort
+        self.count = 0
+        self._lock = threading.Lock()
+
+    def on_lost(self, _reader: Any, status: Any) -> None:
+        with self._lock:
+            self.count += int(status.total_count_change)
+
+    def on_rejected(self, _reader: Any, status: Any) -> None:
+        if self.best_effort:
+            with self._lock:
+                self.count += int(status.total_count_change)
+
+
 class _Reader(SubscriptionHandle):
     def __init__(
-        self, owner: DdsTransport, topic: str, reader: Any, condition: Any, cb: BytesCallback
+        self,
+        owner: DdsTransport,
+        topic: str,
+        reader: Any,
+        condition: Any,
+        cb: BytesCallback,
+        losses: _LossCounter,
     ) -> None:
         self.owner, self.topic, self.reader, self.condition = owner, topic, reader, condition
         self.callback = cb
+        self.losses = losses
         self.closed = False
 
     def matched_count(self) -> int:
         return int(self.reader.get_subscription_matched_status().current_count)
+
+    def lost_count(self) -> int:
+        return self.losses.count
 
     def close(self) -> None:
         if not self.closed:
@@ -371,6 +410,7 @@ class DdsTransport(Transport):
             self._qos_events.put(startup_warning)
         self._warn: Callable[[str], None] | None = None
         self._topics: dict[str, tuple[str, Any]] = {}
+        self._keep_all_limit: int | None = None
         self._writers: list[_Writer] = []
         self._readers: list[_Reader] = []
         self._graph = BuiltinDataReader(self._dp, BuiltinTopicDcpsPublication)
@@ -415,7 +455,7 @@ class DdsTransport(Transport):
         self._topics[dds_name] = (msgtype, topic)
         return topic
 
-    def _qos_listener(self, topic: str, ours: QoSProfile) -> Any:
+    def _qos_listener(self, topic: str, ours: QoSProfile, **more: Any) -> Any:
         """A listener that reports a peer whose QoS cannot match ours (like rclpy's warning).
 
         Cyclone calls it on its own thread; the message is queued and logged by
@@ -434,7 +474,21 @@ class DdsTransport(Transport):
         return Listener(
             on_offered_incompatible_qos=lambda _writer, status: report("subscription", status),
             on_requested_incompatible_qos=lambda _reader, status: report("publisher", status),
+            **more,
         )
+
+    def limit_keep_all_readers(self, max_samples: int) -> None:
+        """Bound the cache of keep-all subscriptions created from now on (DDS RESOURCE_LIMITS).
+
+        A stalled node then holds at most ``max_samples`` unread samples per subscription
+        instead of growing without bound: past it a reliable writer is held back (it sends
+        the sample again later), and a best-effort sample is rejected and counted in
+        :meth:`SubscriptionHandle.lost_count`. Not for a node that also publishes reliably
+        to itself from the thread that spins it: its writer would wait for itself.
+        """
+        if max_samples < 1:
+            raise ConfigError(f"a keep-all subscription needs room for 1 sample, not {max_samples}")
+        self._keep_all_limit = int(max_samples)
 
     def set_warning_sink(self, sink: Callable[[str], None]) -> None:
         """Where warnings (incompatible QoS, host limits) go; the node's logger.
@@ -473,15 +527,20 @@ class DdsTransport(Transport):
         from cyclonedds.sub import DataReader
 
         dds_topic = self._topic("rt" + topic, msgtype)
+        losses = _LossCounter(best_effort=qos.reliability is Reliability.BEST_EFFORT)
         reader = DataReader(
             self._dp,
             dds_topic,
-            _dds_qos(qos, _typehash(msgtype), writer=False),
-            listener=self._qos_listener(topic, qos),
+            _dds_qos(
+                qos, _typehash(msgtype), writer=False, max_samples=self._keep_all_limit
+            ),
+            listener=self._qos_listener(
+                topic, qos, on_sample_lost=losses.on_lost, on_sample_rejected=losses.on_rejected
+            ),
         )
         condition = self._ReadCondition(reader, self._any)
         self._waitset.attach(condition)
-        handle = _Reader(self, topic, reader, condition, callback)
+        handle = _Reader(self, topic, reader, condition, callback, losses)
         self._readers.append(handle)
         self._announce()
         return handle
