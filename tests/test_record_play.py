@@ -460,3 +460,27 @@ def test_player_reports_its_lateness_when_publishing_cannot_keep_up(tmp_path, ca
     assert p50 >= 2 * 20 - 1
     line = next(x for x in capfd.readouterr().err.splitlines() if "played 6 messages" in x)
     assert f"max {worst:.1f} ms" in line and "lateness p50" in line and "p99" in line
+
+
+def test_read_ahead_yields_in_order_raises_the_readers_error_and_stops_early():
+    from tpsr_ros.play import ReadAhead
+
+    assert list(ReadAhead(iter(range(50)), depth=4)) == list(range(50))
+
+    def damaged():
+        yield 1
+        raise BagError("bag 'x': chunk 2 is damaged")
+
+    with pytest.raises(BagError, match="chunk 2 is damaged"):
+        list(ReadAhead(damaged()))
+    produced = []
+
+    def endless():
+        for k in range(10**9):
+            produced.append(k)
+            yield k
+
+    ahead = ReadAhead(endless(), depth=2)
+    assert next(iter(ahead)) == 0
+    ahead.close()
+    assert not ahead._thread.is_alive() and len(produced) < 10
