@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -52,7 +53,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_camera")
     parser.add_argument("--rate", type=float, default=RATE_HZ, help="camera rate (Hz)")
     parser.add_argument("--backends", nargs="+", choices=["dds", "rclpy"], default=None)
-    args = parser.parse_args(argv)
+    args = parser.parse_args([] if argv is None else argv)  # run by benchmarks: defaults
     graph_env()
     print(f"   load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores", flush=True)
     backends = args.backends or ["dds", *(["rclpy"] if rclpy_importable() else [])]
@@ -73,4 +74,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv[1:])

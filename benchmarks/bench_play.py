@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import sys
 import tempfile
 from pathlib import Path
 
@@ -66,7 +67,7 @@ def one_run(tmp: Path, bag: Path, backend: str) -> tuple[int, tuple[float, ...] 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_play")
     parser.add_argument("--backends", nargs="+", choices=["dds", "rclpy"], default=None)
-    args = parser.parse_args(argv)
+    args = parser.parse_args([] if argv is None else argv)  # run by benchmarks: defaults
     backends = args.backends or ["dds", *(["rclpy"] if rclpy_importable() else [])]
     graph_env()
     print(f"   load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores", flush=True)
@@ -89,4 +90,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv[1:])

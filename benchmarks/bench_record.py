@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -151,7 +152,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_record")
     parser.add_argument("--sizes", nargs="+", choices=list(SIZES), default=list(SIZES))
     parser.add_argument("--backends", nargs="+", choices=["dds", "rclpy"], default=None)
-    args = parser.parse_args(argv)
+    args = parser.parse_args([] if argv is None else argv)  # run by benchmarks: defaults
     backends = args.backends or ["dds", *(["rclpy"] if rclpy_importable() else [])]
     graph_env()
     print(f"   load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores", flush=True)
@@ -181,4 +182,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv[1:])

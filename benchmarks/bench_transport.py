@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--sizes", nargs="+", choices=list(SIZES), default=list(SIZES))
     parser.add_argument("--backends", nargs="+", choices=["dds", "rclpy"], default=None)
     parser.add_argument("--runs", type=int, default=1)
-    args = parser.parse_args(argv)
+    args = parser.parse_args([] if argv is None else argv)  # run by benchmarks: defaults
     backends = args.backends or ["dds", *(["rclpy"] if _rclpy_importable() else [])]
     os.environ["ROS_DOMAIN_ID"] = str(os.getpid() % 150 + 50)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -156,4 +156,4 @@ if __name__ == "__main__":
     if len(sys.argv) == 5 and sys.argv[1] == "--publish":
         publisher(sys.argv[2], sys.argv[3], int(sys.argv[4]))
     else:
-        main()
+        main(sys.argv[1:])
