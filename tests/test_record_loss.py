@@ -83,7 +83,7 @@ def test_dds_recorder_that_falls_behind_a_best_effort_camera_reports_each_lost_i
     recorded, lost, rejected, by_topic = _reported(bag)
     assert 0 < recorded < sent and rejected == 0
     assert lost == sent - recorded  # exactly what is missing from the bag
-    assert by_topic[TOPIC] == {"recorded": recorded, "lost": lost, "rejected": 0}
+    assert by_topic[TOPIC] == {"recorded": recorded, "lost": lost, "dropped": 0, "rejected": 0}
     err = capfd.readouterr().err
     assert f"lost {lost} messages on {TOPIC} before they reached the recorder" in err
     assert f"recorded {recorded} messages on 1 topics to {bag}; lost {lost}" in err
@@ -183,3 +183,45 @@ def test_bad_images_are_refused_counted_and_logged_and_the_bag_stays_readable(
     assert "message 1 on /camera/image_raw:" in lines[0] and "--max-message-size 100000" in lines[0]
     assert "message 2 on" in lines[1] and "cannot decode sensor_msgs/msg/Image" in lines[1]
     assert "message 3 on" in lines[2] and "step 128 is less than width 64 x 3" in lines[2]
+
+
+def test_messages_past_a_full_write_cache_are_dropped_counted_and_logged(tmp_path, capfd):
+    from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
+
+    bus = InprocBus()
+    camera = Node(NodeOptions(name="camera"), transport=InprocTransport("/camera", bus))
+    pub = camera.create_publisher(TOPIC, m.IMAGE_TYPE)
+    bag = tmp_path / "bag"
+    images = _images(12, 120, 160)  # 57.6 kB each
+    rec = _recorder(InprocTransport("/rec", bus), bag, "--max-cache-size", str(4 * 60_000))
+    assert rec.wait_for(lambda: TOPIC in rec.subscribed, 5)
+    with rec.writer._bag:  # the disk stalls: nothing is written meanwhile
+        for data in images:
+            pub.publish_raw(data)
+        rec.spin(timeout_s=0.1)
+    assert rec.ok()
+    rec.close()
+    with BagReader(bag) as reader:
+        recorded = reader.message_counts[TOPIC]
+        custom = reader.custom_data
+    dropped = int(custom["recorder.dropped_messages"])
+    assert (recorded, dropped) == (4, 8)  # the cache held 4 images; the 8 after are counted
+    assert json.loads(custom["recorder.by_topic"])[TOPIC]["dropped"] == 8
+    err = capfd.readouterr().err
+    assert "dropped message 4 on /camera/image_raw: the write cache holds" in err
+    assert "dropped 8 (write cache full)" in err
+
+
+def test_a_write_error_in_the_cache_thread_reaches_the_caller(tmp_path):
+    from tpsr_ros.core.errors import BagError
+    from tpsr_ros.io.bag import BagWriter
+    from tpsr_ros.io.bag_cache import CachedBagWriter
+
+    cache = CachedBagWriter(BagWriter(tmp_path / "bag").open(), max_bytes=10**6)
+    assert cache.put("/undeclared", 1, b"\0" * 8)  # queued; the thread's write fails
+    with pytest.raises(BagError, match="topic '/undeclared' was not declared"):
+        cache.close()
+    with pytest.raises(BagError, match="was not declared"):
+        cache.put("/undeclared", 2, b"\0" * 8)
+    with BagReader(tmp_path / "bag") as reader:  # closed, readable
+        assert reader.message_counts == {}
