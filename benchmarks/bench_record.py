@@ -107,14 +107,18 @@ class RecorderRun:
         return pub
 
     def reported(self) -> tuple[int, int]:
-        """(recorded, lost) in the recorder's latest /diagnostics report."""
+        """(recorded, lost or dropped) in the recorder's latest /diagnostics report."""
         if not self.reports:
             return 0, 0
         last = self.reports[-1]
-        return int(last.get(f"{TOPIC} recorded", 0)), int(last.get(f"{TOPIC} lost", 0))
+        lost = sum(int(last.get(f"{TOPIC} {kind}", 0)) for kind in ("lost", "dropped"))
+        return int(last.get(f"{TOPIC} recorded", 0)), lost
 
     def finish(self, expected: int, timeout_s: float) -> tuple[list[int], int]:
-        """Wait until ``expected`` images are recorded or lost, stop; (log times, lost)."""
+        """Wait until ``expected`` images are recorded or lost, stop; (log times, lost).
+
+        Lost counts what the middleware reported and what the recorder dropped.
+        """
         from tpsr_ros.io.bag import BagReader
 
         try:
@@ -126,7 +130,10 @@ class RecorderRun:
             self.recorder.kill()
         with BagReader(self.bag) as reader:
             times = [msg.log_time_ns for msg in reader.messages([TOPIC])]
-            lost = int(reader.custom_data.get("recorder.lost_messages", "0"))
+            custom = reader.custom_data
+            lost = sum(
+                int(custom.get(f"recorder.{kind}_messages", "0")) for kind in ("lost", "dropped")
+            )
         return times, lost
 
 
