@@ -71,6 +71,13 @@ def main(argv: list[str] | None = None) -> None:
                 f"{'met' if met else 'NOT met'})",
                 flush=True,
             )
+            if backend == "dds" and missing > lost:
+                print(
+                    "   (the DDS backend cannot count these: the camera's keep-last 30 history "
+                    "overwrote them before the recorder's Cyclone reader had them, and Cyclone "
+                    "raises no sample-lost status for that)",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":
