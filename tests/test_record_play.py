@@ -429,3 +429,58 @@ def test_player_publishes_clock_from_header_stamps_when_the_bag_has_none(tmp_pat
     listener.spin_once(0.0)
     assert [m.stamp_of(c) for c in clocks] == [S, 2 * S, 3 * S]
     assert [m.stamp_of(a) for a in actions] == [S, 2 * S, 3 * S]
+
+
+def test_player_reports_its_lateness_when_publishing_cannot_keep_up(tmp_path, capfd):
+    from tpsr_ros.play import PlayerNode
+    from tpsr_ros.runtime import NodeOptions
+    from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
+
+    bag = tmp_path / "bag"
+    with BagWriter(bag) as writer:  # 6 messages 10 ms apart
+        writer.add_topic("/action", m.ACTION_TYPE)
+        for k in range(6):
+            writer.write_message("/action", S + k * 10**7, m.twist_stamped_msg(k, 1.0, 0.0))
+    args = PlayerNode.argument_parser("play").parse_args([str(bag), "--no-clock"])
+    player = PlayerNode(NodeOptions.for_node(PlayerNode, args=args),
+                        transport=InprocTransport("/player", InprocBus()))
+    handle = player.publishers["/action"]._handle
+    write = handle.write
+
+    def slow_write(data: bytes) -> None:  # a middleware that takes 30 ms per message
+        time.sleep(0.03)
+        write(data)
+
+    handle.write = slow_write
+    player.spin()
+    player.close()
+    assert len(player.lateness_ms) == 6
+    p50, worst = player.lateness_ms.percentiles(50, 100)
+    assert worst >= 5 * 20 - 1  # message k starts at least k x (30 - 10) ms late
+    assert p50 >= 2 * 20 - 1
+    line = next(x for x in capfd.readouterr().err.splitlines() if "played 6 messages" in x)
+    assert f"max {worst:.1f} ms" in line and "lateness p50" in line and "p99" in line
+
+
+def test_read_ahead_yields_in_order_raises_the_readers_error_and_stops_early():
+    from tpsr_ros.play import ReadAhead
+
+    assert list(ReadAhead(iter(range(50)), depth=4)) == list(range(50))
+
+    def damaged():
+        yield 1
+        raise BagError("bag 'x': chunk 2 is damaged")
+
+    with pytest.raises(BagError, match="chunk 2 is damaged"):
+        list(ReadAhead(damaged()))
+    produced = []
+
+    def endless():
+        for k in range(10**9):
+            produced.append(k)
+            yield k
+
+    ahead = ReadAhead(endless(), depth=2)
+    assert next(iter(ahead)) == 0
+    ahead.close()
+    assert not ahead._thread.is_alive() and len(produced) < 10

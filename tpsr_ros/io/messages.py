@@ -13,7 +13,7 @@ Message choices (see msgs_doc/topics.md):
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cache
 from typing import Any
 
@@ -38,6 +38,7 @@ __all__ = [
     "deserialize",
     "header_stamp_ns",
     "image_msg",
+    "image_problem",
     "image_to_array",
     "jazzy_typestore",
     "pose_msg",
@@ -115,13 +116,65 @@ def header_stamp_ns(data: bytes | memoryview) -> int:
     return sec * _NS + nanosec
 
 
+# Below this many bytes of trailing byte data the generic path is as fast.
+_SPLICE_MIN_BYTES = 1 << 16
+_EMPTY_BYTES = np.zeros(0, dtype=np.uint8)
+
+
+@cache
+def _trailing_byte_field(msgtype: str) -> str | None:
+    """Name of ``msgtype``'s last field when it is an unbounded uint8/byte sequence.
+
+    Such a field (``Image.data``, ``CompressedImage.data``) ends the CDR stream and needs
+    no alignment, so its bytes can be appended to the serialised rest unchanged.
+    """
+    fields = jazzy_typestore().fielddefs.get(msgtype, (None, []))[1]
+    if not fields:
+        return None
+    name, (kind, spec) = fields[-1]
+    if kind.name != "SEQUENCE" or spec[1]:
+        return None
+    sub_kind, sub_spec = spec[0]
+    if sub_kind.name == "BASE" and sub_spec[0] in ("uint8", "byte", "char"):
+        return str(name)
+    return None
+
+
+def _spliced(msg: Any, msgtype: str, field: str) -> bytes | None:
+    """CDR of ``msg`` built with one copy of its large trailing byte field, else None."""
+    payload = getattr(msg, field)
+    if not isinstance(payload, np.ndarray) or payload.dtype != np.uint8 or payload.ndim != 1:
+        return None
+    if payload.size < _SPLICE_MIN_BYTES:
+        return None
+    head = jazzy_typestore().serialize_cdr(replace(msg, **{field: _EMPTY_BYTES}), msgtype)
+    # the head ends with the sequence's 4-byte length (0), which is rewritten here
+    length = struct.pack("<I" if head[1] == 1 else ">I", payload.size)
+    return b"".join((head[:-4], length, np.ascontiguousarray(payload).data))
+
+
 def serialize(msg: Any, msgtype: str) -> bytes:
-    """Serialise to ROS 2 CDR (little endian, with the 4-byte encapsulation header)."""
+    """Serialise to ROS 2 CDR (little endian, with the 4-byte encapsulation header).
+
+    A message ending in a large byte array (an image) is built with one copy of the
+    array into the result; everything else goes through the rosbags serialiser.
+    """
+    field = _trailing_byte_field(msgtype)
+    if field is not None:
+        spliced = _spliced(msg, msgtype, field)
+        if spliced is not None:
+            return spliced
     return bytes(jazzy_typestore().serialize_cdr(msg, msgtype))
 
 
 def deserialize(data: bytes | memoryview, msgtype: str) -> Any:
-    """Deserialise ROS 2 CDR bytes; malformed bytes raise ``MessageError``."""
+    """Deserialise ROS 2 CDR bytes; malformed bytes raise ``MessageError``.
+
+    Arrays in the result are read-only numpy views of ``data`` (no copy of an image's
+    pixels): ``bytes`` are immutable, so the views cannot change under the message.
+    """
+    if isinstance(data, bytes):
+        data = memoryview(data)  # rosbags slices a memoryview without copying
     try:
         return jazzy_typestore().deserialize_cdr(data, msgtype)
     except Exception as exc:  # rosbags raises assorted low-level errors on garbage
@@ -165,6 +218,34 @@ def image_to_array(
     if frame_id is not None and msg.header.frame_id != frame_id:
         raise MessageError(f"image frame {msg.header.frame_id!r} is not {frame_id!r}")
     return data.reshape(height, width, 3)
+
+
+# bytes per pixel of the sensor_msgs/image_encodings a camera driver publishes
+_BYTES_PER_PIXEL = {
+    "rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "mono16": 2,
+    "rgb16": 6, "bgr16": 6, "rgba16": 8, "bgra16": 8, "8UC1": 1, "8UC3": 3, "8UC4": 4,
+    "16UC1": 2, "32FC1": 4, "bayer_rggb8": 1, "bayer_bggr8": 1, "bayer_gbrg8": 1,
+    "bayer_grbg8": 1, "yuv422": 2, "uyvy": 2, "yuyv": 2,
+}  # fmt: skip
+
+
+def image_problem(msg: Any) -> str | None:
+    """Why an ``Image`` message cannot be a whole image (None when it can).
+
+    Rows must hold their pixels (``step`` >= ``width`` x bytes per pixel of a known
+    encoding; drivers may pad rows, so a larger step is fine) and ``data`` must hold
+    exactly ``step`` x ``height`` bytes (fewer: truncated).
+    """
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    size = len(msg.data)
+    per_pixel = _BYTES_PER_PIXEL.get(str(msg.encoding))
+    if per_pixel is not None and step < width * per_pixel:
+        return (
+            f"step {step} is less than width {width} x {per_pixel} bytes of {msg.encoding}"
+        )
+    if size != step * height:
+        return f"data holds {size} bytes, not step {step} x height {height} = {step * height}"
+    return None
 
 
 def _vector3(x: float, y: float, z: float = 0.0) -> Any:

@@ -40,6 +40,12 @@ from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.units import NS_PER_S
 from tpsr_ros.io.messages import jazzy_typestore
 from tpsr_ros.io.qos import Durability, History, QoSProfile, Reliability
+from tpsr_ros.runtime.allocator import tune_allocator
+from tpsr_ros.runtime.dds_tuning import (
+    config_is_loopback,
+    large_message_config,
+    socket_buffer_problem,
+)
 from tpsr_ros.runtime.dds_types import idl_struct, ros_type_name
 from tpsr_ros.runtime.transport import (
     BytesCallback,
@@ -54,6 +60,7 @@ __all__ = [
     "DdsTransport",
     "discovery_config",
     "discovery_range_from_env",
+    "domain_config",
     "domain_id_from_env",
     "localhost_only_from_env",
 ]
@@ -156,31 +163,51 @@ def _static_peers_from_env() -> list[str]:
 _DOMAINS: dict[int, Any] = {}
 
 
-def _configure_domain(domain_id: int, domain_cls: Any) -> None:
-    """Create the process's Cyclone domain ``domain_id`` once, with our configuration.
+def domain_config() -> str:
+    """The Cyclone configuration our domains get: fragments joined by commas, later wins.
 
-    The user's ``CYCLONEDDS_URI`` comes first (or else what ROS 2's discovery variables
-    ask for, :func:`discovery_config`), then our writer-linger setting. The domain lives until the
-    process exits: deleting it would delete every participant in it, ours or not. If the
-    domain already exists (a participant was created elsewhere first) it is left alone.
+    First our large-message tuning (:func:`~tpsr_ros.runtime.dds_tuning.large_message_config`),
+    so the user can override any of it; then the user's ``CYCLONEDDS_URI`` (or else what
+    ROS 2's discovery variables ask for, :func:`discovery_config`); then our writer-linger
+    setting.
+    """
+    user = os.environ.get("CYCLONEDDS_URI", "").strip()
+    if user:
+        loopback = config_is_loopback(user)
+    else:
+        discovery_range = discovery_range_from_env()
+        user = discovery_config(discovery_range, _static_peers_from_env())
+        loopback = discovery_range == "LOCALHOST"
+    fragments = [large_message_config(loopback=loopback), user, _LINGER_CONFIG]
+    return ",".join(f for f in fragments if f)
+
+
+def _configure_domain(domain_id: int, domain_cls: Any) -> str | None:
+    """Create the process's Cyclone domain ``domain_id`` once, with :func:`domain_config`.
+
+    The domain lives until the process exits: deleting it would delete every participant
+    in it, ours or not. If the domain already exists (a participant was created elsewhere
+    first) it is left alone. Returns a warning about the host's socket buffer limit when it
+    is too small for large messages, the first time only.
     """
     if domain_id in _DOMAINS:
-        return
-    fragments = [os.environ.get("CYCLONEDDS_URI", "").strip()]
-    if not fragments[0]:
-        fragments = [discovery_config(discovery_range_from_env(), _static_peers_from_env())]
-    fragments.append(_LINGER_CONFIG)
+        return None
+    config = domain_config()  # a bad environment variable raises ConfigError here
+    tune_allocator()
     try:
-        _DOMAINS[domain_id] = domain_cls(domain_id, ",".join(f for f in fragments if f))
+        _DOMAINS[domain_id] = domain_cls(domain_id, config)
     except Exception:
         _DOMAINS[domain_id] = None
+    return socket_buffer_problem()
 
 
 def _typehash(msgtype: str) -> bytes:
     return f"typehash={jazzy_typestore().hash_rihs01(msgtype)};".encode()
 
 
-def _dds_qos(profile: QoSProfile, userdata: bytes, *, writer: bool) -> Any:
+def _dds_qos(
+    profile: QoSProfile, userdata: bytes, *, writer: bool, max_samples: int | None = None
+) -> Any:
     from cyclonedds.core import Policy, Qos
     from cyclonedds.util import duration
 
@@ -211,6 +238,8 @@ def _dds_qos(profile: QoSProfile, userdata: bytes, *, writer: bool) -> Any:
     policies.append(Policy.Userdata(data=userdata))
     if writer:
         policies.append(Policy.WriterDataLifecycle(autodispose=False))
+    elif max_samples is not None and profile.history is History.KEEP_ALL:
+        policies.append(Policy.ResourceLimits(max_samples=max_samples))
     return Qos(*policies)
 
 
@@ -260,16 +289,51 @@ class _Writer(PublisherHandle):
             self.writer.__del__()
 
 
+class _LossCounter:
+    """Samples Cyclone reports lost for one reader, counted on Cyclone's listener thread.
+
+    SAMPLE_LOST counts always. SAMPLE_REJECTED (the reader's cache is at its resource
+    limit) is a loss only for a best-effort reader: a reliable writer sends a rejected
+    sample again, so nothing is lost there, only delayed. Cyclone does not report samples
+    that a remote writer dropped from its own keep-last history before this reader had
+    them (the GAP it receives raises no status), so those cannot be counted here.
+    """
+
+    def __init__(self, best_effort: bool) -> None:
+        self.best_effort = best_effort
+        self.count = 0
+        self._lock = threading.Lock()
+
+    def on_lost(self, _reader: Any, status: Any) -> None:
+        with self._lock:
+            self.count += int(status.total_count_change)
+
+    def on_rejected(self, _reader: Any, status: Any) -> None:
+        if self.best_effort:
+            with self._lock:
+                self.count += int(status.total_count_change)
+
+
 class _Reader(SubscriptionHandle):
     def __init__(
-        self, owner: DdsTransport, topic: str, reader: Any, condition: Any, cb: BytesCallback
+        self,
+        owner: DdsTransport,
+        topic: str,
+        reader: Any,
+        condition: Any,
+        cb: BytesCallback,
+        losses: _LossCounter,
     ) -> None:
         self.owner, self.topic, self.reader, self.condition = owner, topic, reader, condition
         self.callback = cb
+        self.losses = losses
         self.closed = False
 
     def matched_count(self) -> int:
         return int(self.reader.get_subscription_matched_status().current_count)
+
+    def lost_count(self) -> int:
+        return self.losses.count
 
     def close(self) -> None:
         if not self.closed:
@@ -331,7 +395,7 @@ class DdsTransport(Transport):
         self._ReadCondition = ReadCondition
         self.node_name, self.namespace = node_name, namespace
         self.domain_id = domain_id_from_env() if domain_id is None else domain_id
-        _configure_domain(self.domain_id, Domain)
+        startup_warning = _configure_domain(self.domain_id, Domain)
         userdata = f"enclave={enclave};".encode()
         try:
             self._dp = DomainParticipant(self.domain_id, qos=Qos(Policy.Userdata(data=userdata)))
@@ -342,8 +406,11 @@ class DdsTransport(Transport):
         self._waitset.attach(self._guard)
         self._lock = threading.Lock()
         self._qos_events: queue.SimpleQueue[str] = queue.SimpleQueue()
+        if startup_warning:
+            self._qos_events.put(startup_warning)
         self._warn: Callable[[str], None] | None = None
         self._topics: dict[str, tuple[str, Any]] = {}
+        self._keep_all_limit: int | None = None
         self._writers: list[_Writer] = []
         self._readers: list[_Reader] = []
         self._graph = BuiltinDataReader(self._dp, BuiltinTopicDcpsPublication)
@@ -388,7 +455,7 @@ class DdsTransport(Transport):
         self._topics[dds_name] = (msgtype, topic)
         return topic
 
-    def _qos_listener(self, topic: str, ours: QoSProfile) -> Any:
+    def _qos_listener(self, topic: str, ours: QoSProfile, **more: Any) -> Any:
         """A listener that reports a peer whose QoS cannot match ours (like rclpy's warning).
 
         Cyclone calls it on its own thread; the message is queued and logged by
@@ -407,11 +474,35 @@ class DdsTransport(Transport):
         return Listener(
             on_offered_incompatible_qos=lambda _writer, status: report("subscription", status),
             on_requested_incompatible_qos=lambda _reader, status: report("publisher", status),
+            **more,
         )
 
+    def limit_keep_all_readers(self, max_samples: int) -> None:
+        """Bound the cache of keep-all subscriptions created from now on (DDS RESOURCE_LIMITS).
+
+        A stalled node then holds at most ``max_samples`` unread samples per subscription
+        instead of growing without bound: past it a reliable writer is held back (it sends
+        the sample again later), and a best-effort sample is rejected and counted in
+        :meth:`SubscriptionHandle.lost_count`. Not for a node that also publishes reliably
+        to itself from the thread that spins it: its writer would wait for itself.
+        """
+        if max_samples < 1:
+            raise ConfigError(f"a keep-all subscription needs room for 1 sample, not {max_samples}")
+        self._keep_all_limit = int(max_samples)
+
     def set_warning_sink(self, sink: Callable[[str], None]) -> None:
-        """Where warnings about the graph (incompatible QoS) go; the node's logger."""
+        """Where warnings (incompatible QoS, host limits) go; the node's logger.
+
+        Warnings queued before the sink was set (at start-up) are passed on now.
+        """
         self._warn = sink
+        self._flush_warnings()
+
+    def _flush_warnings(self) -> None:
+        while not self._qos_events.empty():
+            message = self._qos_events.get_nowait()
+            if self._warn is not None:
+                self._warn(message)
 
     def _make_writer(
         self, dds_name: str, msgtype: str, qos: QoSProfile, topic_name: str | None = None
@@ -436,15 +527,20 @@ class DdsTransport(Transport):
         from cyclonedds.sub import DataReader
 
         dds_topic = self._topic("rt" + topic, msgtype)
+        losses = _LossCounter(best_effort=qos.reliability is Reliability.BEST_EFFORT)
         reader = DataReader(
             self._dp,
             dds_topic,
-            _dds_qos(qos, _typehash(msgtype), writer=False),
-            listener=self._qos_listener(topic, qos),
+            _dds_qos(
+                qos, _typehash(msgtype), writer=False, max_samples=self._keep_all_limit
+            ),
+            listener=self._qos_listener(
+                topic, qos, on_sample_lost=losses.on_lost, on_sample_rejected=losses.on_rejected
+            ),
         )
         condition = self._ReadCondition(reader, self._any)
         self._waitset.attach(condition)
-        handle = _Reader(self, topic, reader, condition, callback)
+        handle = _Reader(self, topic, reader, condition, callback, losses)
         self._readers.append(handle)
         self._announce()
         return handle
@@ -513,10 +609,7 @@ class DdsTransport(Transport):
     def spin_once(self, timeout_s: float) -> int:
         self._waitset.wait(max(0, int(timeout_s * 1e9)))
         self._guard.take()
-        while not self._qos_events.empty():
-            message = self._qos_events.get_nowait()
-            if self._warn is not None:
-                self._warn(message)
+        self._flush_warnings()
         count = 0
         for handle in list(self._readers):
             while not handle.closed:

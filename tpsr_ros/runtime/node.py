@@ -225,6 +225,10 @@ class Subscription:
         """Publishers currently matched, in any process."""
         return self._handle.matched_count() if self._handle is not None else 0
 
+    def get_lost_count(self) -> int:
+        """Messages the middleware reported lost on this subscription so far."""
+        return self._handle.lost_count() if self._handle is not None else 0
+
     def destroy(self) -> None:
         """Remove the subscription; its callback is not called again."""
         if self._handle is not None:

@@ -24,6 +24,7 @@ from typing import Any, ClassVar
 from tpsr_ros.core.errors import MessageError, TpsrError
 from tpsr_ros.io.messages import deserialize, serialize
 from tpsr_ros.io.qos import Durability, History, QoSProfile, Reliability
+from tpsr_ros.runtime.allocator import tune_allocator
 from tpsr_ros.runtime.transport import (
     BytesCallback,
     ParameterCheck,
@@ -135,9 +136,17 @@ class _Subscription(SubscriptionHandle):
     def __init__(self, owner: RclpyTransport) -> None:
         self.owner = owner
         self.subscription: Any = None
+        self.lost = 0
 
     def matched_count(self) -> int:
         return int(self.subscription.get_publisher_count()) if self.subscription else 0
+
+    def lost_count(self) -> int:
+        return self.lost
+
+    def on_message_lost(self, info: Any) -> None:
+        """rclpy's MESSAGE_LOST event (Fast DDS: samples the reader will never get)."""
+        self.lost += int(info.total_count_change)
 
     def close(self) -> None:
         if self.subscription is not None:
@@ -156,6 +165,7 @@ class RclpyTransport(Transport):
         from rclpy.signals import SignalHandlerOptions
 
         self._rclpy = rclpy
+        tune_allocator()
         self.context = rclpy.Context()
         try:
             rclpy.init(
@@ -190,9 +200,17 @@ class RclpyTransport(Transport):
             self._dispatched += 1
             callback(bytes(data))
 
-        handle.subscription = self.node.create_subscription(
-            message_class(msgtype), topic, on_raw, to_rclpy_qos(qos), raw=True
-        )
+        from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
+
+        args = (message_class(msgtype), topic, on_raw, to_rclpy_qos(qos))
+        try:
+            handle.subscription = self.node.create_subscription(
+                *args,
+                raw=True,
+                event_callbacks=SubscriptionEventCallbacks(message_lost=handle.on_message_lost),
+            )
+        except UnsupportedEventTypeError:  # an rmw without the event: losses are not known
+            handle.subscription = self.node.create_subscription(*args, raw=True)
         return handle
 
     def spin_once(self, timeout_s: float) -> int:

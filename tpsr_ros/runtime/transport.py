@@ -76,6 +76,14 @@ class SubscriptionHandle(ABC):
     def matched_count(self) -> int:
         """Number of publishers currently matched (any process)."""
 
+    def lost_count(self) -> int:
+        """Messages the middleware reported lost on this subscription so far (cumulative).
+
+        DDS sample-lost events, and samples a best-effort subscription had to reject;
+        0 from a backend that cannot lose or cannot tell.
+        """
+        return 0
+
     @abstractmethod
     def close(self) -> None:
         """Destroy the endpoint; no callback runs after this returns."""
