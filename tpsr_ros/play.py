@@ -28,7 +28,6 @@ says so. A thread reads (decompresses, checks) up to 8 messages ahead, so readin
 from __future__ import annotations
 
 import queue
-import struct
 import threading
 import time
 from collections.abc import Iterable, Iterator
@@ -36,15 +35,15 @@ from pathlib import Path
 from typing import Any
 
 from tpsr_ros.cli import ArgumentParser, non_negative_int, positive_float
-from tpsr_ros.core.errors import BagError, TpsrError
+from tpsr_ros.core.errors import BagError, MessageError, TpsrError
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.io.messages import CLOCK_TYPE, clock_msg, jazzy_typestore
+from tpsr_ros.io.messages import CLOCK_TYPE, clock_msg, header_stamp_ns, jazzy_typestore
 from tpsr_ros.io.qos import from_bag_qos
 from tpsr_ros.runtime import DEFAULT_QOS, Node, NodeOptions, Publisher, run_node
 from tpsr_ros.runtime.diagnostics import RollingPercentiles
 
-__all__ = ["PlayerNode", "ReadAhead", "header_stamp_ns", "main"]
+__all__ = ["PlayerNode", "ReadAhead", "main"]
 
 PROG = "python -m tpsr_ros.play"
 CLOCK_TOPIC = "/clock"
@@ -58,13 +57,12 @@ def _starts_with_header(msgtype: str) -> bool:
     return bool(node[0].name == "NAME" and node[1] == "std_msgs/msg/Header")
 
 
-def header_stamp_ns(data: bytes) -> int | None:
-    """``header.stamp`` of CDR bytes whose message starts with a std_msgs/Header."""
-    if len(data) < 12:
+def _header_stamp_or_none(data: bytes) -> int | None:
+    """``header.stamp`` of CDR bytes starting with a std_msgs/Header; None when unreadable."""
+    try:
+        return header_stamp_ns(data)
+    except MessageError:
         return None
-    fmt = "<iI" if data[1] == 1 else ">iI"
-    sec, nanosec = struct.unpack_from(fmt, data, 4)
-    return int(sec) * _NS + int(nanosec) if sec >= 0 else None
 
 
 _END = object()
@@ -226,7 +224,7 @@ class PlayerNode(Node):
             self.lateness_ms.add((time.monotonic_ns() - due) / 1e6)
             if self.clock is not None:
                 stamp = (
-                    header_stamp_ns(message.data)
+                    _header_stamp_or_none(message.data)
                     if self.header_first[message.topic]
                     else message.log_time_ns
                 )
