@@ -176,3 +176,59 @@ def test_messages_missing_from_what_the_metadata_lists_are_reported(tmp_path):
     result = subprocess.run([sys.executable, "-m", "tpsr_ros.play", str(bag), "--rate", "100000"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode != 0 and "read 15000 of the 15005 messages" in result.stderr
+
+
+def _summary_records(data: bytes) -> list[tuple[int, int]]:
+    """(offset, opcode) of the summary section's records."""
+    import struct
+
+    footer = len(data) - 8 - 29  # the footer record, then the closing magic
+    found, offset = [], struct.unpack_from("<Q", data, footer + 9)[0]
+    while offset < footer:
+        opcode, length = struct.unpack_from("<BQ", data, offset)
+        found.append((offset, opcode))
+        offset += 9 + length
+    return found
+
+
+@pytest.mark.parametrize("claimed", [2**31, 2**40, 2**64 - 1])
+def test_a_record_claiming_gigabytes_is_refused_before_any_allocation(tmp_path, claimed):
+    # the fuzzer's finding: a summary record's length read as 2**31..2**64 made rosbags
+    # allocate it (MemoryError under a 2 GiB cap, 2 GiB taken without one)
+    import struct
+
+    bag = tmp_path / "bag"
+    shutil.copytree(BAGS / "full", bag)
+    mcap = bag / "full.mcap"
+    data = bytearray(mcap.read_bytes())
+    offset, _ = _summary_records(bytes(data))[0]
+    data[offset + 1 : offset + 9] = struct.pack("<Q", claimed)
+    mcap.write_bytes(bytes(data))
+    with pytest.raises(BagError, match=rf"record at offset {offset} claims {claimed} bytes"):
+        BagReader(bag)
+
+
+def test_a_chunk_index_declaring_a_huge_chunk_is_refused(tmp_path):
+    import struct
+
+    bag = tmp_path / "bag"
+    shutil.copytree(BAGS / "full", bag)
+    mcap = bag / "full.mcap"
+    data = bytearray(mcap.read_bytes())
+    offset = next(o for o, opcode in _summary_records(bytes(data)) if opcode == 0x08)
+    (map_length,) = struct.unpack_from("<I", data, offset + 9 + 32)
+    (name_length,) = struct.unpack_from("<I", data, offset + 9 + 36 + map_length + 8)
+    at = offset + 9 + 36 + map_length + 12 + name_length + 8  # uncompressed_size
+    data[at : at + 8] = struct.pack("<Q", 2**40)
+    mcap.write_bytes(bytes(data))
+    with pytest.raises(BagError, match=r"declares a chunk of 1099511627776 bytes"):
+        BagReader(bag)
+
+
+def test_metadata_listing_a_file_outside_the_bag_is_refused(tmp_path):
+    bag = _bag_with_metadata(
+        tmp_path, lambda data: data.replace(b"- full.mcap", b"- ../full/full.mcap", 1)
+    )
+    with pytest.raises(BagError, match=r"lists '\.\./full/full\.mcap', which is not a file"):
+        BagReader(bag)
+

@@ -33,6 +33,7 @@ from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.rosbag2.metadata import dump_qos_v9
 
 from tpsr_ros.core.errors import BagError
+from tpsr_ros.io.mcap_layout import check_mcap_layout
 from tpsr_ros.io.messages import deserialize, jazzy_typestore, serialize
 from tpsr_ros.io.safe_yaml import YamlInputError, load_yaml
 
@@ -406,6 +407,17 @@ def _check_counts(meta_path: Path, info: dict[str, Any]) -> None:
             raise BagError(f"{where}: topic {topic['name'][:80]!r} has a bad message_count")
 
 
+def _bag_file(bag: Path, name: str) -> Path:
+    """Return the bag's file ``name`` (from ``relative_file_paths``); it must lie inside."""
+    file = bag / name
+    if Path(name).is_absolute() or ".." in Path(name).parts or not file.is_file():
+        raise BagError(
+            f"{str(bag / 'metadata.yaml')!r} lists {name[:200]!r}, which is not a file "
+            "inside the bag"
+        )
+    return file
+
+
 class BagReader:
     """Read a rosbag2 MCAP bag; anything else is refused with a ``BagError``."""
 
@@ -416,6 +428,8 @@ class BagReader:
         storage = info.get("storage_identifier")
         if storage != "mcap":
             raise BagError(f"bag {str(self.path)!r} uses storage {storage!r}, not mcap")
+        for name in info.get("relative_file_paths", []):
+            check_mcap_layout(_bag_file(self.path, name))
         self._reader = Reader(self.path)
         try:
             self._reader.open()
