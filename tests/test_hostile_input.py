@@ -232,3 +232,13 @@ def test_metadata_listing_a_file_outside_the_bag_is_refused(tmp_path):
     with pytest.raises(BagError, match=r"lists '\.\./full/full\.mcap', which is not a file"):
         BagReader(bag)
 
+
+def test_a_closed_stdout_ends_a_command_quietly():
+    # `python -m tpsr_ros.bag_info BAG | head -1` printed a BrokenPipeError traceback
+    process = subprocess.Popen(
+        [sys.executable, "-m", "tpsr_ros.bag_info", str(BAGS / "full")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )
+    process.stdout.close()  # the reader went away before the first line
+    stderr = process.stderr.read().decode()
+    assert process.wait(timeout=60) == 141 and stderr == ""
