@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -242,3 +243,16 @@ def test_a_closed_stdout_ends_a_command_quietly():
     process.stdout.close()  # the reader went away before the first line
     stderr = process.stderr.read().decode()
     assert process.wait(timeout=60) == 141 and stderr == ""
+
+
+def test_a_rate_too_high_for_a_timer_is_a_one_line_error():
+    # fuzz finding: -p rate:=0x7fffffffffffffff made the explore timer's period 0 ns and the
+    # node died of ZeroDivisionError on its first tick
+    result = subprocess.run(
+        [sys.executable, "-m", "sim_node", "--ros-args", "-p", "rate:=0x7fffffffffffffff"],
+        capture_output=True, text=True, timeout=60, env={**os.environ, "TPSR_TRANSPORT": "inproc"},
+    )
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines()[-1].startswith(
+        "python -m sim_node: error: timer period must be at least 1 ns"
+    )
