@@ -71,7 +71,7 @@ def test_recovery_keeps_every_message_of_a_conformance_file(tmp_path, variant):
     assert not (bag / "bag.mcap.damaged").exists()  # verified and complete: replaced
 
 
-@pytest.mark.parametrize("name", sorted(p.name for p in ROSBAG2.iterdir()))
+@pytest.mark.parametrize("name", sorted(p.name for p in ROSBAG2.iterdir() if p.is_dir()))
 def test_recovery_keeps_every_message_of_a_rosbag2_test_bag(tmp_path, name):
     source = ROSBAG2 / name
     files = sorted(source.glob("*.mcap"))
@@ -107,3 +107,17 @@ def test_recovery_keeps_every_message_of_a_rosbag2_test_bag(tmp_path, name):
     else:  # rosbag2's wrong_rmw_test keeps its 'wrong_format', which our reader refuses
         with pytest.raises(BagError, match="wrong_format"):
             BagReader(bag)
+
+
+def test_the_layout_check_accepts_every_valid_file(tmp_path):
+    # the bounded pre-read check (tpsr_ros.io.mcap_layout) refuses no valid layout: rosbag2's
+    # files, ours, and the conformance variants (unchunked, padded, without a summary, ...)
+    from tpsr_ros.io.mcap_layout import check_mcap_layout
+
+    for path in [*ROSBAG2.glob("*/*.mcap"), *(ROSBAG2.parent.parent.parent / "bags").glob(
+            "*/*.mcap")]:
+        check_mcap_layout(path)
+    target = tmp_path / "variant.mcap"
+    for variant in SAMPLE:
+        target.write_bytes(generate(variant))
+        check_mcap_layout(target)
