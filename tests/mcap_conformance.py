@@ -284,5 +284,7 @@ def _extract(repo: Path) -> dict[str, list[int]]:
 
 
 if __name__ == "__main__":  # python tests/mcap_conformance.py FOXGLOVE_MCAP_CHECKOUT
-    CRCS.write_text(json.dumps(_extract(Path(sys.argv[1])), indent=0, sort_keys=True) + "\n")
+    table = _extract(Path(sys.argv[1]))
+    rows = [f"{json.dumps(name)}: {json.dumps(crcs)}" for name, crcs in sorted(table.items())]
+    CRCS.write_text("{\n" + ",\n".join(rows) + "\n}\n")
     print(f"wrote {CRCS}")
