@@ -452,6 +452,13 @@ class BagReader:
         except (*_DAMAGE, TypeError, AttributeError) as exc:  # metadata rosbags did not expect
             damage = _describe(exc)
             raise BagError(f"cannot open bag {str(self.path)!r}: damaged ({damage})") from None
+        for connection in self._reader.connections:  # rosbags' YAML 1.2 view of metadata.yaml
+            if not (isinstance(connection.topic, str) and isinstance(connection.msgtype, str)):
+                self._reader.close()
+                raise BagError(
+                    f"{str(self.path / 'metadata.yaml')!r}: topic {str(connection.topic)[:80]!r}"
+                    f" has a name or type that is not text ({str(connection.msgtype)[:80]!r})"
+                )
 
     def __enter__(self) -> BagReader:
         return self
