@@ -108,6 +108,12 @@ def _bag_with_metadata(tmp_path: Path, change) -> Path:
          if b"custom_data:" in data else data + b"  custom_data: [1, 2]\n",
          "custom_data is not a mapping"),
         (lambda data: b"&a x: *a\n" + data, "anchors and aliases"),
+        # fuzz findings: a 5001-digit integer (int() refuses > 4300 digits: ValueError) and a
+        # type that PyYAML reads as text but rosbags' YAML 1.2 reader as a float
+        (lambda data: data.replace(b"serialization_format: cdr", b"serialization_format: "
+                                   + b"9" * 5001, 1), "a value it cannot read"),
+        (lambda data: data.replace(b"type: sensor_msgs/msg/Image", b"type: 1e-400", 1),
+         "has a name or type that is not text"),
     ],
 )
 def test_hostile_bag_metadata_is_a_one_line_bag_error(tmp_path, change, fragment):
