@@ -38,6 +38,7 @@ import mmap
 import re
 import struct
 import tempfile
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -59,15 +60,6 @@ _MAGIC = b"\x89MCAP0\r\n"
 _CHUNK = 0x06
 _HEADER = struct.Struct("<BQ")
 _KEPT = (Schema, Channel, Message, Metadata, Attachment)
-
-
-@dataclass
-class _Scan:
-    """Records found in the file, with what could not be read."""
-
-    records: list[Any] = field(default_factory=list)
-    skipped: list[tuple[int, int]] = field(default_factory=list)
-    truncated_tail: bool = False
 
 
 def _parse_at(data: mmap.mmap | bytes, offset: int) -> tuple[list[Any], int] | None:
@@ -100,37 +92,61 @@ def _next_chunk(data: mmap.mmap | bytes, start: int) -> int | None:
     return None
 
 
-def _scan(data: mmap.mmap | bytes) -> _Scan:
-    """Every intact top-level record, resuming after damage at the next intact chunk."""
-    scan = _Scan()
-    offset = len(_MAGIC) if data[: len(_MAGIC)] == _MAGIC else 0
-    if offset == 0:
-        resumed = _next_chunk(data, 0)
-        if resumed is None:
-            raise BagError("no MCAP magic and no intact chunk: not a recoverable MCAP file")
-        scan.skipped.append((0, resumed))
-        offset = resumed
-    while offset < len(data):
-        if data[offset:] == _MAGIC:  # the closing magic of a complete file
-            break
-        parsed = _parse_at(data, offset)
-        if parsed is None:
-            resumed = _next_chunk(data, offset + 1)
+class _Scan:
+    """A walk over the file's intact top-level records, with what could not be read.
+
+    :meth:`records` yields the kept records one top-level record (a chunk) at a time, so a
+    file of any size is copied in bounded memory; ``skipped`` and ``truncated_tail`` are
+    complete once it is exhausted.
+    """
+
+    def __init__(self, data: mmap.mmap | bytes) -> None:
+        self.data = data
+        self.skipped: list[tuple[int, int]] = []
+        self.truncated_tail = False
+
+    def records(self) -> Iterator[Any]:
+        """Every intact record, resuming after damage at the next intact chunk."""
+        data = self.data
+        offset = len(_MAGIC) if data[: len(_MAGIC)] == _MAGIC else 0
+        if offset == 0:
+            resumed = _next_chunk(data, 0)
             if resumed is None:
-                tail_record = offset + _HEADER.size > len(data) or (
-                    offset + _HEADER.size + _HEADER.unpack_from(data, offset)[1] > len(data)
-                )
-                if tail_record:
-                    scan.truncated_tail = True
-                else:
-                    scan.skipped.append((offset, len(data)))
-                break
-            scan.skipped.append((offset, resumed))
+                raise BagError("no MCAP magic and no intact chunk: not a recoverable MCAP file")
+            self.skipped.append((0, resumed))
             offset = resumed
-            continue
-        records, offset = parsed
-        scan.records.extend(r for r in records if isinstance(r, _KEPT))
-    return scan
+        while offset < len(data):
+            if len(data) - offset == len(_MAGIC) and data[offset:] == _MAGIC:  # closing magic
+                break
+            parsed = _parse_at(data, offset)
+            if parsed is None:
+                resumed = _next_chunk(data, offset + 1)
+                if resumed is None:
+                    tail_record = offset + _HEADER.size > len(data) or (
+                        offset + _HEADER.size + _HEADER.unpack_from(data, offset)[1] > len(data)
+                    )
+                    if tail_record:
+                        self.truncated_tail = True
+                    else:
+                        self.skipped.append((offset, len(data)))
+                    break
+                self.skipped.append((offset, resumed))
+                offset = resumed
+                continue
+            records, offset = parsed
+            yield from (r for r in records if isinstance(r, _KEPT))
+
+
+def _definitions(records: Iterable[Any]) -> tuple[dict[int, Schema], dict[int, Channel]]:
+    """The first surviving copy of every schema and channel, wherever in the file it is."""
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    for record in records:
+        if isinstance(record, Schema):
+            schemas.setdefault(record.id, record)
+        elif isinstance(record, Channel):
+            channels.setdefault(record.id, record)
+    return schemas, channels
 
 
 @dataclass(frozen=True)
@@ -154,15 +170,19 @@ def _topic_entry(channel: Channel, schema: Schema | None) -> dict[str, Any]:
     }
 
 
-def _write(records: list[Any], target: Path) -> _Written:
+def _write(
+    records: Iterable[Any],
+    definitions: tuple[dict[int, Schema], dict[int, Channel]],
+    target: Path,
+) -> _Written:
     """Copy ``records`` into a new MCAP file, every message on its channel, raw.
 
-    Schemas and channels are taken from anywhere in the file (the summary section repeats
-    them), so a damaged data-section schema or channel record costs nothing when its copy
-    survives; a channel without any surviving schema is written schemaless.
+    Schemas and channels come from ``definitions``, gathered from anywhere in the file (the
+    summary section repeats them), so a damaged data-section schema or channel record costs
+    nothing when its copy survives; a channel without any surviving schema is written
+    schemaless.
     """
-    schemas = {r.id: r for r in reversed(records) if isinstance(r, Schema)}
-    channels = {r.id: r for r in reversed(records) if isinstance(r, Channel)}
+    schemas, channels = definitions
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
     topics: dict[str, dict[str, Any]] = {}
@@ -330,8 +350,9 @@ def _recover_file(source: Path, work: Path) -> tuple[FileRecovery, _Written | No
             source.open("rb") as handle,
             mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as data,
         ):
-            scan = _scan(data)
-        written = _write(scan.records, work / source.name)
+            definitions = _definitions(_Scan(data).records())  # first pass: types only
+            scan = _Scan(data)
+            written = _write(scan.records(), definitions, work / source.name)
         _verify(work / source.name, written)
     except BagError as exc:
         return FileRecovery(source.name, error=str(exc)), None
