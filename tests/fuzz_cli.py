@@ -655,6 +655,9 @@ def _params_template(node_name: str, params: tuple[str, ...], fixtures: Fixtures
 
 
 def _limits() -> None:
+    # a shell starts background jobs with SIGINT ignored, and a child inherits that: give
+    # the node the terminal's default, or a SIGINT before its handler is installed is lost
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
     resource.setrlimit(resource.RLIMIT_AS, (MEMORY_CAP, MEMORY_CAP))
     resource.setrlimit(resource.RLIMIT_CORE, (0, 0))
 
