@@ -262,3 +262,34 @@ def test_a_rate_too_high_for_a_timer_is_a_one_line_error():
     assert result.stderr.strip().splitlines()[-1].startswith(
         "python -m sim_node: error: timer period must be at least 1 ns"
     )
+
+
+@pytest.mark.parametrize("descriptive", [
+    {"training": {"bags": 5}},  # the fuzz finding: AttributeError 'int' has no 'get'
+    {"training": {"bags": [1, "x", {"path": 3}]}},
+    {"training": [1, 2], "summary": "x", "software": 7, "observation": [1]},
+    {"summary": {"explained_variance": {"obs": 3, "test": {"total": "high"}},
+                 "timings": {"fit": "slow"}, "singular_values": [1, "a"]}},
+])
+def test_learner_info_prints_whatever_descriptive_metadata_a_file_carries(descriptive):
+    # load_model validates what it uses; info also prints what it does not (training data,
+    # summary, software): those fields may hold anything and must not crash the command
+    from learner.info import info_lines
+
+    metadata = {"format": "tpsr-ros model", "format_version": 1, "method": "tpsr",
+                "n_actions": 3, "parameters": {"rank": 2}, **descriptive}
+    lines = info_lines(Path("m.npz"), metadata)
+    assert lines[0] == "model: m.npz" and "parameters: rank=2" in lines
+
+
+def test_learner_info_formats_well_formed_descriptive_metadata():
+    from learner.info import info_lines
+
+    metadata = {"format": "tpsr-ros model", "format_version": 1, "method": "tpsr",
+                "n_actions": 3, "parameters": {"rank": 2},
+                "training": {"steps": 10, "bags": [{"path": "b1"}, {"path": "b2"}]},
+                "summary": {"explained_variance": {"obs": {"total": 0.91234}},
+                            "timings": {"SVD": 0.5}}}
+    lines = info_lines(Path("m.npz"), metadata)
+    assert "bags: b1, b2" in lines and "explained variance (obs): 0.912" in lines
+    assert "fit timing: SVD 0.500 s" in lines
