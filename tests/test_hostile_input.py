@@ -293,3 +293,19 @@ def test_learner_info_formats_well_formed_descriptive_metadata():
     lines = info_lines(Path("m.npz"), metadata)
     assert "bags: b1, b2" in lines and "explained variance (obs): 0.912" in lines
     assert "fit timing: SVD 0.500 s" in lines
+
+
+def test_a_model_path_too_long_for_the_file_system_is_a_one_line_error(tmp_path):
+    # fuzz finding: -p model:=<5001 digits> (via a params file) made pathlib's is_dir raise
+    # OSError ENAMETOOLONG in the filter node's preflight
+    from tpsr_ros.core.errors import ModelFormatError
+    from tpsr_ros.io.model_io import load_model
+    from tpsr_ros.io.policy import load_policy
+
+    for load in (load_model, load_policy):
+        with pytest.raises(ModelFormatError, match="cannot be opened: File name too long"):
+            load("9" * 5001)
+    with pytest.raises(ModelFormatError, match="is a directory"):
+        load_model(tmp_path)
+    with pytest.raises(ModelFormatError, match="does not exist"):
+        load_model(tmp_path / "missing.npz")
