@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench fuzz clean
+.PHONY: demo test bench fuzz fuzz-cli clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -30,7 +30,14 @@ bench: $(STAMP)
 # longer mutation fuzzing of every file format we read; rerun a failure with its FUZZ_SEED
 fuzz: $(STAMP)
 	@seed=$${FUZZ_SEED:-$$(date +%s)}; echo "FUZZ_SEED=$$seed"; \
-	FUZZ_SEED=$$seed FUZZ_CASES=$${FUZZ_CASES:-2000} $(PY) -m pytest -q tests/test_fuzz.py
+	FUZZ_SEED=$$seed FUZZ_CASES=$${FUZZ_CASES:-2000} RECOVER_ALL=1 $(PY) -m pytest -q \
+	  tests/test_fuzz.py tests/test_recover_conformance.py
+
+# the acceptance run of issue 17: mutated inputs through the real commands and nodes, each
+# under a 2 GiB address-space cap and a 20 s limit; rerun one case with --seed S --case N
+fuzz-cli: $(STAMP)
+	nice -n 10 $(PY) tests/fuzz_cli.py --minutes $${FUZZ_MINUTES:-15} \
+	  $${FUZZ_SEED:+--seed $$FUZZ_SEED} --out fuzz_output
 
 clean:
-	rm -rf $(VENV) demo_output
+	rm -rf $(VENV) demo_output fuzz_output

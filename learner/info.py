@@ -34,31 +34,56 @@ def run(args: argparse.Namespace) -> int:
 
 def _short(values: Any) -> str:
     if isinstance(values, list):
-        return " ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in values)
+        return " ".join(_num(v, ".4g") for v in values)
     return str(values)
+
+
+def _num(value: Any, spec: str) -> str:
+    """``value`` formatted with ``spec`` when it is a number, else as text."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return format(value, spec)
+    return str(value)
+
+
+def _get(value: Any, *keys: str) -> Any:
+    """``value[k1][k2]...``; None where a level is missing or not a mapping.
+
+    The descriptive metadata (training data, summary, software) is not needed to load a
+    model and is not validated by :func:`load_model`; a file may carry anything there.
+    """
+    for key in keys:
+        if not isinstance(value, dict):
+            return None
+        value = value.get(key)
+    return value
+
+
+def _mapping(value: Any) -> dict[str, Any]:
+    return value if isinstance(value, dict) else {}
 
 
 def info_lines(path: Path, metadata: dict[str, Any]) -> list[str]:
     """Human-readable description of a model's metadata."""
-    summary = metadata.get("summary", {})
-    training = metadata.get("training", {})
+    summary = _mapping(metadata.get("summary"))
+    training = _mapping(metadata.get("training"))
     lines = [
         f"model: {path}",
         f"format: {metadata['format']} version {metadata['format_version']}, created "
-        f"{metadata.get('created')}, tpsr_ros {metadata.get('software', {}).get('tpsr_ros')}",
+        f"{metadata.get('created')}, tpsr_ros {_get(metadata, 'software', 'tpsr_ros')}",
         f"method: {metadata['method']}, state dimension {metadata.get('state_dim')}, "
         f"{metadata['n_actions']} actions, observation size "
-        f"{metadata.get('observation', {}).get('size')}",
+        f"{_get(metadata, 'observation', 'size')}",
         "parameters: " + ", ".join(f"{k}={v}" for k, v in metadata["parameters"].items()),
     ]
     if training:
-        bags = [b.get("path") for b in training.get("bags", [])]
+        bags = training.get("bags")
+        paths = [_get(b, "path") for b in bags] if isinstance(bags, list) else []
         lines.append(
             f"training data: {training.get('steps')} steps, {training.get('segments')} "
             f"segment(s), {training.get('episodes')} episodes, environment "
             f"{training.get('environment')}, stamps {training.get('stamps_ns')} ns"
         )
-        lines.append(f"bags: {', '.join(map(str, bags))}")
+        lines.append(f"bags: {', '.join(map(str, paths))}")
     spec = model_stream_spec(path, metadata)
     if spec is not None:
         prep, grid = spec.preprocessing, spec.grid.as_dict()
@@ -73,10 +98,11 @@ def info_lines(path: Path, metadata: dict[str, Any]) -> list[str]:
         )
     if "singular_values" in summary:
         lines.append(f"singular values of P_TH: {_short(summary['singular_values'])}")
-    for key, ev in summary.get("explained_variance", {}).items():
-        lines.append(f"explained variance ({key}): {ev['total']:.3f}")
+    for key, ev in _mapping(summary.get("explained_variance")).items():
+        lines.append(f"explained variance ({key}): {_num(_get(ev, 'total'), '.3f')}")
     if "timings" in summary:
+        timings = _mapping(summary["timings"])
         lines.append(
-            "fit timing: " + "; ".join(f"{k} {v:.3f} s" for k, v in summary["timings"].items())
+            "fit timing: " + "; ".join(f"{k} {_num(v, '.3f')} s" for k, v in timings.items())
         )
     return lines

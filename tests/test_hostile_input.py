@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 import sys
@@ -107,6 +108,12 @@ def _bag_with_metadata(tmp_path: Path, change) -> Path:
          if b"custom_data:" in data else data + b"  custom_data: [1, 2]\n",
          "custom_data is not a mapping"),
         (lambda data: b"&a x: *a\n" + data, "anchors and aliases"),
+        # fuzz findings: a 5001-digit integer (int() refuses > 4300 digits: ValueError) and a
+        # type that PyYAML reads as text but rosbags' YAML 1.2 reader as a float
+        (lambda data: data.replace(b"serialization_format: cdr", b"serialization_format: "
+                                   + b"9" * 5001, 1), "a value it cannot read"),
+        (lambda data: data.replace(b"type: sensor_msgs/msg/Image", b"type: 1e-400", 1),
+         "has a name or type that is not text"),
     ],
 )
 def test_hostile_bag_metadata_is_a_one_line_bag_error(tmp_path, change, fragment):
@@ -176,3 +183,129 @@ def test_messages_missing_from_what_the_metadata_lists_are_reported(tmp_path):
     result = subprocess.run([sys.executable, "-m", "tpsr_ros.play", str(bag), "--rate", "100000"],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode != 0 and "read 15000 of the 15005 messages" in result.stderr
+
+
+def _summary_records(data: bytes) -> list[tuple[int, int]]:
+    """(offset, opcode) of the summary section's records."""
+    import struct
+
+    footer = len(data) - 8 - 29  # the footer record, then the closing magic
+    found, offset = [], struct.unpack_from("<Q", data, footer + 9)[0]
+    while offset < footer:
+        opcode, length = struct.unpack_from("<BQ", data, offset)
+        found.append((offset, opcode))
+        offset += 9 + length
+    return found
+
+
+@pytest.mark.parametrize("claimed", [2**31, 2**40, 2**64 - 1])
+def test_a_record_claiming_gigabytes_is_refused_before_any_allocation(tmp_path, claimed):
+    # the fuzzer's finding: a summary record's length read as 2**31..2**64 made rosbags
+    # allocate it (MemoryError under a 2 GiB cap, 2 GiB taken without one)
+    import struct
+
+    bag = tmp_path / "bag"
+    shutil.copytree(BAGS / "full", bag)
+    mcap = bag / "full.mcap"
+    data = bytearray(mcap.read_bytes())
+    offset, _ = _summary_records(bytes(data))[0]
+    data[offset + 1 : offset + 9] = struct.pack("<Q", claimed)
+    mcap.write_bytes(bytes(data))
+    with pytest.raises(BagError, match=rf"record at offset {offset} claims {claimed} bytes"):
+        BagReader(bag)
+
+
+def test_a_chunk_index_declaring_a_huge_chunk_is_refused(tmp_path):
+    import struct
+
+    bag = tmp_path / "bag"
+    shutil.copytree(BAGS / "full", bag)
+    mcap = bag / "full.mcap"
+    data = bytearray(mcap.read_bytes())
+    offset = next(o for o, opcode in _summary_records(bytes(data)) if opcode == 0x08)
+    (map_length,) = struct.unpack_from("<I", data, offset + 9 + 32)
+    (name_length,) = struct.unpack_from("<I", data, offset + 9 + 36 + map_length + 8)
+    at = offset + 9 + 36 + map_length + 12 + name_length + 8  # uncompressed_size
+    data[at : at + 8] = struct.pack("<Q", 2**40)
+    mcap.write_bytes(bytes(data))
+    with pytest.raises(BagError, match=r"declares a chunk of 1099511627776 bytes"):
+        BagReader(bag)
+
+
+def test_metadata_listing_a_file_outside_the_bag_is_refused(tmp_path):
+    bag = _bag_with_metadata(
+        tmp_path, lambda data: data.replace(b"- full.mcap", b"- ../full/full.mcap", 1)
+    )
+    with pytest.raises(BagError, match=r"lists '\.\./full/full\.mcap', which is not a file"):
+        BagReader(bag)
+
+
+def test_a_closed_stdout_ends_a_command_quietly():
+    # `python -m tpsr_ros.bag_info BAG | head -1` printed a BrokenPipeError traceback
+    process = subprocess.Popen(
+        [sys.executable, "-m", "tpsr_ros.bag_info", str(BAGS / "full")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )
+    process.stdout.close()  # the reader went away before the first line
+    stderr = process.stderr.read().decode()
+    assert process.wait(timeout=60) == 141 and stderr == ""
+
+
+def test_a_rate_too_high_for_a_timer_is_a_one_line_error():
+    # fuzz finding: -p rate:=0x7fffffffffffffff made the explore timer's period 0 ns and the
+    # node died of ZeroDivisionError on its first tick
+    result = subprocess.run(
+        [sys.executable, "-m", "sim_node", "--ros-args", "-p", "rate:=0x7fffffffffffffff"],
+        capture_output=True, text=True, timeout=60, env={**os.environ, "TPSR_TRANSPORT": "inproc"},
+    )
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines()[-1].startswith(
+        "python -m sim_node: error: timer period must be at least 1 ns"
+    )
+
+
+@pytest.mark.parametrize("descriptive", [
+    {"training": {"bags": 5}},  # the fuzz finding: AttributeError 'int' has no 'get'
+    {"training": {"bags": [1, "x", {"path": 3}]}},
+    {"training": [1, 2], "summary": "x", "software": 7, "observation": [1]},
+    {"summary": {"explained_variance": {"obs": 3, "test": {"total": "high"}},
+                 "timings": {"fit": "slow"}, "singular_values": [1, "a"]}},
+])
+def test_learner_info_prints_whatever_descriptive_metadata_a_file_carries(descriptive):
+    # load_model validates what it uses; info also prints what it does not (training data,
+    # summary, software): those fields may hold anything and must not crash the command
+    from learner.info import info_lines
+
+    metadata = {"format": "tpsr-ros model", "format_version": 1, "method": "tpsr",
+                "n_actions": 3, "parameters": {"rank": 2}, **descriptive}
+    lines = info_lines(Path("m.npz"), metadata)
+    assert lines[0] == "model: m.npz" and "parameters: rank=2" in lines
+
+
+def test_learner_info_formats_well_formed_descriptive_metadata():
+    from learner.info import info_lines
+
+    metadata = {"format": "tpsr-ros model", "format_version": 1, "method": "tpsr",
+                "n_actions": 3, "parameters": {"rank": 2},
+                "training": {"steps": 10, "bags": [{"path": "b1"}, {"path": "b2"}]},
+                "summary": {"explained_variance": {"obs": {"total": 0.91234}},
+                            "timings": {"SVD": 0.5}}}
+    lines = info_lines(Path("m.npz"), metadata)
+    assert "bags: b1, b2" in lines and "explained variance (obs): 0.912" in lines
+    assert "fit timing: SVD 0.500 s" in lines
+
+
+def test_a_model_path_too_long_for_the_file_system_is_a_one_line_error(tmp_path):
+    # fuzz finding: -p model:=<5001 digits> (via a params file) made pathlib's is_dir raise
+    # OSError ENAMETOOLONG in the filter node's preflight
+    from tpsr_ros.core.errors import ModelFormatError
+    from tpsr_ros.io.model_io import load_model
+    from tpsr_ros.io.policy import load_policy
+
+    for load in (load_model, load_policy):
+        with pytest.raises(ModelFormatError, match="cannot be opened: File name too long"):
+            load("9" * 5001)
+    with pytest.raises(ModelFormatError, match="is a directory"):
+        load_model(tmp_path)
+    with pytest.raises(ModelFormatError, match="does not exist"):
+        load_model(tmp_path / "missing.npz")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Callable
 from typing import NoReturn
@@ -54,7 +55,7 @@ def positive_float(text: str) -> float:
 
 
 def run_cli(prog: str, main: Callable[[], int | None]) -> NoReturn:
-    """Run ``main``; a ``TpsrError`` or Ctrl-C becomes one line on stderr and a non-zero exit."""
+    """Run ``main``; a ``TpsrError`` or Ctrl-C is one line on stderr and a non-zero exit."""
     try:
         code = main()
     except TpsrError as exc:
@@ -63,4 +64,7 @@ def run_cli(prog: str, main: Callable[[], int | None]) -> NoReturn:
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         sys.exit(130)
+    except BrokenPipeError:  # `... | head` closed our stdout: stop quietly, as cat does
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        sys.exit(141)
     sys.exit(code or 0)

@@ -33,10 +33,12 @@ from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.rosbag2.metadata import dump_qos_v9
 
 from tpsr_ros.core.errors import BagError
+from tpsr_ros.io.mcap_layout import check_mcap_layout
 from tpsr_ros.io.messages import deserialize, jazzy_typestore, serialize
 from tpsr_ros.io.safe_yaml import YamlInputError, load_yaml
 
 __all__ = [
+    "BagFile",
     "BagMessage",
     "BagReader",
     "BagWriter",
@@ -109,22 +111,33 @@ class _Topic:
     count: int = 0
 
 
+@dataclass(frozen=True)
+class BagFile:
+    """One ``.mcap`` file of a bag as ``metadata.yaml`` lists it: name, times, count."""
+
+    name: str
+    start_ns: int  # first log time (0 without messages)
+    end_ns: int  # last log time
+    message_count: int
+
+
 def rosbag2_metadata(
-    file_name: str, topics: Sequence[dict[str, Any]], times: tuple[int, int],
+    files: Sequence[BagFile], topics: Sequence[dict[str, Any]],
     custom_data: dict[str, str] | None = None,
 ) -> str:
-    """``metadata.yaml`` (rosbag2 version 9) for one MCAP file.
+    """``metadata.yaml`` (rosbag2 version 9) for the MCAP ``files`` of one bag, in order.
 
     ``topics`` are ``{"name", "type", "serialization_format", "offered_qos_profiles",
-    "type_description_hash", "message_count"}``; ``times`` the first and last log time.
+    "type_description_hash", "message_count"}`` over all files.
     """
-    start, end = times
-    duration = max(0, end - start)
+    filled = [f for f in files if f.message_count]
+    start = min((f.start_ns for f in filled), default=0)
+    duration = max((f.end_ns for f in filled), default=0) - start if filled else 0
     total = sum(int(t["message_count"]) for t in topics)
     info = {
         "version": 9,
         "storage_identifier": "mcap",
-        "relative_file_paths": [file_name],
+        "relative_file_paths": [f.name for f in files],
         "duration": {"nanoseconds": duration},
         "starting_time": {"nanoseconds_since_epoch": start},
         "message_count": total,
@@ -139,11 +152,12 @@ def rosbag2_metadata(
         "compression_mode": "",
         "files": [
             {
-                "path": file_name,
-                "starting_time": {"nanoseconds_since_epoch": start},
-                "duration": {"nanoseconds": duration},
-                "message_count": total,
+                "path": f.name,
+                "starting_time": {"nanoseconds_since_epoch": f.start_ns},
+                "duration": {"nanoseconds": max(0, f.end_ns - f.start_ns)},
+                "message_count": f.message_count,
             }
+            for f in files
         ],
         "custom_data": dict(custom_data) if custom_data else None,
         "ros_distro": "jazzy",
@@ -290,7 +304,8 @@ class BagWriter:
             for name, t in self._topics.items()
         ]
         times = self._times if self.message_count else (0, 0)
-        text = rosbag2_metadata(self._file.name, topics, times, self._custom_data)
+        file = BagFile(self._file.name, times[0], times[1], self.message_count)
+        text = rosbag2_metadata([file], topics, self._custom_data)
         temporary = self.path / "metadata.yaml.tmp"
         temporary.write_text(text)
         temporary.replace(self.path / "metadata.yaml")
@@ -406,6 +421,17 @@ def _check_counts(meta_path: Path, info: dict[str, Any]) -> None:
             raise BagError(f"{where}: topic {topic['name'][:80]!r} has a bad message_count")
 
 
+def _bag_file(bag: Path, name: str) -> Path:
+    """Return the bag's file ``name`` (from ``relative_file_paths``); it must lie inside."""
+    file = bag / name
+    if Path(name).is_absolute() or ".." in Path(name).parts or not file.is_file():
+        raise BagError(
+            f"{str(bag / 'metadata.yaml')!r} lists {name[:200]!r}, which is not a file "
+            "inside the bag"
+        )
+    return file
+
+
 class BagReader:
     """Read a rosbag2 MCAP bag; anything else is refused with a ``BagError``."""
 
@@ -416,6 +442,8 @@ class BagReader:
         storage = info.get("storage_identifier")
         if storage != "mcap":
             raise BagError(f"bag {str(self.path)!r} uses storage {storage!r}, not mcap")
+        for name in info.get("relative_file_paths", []):
+            check_mcap_layout(_bag_file(self.path, name))
         self._reader = Reader(self.path)
         try:
             self._reader.open()
@@ -424,6 +452,13 @@ class BagReader:
         except (*_DAMAGE, TypeError, AttributeError) as exc:  # metadata rosbags did not expect
             damage = _describe(exc)
             raise BagError(f"cannot open bag {str(self.path)!r}: damaged ({damage})") from None
+        for connection in self._reader.connections:  # rosbags' YAML 1.2 view of metadata.yaml
+            if not (isinstance(connection.topic, str) and isinstance(connection.msgtype, str)):
+                self._reader.close()
+                raise BagError(
+                    f"{str(self.path / 'metadata.yaml')!r}: topic {str(connection.topic)[:80]!r}"
+                    f" has a name or type that is not text ({str(connection.msgtype)[:80]!r})"
+                )
 
     def __enter__(self) -> BagReader:
         return self

@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 import struct
 import tempfile
 import zipfile
@@ -275,9 +276,17 @@ def read_archive(
     """
     path = Path(path)
     what = format_name.removeprefix("tpsr-ros ")
-    if path.is_dir():
+    try:
+        mode: int | None = path.stat().st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        mode = None
+    except OSError as exc:  # e.g. a name too long for the file system (a -p value)
+        raise ModelFormatError(
+            f"{what} file {str(path)[:200]!r} cannot be opened: {exc.strerror}"
+        ) from None
+    if mode is not None and stat.S_ISDIR(mode):
         raise ModelFormatError(f"{what} file {str(path)!r} is a directory, not a file")
-    if not path.is_file():
+    if mode is None or not stat.S_ISREG(mode):
         raise ModelFormatError(f"{what} file {str(path)!r} does not exist")
     try:
         with path.open("rb") as handle:

@@ -102,10 +102,14 @@ class Policy:
         recorded = self.metadata.get("model_path")
         if not recorded:
             raise ModelFormatError("the policy records no model path; pass --model MODEL")
-        if not Path(recorded).exists():
+        try:
+            found = Path(recorded).exists()
+        except (OSError, TypeError, ValueError):  # too long, not text, a NUL byte
+            found = False
+        if not found:
             raise ModelFormatError(
-                f"the policy's model {recorded!r} does not exist (relative to the current "
-                "directory); pass --model MODEL"
+                f"the policy's model {str(recorded)[:200]!r} does not exist (relative to the "
+                "current directory); pass --model MODEL"
             )
         return Path(recorded)
 

@@ -138,4 +138,6 @@ def load_yaml(
         mark = getattr(exc, "problem_mark", None)
         line = f" (line {mark.line + 1})" if mark is not None else ""
         raise YamlInputError(f"{what}: not valid YAML{line}") from None
+    except ValueError as exc:  # int() refuses numbers of more than 4300 digits
+        raise YamlInputError(f"{what}: a value it cannot read ({str(exc)[:80]})") from None
     return None if node is None else _rcl_tree(node, what)

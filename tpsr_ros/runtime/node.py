@@ -239,9 +239,9 @@ class Timer:
     """A periodic callback on the node's (monotonic) wall clock; missed ticks are skipped."""
 
     def __init__(self, period_s: float, callback: Callable[[], None]) -> None:
-        if not period_s > 0:
-            raise TpsrError(f"timer period must be positive, got {period_s}")
-        self.period_ns = round(period_s * _NS)
+        self.period_ns = round(period_s * _NS) if period_s > 0 else 0
+        if self.period_ns < 1:  # 1/rate for a rate of 2**63 Hz rounds to 0 ns
+            raise TpsrError(f"timer period must be at least 1 ns, got {period_s} s")
         self.callback = callback
         self.next_ns = time.monotonic_ns() + self.period_ns
         self.cancelled = False
