@@ -125,16 +125,17 @@ class QFunction:
 
     def planner_units(self, states: np.ndarray) -> np.ndarray:
         """States ``(T, r)`` centred, rotated and scaled as the centres are."""
-        centred = np.asarray(states, dtype=np.float64) - self.mean
-        if self.rotation is not None:
-            centred = centred @ self.rotation
-        return centred / self.scale
+        return _to_units(states, self.mean, self.scale, self.rotation)
 
     def features(self, states: np.ndarray) -> np.ndarray:
         """Normalised RBF features ``(T, c)`` of states ``(T, r)``, each member's summing to 1/M."""
+        return self.unit_features(self.planner_units(states))
+
+    def unit_features(self, units: np.ndarray) -> np.ndarray:
+        """:meth:`features` of states already in planner units (:meth:`planner_units`)."""
         sizes = self.group_sizes
         widths = np.repeat(self.width, sizes)
-        sq = cdist(self.planner_units(states), self.centers, "sqeuclidean") / (2.0 * widths**2)
+        sq = cdist(units, self.centers, "sqeuclidean") / (2.0 * widths**2)
         if self.members == 1:  # the guide's planner, summed exactly as it always was
             sq -= sq.min(axis=1, keepdims=True)  # exact nearest-centre limit, never 0/0
             activation = np.exp(-sq)
@@ -155,6 +156,16 @@ class QFunction:
         if not np.all(np.isfinite(states)):
             raise DataError("greedy policy called with a non-finite state")
         return np.argmax(self.values(states), axis=1)
+
+
+def _to_units(
+    states: np.ndarray, mean: np.ndarray, scale: np.ndarray, rotation: np.ndarray | None
+) -> np.ndarray:
+    """``((states - mean) @ rotation) / scale`` (no product for the identity rotation)."""
+    centred = np.asarray(states, dtype=np.float64) - mean
+    if rotation is not None:
+        centred = centred @ rotation
+    return centred / scale
 
 
 def _scaling(
@@ -252,13 +263,12 @@ def fit_q(
         raise DataError(f"actions {missing} never occur in the transitions")
 
     mean, scale, rotation = _scaling(np.vstack([states, next_states]), config.state_scaling)
-    frame = QFunction(mean, scale, np.zeros((1, len(mean))), 1.0, np.zeros((1, 1)), rotation)
-    z = frame.planner_units(states)
+    z, z_next = (_to_units(s, mean, scale, rotation) for s in (states, next_states))
     members = [_centres(z, config, config.seed + m) for m in range(config.ensemble)]
     weights = []
     for centers, width in members:
         member = QFunction(mean, scale, centers, width, np.zeros((len(centers), 1)), rotation)
-        phi, phi_next = member.features(states), member.features(next_states)
+        phi, phi_next = member.unit_features(z), member.unit_features(z_next)
         weights.append(_iterate(phi, phi_next, actions, rewards, n_actions, config))
     return QFunction(
         mean,
