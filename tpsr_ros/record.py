@@ -156,7 +156,7 @@ class RecorderNode(Node):
         self._closed_bag = False
         self.exit_code = 0
         # a busy recorder holds back reliable publishers instead of buffering without bound
-        getattr(self.transport, "limit_keep_all_readers", lambda n: None)(CACHE_SAMPLES)
+        self.transport.limit_keep_all_readers(CACHE_SAMPLES)
         self.diagnostics = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
         self._first_scan = self.create_timer(0.001, self._scan_now)
         self.create_timer(args.polling_interval / 1000.0, self.discover)

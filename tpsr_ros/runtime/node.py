@@ -294,8 +294,8 @@ class Node:
         # rclpy logs (console and /rosout) itself; the DDS backend publishes /rosout and
         # lets this logger print
         self.logger.transport = transport
-        getattr(transport, "set_log_level", lambda level: None)(self.options.log_level)
-        getattr(transport, "set_warning_sink", lambda sink: None)(self.logger.warning)
+        transport.set_log_level(self.options.log_level)
+        transport.set_warning_sink(self.logger.warning)
         try:
             self.transport.declare_parameters(
                 [

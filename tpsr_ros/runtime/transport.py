@@ -133,6 +133,21 @@ class Transport(ABC):
         """Log through the middleware's logger; False if the backend has none."""
         return False
 
+    def set_log_level(self, level: str) -> None:  # noqa: B027
+        """Set the middleware logger's severity; a backend without a logger ignores it."""
+
+    def set_warning_sink(self, sink: Callable[[str], None]) -> None:  # noqa: B027
+        """Where the middleware's own warnings (incompatible QoS, host limits) go.
+
+        A backend that raises none ignores it.
+        """
+
+    def limit_keep_all_readers(self, max_samples: int) -> None:  # noqa: B027
+        """Bound the unread samples of keep-all subscriptions created from now on.
+
+        A backend that cannot bound its reader caches ignores it.
+        """
+
     @abstractmethod
     def close(self) -> None:
         """Flush reliable data to matched readers (bounded wait) and leave the graph."""
