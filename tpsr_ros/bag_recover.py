@@ -36,7 +36,6 @@ import dataclasses
 import io
 import mmap
 import re
-import struct
 import tempfile
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -52,23 +51,28 @@ from mcap.writer import Writer
 from tpsr_ros.cli import ArgumentParser, run_cli
 from tpsr_ros.core.errors import BagError
 from tpsr_ros.io.bag import BagFile, rosbag2_metadata
+from tpsr_ros.io.mcap_layout import MAGIC, RECORD_HEADER
 
 __all__ = ["FileRecovery", "RecoveryReport", "main", "recover_bag"]
 
 PROG = "python -m tpsr_ros.bag_recover"
-_MAGIC = b"\x89MCAP0\r\n"
 _CHUNK = 0x06
-_HEADER = struct.Struct("<BQ")
 _KEPT = (Schema, Channel, Message, Metadata, Attachment)
+
+
+def _record_end(data: mmap.mmap | bytes, offset: int) -> int | None:
+    """Where the top-level record at ``offset`` ends, or None if it runs past the file."""
+    if offset + RECORD_HEADER.size > len(data):
+        return None
+    _, length = RECORD_HEADER.unpack_from(data, offset)
+    end = offset + RECORD_HEADER.size + length
+    return end if end <= len(data) else None
 
 
 def _parse_at(data: mmap.mmap | bytes, offset: int) -> tuple[list[Any], int] | None:
     """The records of the top-level record at ``offset`` and its end, or None if damaged."""
-    if offset + _HEADER.size > len(data):
-        return None
-    _, length = _HEADER.unpack_from(data, offset)
-    end = offset + _HEADER.size + length
-    if end > len(data):
+    end = _record_end(data, offset)
+    if end is None:
         return None
     body = io.BytesIO(data[offset:end])
     records: list[Any] = []
@@ -108,7 +112,7 @@ class _Scan:
     def records(self) -> Iterator[Any]:
         """Every intact record, resuming after damage at the next intact chunk."""
         data = self.data
-        offset = len(_MAGIC) if data[: len(_MAGIC)] == _MAGIC else 0
+        offset = len(MAGIC) if data[: len(MAGIC)] == MAGIC else 0
         if offset == 0:
             resumed = _next_chunk(data, 0)
             if resumed is None:
@@ -116,16 +120,13 @@ class _Scan:
             self.skipped.append((0, resumed))
             offset = resumed
         while offset < len(data):
-            if len(data) - offset == len(_MAGIC) and data[offset:] == _MAGIC:  # closing magic
+            if len(data) - offset == len(MAGIC) and data[offset:] == MAGIC:  # closing magic
                 break
             parsed = _parse_at(data, offset)
             if parsed is None:
                 resumed = _next_chunk(data, offset + 1)
                 if resumed is None:
-                    tail_record = offset + _HEADER.size > len(data) or (
-                        offset + _HEADER.size + _HEADER.unpack_from(data, offset)[1] > len(data)
-                    )
-                    if tail_record:
+                    if _record_end(data, offset) is None:  # the file ends inside it
                         self.truncated_tail = True
                     else:
                         self.skipped.append((offset, len(data)))

@@ -22,11 +22,11 @@ from typing import BinaryIO
 
 from tpsr_ros.core.errors import BagError
 
-__all__ = ["MAX_CHUNK_BYTES", "check_mcap_layout"]
+__all__ = ["MAGIC", "MAX_CHUNK_BYTES", "RECORD_HEADER", "check_mcap_layout"]
 
 MAGIC = b"\x89MCAP0\r\n"
 MAX_CHUNK_BYTES = 2**28  # rosbag2 writes chunks of about 1 MiB; the mcap CLI 4 MiB
-_RECORD = struct.Struct("<BQ")
+RECORD_HEADER = struct.Struct("<BQ")  # every MCAP record: opcode, body length
 _FOOTER = struct.Struct("<BQQQI")  # opcode, length (20), summary start, summary offsets, crc
 _CHUNK, _CHUNK_INDEX = 0x06, 0x08
 
@@ -41,16 +41,16 @@ def _records(handle: BinaryIO, path: Path, start: int, end: int) -> list[tuple[i
     offset = start
     while offset < end:
         handle.seek(offset)
-        head = handle.read(_RECORD.size)
-        if len(head) < _RECORD.size or offset + _RECORD.size > end:
+        head = handle.read(RECORD_HEADER.size)
+        if len(head) < RECORD_HEADER.size or offset + RECORD_HEADER.size > end:
             raise _fail(path, offset, f"is cut short at the section end ({end})")
-        opcode, length = _RECORD.unpack(head)
-        if length > end - offset - _RECORD.size:
+        opcode, length = RECORD_HEADER.unpack(head)
+        if length > end - offset - RECORD_HEADER.size:
             raise _fail(
                 path, offset, f"claims {length} bytes; only {end - offset - 9} remain before {end}"
             )
         found.append((offset, opcode, length))
-        offset += _RECORD.size + length
+        offset += RECORD_HEADER.size + length
     return found
 
 
@@ -65,7 +65,7 @@ def _check_sizes(path: Path, offset: int, compressed: int, uncompressed: int, ro
 
 def _check_chunk(handle: BinaryIO, path: Path, offset: int, length: int) -> None:
     """Check that a chunk record's declared sizes fit its record and the bound."""
-    handle.seek(offset + _RECORD.size)
+    handle.seek(offset + RECORD_HEADER.size)
     body = handle.read(min(length, 32 + 2**16))
     if len(body) < 32:
         raise _fail(path, offset, "is too short for a chunk")
@@ -80,7 +80,7 @@ def _check_chunk(handle: BinaryIO, path: Path, offset: int, length: int) -> None
 def _check_chunk_index(handle: BinaryIO, path: Path, offset: int, length: int,
                        data_end: int) -> None:
     """Check that a chunk index points inside the data section at a bounded chunk."""
-    handle.seek(offset + _RECORD.size)
+    handle.seek(offset + RECORD_HEADER.size)
     body = handle.read(length)
     try:
         _, _, chunk_start, chunk_length = struct.unpack_from("<QQQQ", body, 0)
@@ -91,7 +91,7 @@ def _check_chunk_index(handle: BinaryIO, path: Path, offset: int, length: int,
         compressed, uncompressed = struct.unpack_from("<QQ", body, at)
     except struct.error:
         raise _fail(path, offset, "is a chunk index cut short") from None
-    if chunk_start + chunk_length > data_end or chunk_length < _RECORD.size:
+    if chunk_start + chunk_length > data_end or chunk_length < RECORD_HEADER.size:
         raise _fail(
             path, offset, f"indexes a chunk at {chunk_start} of {chunk_length} bytes, "
             f"outside the data section (which ends at {data_end})"
@@ -142,9 +142,9 @@ def check_mcap_layout(path: Path) -> None:
 def _first_record(handle: BinaryIO, path: Path, data_end: int) -> None:
     """Check that the header record (the first after the magic) fits the data section."""
     handle.seek(len(MAGIC))
-    head = handle.read(_RECORD.size)
-    if len(head) < _RECORD.size:
+    head = handle.read(RECORD_HEADER.size)
+    if len(head) < RECORD_HEADER.size:
         raise _fail(path, len(MAGIC), "is cut short")
-    _, length = _RECORD.unpack(head)
-    if length > data_end - len(MAGIC) - _RECORD.size:
+    _, length = RECORD_HEADER.unpack(head)
+    if length > data_end - len(MAGIC) - RECORD_HEADER.size:
         raise _fail(path, len(MAGIC), f"claims {length} bytes, past the data section")
