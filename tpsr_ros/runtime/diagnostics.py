@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros.io.messages import jazzy_typestore, split_stamp
+from tpsr_ros.io.messages import header_msg, jazzy_typestore
 
 __all__ = [
     "DIAGNOSTICS_TYPE",
@@ -73,11 +73,7 @@ def diagnostic_status(
 
 def diagnostic_array(stamp_ns: int, statuses: list[Any]) -> Any:
     """``DiagnosticArray`` stamped ``stamp_ns`` holding ``statuses``."""
-    sec, nanosec = split_stamp(stamp_ns)
-    header = _t("std_msgs/msg/Header")(
-        stamp=_t("builtin_interfaces/msg/Time")(sec=sec, nanosec=nanosec), frame_id=""
-    )
-    return _t(DIAGNOSTICS_TYPE)(header=header, status=list(statuses))
+    return _t(DIAGNOSTICS_TYPE)(header=header_msg(stamp_ns, ""), status=list(statuses))
 
 
 def status_values(status: Any) -> dict[str, str]:
