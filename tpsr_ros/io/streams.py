@@ -291,9 +291,13 @@ def _poses_at(streams: _Streams, at: np.ndarray) -> np.ndarray:
 def _decode_images(
     path: Path, topic: str, msgtype: str, numbers: np.ndarray, preprocessing: Preprocessing
 ) -> np.ndarray:
-    """Observations of the messages ``numbers`` (sorted message indices) of ``topic``."""
-    out = np.empty((numbers.size, preprocessing.size))
-    wanted = {int(n): i for i, n in enumerate(numbers.tolist())}
+    """Observations of the messages ``numbers`` (sorted message indices) of ``topic``.
+
+    A message several steps share (no new image between them) is decoded once.
+    """
+    unique, inverse = np.unique(numbers, return_inverse=True)
+    out = np.empty((unique.size, preprocessing.size))
+    wanted = {int(n): i for i, n in enumerate(unique.tolist())}
     batch: list[np.ndarray] = []
     rows: list[int] = []
 
@@ -318,7 +322,7 @@ def _decode_images(
                 flush()
     if batch:
         flush()
-    return out
+    return out[inverse.reshape(-1)]
 
 
 def _interpolate(times: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.ndarray:
