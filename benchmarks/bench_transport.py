@@ -21,10 +21,9 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+from benchmarks.bench_record import SIZES, graph_env, payloads, rclpy_importable
 
 TOPIC = "/bench/throughput"
-SIZES = {"16x16": (16, 16), "640x480": (480, 640), "1080p": (1080, 1920)}
 # enough messages for about a second of traffic at the expected rates, bounded in bytes
 COUNTS = {"16x16": 5000, "640x480": 300, "1080p": 120}
 TARGET_1080P = 60.0
@@ -37,14 +36,6 @@ def _node(name: str, backend: str):
     return Node(NodeOptions(name=name), transport=open_transport(backend, name, "/"))
 
 
-def _payload(size: str, index: int) -> bytes:
-    from tpsr_ros.io import messages as m
-
-    height, width = SIZES[size]
-    rgb = np.random.default_rng(index).integers(0, 255, (height, width, 3), dtype=np.uint8)
-    return m.serialize(m.image_msg(index * 10**6 + 1, rgb), m.IMAGE_TYPE)
-
-
 def publisher(backend: str, size: str, count: int) -> None:
     """Child process: publish ``count`` images of ``size`` as fast as flow control allows."""
     from tpsr_ros.io import messages as m
@@ -52,12 +43,12 @@ def publisher(backend: str, size: str, count: int) -> None:
 
     node = _node("bench_tx", backend)
     pub = node.create_publisher(TOPIC, m.IMAGE_TYPE, QoSProfile(history="keep_all", depth=0))
-    payloads = [_payload(size, k) for k in range(4)]
+    frames = payloads(size, 4, distinct=4)
     node.wait_for(lambda: pub.get_subscription_count() >= 1, timeout_s=30)
     node.spin(timeout_s=0.3)  # let discovery settle on both sides
     cpu_start = time.process_time()
     for k in range(count):
-        pub.publish_raw(payloads[k % 4])
+        pub.publish_raw(frames[k % 4])
     print(f"publish cpu_s={time.process_time() - cpu_start:.4f}", flush=True)
     node.spin(timeout_s=5.0, until=lambda: False)  # keep serving retransmissions
     node.close()
@@ -124,10 +115,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--backends", nargs="+", choices=["dds", "rclpy"], default=None)
     parser.add_argument("--runs", type=int, default=1)
     args = parser.parse_args([] if argv is None else argv)  # run by benchmarks: defaults
-    backends = args.backends or ["dds", *(["rclpy"] if _rclpy_importable() else [])]
-    os.environ["ROS_DOMAIN_ID"] = str(os.getpid() % 150 + 50)
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    env = dict(os.environ)
+    backends = args.backends or ["dds", *(["rclpy"] if rclpy_importable() else [])]
+    env = graph_env()
     print(f"   load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores", flush=True)
     for size in args.sizes:
         rates: dict[str, float] = {}
@@ -142,14 +131,6 @@ def main(argv: list[str] | None = None) -> None:
                 )
         line = "  ".join(f"{b} {r:.1f}/s" for b, r in rates.items())
         print(f"transport rate {size} rgb8 (2 processes, reliable keep-all): {line}", flush=True)
-
-
-def _rclpy_importable() -> bool:
-    try:
-        import rclpy  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
 if __name__ == "__main__":
