@@ -61,6 +61,7 @@ __all__ = [
     "default_config",
     "difference_in_sems",
     "plot_summary",
+    "prepare_outputs",
     "register",
     "run",
     "run_experiment",
@@ -533,15 +534,23 @@ def config_from_args(
     return default_config(args.environment, **overrides)
 
 
+def prepare_outputs(directory: Path, stem: str, force: bool) -> tuple[Path, Path]:
+    """``(stem.csv, stem.png)`` in ``directory`` (made if missing); existing ones need ``force``.
+
+    Checked before any run, so a refused output never costs the grid's time.
+    """
+    paths = (directory / f"{stem}.csv", directory / f"{stem}.png")
+    for path in paths:
+        if path.exists() and not force:
+            raise ConfigError(f"{path} already exists; use --force to overwrite it")
+    directory.mkdir(parents=True, exist_ok=True)
+    return paths
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the grid, write CSV and PNG, print the summary."""
     config = config_from_args(args, args.methods, args.assignments)
-    csv_path = args.output / f"experiment_{args.environment}.csv"
-    png_path = args.output / f"experiment_{args.environment}.png"
-    for path in (csv_path, png_path):
-        if path.exists() and not args.force:
-            raise ConfigError(f"{path} already exists; use --force to overwrite it")
-    args.output.mkdir(parents=True, exist_ok=True)
+    csv_path, png_path = prepare_outputs(args.output, f"experiment_{args.environment}", args.force)
     start = time.perf_counter()
     rows = run_experiment(config, workers=args.workers)
     elapsed = time.perf_counter() - start

@@ -24,6 +24,7 @@ import numpy as np
 from learner.experiment import (
     add_grid_options,
     config_from_args,
+    prepare_outputs,
     run_experiment,
     summarise,
     write_csv,
@@ -173,11 +174,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the study, write CSV and PNG, print the table."""
     name, values = parse_values(args.vary)
     stem = f"study_{args.environment}_{name.replace('.', '_')}"
-    csv_path, png_path = args.output / f"{stem}.csv", args.output / f"{stem}.png"
-    for path in (csv_path, png_path):
-        if path.exists() and not args.force:
-            raise ConfigError(f"{path} already exists; use --force to overwrite it")
-    args.output.mkdir(parents=True, exist_ok=True)
+    csv_path, png_path = prepare_outputs(args.output, stem, args.force)
     start = time.perf_counter()
     reference_rows, points = run_study(args, name, values, workers=args.workers)
     reference, table = summarise(reference_rows), _table(points)
