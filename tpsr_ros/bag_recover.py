@@ -171,9 +171,13 @@ def _topic_entry(channel: Channel, schema: Schema | None) -> dict[str, Any]:
     }
 
 
+class _DefinitionLater(Exception):
+    """A message's channel, or a channel's schema, is not (yet) known in a one-pass copy."""
+
+
 def _write(
     records: Iterable[Any],
-    definitions: tuple[dict[int, Schema], dict[int, Channel]],
+    definitions: tuple[dict[int, Schema], dict[int, Channel]] | None,
     target: Path,
 ) -> _Written:
     """Copy ``records`` into a new MCAP file, every message on its channel, raw.
@@ -181,9 +185,12 @@ def _write(
     Schemas and channels come from ``definitions``, gathered from anywhere in the file (the
     summary section repeats them), so a damaged data-section schema or channel record costs
     nothing when its copy survives; a channel without any surviving schema is written
-    schemaless.
+    schemaless. With ``definitions`` None they are gathered from ``records`` as they come
+    (one pass, the usual case: each is written before its first use), and
+    :class:`_DefinitionLater` is raised where one is needed before it was seen.
     """
-    schemas, channels = definitions
+    gathering = definitions is None
+    schemas, channels = ({}, {}) if definitions is None else definitions
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
     topics: dict[str, dict[str, Any]] = {}
@@ -195,6 +202,8 @@ def _write(
         def channel_id(source_id: int) -> int:
             if source_id not in channel_ids:
                 channel = channels[source_id]
+                if gathering and channel.schema_id not in schemas:
+                    raise _DefinitionLater
                 schema = schemas.get(channel.schema_id)
                 if schema is not None and schema.id not in schema_ids:
                     schema_ids[schema.id] = writer.register_schema(
@@ -210,10 +219,16 @@ def _write(
             return channel_ids[source_id]
 
         for record in records:
+            if gathering and isinstance(record, Schema):
+                schemas.setdefault(record.id, record)
+            elif gathering and isinstance(record, Channel):
+                channels.setdefault(record.id, record)
             if isinstance(record, Channel) and record.id in channels:
                 channel_id(record.id)
             elif isinstance(record, Message):
                 if record.channel_id not in channels:
+                    if gathering:
+                        raise _DefinitionLater
                     orphans += 1
                     continue
                 writer.add_message(
@@ -351,9 +366,13 @@ def _recover_file(source: Path, work: Path) -> tuple[FileRecovery, _Written | No
             source.open("rb") as handle,
             mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as data,
         ):
-            definitions = _definitions(_Scan(data).records())  # first pass: types only
             scan = _Scan(data)
-            written = _write(scan.records(), definitions, work / source.name)
+            try:  # one pass when every definition comes before its first use
+                written = _write(scan.records(), None, work / source.name)
+            except _DefinitionLater:  # else gather them from the whole file first
+                definitions = _definitions(_Scan(data).records())
+                scan = _Scan(data)
+                written = _write(scan.records(), definitions, work / source.name)
         _verify(work / source.name, written)
     except BagError as exc:
         return FileRecovery(source.name, error=str(exc)), None
