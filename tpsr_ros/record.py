@@ -247,12 +247,13 @@ class RecorderNode(Node):
                 problem = f"{len(data)} bytes is over --max-message-size {max_size}"
             elif is_image:
                 problem = _image_cdr_problem(data)
-            index = counts[topic] + rejected[topic] + dropped[topic]
+            if problem is None and put(topic, received, data):
+                counts[topic] += 1
+                return
+            index = counts[topic] + rejected[topic] + dropped[topic]  # this message's
             if problem is not None:
                 rejected[topic] += 1
                 self._log_refusal("rejected", topic, index, rejected[topic], problem)
-            elif put(topic, received, data):
-                counts[topic] += 1
             else:
                 dropped[topic] += 1
                 self._log_refusal(
