@@ -60,10 +60,6 @@ __all__ = [
 FORMAT_NAME = "tpsr-ros model"
 FORMAT_VERSION = 1
 METHODS: dict[str, type[TPSRModel] | type[PCAModel]] = {"tpsr": TPSRModel, "pca": PCAModel}
-_REQUIRED_ARRAYS = {
-    "tpsr": TPSRModel.ARRAY_NAMES,
-    "pca": ("mean", "components", "eigenvalues", "explained_variance_ratio", "n_actions"),
-}
 _INTEGER_ARRAYS = {"n_actions"}
 
 
@@ -203,11 +199,7 @@ def load_model(path: Path | str) -> TPSRModel | PCAModel:
     metadata, arrays = _open_arrays(path)
     method = _check_metadata(path, metadata)
     model_stream_spec(path, metadata)
-    required = _REQUIRED_ARRAYS[method]
-    if missing := [name for name in required if name not in arrays]:
-        raise ModelFormatError(f"{str(path)!r} lacks the {method} arrays {missing}")
-    if extra := sorted(set(arrays) - set(required)):
-        raise ModelFormatError(f"{str(path)!r} has unexpected arrays {extra}")
+    # read_archive has checked that the arrays are exactly those of _expected_shapes
     for name, arr in arrays.items():
         if name in _INTEGER_ARRAYS:
             if arr.dtype.kind not in "iu" or arr.shape != ():
