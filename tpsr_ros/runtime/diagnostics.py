@@ -13,7 +13,6 @@ latency) for p50/p99 reports.
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Mapping
 from typing import Any
 
@@ -82,20 +81,35 @@ def status_values(status: Any) -> dict[str, str]:
 
 
 class RollingPercentiles:
-    """The last ``size`` samples of a quantity, with percentiles over them."""
+    """The last ``size`` samples of a quantity, with percentiles over them.
+
+    Samples are float64 in one numpy buffer (8 bytes each, where a deque of Python floats
+    takes about 32) that grows up to ``size`` and then wraps, so a large ``size`` (the
+    player keeps every message's lateness) costs only what is used.
+    """
 
     def __init__(self, size: int = 1000) -> None:
-        self._samples: deque[float] = deque(maxlen=size)
+        self._size = max(int(size), 0)
+        self._buffer = np.empty(min(self._size, 1024))
+        self._added = 0  # samples ever added
 
     def add(self, value: float) -> None:
-        """Record one sample."""
-        self._samples.append(float(value))
+        """Record one sample (the oldest is forgotten once there are ``size``)."""
+        if not self._size:
+            return
+        index = self._added % self._size
+        if index == len(self._buffer):  # still filling: grow, doubling up to size
+            grown = np.empty(min(2 * len(self._buffer), self._size))
+            grown[:index] = self._buffer
+            self._buffer = grown
+        self._buffer[index] = float(value)
+        self._added += 1
 
     def __len__(self) -> int:
-        return len(self._samples)
+        return min(self._added, self._size)
 
     def percentiles(self, *qs: float) -> tuple[float, ...]:
         """Percentiles ``qs`` (0-100) of the samples; NaN each when there are none."""
-        if not self._samples:
+        if not len(self):
             return tuple(float("nan") for _ in qs)
-        return tuple(float(v) for v in np.percentile(np.fromiter(self._samples, float), qs))
+        return tuple(float(v) for v in np.percentile(self._buffer[: len(self)], qs))
