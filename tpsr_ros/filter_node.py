@@ -512,20 +512,24 @@ class FilterNode(Node):
             self._reinit(f"camera time jumped back to {stamp / _NS:.3f} s")
         steps = self.grid.add_image(stamp, msg)
         self._last_image_arrival_ns = time.monotonic_ns()
-        for step in steps:
-            self._grid_step(step, start)
+        self._grid_steps(steps, start)
 
-    def _grid_step(self, step: GridStep, start: float) -> None:
+    def _grid_steps(self, steps: list[GridStep], start: float) -> None:
+        """Process the steps one image completed; they all hold the previous image."""
+        if not steps:
+            return
         assert self.spec is not None
-        try:
-            pixels = decode_image(step.image, self.image_type)
+        try:  # decoded once however many steps share the image
+            pixels = decode_image(steps[0].image, self.image_type)
             observation = preprocess_images(pixels[None], self.spec.preprocessing)[0]
         except MessageError as exc:
             text = str(exc)
             reason = "encoding" if "encoding" in text or "format" in text else "data"
-            self._reject(self.image_topic, reason, text)
+            for _ in steps:  # one rejection per step, as each step is lost
+                self._reject(self.image_topic, reason, text)
             return
-        self._process(step.stamp, int(step.command), observation, start)
+        for step in steps:
+            self._process(step.stamp, int(step.command), observation, start)
 
     def _on_grid_command(self, data: bytes) -> None:
         assert self.grid is not None and self.spec is not None
