@@ -128,12 +128,15 @@ def model_stream_spec(path: Path | str, metadata: dict[str, Any]) -> StreamSpec 
     return spec
 
 
-def _open_arrays(path: Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+def _open_arrays(
+    path: Path, *, read_arrays: bool = True
+) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     return read_archive(
         path,
         format_name=FORMAT_NAME,
         format_version=FORMAT_VERSION,
         expected_shapes=lambda metadata: _expected_shapes(path, metadata),
+        read_arrays=read_arrays,
     )
 
 
@@ -185,9 +188,12 @@ def _check_metadata(path: Path, metadata: dict[str, Any]) -> str:
 
 
 def read_metadata(path: Path | str) -> dict[str, Any]:
-    """Read the validated metadata of a model file (arrays are checked by :func:`load_model`)."""
+    """Read the validated metadata of a model file (arrays are checked by :func:`load_model`).
+
+    The arrays' headers and shapes are checked; their values are not read.
+    """
     path = Path(path)
-    metadata, _ = _open_arrays(path)
+    metadata, _ = _open_arrays(path, read_arrays=False)
     _check_metadata(path, metadata)
     model_stream_spec(path, metadata)
     return metadata

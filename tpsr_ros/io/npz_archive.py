@@ -267,12 +267,14 @@ def read_archive(
     format_name: str,
     format_version: int | tuple[int, ...],
     expected_shapes: Callable[[dict[str, Any]], Mapping[str, ShapeRule]] | None = None,
+    read_arrays: bool = True,
 ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Read and check an archive of ``format_name`` at ``format_version``.
 
     ``expected_shapes(metadata)`` names every array the format has and the shape its
     metadata implies (raising ``ModelFormatError`` for unusable metadata); arrays are read
-    only after it accepted their declared shapes. Returns ``(metadata, arrays)``.
+    only after it accepted their declared shapes. Returns ``(metadata, arrays)``;
+    ``arrays`` is empty when ``read_arrays`` is false (every header still checked).
     """
     path = Path(path)
     what = format_name.removeprefix("tpsr-ros ")
@@ -302,7 +304,11 @@ def read_archive(
             _check_format(path, metadata, format_name, format_version)
             if expected_shapes is not None:
                 _check_shapes(path, headers, expected_shapes(metadata))
-            arrays = {name: _read_member(archive, name) for name in headers if name != METADATA_KEY}
+            arrays = {
+                name: _read_member(archive, name)
+                for name in headers
+                if read_arrays and name != METADATA_KEY
+            }
     except ModelFormatError:
         raise
     except _UNREADABLE as exc:
