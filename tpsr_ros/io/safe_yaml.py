@@ -82,6 +82,13 @@ def rcl_scalar(text: str, quoted: bool = False) -> bool | int | float | str:
     return text
 
 
+def _invalid(exc: yaml.YAMLError, what: str) -> YamlInputError:
+    """PyYAML's error as one line, with the line it found the problem on."""
+    mark = getattr(exc, "problem_mark", None)
+    line = f" (line {mark.line + 1})" if mark is not None else ""
+    return YamlInputError(f"{what}: not valid YAML{line}")
+
+
 def _check_structure(text: str, what: str) -> None:
     """Refuse anchors, aliases and deep nesting, scanning tokens without building anything."""
     depth = 0
@@ -96,9 +103,7 @@ def _check_structure(text: str, what: str) -> None:
             elif isinstance(token, _CLOSE):
                 depth -= 1
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f" (line {mark.line + 1})" if mark is not None else ""
-        raise YamlInputError(f"{what}: not valid YAML{line}") from None
+        raise _invalid(exc, what) from None
 
 
 def _rcl_tree(node: yaml.Node, what: str, in_sequence: bool = False) -> Any:
@@ -135,9 +140,7 @@ def load_yaml(
             return yaml.safe_load(data)
         node = yaml.compose(data, Loader=yaml.SafeLoader)
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f" (line {mark.line + 1})" if mark is not None else ""
-        raise YamlInputError(f"{what}: not valid YAML{line}") from None
+        raise _invalid(exc, what) from None
     except ValueError as exc:  # int() refuses numbers of more than 4300 digits
         raise YamlInputError(f"{what}: a value it cannot read ({str(exc)[:80]})") from None
     return None if node is None else _rcl_tree(node, what)
