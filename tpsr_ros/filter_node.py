@@ -486,11 +486,8 @@ class FilterNode(Node):
         since it arrived (an unstamped command is placed between the images it arrived
         between, as its log time places it in a bag).
         """
-        header = getattr(msg, "header", None)
-        if header is not None:
-            stamp = int(header.stamp.sec) * _NS + int(header.stamp.nanosec)
-            if stamp > 0:
-                return stamp
+        if hasattr(msg, "header") and (stamp := m.stamp_of(msg)) > 0:
+            return stamp
         assert self.grid is not None
         last = self.grid.last_image_time
         if last is None or self._last_image_arrival_ns is None:

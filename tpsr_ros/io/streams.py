@@ -48,6 +48,7 @@ from tpsr_ros.io.messages import (
     TWIST_TYPE,
     deserialize,
     header_stamp_ns,
+    stamp_of,
     twist_components,
 )
 from tpsr_ros.io.stream_spec import COMMAND_TYPES, StreamSpec
@@ -133,9 +134,9 @@ class _Streams:
 
 
 def _time(msg: Any, log_time: int) -> int:
-    stamp = msg.header.stamp
-    value = int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
-    return value if value > 0 else int(log_time)
+    """Header stamp, or the log time where the stamp is not positive (unset)."""
+    stamp = stamp_of(msg)
+    return stamp if stamp > 0 else int(log_time)
 
 
 def _pose_xy(msg: Any, msgtype: str) -> tuple[float, float]:
