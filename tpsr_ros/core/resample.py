@@ -21,7 +21,6 @@ order; an image not newer than the one before is dropped (:func:`increasing`).
 from __future__ import annotations
 
 import bisect
-from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -161,6 +160,10 @@ def resample_grid(
     )
 
 
+def _time_of(entry: tuple[int, Any]) -> int:
+    return entry[0]
+
+
 @dataclass(frozen=True)
 class GridStep:
     """One step of :class:`GridStepper`: its time, image (as given) and command (as given)."""
@@ -183,7 +186,8 @@ class GridStepper:
 
     def __init__(self, config: GridConfig, command_history: int = 256) -> None:
         self.config = config
-        self._commands: deque[tuple[int, Any]] = deque(maxlen=command_history)
+        self._command_history = command_history
+        self._commands: list[tuple[int, Any]] = []  # (time, command), in time order
         self.images = self.commands = self.images_out_of_order = 0
         self.camera_gaps = self.command_gaps = self.steps = 0
         self.reset()
@@ -203,13 +207,15 @@ class GridStepper:
     def add_command(self, time_ns: int, command: Any) -> None:
         """A command in force from ``time_ns`` on (kept in time order)."""
         self.commands += 1
-        times = [t for t, _ in self._commands]
-        self._commands.insert(bisect.bisect_right(times, time_ns), (int(time_ns), command))
+        time_ns = int(time_ns)
+        index = bisect.bisect_right(self._commands, time_ns, key=_time_of)
+        self._commands.insert(index, (time_ns, command))
+        if len(self._commands) > self._command_history:
+            del self._commands[0]  # the oldest: keep the latest command_history
 
     def _command_at(self, time_ns: int) -> Any | None:
-        times = [t for t, _ in self._commands]
-        index = bisect.bisect_right(times, time_ns) - 1
-        if index < 0 or time_ns - times[index] > self.config.command_timeout_ns:
+        index = bisect.bisect_right(self._commands, time_ns, key=_time_of) - 1
+        if index < 0 or time_ns - self._commands[index][0] > self.config.command_timeout_ns:
             return None
         return self._commands[index][1]
 
