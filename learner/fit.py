@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from learner.streams import add_stream_options, fit_options_from_args
+from learner.streams import add_stream_options, fit_options_from_args, topics_from_args
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
@@ -89,16 +89,6 @@ def add_topic_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup)
         metavar="FRAME",
         help="with a tf2_msgs/TFMessage pose topic (/tf): the child frame whose transforms "
         f"are the ground truth (default: {DEFAULT_POSE_FRAME}, or the model's)",
-    )
-
-
-def topics_from_args(args: argparse.Namespace) -> Topics:
-    """Return the :class:`Topics` chosen with :func:`add_topic_options` (defaults filled in)."""
-    return Topics(
-        **{
-            f.name: getattr(args, f"{f.name}_topic", None) or f.default
-            for f in dataclasses.fields(Topics)
-        }
     )
 
 

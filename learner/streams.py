@@ -10,6 +10,7 @@ models, the exact-stamp pairing of simulator bags for the others.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +30,7 @@ __all__ = [
     "read_for_model",
     "recorded_topic",
     "require_simulator_model",
-    "topic",
+    "topics_from_args",
 ]
 
 GRID_ONLY = ("image_size", "grey", "actions", "components", "image_timeout", "command_timeout")
@@ -148,10 +149,14 @@ def fit_options_from_args(args: argparse.Namespace) -> FitOptions | None:
     )
 
 
-def topic(args: argparse.Namespace, name: str) -> str:
-    """The ``--NAME-topic`` given, or its default from :class:`Topics`."""
-    value = getattr(args, f"{name}_topic", None)
-    return str(value) if value else str(getattr(Topics(), name))
+def topics_from_args(args: argparse.Namespace) -> Topics:
+    """The :class:`Topics` of the ``--NAME-topic`` options given, defaults for the others."""
+    return Topics(
+        **{
+            f.name: getattr(args, f"{f.name}_topic", None) or f.default
+            for f in dataclasses.fields(Topics)
+        }
+    )
 
 
 def recorded_topic(metadata: dict[str, Any], name: str) -> str | None:
@@ -180,8 +185,9 @@ def read_for_model(
     """
     spec: StreamSpec | None = model_stream_spec(model_path, metadata)
     if spec is None:
-        topics = Topics(**{n: topic(args, n) for n in ("image", "action", "pose", "reward")})
-        return read_trajectory(bags, topics=topics, require_ground_truth=require_ground_truth)
+        return read_trajectory(
+            bags, topics=topics_from_args(args), require_ground_truth=require_ground_truth
+        )
     for name, own in (("image", spec.image_topic), ("action", spec.action_topic)):
         given = getattr(args, f"{name}_topic", None)
         if given and given != own:
