@@ -160,9 +160,7 @@ class RecorderNode(Node):
         self.diagnostics = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
         self._first_scan = self.create_timer(0.001, self._scan_now)
         self.create_timer(args.polling_interval / 1000.0, self.discover)
-        self.create_timer(
-            args.flush_interval, lambda: self.writer.locked(self.writer.writer.flush)
-        )
+        self.create_timer(args.flush_interval, self.writer.flush)
         self.create_timer(1.0, self.publish_diagnostics)
         what = "all topics" if self.wanted is None else ", ".join(sorted(self.wanted))
         self.logger.info(f"recording {what} to {args.output}")
@@ -223,7 +221,7 @@ class RecorderNode(Node):
                 continue
             qos = adapt_to_publishers(e.qos for e in endpoints)
             offered = [to_bag_qos(e.qos) for e in endpoints]
-            self.writer.locked(self.writer.writer.add_topic, topic, msgtype, offered)
+            self.writer.add_topic(topic, msgtype, offered)
             self.subscriptions[topic] = self.create_subscription(
                 topic, msgtype, self._writer_for(topic, msgtype), qos, raw=True
             )
@@ -356,7 +354,7 @@ class RecorderNode(Node):
                 ("rejected_messages", str(rejected)),
                 ("by_topic", json.dumps(by_topic)),
             ):
-                self.writer.locked(self.writer.writer.set_custom_data, f"recorder.{key}", value)
+                self.writer.set_custom_data(f"recorder.{key}", value)
         finally:
             self.writer.close()
         recorded, lost, dropped, rejected = self.totals()

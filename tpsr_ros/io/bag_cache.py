@@ -14,14 +14,14 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from collections.abc import Callable
-from typing import Any, TypeVar
+from collections.abc import Sequence
+from typing import Any
+
+from rosbags.interfaces import Qos
 
 from tpsr_ros.io.bag import BagWriter
 
 __all__ = ["CachedBagWriter"]
-
-T = TypeVar("T")
 
 
 class CachedBagWriter:
@@ -59,10 +59,20 @@ class CachedBagWriter:
             self._ready.notify()
         return True
 
-    def locked(self, call: Callable[..., T], *args: Any) -> T:
-        """Run a ``BagWriter`` method (add_topic, flush, set_custom_data) between writes."""
+    def add_topic(self, topic: str, msgtype: str, qos: Sequence[Qos] = ()) -> None:
+        """``BagWriter.add_topic``, between the writer thread's writes."""
         with self._bag:
-            return call(*args)
+            self.writer.add_topic(topic, msgtype, qos)
+
+    def set_custom_data(self, key: str, value: str) -> None:
+        """``BagWriter.set_custom_data``, between the writer thread's writes."""
+        with self._bag:
+            self.writer.set_custom_data(key, value)
+
+    def flush(self) -> None:
+        """``BagWriter.flush`` (what is still queued is not waited for)."""
+        with self._bag:
+            self.writer.flush()
 
     def _run(self) -> None:
         while True:
