@@ -14,7 +14,7 @@ from pathlib import Path
 
 from tpsr_ros.cli import ArgumentParser, run_cli
 from tpsr_ros.core.units import NS_PER_S as _NS
-from tpsr_ros.io.bag import BagReader, read_bag_metadata
+from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.qos import from_bag_qos
 
 __all__ = ["format_info", "main"]
@@ -44,14 +44,13 @@ def format_info(path: Path) -> str:
         total = sum(counts.values())
         start = reader.start_time_ns if total else 0
         end = reader.end_time_ns - 1 if total else 0
-    info = read_bag_metadata(Path(path))
-    files = [str(f) for f in info.get("relative_file_paths", [])]
+        files = reader.files
     size = sum(p.stat().st_size for p in Path(path).iterdir() if p.is_file())
     duration = max(0, end - start)
     lines = [
         f"Files:             {', '.join(files)}",
         f"Bag size:          {_size(size)}",
-        f"Storage id:        {info.get('storage_identifier')}",
+        "Storage id:        mcap",  # BagReader refuses any other storage
         f"Duration:          {duration // _NS}.{duration % _NS:09d}s",
         f"Start:             {_time(start)}" if total else "Start:             (no messages)",
         f"End:               {_time(end)}" if total else "End:               (no messages)",

@@ -439,6 +439,7 @@ class BagReader:
         self.path = Path(path)
         info = read_bag_metadata(self.path)
         self._custom_data = {str(k): str(v) for k, v in (info.get("custom_data") or {}).items()}
+        self._files = tuple(info.get("relative_file_paths", []))
         storage = info.get("storage_identifier")
         if storage != "mcap":
             raise BagError(f"bag {str(self.path)!r} uses storage {storage!r}, not mcap")
@@ -492,6 +493,11 @@ class BagReader:
     def end_time_ns(self) -> int:
         """Log time just after the last message."""
         return int(self._reader.end_time)
+
+    @property
+    def files(self) -> tuple[str, ...]:
+        """The bag's MCAP files as ``metadata.yaml`` lists them (relative to the bag)."""
+        return self._files
 
     @property
     def custom_data(self) -> dict[str, str]:
