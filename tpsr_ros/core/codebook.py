@@ -17,6 +17,7 @@ distance between two codes) is the line beyond which a command is reported as fa
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -83,9 +84,12 @@ class ActionCodebook:
     def __len__(self) -> int:
         return int(self.codes.shape[0])
 
-    @property
+    @cached_property
     def far_distance(self) -> float:
-        """Half the smallest distance between two codes: commands beyond it are reported."""
+        """Half the smallest distance between two codes: commands beyond it are reported.
+
+        Cached: the codes are fixed, and the filter node asks for it at every command.
+        """
         if len(self) < 2:
             return float("inf")
         gaps = np.linalg.norm(self.codes[:, None, :] - self.codes[None, :, :], axis=2)
