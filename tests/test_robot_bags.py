@@ -297,3 +297,16 @@ def test_ground_truth_from_tf_equals_odometry(robot, tmp_path):
     np.testing.assert_allclose(from_tf.positions, odom.positions, rtol=0, atol=1e-12)
     camera = read_stream_trajectory([tf_bag], spec, pose_topic="/tf", pose_frame="camera_link")
     np.testing.assert_allclose(camera.positions[:, 0], odom.positions[:, 0] + 0.3, atol=1e-9)
+
+
+def test_steps_sharing_an_image_all_get_it(robot):
+    """Several steps on one image (a step period below the camera's) each get its pixels."""
+    from tpsr_ros.io.streams import _decode_images
+
+    config, bag = robot["config"], robot["bag"]
+    prep = Preprocessing(height=16, width=16)
+    shared = _decode_images(bag, config.image_topic, msgs.IMAGE_TYPE, np.array([0, 0, 1, 1, 2]),
+                            prep)
+    alone = [_decode_images(bag, config.image_topic, msgs.IMAGE_TYPE, np.array([n]), prep)[0]
+             for n in (0, 1, 2)]
+    assert np.array_equal(shared, np.array([alone[0], alone[0], alone[1], alone[1], alone[2]]))

@@ -223,3 +223,13 @@ def test_online_stepper_equals_offline_resampling():
     assert [s.command for s in online] == offline.command_index.tolist()
     assert stepper.camera_gaps == offline.stale_image > 0
     assert stepper.command_gaps == offline.no_command > 0
+
+
+def test_online_stepper_keeps_only_the_latest_commands():
+    """More commands than the history holds: the oldest go, the newest stays in force."""
+    stepper = GridStepper(GRID, command_history=4)
+    for k in range(10):  # used to raise IndexError once the history was full
+        stepper.add_command(k * MS, k)
+    assert stepper.commands == 10
+    assert stepper._command_at(9 * MS) == 9
+    assert stepper._command_at(3 * MS) is None  # dropped with the oldest
