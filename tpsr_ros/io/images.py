@@ -57,14 +57,17 @@ def _raw(msg: Any) -> np.ndarray:
     if height < 1 or width < 1 or height * width > MAX_PIXELS:
         raise MessageError(f"image size {height}x{width} is empty or larger than {MAX_PIXELS} px")
     item = np.dtype(dtype).itemsize
-    if step != width * channels * item:
+    row_bytes = width * channels * item
+    if step < row_bytes:  # drivers may pad rows (step > row bytes), never shorten them
         raise MessageError(
-            f"image step {step} does not match width {width} x {channels * item} bytes "
+            f"image step {step} is less than width {width} x {channels * item} bytes "
             f"per {encoding} pixel"
         )
     data = np.frombuffer(memoryview(np.asarray(msg.data, dtype=np.uint8)), dtype=np.uint8)
     if data.size != height * step:
         raise MessageError(f"image holds {data.size} bytes, expected {height} x {step}")
+    if step != row_bytes:
+        data = np.ascontiguousarray(data.reshape(height, step)[:, :row_bytes]).ravel()
     endian = ">" if int(msg.is_bigendian) else "<"
     pixels = data.view(np.dtype(dtype).newbyteorder(endian) if item > 1 else dtype)
     pixels = pixels.reshape(height, width, channels)
