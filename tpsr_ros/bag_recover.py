@@ -49,7 +49,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
 from tpsr_ros.cli import ArgumentParser, run_cli
-from tpsr_ros.core.errors import BagError
+from tpsr_ros.core.errors import BagError, one_line
 from tpsr_ros.io.bag import BagFile, rosbag2_metadata
 from tpsr_ros.io.mcap_layout import MAGIC, RECORD_HEADER
 
@@ -264,7 +264,9 @@ def _verify(target: Path, written: _Written) -> None:
             for _, channel, _ in make_reader(handle).iter_messages():
                 found[channel.topic] = found.get(channel.topic, 0) + 1
     except (McapError, ValueError, OSError) as exc:
-        raise BagError(f"the recovered file does not read back ({exc}); original kept") from None
+        raise BagError(
+            f"the recovered file does not read back ({one_line(exc)}); original kept"
+        ) from None
     if found != expected:
         raise BagError(
             f"the recovered file reads back {found}, not the {expected} written; original kept"
