@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from test_episodes import S, image_for, step_of, write_bag
@@ -9,7 +11,7 @@ from test_episodes import S, image_for, step_of, write_bag
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import BagError, ConfigError, DataError, MessageError
 from tpsr_ros.io import messages as m
-from tpsr_ros.io.bag import BagWriter
+from tpsr_ros.io.bag import BagReader, BagWriter
 from tpsr_ros.io.trajectory import Topics, iter_trajectory_chunks, read_trajectory
 
 FIELDS = ("stamps", "observations", "actions", "velocities", "positions", "rewards", "segments")
@@ -187,3 +189,40 @@ def test_arguments_are_checked_when_called(tmp_path):
         iter_trajectory_chunks([tmp_path], chunk_steps=0)
     with pytest.raises(ConfigError, match="reorder_window"):
         iter_trajectory_chunks([tmp_path], reorder_window=0)
+
+
+SAMPLE_BAGS = Path(__file__).resolve().parent.parent / "bags"
+
+
+def _object_reader(bag: Path) -> dict[str, np.ndarray]:
+    """The reader before issue 18, kept as the reference: a rosbags object per message."""
+    topics = Topics()
+    data: dict[str, dict[int, object]] = {t: {} for t in topics.types()}
+    with BagReader(bag) as reader:
+        for msg in reader.messages(list(data)):
+            obj = msg.decode()
+            data[msg.topic][m.stamp_of(obj)] = obj
+    images, actions = data[topics.image], data[topics.action]
+    stamps = sorted(set(images) & set(actions))
+    pose = data[topics.pose]
+    reward = data[topics.reward]
+    return {
+        "stamps": np.array(stamps),
+        "observations": np.stack([m.image_to_array(images[s]) for s in stamps]).reshape(
+            len(stamps), -1
+        )
+        / 255.0,
+        "velocities": np.array([m.twist_to_xy(actions[s]) for s in stamps]),
+        "positions": np.array([m.pose_to_xy(pose[s]) for s in stamps]),
+        "rewards": np.array([m.reward_to_sample(reward[s]).reward for s in stamps]),
+    }
+
+
+def test_the_sample_bag_reads_as_with_a_rosbags_object_per_message():
+    bag = SAMPLE_BAGS / "full"
+    expected = _object_reader(bag)
+    chunks = list(iter_trajectory_chunks([bag], chunk_steps=1000))
+    whole = read_trajectory([bag])
+    for name, values in expected.items():
+        np.testing.assert_array_equal(getattr(whole, name), values, err_msg=name)
+        np.testing.assert_array_equal(_concatenated(chunks)[name], values, err_msg=name)
