@@ -90,6 +90,16 @@ def test_decoders_equal_rosbags_for_every_frame_id_length_and_byte_order(msgtype
             assert _decoded(decoder, data) == reference(data), (frame, k)
 
 
+def test_the_is_bigendian_flag_of_an_rgb8_image_changes_nothing_but_the_layout():
+    decoder, reference = ImageDecoder((16, 16)), _reference(m.IMAGE_TYPE)
+    for k, flag in enumerate([0, 1, 1, 0]):
+        msg = _messages(m.IMAGE_TYPE, "camera", k)
+        msg.is_bigendian = flag
+        for little in (True, False):
+            data = _cdr(msg, m.IMAGE_TYPE, little)
+            assert _decoded(decoder, data) == reference(data)
+
+
 def test_images_of_any_size_when_no_shape_is_given():
     decoder = ImageDecoder(None)
     for k, (height, width) in enumerate([(1, 1), (3, 5), (7, 2)]):
