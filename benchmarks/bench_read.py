@@ -7,6 +7,11 @@ record's ``.data`` (the reference: no decoding, no pairing); ``read_trajectory``
 consuming every chunk of ``iter_trajectory_chunks``. Peak RSS (``VmHWM``) is measured in
 a fresh child process per reader, on the bag once and listed 4 times (96000 steps): the
 chunked reader's peak must not grow with the data, ``read_trajectory``'s holds it all.
+
+Robot bags (``learner fit --step-period``): a 2000-step bgr8 bag of ``sim_node.robot_bag``
+(40x40 camera at 4 Hz, ``Twist`` at 2 Hz, ``Odometry`` at 10 Hz), ``read_stream_trajectory``
+against the raw iteration of the same bag, the same way (no target: issue 18 names the
+simulator bags).
 """
 
 from __future__ import annotations
@@ -25,11 +30,14 @@ from mcap.reader import make_reader
 
 from benchmarks.bench_fit import STEPS
 from benchmarks.bench_fit import _bag as generate_full_bag
+from sim_node.robot_bag import RobotBagConfig, write_robot_bag
+from tpsr_ros.io.streams import FitOptions, fit_stream_spec, read_stream_trajectory
 from tpsr_ros.io.trajectory import DEFAULT_CHUNK_STEPS, iter_trajectory_chunks, read_trajectory
 
 REPEATS = 5
 TARGET_RATIO = 1.5
 COPIES = 4  # the bag listed this many times for the memory figure
+ROBOT_STEPS = 2000
 
 _CHILD = """
 import json, sys, time
@@ -80,6 +88,20 @@ def _consume_chunks(bag: Path) -> int:
     return sum(len(chunk) for chunk in iter_trajectory_chunks([bag]))
 
 
+def _robot_times(directory: str) -> tuple[dict[str, list[float]], int]:
+    """Interleaved rounds of raw iteration and ``read_stream_trajectory`` of a robot bag."""
+    bag = Path(directory) / "robot_bgr8"
+    count = write_robot_bag(bag, RobotBagConfig(steps=ROBOT_STEPS, encoding="bgr8"))
+    options = FitOptions(step_period=1.0, image_size=(16, 16), actions=25)
+    spec = fit_stream_spec([bag], options, image_topic="/front_camera/image_raw",
+                           action_topic="/cmd_vel")
+    times = _interleaved({
+        "raw": lambda: raw_mcap_iteration(bag),
+        "read_stream_trajectory": lambda: read_stream_trajectory([bag], spec, pose_topic="/odom"),
+    })
+    return times, count
+
+
 def _child(reader: str, bags: list[Path]) -> dict[str, float]:
     done = subprocess.run(
         [sys.executable, "-c", _CHILD, reader, *map(str, bags)],
@@ -102,6 +124,7 @@ def main() -> None:
             for reader in ("read_trajectory", "chunks")
             for copies in (1, COPIES)
         }
+        robot, robot_messages = _robot_times(directory)
     load = os.getloadavg()
     print(
         f"Reading the generated full bag of {STEPS} steps ({size:.1f} MiB MCAP, 5 topics, "
@@ -130,6 +153,11 @@ def main() -> None:
             f"{figures['peak'] / 1024:6.0f} MiB ({figures['before'] / 1024:.0f} MiB), "
             f"{figures['seconds']:.2f} s"
         )
+    raw, read = statistics.median(robot["raw"]), statistics.median(robot["read_stream_trajectory"])
+    print(
+        f"  robot bag ({ROBOT_STEPS} steps, {robot_messages} messages, bgr8 40x40): raw "
+        f"{raw:.3f} s, read_stream_trajectory {read:.3f} s = {read / raw:.2f}x raw"
+    )
 
 
 if __name__ == "__main__":
