@@ -291,9 +291,11 @@ class _BagSteps:
         if image is None or velocity is None:
             return None
         if self.options.require_ground_truth and (pose is None or reward is None):
+            topics = self.options.topics
+            missing = topics.pose if pose is None else topics.reward
             raise DataError(
-                f"bag {str(self.path)!r} lacks ground truth (pose or reward) for some steps "
-                f"(the first at stamp {stamp} ns)"
+                f"bag {str(self.path)!r} lacks ground truth for some steps: the step at stamp "
+                f"{stamp} ns has no message on {missing!r}"
             )
         chunk = self._take() if len(self.buffer) == self.options.chunk_steps else None
         if self.steps == 0:
