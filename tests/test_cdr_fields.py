@@ -9,16 +9,19 @@ from typing import Any
 import numpy as np
 import pytest
 from test_fuzz import mutate
+from test_robot_inputs import raw_msg
 
 from tpsr_ros.core.errors import MessageError
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.cdr_fields import (
     ImageDecoder,
     PoseDecoder,
+    RawImageDecoder,
     RewardDecoder,
     TwistDecoder,
     peek_stamp,
 )
+from tpsr_ros.io.images import decode_image
 
 S = 1_000_000_000
 FRAMES = ["", "a", "ab", "abc", "abcd", "abcde", "abcdef", "abcdefg", "camera", "é"]
@@ -205,3 +208,78 @@ def test_peek_stamp():
     data = m.serialize(m.twist_stamped_msg(3 * S + 7, 0, 0), m.ACTION_TYPE)
     assert peek_stamp(data) == 3 * S + 7
     assert peek_stamp(data[:11]) is None and peek_stamp(b"\x01" + data[1:]) is None
+
+
+def _raw_image_cases() -> list[tuple[Any, str]]:
+    """Raw images of every encoding (16-bit in both byte orders), odd frame_ids and sizes."""
+    rng = np.random.default_rng(5)
+    rgb = rng.integers(0, 256, size=(6, 10, 3), dtype=np.uint8)
+    deep = rng.integers(0, 2**16, size=(3, 7, 1)).astype("<u2")
+    alpha = np.full((6, 10, 1), 7, np.uint8)
+    cases = [
+        raw_msg(rgb, "rgb8"),
+        raw_msg(rgb, "bgr8"),
+        raw_msg(np.concatenate([rgb, alpha], axis=2), "rgba8"),
+        raw_msg(np.concatenate([rgb, alpha], axis=2), "bgra8"),
+        raw_msg(rgb[:, :, :1], "mono8"),
+        raw_msg(rgb[:5, :3, :1], "8UC1"),
+        raw_msg(deep, "mono16"),
+        raw_msg(deep.astype(">u2"), "16UC1", is_bigendian=1),
+    ]
+    out = []
+    for k, msg in enumerate(cases):
+        msg.header.frame_id = FRAMES[k % len(FRAMES)]
+        out.append((msg, msg.encoding))
+    return out
+
+
+@pytest.mark.parametrize("little", [True, False], ids=["little-endian", "big-endian"])
+def test_raw_images_of_every_encoding_decode_as_decode_image_does(little):
+    decoder = RawImageDecoder()
+    for msg, encoding in _raw_image_cases() * 2:  # twice: the second time the fast way
+        data = _cdr(msg, m.IMAGE_TYPE, little)
+        expected = decode_image(m.deserialize(data, m.IMAGE_TYPE), m.IMAGE_TYPE)
+        stamp, pixels = decoder.decode(data)
+        assert stamp == S and pixels.dtype == expected.dtype, encoding
+        np.testing.assert_array_equal(pixels, expected, err_msg=encoding)
+
+
+@pytest.mark.parametrize(
+    ("changes", "rule"),
+    [
+        ({"encoding_": "yuv422"}, "encoding 'yuv422' is not one of"),
+        ({"step": 31}, "step 31 does not match width 10 x 3 bytes"),
+        ({"data": np.zeros(17, np.uint8)}, "holds 17 bytes, expected 6 x 30"),
+        ({"width": 0}, "image size 6x0 is empty"),
+    ],
+)
+def test_raw_images_breaking_a_rule_are_refused_as_decode_image_refuses(changes, rule):
+    decoder = RawImageDecoder()
+    rgb = np.zeros((6, 10, 3), np.uint8)
+    decoder.decode(m.serialize(raw_msg(rgb, "rgb8"), m.IMAGE_TYPE))
+    changes = dict(changes)
+    encoding = changes.pop("encoding_", "rgb8")
+    with pytest.raises(MessageError, match=rule):
+        decoder.decode(m.serialize(raw_msg(rgb, encoding, **changes), m.IMAGE_TYPE))
+
+
+def test_mutated_raw_images_are_read_or_refused_exactly_as_decode_image_does():
+    msg = raw_msg(np.random.default_rng(3).integers(0, 256, (6, 10, 3), dtype=np.uint8), "bgr8")
+    original = m.serialize(msg, m.IMAGE_TYPE)
+    decoder, rng = RawImageDecoder(), np.random.default_rng(19)
+    decoder.decode(original)
+    outcomes = {"read": 0, "refused": 0}
+    for _ in range(300):
+        data = mutate(original, rng)
+        try:
+            expected = decode_image(m.deserialize(data, m.IMAGE_TYPE), m.IMAGE_TYPE)
+        except MessageError:
+            with pytest.raises(MessageError):
+                decoder.decode(data)
+            outcomes["refused"] += 1
+            continue
+        pixels = decoder.decode(data)[1]
+        assert pixels.dtype == expected.dtype
+        np.testing.assert_array_equal(pixels, expected)
+        outcomes["read"] += 1
+    assert outcomes["read"] > 10 and outcomes["refused"] > 10, outcomes

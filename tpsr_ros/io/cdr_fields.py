@@ -9,7 +9,8 @@ fixed offsets with ``struct`` (images: a view of the pixel bytes, copied once pe
 Learning a layout is the safe, slow path: the message is deserialised by rosbags (every
 CDR rule: encapsulation, lengths, string terminators, UTF-8, sizes) and checked by the same
 functions as any decoded message (:func:`~tpsr_ros.io.messages.image_to_array`,
-:func:`~tpsr_ros.io.messages.twist_to_xy`, :func:`~tpsr_ros.io.messages.reward_to_sample`);
+:func:`~tpsr_ros.io.images.decode_image`, :func:`~tpsr_ros.io.messages.twist_to_xy`,
+:func:`~tpsr_ros.io.messages.reward_to_sample`);
 a short CDR walk then finds the value offsets (alignment counted from after the 4-byte
 encapsulation header, either byte order), and the values read there must equal rosbags'.
 A layout is the message length plus every byte that is not the stamp or a value read;
@@ -33,6 +34,7 @@ import numpy as np
 
 from tpsr_ros.core.errors import MessageError
 from tpsr_ros.core.units import NS_PER_S
+from tpsr_ros.io.images import decode_image, raw_pixels
 from tpsr_ros.io.messages import (
     ACTION_TYPE,
     IMAGE_TYPE,
@@ -49,6 +51,7 @@ from tpsr_ros.io.messages import (
 __all__ = [
     "ImageDecoder",
     "PoseDecoder",
+    "RawImageDecoder",
     "RewardDecoder",
     "TwistDecoder",
     "peek_stamp",
@@ -90,6 +93,11 @@ class _Walk:
         length = self.uint32()  # (``self.pos += self.uint32()`` would drop the 4 bytes)
         self.pos += length
 
+    def text(self) -> str:
+        start = self.pos + 4
+        self.string()
+        return bytes(self.data[start : self.pos - 1]).decode()
+
     def skip(self, size: int) -> None:
         self.pos += size
 
@@ -110,9 +118,13 @@ class _Layout:
     values: int  # offset of the first value read
     values_end: int  # and the end of the values
     unpack: Callable[[bytes], tuple[Any, ...]]
+    info: tuple[Any, ...] = ()  # what else a decoder needs to know of the layout
 
     @classmethod
-    def of(cls, data: bytes, values: int, values_end: int, value_format: str) -> _Layout:
+    def of(
+        cls, data: bytes, values: int, values_end: int, value_format: str,
+        info: tuple[Any, ...] = (),
+    ) -> _Layout:
         order = "<" if data[1] else ">"
         fields = struct.Struct(f"{order}{_ENCAPSULATION}xiI{values - _STAMP_END}x{value_format}")
         return cls(
@@ -123,6 +135,7 @@ class _Layout:
             values=values,
             values_end=values_end,
             unpack=fields.unpack_from,
+            info=info,
         )
 
 
@@ -176,6 +189,8 @@ class _Decoder:
 
 
 def _same(read: Any, expected: Any) -> bool:
+    if isinstance(read, np.ndarray):
+        return read.dtype == expected.dtype and bool(np.array_equal(read, expected))
     if isinstance(read, memoryview):
         return bytes(read) == np.asarray(expected, dtype=np.uint8).tobytes()
     return bool(np.array_equal(np.asarray(read), np.asarray(expected), equal_nan=True))
@@ -218,6 +233,31 @@ class ImageDecoder(_Decoder):
 
     def _value(self, data: bytes, layout: _Layout, fields: tuple[Any, ...]) -> memoryview:
         return memoryview(data)[layout.values : layout.values_end]
+
+
+class RawImageDecoder(_Decoder):
+    """A raw ``sensor_msgs/msg/Image`` of any encoding of :data:`~tpsr_ros.io.images.ENCODINGS`
+    and any size: pixels ``(H, W, C)`` as :func:`~tpsr_ros.io.images.decode_image` gives them.
+    """
+
+    msgtype = IMAGE_TYPE
+
+    def _check(self, msg: Any) -> Any:
+        return decode_image(msg, IMAGE_TYPE)
+
+    def _locate(self, walk: _Walk) -> _Layout:
+        walk.string()  # header.frame_id
+        height, width = walk.uint32(), walk.uint32()
+        encoding = walk.text()
+        is_bigendian = bool(walk.data[walk.pos])
+        walk.skip(1)
+        step = walk.uint32()
+        size = walk.uint32()
+        info = (height, width, step, encoding, is_bigendian)
+        return _Layout.of(walk.data, walk.pos, walk.pos + size, "", info)
+
+    def _value(self, data: bytes, layout: _Layout, fields: tuple[Any, ...]) -> np.ndarray:
+        return raw_pixels(memoryview(data)[layout.values : layout.values_end], *layout.info)
 
 
 class TwistDecoder(_Decoder):

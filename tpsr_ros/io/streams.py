@@ -41,7 +41,8 @@ from tpsr_ros.core.images import Preprocessing
 from tpsr_ros.core.resample import GridConfig, increasing, resample_grid
 from tpsr_ros.core.units import NS_PER_S
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.io.images import IMAGE_TYPES, decode_image
+from tpsr_ros.io.cdr_fields import RawImageDecoder
+from tpsr_ros.io.images import IMAGE_TYPE, IMAGE_TYPES, decode_image
 from tpsr_ros.io.images import image_observations as _observations
 from tpsr_ros.io.messages import (
     REWARD_TYPE,
@@ -305,12 +306,16 @@ def _decode_images(
         batch.clear()
         rows.clear()
 
+    raw = RawImageDecoder() if msgtype == IMAGE_TYPE else None  # pixels straight from CDR
     with BagReader(path) as reader:
         for index, (_, _, data) in enumerate(reader.raw_messages([topic])):
             if index not in wanted:
                 continue
             try:
-                pixels = decode_image(deserialize(data, msgtype), msgtype)
+                if raw is not None:
+                    pixels = raw.decode(data)[1]
+                else:
+                    pixels = decode_image(deserialize(data, msgtype), msgtype)
                 if pixels.shape[2] == 1 and not preprocessing.grey:
                     raise MessageError("a grey image cannot give the model's colour observations")
             except MessageError as exc:
