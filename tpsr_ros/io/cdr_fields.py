@@ -94,9 +94,9 @@ class _Walk:
         self.pos += length
 
     def text(self) -> str:
-        start = self.pos + 4
-        self.string()
-        return bytes(self.data[start : self.pos - 1]).decode()
+        length = self.uint32()
+        start, self.pos = self.pos, self.pos + length
+        return bytes(self.data[start : start + length - 1]).decode()  # without the NUL
 
     def skip(self, size: int) -> None:
         self.pos += size
