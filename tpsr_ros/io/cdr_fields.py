@@ -41,6 +41,7 @@ from tpsr_ros.io.messages import (
     POSE_TYPE,
     REWARD_TYPE,
     deserialize,
+    header_stamp_ns,
     image_to_array,
     pose_to_xy,
     reward_to_sample,
@@ -66,10 +67,10 @@ def peek_stamp(data: bytes) -> int | None:
 
     For error messages about a message that could not be decoded.
     """
-    if len(data) < _STAMP_END or data[0] != 0 or data[1] not in (0, 1):
+    try:
+        return header_stamp_ns(data)
+    except MessageError:
         return None
-    sec, nanosec = struct.unpack_from("<iI" if data[1] else ">iI", data, _ENCAPSULATION)
-    return sec * NS_PER_S + nanosec
 
 
 class _Walk:
