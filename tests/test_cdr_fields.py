@@ -248,7 +248,8 @@ def test_raw_images_of_every_encoding_decode_as_decode_image_does(little):
     ("changes", "rule"),
     [
         ({"encoding_": "yuv422"}, "encoding 'yuv422' is not one of"),
-        ({"step": 31}, "step 31 does not match width 10 x 3 bytes"),
+        ({"step": 29}, "step 29 is less than width 10 x 3 bytes"),
+        ({"step": 31}, "holds 180 bytes, expected 6 x 31"),
         ({"data": np.zeros(17, np.uint8)}, "holds 17 bytes, expected 6 x 30"),
         ({"width": 0}, "image size 6x0 is empty"),
     ],
