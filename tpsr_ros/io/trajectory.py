@@ -11,7 +11,7 @@ image or action is missing, and a bag boundary each end a segment. The pure part
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -221,3 +221,50 @@ def read_trajectory(
         n_actions=NUM_ACTIONS,
         sources=sources,
     )
+
+
+# stand-in until issue18a lands
+def iter_trajectory_chunks(
+    bags: Sequence[Path | str],
+    *,
+    topics: Topics | None = None,
+    image_shape: tuple[int, int] | None = DEFAULT_IMAGE_SHAPE,
+    step_ns: int = STEP_NS,
+    action_tolerance: float = DEFAULT_ACTION_TOLERANCE,
+    require_ground_truth: bool = False,
+    chunk_steps: int = 8192,
+) -> Iterator[Trajectory]:
+    """Yield the steps of ``bags`` as trajectories of at most ``chunk_steps`` steps.
+
+    Their concatenation equals :func:`read_trajectory` (segments numbered globally; a bag
+    boundary ends a segment); ``sources`` is empty except on each bag's last chunk.
+    Stand-in: reads one whole bag at a time with :func:`read_trajectory` and slices it.
+    """
+    if chunk_steps < 1:
+        raise ConfigError(f"chunk_steps must be at least 1, not {chunk_steps}")
+    offset = 0
+    for bag in bags:
+        whole = read_trajectory(
+            [bag],
+            topics=topics,
+            image_shape=image_shape,
+            step_ns=step_ns,
+            action_tolerance=action_tolerance,
+            require_ground_truth=require_ground_truth,
+        )
+        segments = whole.segments + offset
+        offset = int(segments[-1]) + 1
+        for start in range(0, len(whole), chunk_steps):
+            stop = min(start + chunk_steps, len(whole))
+            yield Trajectory(
+                stamps=whole.stamps[start:stop],
+                observations=whole.observations[start:stop],
+                actions=whole.actions[start:stop],
+                velocities=whole.velocities[start:stop],
+                positions=whole.positions[start:stop],
+                rewards=whole.rewards[start:stop],
+                segments=segments[start:stop],
+                image_shape=whole.image_shape,
+                n_actions=whole.n_actions,
+                sources=whole.sources if stop == len(whole) else [],
+            )
