@@ -356,7 +356,7 @@ class TPSRModel:
         )
 
 
-class _Stopwatch:
+class Stopwatch:
     """Records the duration of named stages and announces each one."""
 
     def __init__(self, progress: Progress | None) -> None:
@@ -403,15 +403,7 @@ def _check_data(
     if int(n_actions) < 1:
         raise ConfigError(f"n_actions must be at least 1, not {n_actions}")
     action = _as_actions(action, n_episodes, int(n_actions))
-    n_centres = max(cfg.ht_centers, cfg.obs_centers)
-    # 'first' centres are taken out of the data (t = |E| - max l); k-means centres are not.
-    needed = n_centres + cfg.rank if cfg.center_selection == "first" else n_centres
-    if n_episodes < needed:
-        raise DataError(
-            f"{n_episodes} episodes are too few for {n_centres} kernel centres: "
-            f"'{cfg.center_selection}' centres with rank {cfg.rank} need at least {needed} "
-            "(lower obs_centers/ht_centers or record more data)"
-        )
+    check_enough_episodes(n_episodes, cfg)
     return history, observation, action, test
 
 
@@ -441,12 +433,29 @@ def _whiten(
     wh_t, t_white = Whitening.fit_transform(test, cfg.ht_dim, what="tests")
     wh_o, o_white = Whitening.fit_transform(observation, cfg.obs_dim, what="current observations")
     if cfg.p_th_tests == "from-current":
-        k = observation.shape[1]
-        window = np.concatenate([observation, test[:, : (cfg.test_length - 1) * k]], axis=1)
-        t0_white = wh_t.transform(window)
+        t0_white = wh_t.transform(p_th_test_window(observation, test, cfg.test_length))
     else:
         t0_white = t_white
     return _Whitened(wh_h, wh_t, wh_o, h_white, t_white, o_white, t0_white)
+
+
+def p_th_test_window(observation: np.ndarray, test: np.ndarray, test_length: int) -> np.ndarray:
+    """Boots et al.'s test of ``P_TH``: the current observation and ``n - 1`` test steps."""
+    k = observation.shape[1]
+    return np.concatenate([observation, test[:, : (test_length - 1) * k]], axis=1)
+
+
+def check_enough_episodes(n_episodes: int, cfg: TPSRConfig) -> None:
+    """Refuse fewer episodes than the kernel centres (and, for 'first' ones, the rank) need."""
+    n_centres = max(cfg.ht_centers, cfg.obs_centers)
+    # 'first' centres are taken out of the data (t = |E| - max l); k-means centres are not.
+    needed = n_centres + cfg.rank if cfg.center_selection == "first" else n_centres
+    if n_episodes < needed:
+        raise DataError(
+            f"{n_episodes} episodes are too few for {n_centres} kernel centres: "
+            f"'{cfg.center_selection}' centres with rank {cfg.rank} need at least {needed} "
+            "(lower obs_centers/ht_centers or record more data)"
+        )
 
 
 def _kernel_centres(
@@ -510,7 +519,7 @@ def _p_statistics(phi_h: np.ndarray, phi_t0: np.ndarray) -> tuple[np.ndarray, np
     return p_h, p_th
 
 
-def _truncated_svd(
+def truncated_svd(
     p_th: np.ndarray, cfg: TPSRConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Algorithm 3's compact rank-``r`` SVD ``P_TH ~ U S V^T``.
@@ -634,7 +643,7 @@ def fit_tpsr(
 
     """
     cfg = config if config is not None else TPSRConfig()
-    watch = _Stopwatch(progress)
+    watch = Stopwatch(progress)
     watch.stage("checking data")
     history, observation, action, test = _check_data(
         history, observation, action, test, n_actions, cfg
@@ -648,7 +657,7 @@ def fit_tpsr(
     watch.stage("P-statistics")
     p_h, p_th = _p_statistics(phi_h, phi_t0)
     watch.stage("SVD")
-    u, s, v, s_all, usable = _truncated_svd(p_th, cfg)
+    u, s, v, s_all, usable = truncated_svd(p_th, cfg)
     watch.stage("parameters")
     b_star, b_inf, big_b, counts = _parameters(
         p_h, phi_h, phi_t, phi_o, action[train], (u, s, v), int(n_actions)
