@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import tempfile
+import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +48,7 @@ from tpsr_ros.core.episodes import Episodes, Trajectory, episode_starts, episode
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import select_centers
 from tpsr_ros.core.moments import Moments
+from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel
 from tpsr_ros.core.tpsr import (
     Progress,
     Stopwatch,
@@ -79,6 +81,7 @@ __all__ = [
     "Whitenings",
     "block_rows",
     "episode_moments",
+    "fit_pca_streamed",
     "fit_tpsr_streamed",
     "merge_moments",
     "p_sums",
@@ -698,4 +701,42 @@ def fit_tpsr_streamed(
             "test": whitenings.test.explained_variance_ratio_,
         },
         fit_info=fit_info,
+    )
+
+
+def fit_pca_streamed(
+    source: ChunkSource,
+    *,
+    config: PCAConfig | None = None,
+    history_length: int = 1,
+    test_length: int = 1,
+    max_episodes: int | None = None,
+) -> PCAModel:
+    """The PCA baseline of :func:`~tpsr_ros.core.pca_baseline.fit_pca` on every step of the
+    episodes, from one pass of merged moments (equal to rounding)."""
+    cfg = config if config is not None else PCAConfig()
+    start = time.perf_counter()
+    total: Moments | None = None
+    n_actions = 0
+    for episodes in _episodes(source(), history_length, test_length, max_episodes):
+        part = Moments.of(episodes.steps())
+        total = part if total is None else total.merge(part)
+        n_actions = int(episodes.n_actions)
+    if total is None:
+        raise DataError(
+            f"no usable episodes: no run of {history_length + 1 + test_length} consecutive "
+            "steps in the data"
+        )
+    pca = Whitening.from_moments(total, cfg.dim, what="observations")
+    return PCAModel(
+        config=cfg,
+        n_actions_=n_actions,
+        mean=pca.mean_,
+        components=pca.components_,
+        eigenvalues=pca.eigenvalues_,
+        explained_variance_ratio=pca.explained_variance_ratio_,
+        fit_info={
+            "steps": int(total.count),
+            "timings": {"PCA (streamed)": round(time.perf_counter() - start, 6)},
+        },
     )
