@@ -207,7 +207,7 @@ class DaskEngine:
         store: WhitenedStore,
     ) -> None:
         """Pass 2: one task per bag; each bag's rows go to its place in ``store``."""
-        shared = self.client.scatter(whitenings, broadcast=True)
+        shared = self.client.scatter(whitenings, broadcast=True, hash=False)
         offsets = np.concatenate([[0], np.cumsum(self._counts)]).astype(int)
         futures = {
             self.client.submit(
@@ -235,7 +235,7 @@ class DaskEngine:
         n_t, n_h = centres.test.shape[0] + 1, centres.history.shape[0] + 1
         if n_t * n_h * 8 > MAX_SHIPPED_P_TH_BYTES:
             return p_sums(rows, centres, cfg)
-        shared = self.client.scatter(centres, broadcast=True)
+        shared = self.client.scatter(centres, broadcast=True, hash=False)
         futures = [
             self.client.submit(p_sums, part, shared, cfg, pure=False)
             for part in self._parts(rows, max(n_t, n_h))
@@ -251,7 +251,7 @@ class DaskEngine:
         n_actions: int,
     ) -> ActionSums:
         """Eqs. 3.3 and 3.7 sums over parts of the rows on the workers."""
-        shared = self.client.scatter((centres, svd), broadcast=True)
+        shared = self.client.scatter((centres, svd), broadcast=True, hash=False)
         widest = max(centres.test.shape[0], centres.history.shape[0]) + 1
         futures = [
             self.client.submit(_parameter_sums, part, shared, cfg, n_actions, pure=False)

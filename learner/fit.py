@@ -302,7 +302,8 @@ def _run_streamed(
             test_length=n,
             max_episodes=args.episodes,
         )
-        episodes = int(model.fit_info["steps"]) // (m + 1 + n)
+        steps = int(model.fit_info["steps"])
+        episodes, segments = steps // (m + 1 + n), None
     else:
         source: Any = lambda: reader.read_all(args.bags)  # noqa: E731 - a chunk source
         client = None
@@ -326,9 +327,12 @@ def _run_streamed(
             if client is not None:
                 close(client)
         episodes = int(model.fit_info["episodes"])
+        steps, segments = model.fit_info["steps"], model.fit_info["segments"]
     timings["fit"] = time.perf_counter() - start
     training = {
         "bags": [{"path": str(bag), "topics": _topic_names(topics)} for bag in args.bags],
+        "steps": steps,
+        "segments": segments,
         "environment": environment,
         "episodes": episodes,
         "max_episodes": args.episodes,

@@ -146,6 +146,8 @@ class EpisodeCutter:
         self.limit = max_episodes
         self.emitted = 0
         self.steps = 0
+        self.segments = 0
+        self._last_segment: int | None = None
         self._carry: Trajectory | None = None
 
     @property
@@ -155,9 +157,12 @@ class EpisodeCutter:
 
     def cut(self, chunk: Trajectory) -> Episodes | None:
         """Episodes completed by ``chunk`` (None if none)."""
-        self.steps += len(chunk)
         if self.full or len(chunk) == 0:
             return None
+        self.steps += len(chunk)
+        self.segments += int(np.count_nonzero(np.diff(chunk.segments)))
+        self.segments += int(chunk.segments[0]) != self._last_segment
+        self._last_segment = int(chunk.segments[-1])
         data = chunk
         if self._carry is not None and int(self._carry.segments[-1]) == int(chunk.segments[0]):
             data = _joined(self._carry, chunk)
@@ -178,10 +183,7 @@ def _checked(chunk: Trajectory) -> Trajectory:
     return chunk
 
 
-def _episodes(
-    chunks: Iterable[Trajectory], history_length: int, test_length: int, max_episodes: int | None
-) -> Iterator[Episodes]:
-    cutter = EpisodeCutter(history_length, test_length, max_episodes)
+def _episodes(chunks: Iterable[Trajectory], cutter: EpisodeCutter) -> Iterator[Episodes]:
     for chunk in chunks:
         episodes = cutter.cut(_checked(chunk))
         if episodes is not None:
@@ -198,6 +200,9 @@ class EpisodeMoments:
     test: Moments
     observation: Moments
     n_actions: int
+    steps: int = 0
+    """Steps read (up to the last episode when ``max_episodes`` stopped the pass early)."""
+    segments: int = 0
 
     @property
     def episodes(self) -> int:
@@ -227,6 +232,8 @@ class EpisodeMoments:
             self.test.merge(other.test),
             self.observation.merge(other.observation),
             self.n_actions,
+            self.steps + other.steps,
+            self.segments + other.segments,
         )
 
 
@@ -247,9 +254,12 @@ def episode_moments(
 ) -> EpisodeMoments | None:
     """Pass 1 over ``chunks``: moments of their first ``max_episodes`` episodes (None: none)."""
     total: EpisodeMoments | None = None
-    for episodes in _episodes(chunks, history_length, test_length, max_episodes):
+    cutter = EpisodeCutter(history_length, test_length, max_episodes)
+    for episodes in _episodes(chunks, cutter):
         total = merge_moments(total, EpisodeMoments.of(episodes))
-    return total
+    if total is None:
+        return None
+    return dataclasses.replace(total, steps=cutter.steps, segments=cutter.segments)
 
 
 @dataclass(frozen=True, eq=False)
@@ -327,7 +337,8 @@ def whitened_episodes(
     max_episodes: int | None = None,
 ) -> Iterator[WhitenedRows]:
     """Pass 2 over ``chunks``: the whitened rows of their first ``max_episodes`` episodes."""
-    for episodes in _episodes(chunks, cfg.history_length, cfg.test_length, max_episodes):
+    cutter = EpisodeCutter(cfg.history_length, cfg.test_length, max_episodes)
+    for episodes in _episodes(chunks, cutter):
         yield whitenings.apply(episodes, cfg)
 
 
@@ -680,6 +691,8 @@ def fit_tpsr_streamed(
     big_b /= b_sums.counts[:, None, None]
     fit_info = {
         "episodes": int(n_episodes),
+        "steps": int(moments.steps),
+        "segments": int(moments.segments),
         "training_episodes": int(n_train),
         "samples_per_action": b_sums.counts.tolist(),
         "usable_singular_values": usable,
@@ -718,7 +731,8 @@ def fit_pca_streamed(
     start = time.perf_counter()
     total: Moments | None = None
     n_actions = 0
-    for episodes in _episodes(source(), history_length, test_length, max_episodes):
+    cutter = EpisodeCutter(history_length, test_length, max_episodes)
+    for episodes in _episodes(source(), cutter):
         part = Moments.of(episodes.steps())
         total = part if total is None else total.merge(part)
         n_actions = int(episodes.n_actions)

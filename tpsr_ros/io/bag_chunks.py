@@ -149,7 +149,7 @@ def survey_bags(bags: Sequence[Path | str], topics: Topics | None = None) -> lis
     topics = topics or Topics()
     surveys = [_survey(Path(bag), topics) for bag in bags]
     for survey in surveys[1:]:
-        if diff := survey.differences(surveys[0]):
+        if diff := surveys[0].differences(survey):
             raise BagError(
                 f"bags {surveys[0].path!r} and {survey.path!r} cannot be fitted together: "
                 f"{'; '.join(diff)}"
