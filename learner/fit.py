@@ -303,7 +303,7 @@ def _run_streamed(
             max_episodes=args.episodes,
         )
         steps = int(model.fit_info["steps"])
-        episodes, segments = steps // (m + 1 + n), None
+        episodes, segments, stamps = steps // (m + 1 + n), None, []
     else:
         source: Any = lambda: reader.read_all(args.bags)  # noqa: E731 - a chunk source
         client = None
@@ -328,11 +328,13 @@ def _run_streamed(
                 close(client)
         episodes = int(model.fit_info["episodes"])
         steps, segments = model.fit_info["steps"], model.fit_info["segments"]
+        stamps = model.fit_info["stamps_ns"]
     timings["fit"] = time.perf_counter() - start
     training = {
         "bags": [{"path": str(bag), "topics": _topic_names(topics)} for bag in args.bags],
         "steps": steps,
         "segments": segments,
+        "stamps_ns": stamps,
         "environment": environment,
         "episodes": episodes,
         "max_episodes": args.episodes,

@@ -111,6 +111,10 @@ def test_streamed_fit_equals_the_in_memory_fit(trajectory, changes, size, max_ep
     )
     assert_same_model(streamed, reference)
     assert streamed.fit_info["episodes"] == len(episodes)
+    if max_episodes is None:
+        assert streamed.fit_info["steps"] == len(trajectory)
+        assert streamed.fit_info["segments"] == len(trajectory.segment_bounds()) == 4
+        assert streamed.fit_info["stamps_ns"] == [trajectory.stamps[0], trajectory.stamps[-1]]
     assert stages[0].startswith("pass 1") and "SVD" in stages
     assert set(streamed.fit_info["timings"]) == set(stages)
 

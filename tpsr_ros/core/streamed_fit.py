@@ -147,6 +147,8 @@ class EpisodeCutter:
         self.emitted = 0
         self.steps = 0
         self.segments = 0
+        self.stamps: tuple[int, int] | None = None
+        """First and last stamp of the steps read (ns)."""
         self._last_segment: int | None = None
         self._carry: Trajectory | None = None
 
@@ -163,6 +165,8 @@ class EpisodeCutter:
         self.segments += int(np.count_nonzero(np.diff(chunk.segments)))
         self.segments += int(chunk.segments[0]) != self._last_segment
         self._last_segment = int(chunk.segments[-1])
+        first = int(chunk.stamps[0]) if self.stamps is None else self.stamps[0]
+        self.stamps = (first, int(chunk.stamps[-1]))
         data = chunk
         if self._carry is not None and int(self._carry.segments[-1]) == int(chunk.segments[0]):
             data = _joined(self._carry, chunk)
@@ -203,6 +207,8 @@ class EpisodeMoments:
     steps: int = 0
     """Steps read (up to the last episode when ``max_episodes`` stopped the pass early)."""
     segments: int = 0
+    stamps: tuple[int, int] | None = None
+    """Smallest first and largest last stamp (ns) of the steps read."""
 
     @property
     def episodes(self) -> int:
@@ -234,7 +240,16 @@ class EpisodeMoments:
             self.n_actions,
             self.steps + other.steps,
             self.segments + other.segments,
+            _stamp_range(self.stamps, other.stamps),
         )
+
+
+def _stamp_range(
+    a: tuple[int, int] | None, b: tuple[int, int] | None
+) -> tuple[int, int] | None:
+    if a is None or b is None:
+        return a or b
+    return min(a[0], b[0]), max(a[1], b[1])
 
 
 def merge_moments(a: EpisodeMoments | None, b: EpisodeMoments | None) -> EpisodeMoments | None:
@@ -259,7 +274,9 @@ def episode_moments(
         total = merge_moments(total, EpisodeMoments.of(episodes))
     if total is None:
         return None
-    return dataclasses.replace(total, steps=cutter.steps, segments=cutter.segments)
+    return dataclasses.replace(
+        total, steps=cutter.steps, segments=cutter.segments, stamps=cutter.stamps
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -693,6 +710,7 @@ def fit_tpsr_streamed(
         "episodes": int(n_episodes),
         "steps": int(moments.steps),
         "segments": int(moments.segments),
+        "stamps_ns": list(moments.stamps) if moments.stamps else [],
         "training_episodes": int(n_train),
         "samples_per_action": b_sums.counts.tolist(),
         "usable_singular_values": usable,
