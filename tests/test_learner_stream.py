@@ -162,3 +162,15 @@ def test_option_conflicts_are_one_line(bags, tmp_path, capsys):
         ["fit", str(bags[0]), "-o", out, "--method", "pca", "--workers", "1"], capsys
     )
     assert code == 1 and "PCA baseline streams in one process only" in stderr
+
+
+def test_robot_bags_stream_on_their_step_grid(bags, tmp_path, capsys):
+    """--step-period: each bag is read whole on the grid and sliced into chunks."""
+    common = ["fit", *map(str, bags), "--step-period", "1", *SMALL]
+    code, _, stderr = run_entry([*common, "-o", str(tmp_path / "mem.npz")], capsys)
+    assert code == 0, stderr
+    code, _, stderr = run_entry(
+        [*common, "-o", str(tmp_path / "str.npz"), "--stream", "--chunk-steps", "100"], capsys
+    )
+    assert code == 0, stderr
+    assert_same(load_model(tmp_path / "str.npz"), load_model(tmp_path / "mem.npz"))
