@@ -4,6 +4,10 @@ Every parameter of guide table 3.5 is an option generated from the fields of
 :class:`~tpsr_ros.core.tpsr.TPSRConfig` (name, default, help and choices spelled once, there);
 the PCA baseline's from :class:`~tpsr_ros.core.pca_baseline.PCAConfig` and the topic names from
 :class:`~tpsr_ros.io.trajectory.Topics`. Stage lines go to stderr, the summary to stdout.
+
+``--stream`` runs :func:`~tpsr_ros.core.streamed_fit.fit_tpsr_streamed` over the bags in
+chunks (two passes, memory bounded by chunk and centre counts; same model to 1e-9);
+``--workers N`` / ``--scheduler ADDRESS`` run its passes on Dask (:mod:`learner.distributed`).
 """
 
 from __future__ import annotations

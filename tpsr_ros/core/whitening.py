@@ -17,6 +17,9 @@ scikit-learn's ``svd_flip`` does: the entry of largest magnitude of every direct
 positive. A direction whose eigenvalue is negligible
 (at most ``max(r, b) * eps`` times the largest) would blow up under ``1 / sqrt``; asking
 for more dimensions than the data's numerical rank is therefore refused with a ``DataError``.
+:meth:`Whitening.from_moments` fits the same transform from merged
+:class:`~tpsr_ros.core.moments.Moments` (mean and centred scatter gathered chunk by chunk,
+the streamed fit's path), always through the dense covariance.
 
 Threads: LAPACK's symmetric eigensolver (and ARPACK, used by the TPSR fit) make thousands of
 small level-2 BLAS calls; with a multithreaded OpenBLAS on a busy machine every call waits
