@@ -20,8 +20,9 @@ the limit falls with its share; later bags are left out.
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -46,7 +47,7 @@ from tpsr_ros.core.streamed_fit import (
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.io.bag_chunks import BagChunks
 
-__all__ = ["MAX_SHIPPED_P_TH_BYTES", "DaskEngine", "connect"]
+__all__ = ["MAX_SHIPPED_P_TH_BYTES", "DaskEngine", "check_bags_visible", "dask_client"]
 
 MAX_SHIPPED_P_TH_BYTES = 256 * 2**20
 DEFAULT_TIMEOUT = 10.0
@@ -64,41 +65,42 @@ def _distributed() -> Any:
     return distributed
 
 
-def connect(
+@contextlib.contextmanager
+def dask_client(
     *, scheduler: str | None = None, workers: int | None = None, timeout: float = DEFAULT_TIMEOUT
-) -> Any:
-    """A ``distributed.Client``: of the scheduler at ``scheduler``, or of a new local cluster.
+) -> Iterator[Any]:
+    """A ``distributed.Client`` of the scheduler at ``scheduler``, or of a new local cluster.
 
     A scheduler that does not answer within ``timeout`` seconds is a one-line ``ConfigError``.
-    The local cluster has ``workers`` processes of one thread each; it closes with the client.
+    The local cluster has ``workers`` processes of one thread each. On exit the client (and
+    the local cluster) close; a worker lost mid-fit becomes a one-line ``ConfigError``.
     """
     distributed = _distributed()
-    if scheduler is not None:
+    with contextlib.ExitStack() as stack:
+        if scheduler is not None:
+            try:
+                client = distributed.Client(scheduler, timeout=f"{timeout}s", set_as_default=False)
+            except (OSError, TimeoutError, ValueError) as exc:
+                reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise ConfigError(
+                    f"no Dask scheduler answers at {scheduler!r} within {timeout:g} s ({reason})"
+                ) from None
+        else:
+            cluster = stack.enter_context(
+                distributed.LocalCluster(
+                    n_workers=int(workers or 1),
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=None,
+                    silence_logs=logging.ERROR,
+                )
+            )
+            client = distributed.Client(cluster, set_as_default=False)
+        stack.callback(client.close)
         try:
-            return distributed.Client(scheduler, timeout=f"{timeout}s", set_as_default=False)
-        except (OSError, TimeoutError, ValueError) as exc:
-            reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise ConfigError(
-                f"no Dask scheduler answers at {scheduler!r} within {timeout:g} s ({reason})"
-            ) from None
-    cluster = distributed.LocalCluster(
-        n_workers=int(workers or 1),
-        threads_per_worker=1,
-        processes=True,
-        dashboard_address=None,
-        silence_logs=logging.ERROR,
-    )
-    client = distributed.Client(cluster, set_as_default=False)
-    client._tpsr_owns_cluster = cluster  # closed by close()
-    return client
-
-
-def close(client: Any) -> None:
-    """Close the client, and the local cluster if :func:`connect` started one."""
-    cluster = getattr(client, "_tpsr_owns_cluster", None)
-    client.close()
-    if cluster is not None:
-        cluster.close()
+            yield client
+        except (distributed.client.FutureCancelledError, distributed.KilledWorker) as exc:
+            raise ConfigError(f"the Dask cluster lost a task: {exc}") from None
 
 
 def _missing(bags: Sequence[str]) -> list[str]:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import sys
 import time
 from pathlib import Path
@@ -21,7 +22,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible, close, connect
+from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible, dask_client
 from learner.streams import add_stream_options, fit_options_from_args, topics_from_args
 from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory, make_episodes
@@ -309,27 +310,23 @@ def _run_streamed(
         steps = int(model.fit_info["steps"])
         episodes, segments, stamps = steps // (m + 1 + n), None, []
     else:
-        source: Any = lambda: reader.read_all(args.bags)  # noqa: E731 - a chunk source
-        client = None
-        try:
-            if distributed:
-                where = args.scheduler or f"a local cluster of {args.workers} worker(s)"
-                _say(f"connecting to {where}")
-                client = connect(
-                    scheduler=args.scheduler, workers=args.workers, timeout=args.scheduler_timeout
-                )
+        fit = functools.partial(
+            fit_tpsr_streamed,
+            config=tpsr_config,
+            max_episodes=args.episodes,
+            progress=_say,
+            scratch_dir=args.scratch_dir,
+        )
+        if distributed:
+            where = args.scheduler or f"a local cluster of {args.workers} worker(s)"
+            _say(f"connecting to {where}")
+            with dask_client(
+                scheduler=args.scheduler, workers=args.workers, timeout=args.scheduler_timeout
+            ) as client:
                 check_bags_visible(client, args.bags)
-                source = DaskEngine(client, args.bags, reader)
-            model = fit_tpsr_streamed(
-                source,
-                config=tpsr_config,
-                max_episodes=args.episodes,
-                progress=_say,
-                scratch_dir=args.scratch_dir,
-            )
-        finally:
-            if client is not None:
-                close(client)
+                model = fit(DaskEngine(client, args.bags, reader))
+        else:
+            model = fit(lambda: reader.read_all(args.bags))
         episodes = int(model.fit_info["episodes"])
         steps, segments = model.fit_info["steps"], model.fit_info["segments"]
         stamps = model.fit_info["stamps_ns"]
