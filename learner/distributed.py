@@ -69,7 +69,7 @@ def _distributed() -> Any:
 def dask_client(
     *, scheduler: str | None = None, workers: int | None = None, timeout: float = DEFAULT_TIMEOUT
 ) -> Iterator[Any]:
-    """A ``distributed.Client`` of the scheduler at ``scheduler``, or of a new local cluster.
+    """Yield a ``distributed.Client`` of the scheduler at ``scheduler`` or of a local cluster.
 
     A scheduler that does not answer within ``timeout`` seconds is a one-line ``ConfigError``.
     The local cluster has ``workers`` processes of one thread each. On exit the client (and

@@ -288,7 +288,7 @@ def episode_starts(trajectory: Trajectory, span: int) -> np.ndarray:
 
 
 def episodes_at(trajectory: Trajectory, first: np.ndarray, m: int, n: int) -> Episodes:
-    """The episodes (history ``m``, current, test ``n``) whose first rows are ``first``."""
+    """Cut the episodes (history ``m``, current, test ``n``) whose first rows are ``first``."""
     obs = trajectory.observations
     k = obs.shape[1]
     current = first + m

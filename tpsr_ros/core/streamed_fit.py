@@ -410,7 +410,7 @@ class WhitenedStore:
                 array[start:stop] = value
 
     def rows(self, start: int = 0, stop: int | None = None) -> WhitenedRows:
-        """Views of episodes ``start:stop``."""
+        """Return views of episodes ``start:stop``."""
         end = self.n_episodes if stop is None else stop
         a = self._arrays
         return WhitenedRows(
@@ -486,7 +486,7 @@ class PSums:
             self.cross[...] = out
 
     def merged(self, other: PSums) -> PSums:
-        """A new :class:`PSums` of both (for tree reductions; inputs untouched)."""
+        """Return a new :class:`PSums` of both (for tree reductions; inputs untouched)."""
         return PSums(
             self.count + other.count,
             self.history + other.history,
@@ -521,7 +521,7 @@ class ActionSums:
         return cls(counts, np.zeros((n_actions, n_obs_centres, rank**2)))
 
     def merged(self, other: ActionSums) -> ActionSums:
-        """A new :class:`ActionSums` of both."""
+        """Return a new :class:`ActionSums` of both."""
         return ActionSums(self.counts + other.counts, self.sums + other.sums)
 
 
@@ -743,8 +743,11 @@ def fit_pca_streamed(
     test_length: int = 1,
     max_episodes: int | None = None,
 ) -> PCAModel:
-    """The PCA baseline of :func:`~tpsr_ros.core.pca_baseline.fit_pca` on every step of the
-    episodes, from one pass of merged moments (equal to rounding)."""
+    """Fit the PCA baseline from one pass of merged moments.
+
+    Equal to rounding to :func:`~tpsr_ros.core.pca_baseline.fit_pca` on every step of the
+    episodes.
+    """
     cfg = config if config is not None else PCAConfig()
     start = time.perf_counter()
     total: Moments | None = None

@@ -94,7 +94,7 @@ def flip_signs(vectors: np.ndarray, other: np.ndarray | None = None) -> tuple[np
 
 
 def covariance_eigenpairs(cov: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """The ``d`` largest eigenpairs (ascending) of a covariance ``(b, b)``, and its trace."""
+    """Return the ``d`` largest eigenpairs (ascending) of a covariance ``(b, b)`` and its trace."""
     b = cov.shape[0]
     with single_blas_thread():
         values, vectors = scipy.linalg.eigh(cov, subset_by_index=[b - d, b - 1])

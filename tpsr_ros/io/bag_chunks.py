@@ -50,7 +50,7 @@ class BagChunks:
             raise ConfigError(f"chunk_steps must be at least 1, not {self.chunk_steps}")
 
     def read(self, bag: Path | str) -> Iterator[Trajectory]:
-        """The chunks of one bag (segments numbered from 0)."""
+        """Yield the chunks of one bag (segments numbered from 0)."""
         try:
             if self.spec is None:
                 yield from iter_trajectory_chunks(
@@ -71,7 +71,7 @@ class BagChunks:
             raise BagError(f"bag {str(bag)!r} could not be read: {exc}") from None
 
     def read_all(self, bags: Sequence[Path | str]) -> Iterator[Trajectory]:
-        """The chunks of every bag in order, segments numbered across bags."""
+        """Yield the chunks of every bag in order, segments numbered across bags."""
         offset = 0
         for bag in bags:
             last = -1
