@@ -191,11 +191,11 @@ class DaskEngine:
             remaining = max_episodes
             for i, count in enumerate(counts):
                 limits[i] = min(count, remaining)
-                if remaining < count:  # the limit falls inside this bag: re-read its share
+                if 0 < remaining < count:  # the limit falls inside this bag: re-read its share
                     futures[i] = submit(
                         _bag_moments, self.reader, self.bags[i], m, n, remaining, pure=False
                     )
-                    counts[i] = remaining
+                counts[i] = limits[i]  # bags after the limit: 0, left out
                 remaining -= counts[i]
         self._limits, self._counts = limits, counts
         kept = [f for f, c in zip(futures, counts, strict=True) if c > 0]
