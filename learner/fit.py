@@ -4,12 +4,17 @@ Every parameter of guide table 3.5 is an option generated from the fields of
 :class:`~tpsr_ros.core.tpsr.TPSRConfig` (name, default, help and choices spelled once, there);
 the PCA baseline's from :class:`~tpsr_ros.core.pca_baseline.PCAConfig` and the topic names from
 :class:`~tpsr_ros.io.trajectory.Topics`. Stage lines go to stderr, the summary to stdout.
+
+``--stream`` runs :func:`~tpsr_ros.core.streamed_fit.fit_tpsr_streamed` over the bags in
+chunks (two passes, memory bounded by chunk and centre counts; same model to 1e-9);
+``--workers N`` / ``--scheduler ADDRESS`` run its passes on Dask (:mod:`learner.distributed`).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import sys
 import time
 from collections.abc import Mapping
@@ -19,12 +24,16 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible, dask_client
 from learner.streams import add_stream_options, fit_options_from_args, topics_from_args
-from tpsr_ros.cli import positive_int
+from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory, make_episodes
+from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.core.state_model import StateModel
+from tpsr_ros.core.streamed_fit import fit_pca_streamed, fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
+from tpsr_ros.io.bag_chunks import DEFAULT_CHUNK_STEPS, BagChunks, survey_bags
 from tpsr_ros.io.model_io import check_output_path, save_model
 from tpsr_ros.io.stream_spec import StreamSpec
 from tpsr_ros.io.streams import DEFAULT_POSE_FRAME, fit_stream_spec, read_stream_trajectory
@@ -165,7 +174,60 @@ def register(subparsers: Any) -> None:
     add_stream_options(
         parser.add_argument_group("robot bags: camera and commands resampled onto a step grid")
     )
+    add_streamed_options(
+        parser.add_argument_group(
+            "streamed and distributed fit (memory bounded by chunk and centre counts)"
+        )
+    )
     parser.set_defaults(run=run)
+
+
+def add_streamed_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """``--stream``, ``--chunk-steps``, ``--workers``, ``--scheduler`` and friends."""
+    parser.add_argument(
+        "--stream",
+        action="store_true",
+        help="read the bags twice in chunks instead of holding them in memory (same model "
+        "to 1e-9; implied by --workers and --scheduler)",
+    )
+    parser.add_argument(
+        "--chunk-steps",
+        type=positive_int,
+        default=DEFAULT_CHUNK_STEPS,
+        metavar="N",
+        help="steps per chunk of a streamed fit (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--workers",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="run the streamed fit on a local Dask cluster of N worker processes "
+        "(needs the dask extra)",
+    )
+    parser.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="run the streamed fit on the Dask cluster at ADDRESS (e.g. tcp://host:8786); "
+        "its workers must see the bags at the same paths",
+    )
+    parser.add_argument(
+        "--scheduler-timeout",
+        type=positive_float,
+        default=DEFAULT_TIMEOUT,
+        metavar="SECONDS",
+        help="give up on a scheduler that does not answer within this time "
+        "(default: %(default)s)",
+    )
+    parser.add_argument(
+        "--scratch-dir",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="where a streamed fit keeps its temporary whitened episodes (~320 bytes per "
+        "episode; default: the system's temporary directory)",
+    )
 
 
 def _say(message: str) -> None:
@@ -181,6 +243,8 @@ def run(args: argparse.Namespace) -> int:
         TPSRConfig, args, ROBOT_BAG_TPSR_DEFAULTS if robot_bags else None
     )
     pca_config = config_from_args(PCAConfig, args)
+    if args.stream or args.workers is not None or args.scheduler is not None:
+        return _run_streamed(args, output, tpsr_config, pca_config)
     timings: dict[str, float] = {}
 
     _say(f"reading {len(args.bags)} bag(s)")
@@ -243,6 +307,109 @@ def run(args: argparse.Namespace) -> int:
     for line in summary_lines(model, training, timings, output):
         print(line)
     return 0
+
+
+def _run_streamed(
+    args: argparse.Namespace, output: Path, tpsr_config: TPSRConfig, pca_config: PCAConfig
+) -> int:
+    """``--stream`` (and ``--workers`` / ``--scheduler``): the streamed fit, then as :func:`run`."""
+    distributed = args.workers is not None or args.scheduler is not None
+    if args.workers is not None and args.scheduler is not None:
+        raise ConfigError("give --workers (a local cluster) or --scheduler, not both")
+    if distributed and args.method == "pca":
+        raise ConfigError(
+            "the PCA baseline streams in one process only (one pass of moments): drop "
+            "--workers/--scheduler or use --stream alone"
+        )
+    timings: dict[str, float] = {}
+    topics = topics_from_args(args)
+    stream_options = fit_options_from_args(args)
+    start = time.perf_counter()
+    spec: StreamSpec | None = None
+    if stream_options is None:
+        _say(f"checking {len(args.bags)} bag(s) agree (image size, action type)")
+        surveys = survey_bags(args.bags, topics)
+        environment = _common_value([s.environment for s in surveys])
+    else:  # robot bags: the spec reads every bag's commands; then each bag is read whole
+        spec = fit_stream_spec(
+            args.bags, stream_options, image_topic=topics.image, action_topic=topics.action
+        )
+        _say(_spec_line(spec))
+        environment = None
+    reader = BagChunks(
+        topics=topics,
+        chunk_steps=args.chunk_steps,
+        spec=spec,
+        pose_frame=args.pose_frame or DEFAULT_POSE_FRAME,
+    )
+    timings["reading bags"] = time.perf_counter() - start
+    start = time.perf_counter()
+    m, n = tpsr_config.history_length, tpsr_config.test_length
+    model: StateModel
+    if args.method == "pca":
+        _say("PCA (streamed, one pass)")
+        model = fit_pca_streamed(
+            lambda: reader.read_all(args.bags),
+            config=pca_config,
+            history_length=m,
+            test_length=n,
+            max_episodes=args.episodes,
+        )
+        steps = int(model.fit_info["steps"])
+        episodes, segments, stamps = steps // (m + 1 + n), None, []
+    else:
+        fit = functools.partial(
+            fit_tpsr_streamed,
+            config=tpsr_config,
+            max_episodes=args.episodes,
+            progress=_say,
+            scratch_dir=args.scratch_dir,
+        )
+        if distributed:
+            where = args.scheduler or f"a local cluster of {args.workers} worker(s)"
+            _say(f"connecting to {where}")
+            with dask_client(
+                scheduler=args.scheduler, workers=args.workers, timeout=args.scheduler_timeout
+            ) as client:
+                check_bags_visible(client, args.bags)
+                model = fit(DaskEngine(client, args.bags, reader))
+        else:
+            model = fit(lambda: reader.read_all(args.bags))
+        episodes = int(model.fit_info["episodes"])
+        steps, segments = model.fit_info["steps"], model.fit_info["segments"]
+        stamps = model.fit_info["stamps_ns"]
+    timings["fit"] = time.perf_counter() - start
+    training = {
+        "bags": [{"path": str(bag), "topics": _topic_names(topics)} for bag in args.bags],
+        "steps": steps,
+        "segments": segments,
+        "stamps_ns": stamps,
+        "environment": environment,
+        "episodes": episodes,
+        "max_episodes": args.episodes,
+        "history_length": m,
+        "test_length": n,
+        "streamed": {"chunk_steps": args.chunk_steps, "workers": args.workers,
+                     "scheduler": args.scheduler},
+        "reading_seconds": round(timings["reading bags"], 6),
+        "fit_seconds": round(timings["fit"], 6),
+    }  # fmt: skip
+    _say(f"writing {output}")
+    start = time.perf_counter()
+    save_model(model, output, training=training, inputs=spec, force=args.force)
+    timings["writing"] = time.perf_counter() - start
+    for line in summary_lines(model, training, timings, output):
+        print(line)
+    return 0
+
+
+def _topic_names(topics: Topics) -> dict[str, str]:
+    return {f.name: getattr(topics, f.name) for f in dataclasses.fields(Topics)}
+
+
+def _common_value(values: list[Any]) -> Any:
+    distinct = set(values)
+    return distinct.pop() if len(distinct) == 1 else sorted(map(str, distinct))
 
 
 def _spec_line(spec: StreamSpec) -> str:

@@ -38,6 +38,8 @@ __all__ = [
     "STEP_NS",
     "Episodes",
     "Trajectory",
+    "episode_starts",
+    "episodes_at",
     "image_to_observation",
     "images_to_observations",
     "make_episodes",
@@ -265,11 +267,7 @@ def make_episodes(
     if max_episodes is not None and max_episodes < 1:
         raise ConfigError(f"the number of episodes must be at least 1, not {max_episodes}")
     span = m + 1 + n
-    starts = [
-        np.arange(start, stop - span + 1, span, dtype=np.int64)
-        for start, stop in trajectory.segment_bounds()
-    ]
-    first = np.concatenate(starts) if starts else np.zeros(0, dtype=np.int64)
+    first = episode_starts(trajectory, span)
     if max_episodes is not None:
         first = first[:max_episodes]
     if first.size == 0:
@@ -277,6 +275,20 @@ def make_episodes(
             f"no usable episodes: no run of {span} consecutive steps (history {m} + current + "
             f"test {n}) in {len(trajectory)} steps ({len(trajectory.segment_bounds())} segments)"
         )
+    return episodes_at(trajectory, first, m, n)
+
+
+def episode_starts(trajectory: Trajectory, span: int) -> np.ndarray:
+    """First rows of the episodes of ``span`` steps cut from the start of every segment."""
+    starts = [
+        np.arange(start, stop - span + 1, span, dtype=np.int64)
+        for start, stop in trajectory.segment_bounds()
+    ]
+    return np.concatenate(starts) if starts else np.zeros(0, dtype=np.int64)
+
+
+def episodes_at(trajectory: Trajectory, first: np.ndarray, m: int, n: int) -> Episodes:
+    """Cut the episodes (history ``m``, current, test ``n``) whose first rows are ``first``."""
     obs = trajectory.observations
     k = obs.shape[1]
     current = first + m
