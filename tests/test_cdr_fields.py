@@ -51,6 +51,8 @@ def _reference(msgtype: str, shape: tuple[int, int] | None = (16, 16)) -> Callab
             value = _finite(m.pose_to_xy(msg))
         else:
             value = _finite(m.reward_to_sample(msg).reward)
+        if msg.header.stamp.sec < 0 or msg.header.stamp.nanosec >= S:  # not a time
+            raise MessageError(f"header stamp {msg.header.stamp} is not a valid time")
         return m.stamp_of(msg), value
 
     return read
@@ -104,7 +106,6 @@ def test_the_is_bigendian_flag_of_an_rgb8_image_changes_nothing_but_the_layout()
 
 
 def test_images_of_any_size_when_no_shape_is_given():
-    decoder = ImageDecoder(None)
     for k, (height, width) in enumerate([(1, 1), (3, 5), (7, 2)]):
         decoder = ImageDecoder(None)
         pixels = np.arange(height * width * 3, dtype=np.uint8).reshape(height, width, 3) + k
@@ -202,6 +203,34 @@ def test_non_finite_values_are_refused_the_fast_way_too():
     names = m.serialize(m.state_msg(S, np.zeros(3)), m.STATE_TYPE)  # a JointState, other names
     with pytest.raises(MessageError, match="reward message names"):
         decoder.decode(names)
+
+
+@pytest.mark.parametrize("stamp", [(1, S), (-1, 0)])
+def test_a_stamp_that_is_not_a_time_is_refused_on_both_paths(stamp):
+    # (1 s, 10^9 ns) would pair with (2 s, 0 ns) as the same step
+    decoder = TwistDecoder()
+    good = m.twist_stamped_msg(S, 0.25, 0.0)
+    decoder.decode(m.serialize(good, m.ACTION_TYPE))  # layout learnt: the next is fast
+    bad = m.twist_stamped_msg(S, 0.25, 0.0)
+    bad.header.stamp.sec, bad.header.stamp.nanosec = stamp
+    for fresh in (False, True):
+        with pytest.raises(MessageError, match="is not a valid time"):
+            (TwistDecoder() if fresh else decoder).decode(m.serialize(bad, m.ACTION_TYPE))
+
+
+def test_a_learnt_layout_is_read_without_deserialising_again(monkeypatch):
+    # the fast path is taken: one rosbags deserialisation per layout, not per message
+    import tpsr_ros.io.cdr_fields as cdr_fields
+
+    calls: list[int] = []
+    real = cdr_fields.deserialize
+    monkeypatch.setattr(cdr_fields, "deserialize", lambda d, t: calls.append(1) or real(d, t))
+    for msgtype, decoder in DECODERS.items():
+        calls.clear()
+        fresh = decoder()
+        for k in range(5):
+            fresh.decode(_cdr(_messages(msgtype, "camera", k), msgtype, True))
+        assert len(calls) == 1, msgtype
 
 
 def test_peek_stamp():

@@ -100,6 +100,26 @@ def test_messages_out_of_stamp_order_within_the_window_are_sorted(tmp_path):
         _read_with_window([tmp_path / "a"], 4)
 
 
+def test_large_images_get_smaller_chunks_and_a_shorter_window(tmp_path, monkeypatch):
+    # the caps in bytes, scaled down: chunks of 5 steps of 16x16 float64 observations, and a
+    # window of 16 stamps of 16x16 images (the smallest allowed); bag b comes in reverse
+    # blocks of 20 stamps, beyond that window
+    import tpsr_ros.io.trajectory as trajectory
+
+    monkeypatch.setattr(trajectory, "CHUNK_BYTES", 5 * 8 * 16 * 16 * 3)
+    monkeypatch.setattr(trajectory, "PENDING_BYTES", 1)
+    bag = write_bag(tmp_path / "a", range(1, 30))
+    chunks = list(iter_trajectory_chunks([bag], chunk_steps=100))
+    assert [len(c) for c in chunks] == [5, 5, 5, 5, 5, 4]
+    np.testing.assert_array_equal(_concatenated(chunks)["stamps"], np.arange(1, 30) * S)
+    reversed_blocks = [k for b in range(2) for k in range(20 * b + 20, 20 * b, -1)]
+    _write_in_file_order(tmp_path / "b", reversed_blocks)
+    with pytest.raises(BagError, match="comes after messages of 16 or more later stamps"):
+        read_trajectory([tmp_path / "b"])
+    monkeypatch.setattr(trajectory, "PENDING_BYTES", 10**9)  # 16x16 images: the full window
+    np.testing.assert_array_equal(read_trajectory([tmp_path / "b"]).stamps, np.arange(1, 41) * S)
+
+
 def _read_with_window(bags, window: int) -> Trajectory:
     chunks = list(iter_trajectory_chunks(bags, reorder_window=window))
     return Trajectory(
@@ -230,3 +250,30 @@ def test_the_sample_bag_reads_as_with_a_rosbags_object_per_message():
     for name, values in expected.items():
         np.testing.assert_array_equal(getattr(whole, name), values, err_msg=name)
         np.testing.assert_array_equal(_concatenated(chunks)[name], values, err_msg=name)
+
+
+def test_a_topic_with_connections_of_two_types_is_refused(tmp_path):
+    # an AccelStamped connection and a TwistStamped one on /action: decoding the first's
+    # bytes as twists would read accelerations as velocities, silently
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    typestore = m.jazzy_typestore()
+    accel = "geometry_msgs/msg/AccelStamped"
+    vector = typestore.types["geometry_msgs/msg/Vector3"]
+    path = tmp_path / "mixed"
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as writer:
+        image = writer.add_connection("/camera/image_raw", m.IMAGE_TYPE, typestore=typestore)
+        wrong = writer.add_connection("/action", accel, typestore=typestore)
+        writer.add_connection("/action", m.ACTION_TYPE, typestore=typestore)
+        for k in range(1, 6):
+            pixels = np.zeros((16, 16, 3), np.uint8)
+            writer.write(image, k * S, m.serialize(m.image_msg(k * S, pixels), m.IMAGE_TYPE))
+            msg = typestore.types[accel](
+                header=m.header_msg(k * S, "x"),
+                accel=typestore.types["geometry_msgs/msg/Accel"](
+                    linear=vector(x=0.25, y=0.0, z=0.0), angular=vector(x=0.0, y=0.0, z=0.0)
+                ),
+            )
+            writer.write(wrong, k * S + 1, bytes(typestore.serialize_cdr(msg, accel)))
+    with pytest.raises(BagError, match="topic '/action' has messages of two types"):
+        read_trajectory([path])

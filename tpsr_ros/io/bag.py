@@ -523,7 +523,21 @@ class BagReader:
 
     def raw_messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
         """``(topic, log_time_ns, cdr_bytes)`` as :meth:`messages` reads them, with no object
-        per message: for readers that decode a few known types themselves."""
+        per message: for readers that decode a few known types themselves.
+
+        The type of a topic is :attr:`topics`'s: a topic whose connections have different
+        types is refused (its bytes could not be decoded as one type).
+        """
+        wanted = None if topics is None else set(topics)
+        types: dict[str, str] = {}
+        for conn in self._reader.connections:
+            if wanted is not None and conn.topic not in wanted:
+                continue
+            if types.setdefault(conn.topic, conn.msgtype) != conn.msgtype:
+                raise BagError(
+                    f"bag {str(self.path)!r}: topic {conn.topic!r} has messages of two types, "
+                    f"{types[conn.topic]} and {conn.msgtype}"
+                )
         for conn, log_time, data in self._checked(topics):
             yield conn.topic, log_time, data
 

@@ -13,13 +13,15 @@ functions as any decoded message (:func:`~tpsr_ros.io.messages.image_to_array`,
 :func:`~tpsr_ros.io.messages.reward_to_sample`);
 a short CDR walk then finds the value offsets (alignment counted from after the 4-byte
 encapsulation header, either byte order), and the values read there must equal rosbags'.
-A layout is the message length plus every byte that is not the stamp or a value read;
+A layout is the message length plus every byte outside the stamp and the value block
+(the block holds the values read, and for a twist or pose also the components not read);
 a later message is read the fast way only if its length and all those bytes are equal,
 i.e. it is the learnt message with another stamp and other values, which rosbags would
 parse the same way. Anything else (another frame_id, encoding, size, padding, byte order,
-hostile bytes) is learnt afresh, so it is refused with the same ``MessageError`` as before
-and an image is never read at a wrong offset. Values read the fast way are still checked
-per message (finite velocities, poses and rewards).
+hostile bytes) is learnt afresh: deserialised and checked again, so a bad one is refused
+with the same ``MessageError`` as before and an image is never read at a wrong offset.
+Values read the fast way are still checked per message (a valid stamp; finite
+velocities, poses and rewards).
 """
 
 from __future__ import annotations
@@ -160,6 +162,8 @@ class _Decoder:
         ):
             layout = self._learn(data)
         fields = layout.unpack(data)
+        if fields[0] < 0 or fields[1] >= NS_PER_S:
+            raise MessageError(f"header stamp {fields[0]} s {fields[1]} ns is not a valid time")
         return fields[0] * NS_PER_S + fields[1], self._value(data, layout, fields)
 
     def _learn(self, data: bytes) -> _Layout:
@@ -204,38 +208,6 @@ def _finite_pair(fields: tuple[Any, ...], what: str) -> tuple[float, float]:
     return x, y
 
 
-class ImageDecoder(_Decoder):
-    """rgb8 ``sensor_msgs/msg/Image``: the pixel bytes (row-major ``H x W x 3``) as a view.
-
-    ``shape`` ``(H, W)`` is required of every image; ``None`` takes the first image's and
-    then requires it of the rest (:attr:`shape`).
-    """
-
-    msgtype = IMAGE_TYPE
-
-    def __init__(self, shape: tuple[int, int] | None) -> None:
-        super().__init__()
-        self.shape = None if shape is None else (int(shape[0]), int(shape[1]))
-
-    def _check(self, msg: Any) -> Any:
-        pixels = image_to_array(msg, shape=self.shape)
-        self.shape = self.shape or (int(pixels.shape[0]), int(pixels.shape[1]))
-        return pixels
-
-    def _locate(self, walk: _Walk) -> _Layout:
-        walk.string()  # header.frame_id
-        walk.uint32()  # height
-        walk.uint32()  # width
-        walk.string()  # encoding
-        walk.skip(1)  # is_bigendian (irrelevant to rgb8)
-        walk.uint32()  # step
-        size = walk.uint32()  # data: a uint8 sequence, checked by image_to_array
-        return _Layout.of(walk.data, walk.pos, walk.pos + size, "")
-
-    def _value(self, data: bytes, layout: _Layout, fields: tuple[Any, ...]) -> memoryview:
-        return memoryview(data)[layout.values : layout.values_end]
-
-
 class RawImageDecoder(_Decoder):
     """A raw ``sensor_msgs/msg/Image`` of any encoding of :data:`~tpsr_ros.io.images.ENCODINGS`
     and any size: pixels ``(H, W, C)`` as :func:`~tpsr_ros.io.images.decode_image` gives them.
@@ -253,12 +225,33 @@ class RawImageDecoder(_Decoder):
         is_bigendian = bool(walk.data[walk.pos])
         walk.skip(1)
         step = walk.uint32()
-        size = walk.uint32()
+        size = walk.uint32()  # data: a uint8 sequence, checked by _check
         info = (height, width, step, encoding, is_bigendian)
         return _Layout.of(walk.data, walk.pos, walk.pos + size, "", info)
 
     def _value(self, data: bytes, layout: _Layout, fields: tuple[Any, ...]) -> np.ndarray:
         return raw_pixels(memoryview(data)[layout.values : layout.values_end], *layout.info)
+
+
+class ImageDecoder(RawImageDecoder):
+    """rgb8 ``sensor_msgs/msg/Image`` (the simulator's camera): the pixel bytes (row-major
+    ``H x W x 3``) as a view, copied once per chunk.
+
+    ``shape`` ``(H, W)`` is required of every image; ``None`` takes the first image's and
+    then requires it of the rest (:attr:`shape`).
+    """
+
+    def __init__(self, shape: tuple[int, int] | None) -> None:
+        super().__init__()
+        self.shape = None if shape is None else (int(shape[0]), int(shape[1]))
+
+    def _check(self, msg: Any) -> Any:
+        pixels = image_to_array(msg, shape=self.shape)
+        self.shape = self.shape or (int(pixels.shape[0]), int(pixels.shape[1]))
+        return pixels
+
+    def _value(self, data: bytes, layout: _Layout, fields: tuple[Any, ...]) -> memoryview:
+        return memoryview(data)[layout.values : layout.values_end]
 
 
 class TwistDecoder(_Decoder):

@@ -11,12 +11,14 @@ Bags are read as a stream, in log-time order, so memory does not grow with their
 (:func:`iter_trajectory_chunks`; :func:`read_trajectory` is its chunks concatenated).
 Messages are decoded straight from their CDR bytes (:mod:`tpsr_ros.io.cdr_fields`). A
 step's messages need not be adjacent in the file: each stamp waits, with whatever of its
-image, action, pose and reward has arrived, until more than ``reorder_window`` (default
-:data:`REORDER_WINDOW`) later stamps have been read; then it is final, a step if it has an
-image and an action. So a bag may be out of stamp order as long as no message comes after
-messages of ``reorder_window`` later stamps; one that does is refused with a ``BagError``
-naming it (it cannot be placed: the steps before it may already be handed out). Memory
-is bounded by ``reorder_window`` pending stamps (their message bytes) plus one chunk.
+image, action, pose and reward has arrived, until ``reorder_window`` (default
+:data:`REORDER_WINDOW`) later distinct stamps of the four topics have been read; then it
+is final, a step if it has an image and an action. So a bag may be out of stamp order as
+long as no message comes after messages of ``reorder_window`` later stamps; one whose
+stamp is already final may be refused with a ``BagError`` naming it (it cannot be placed:
+the steps before it may already be handed out). Memory is bounded by the pending stamps'
+message bytes plus one chunk: both are capped in bytes (:data:`PENDING_BYTES`,
+:data:`CHUNK_BYTES`), so large images get a shorter window and smaller chunks.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros.core.actions import NUM_ACTIONS
+from tpsr_ros.core.actions import NUM_ACTIONS, VELOCITIES
 from tpsr_ros.core.episodes import (
     DEFAULT_ACTION_TOLERANCE,
     DEFAULT_IMAGE_SHAPE,
@@ -61,8 +63,15 @@ __all__ = [
 DEFAULT_CHUNK_STEPS = 8192
 """Steps per chunk of :func:`iter_trajectory_chunks` (16x16 images: 50 MB of observations)."""
 REORDER_WINDOW = 4096
-"""Stamps a message may trail in a bag (see the module docstring): 4096 steps of 1 s here;
-pending messages of 16x16 images take about 4 MB."""
+"""Distinct stamps (over the four topics) a message may trail in a bag (module docstring):
+4096 steps of 1 s when only images and actions are stamped; pending messages of 16x16
+images take about 4 MB."""
+CHUNK_BYTES = 128 * 2**20
+"""Float64 observations of one chunk at most: a chunk has at most this many bytes' worth of
+steps (16x16 images: 21 845, above the default 8192; 640x480: 18)."""
+PENDING_BYTES = 256 * 2**20
+"""Image bytes waiting to be paired at most: the window is at most this many bytes' worth of
+stamps (16x16 images: 349 525, above the default 4096; 640x480: 291)."""
 
 
 @dataclass(frozen=True)
@@ -191,7 +200,7 @@ class _BagSteps:
                 topics.pose: (_POSE, PoseDecoder()),
                 topics.reward: (_REWARD, RewardDecoder()),
             }
-            window = self.options.reorder_window
+            window = self.options.reorder_window  # until the image size is known
             counts = [0, 0, 0, 0]
             pending: dict[int, list[Any]] = {}
             heap: list[int] = []
@@ -203,10 +212,12 @@ class _BagSteps:
                 except MessageError as exc:
                     raise self._bad_message(topic, counts[kind], data, exc) from None
                 counts[kind] += 1
+                if kind == _IMAGE and counts[_IMAGE] == 1:
+                    window = self._window()
                 entry = pending.get(stamp)
                 if entry is None:
                     if stamp <= final:
-                        raise self._too_late(topic, counts[kind] - 1, stamp)
+                        raise self._too_late(topic, counts[kind] - 1, stamp, window)
                     entry = pending[stamp] = [None, None, None, None]
                     entry[kind] = value
                     heapq.heappush(heap, stamp)
@@ -216,8 +227,8 @@ class _BagSteps:
                             yield chunk
                 elif entry[kind] is not None:
                     raise BagError(
-                        f"bag {str(self.path)!r} has two messages on {topic!r} with stamp "
-                        f"{stamp} ns"
+                        f"bag {str(self.path)!r}, topic {topic!r}, message {counts[kind] - 1}: "
+                        f"a second message with stamp {stamp} ns"
                     )
                 else:
                     entry[kind] = value
@@ -276,13 +287,24 @@ class _BagSteps:
         where = f"message {index}" + (f" (stamp {stamp} ns)" if stamp is not None else "")
         return MessageError(f"bag {str(self.path)!r}, topic {topic!r}, {where}: {exc}")
 
-    def _too_late(self, topic: str, index: int, stamp: int) -> BagError:
-        window = self.options.reorder_window
+    def _image_bytes(self) -> int:
+        height, width = self.images.shape or (1, 1)
+        return height * width * 3
+
+    def _window(self) -> int:
+        """The reorder window, at most :data:`PENDING_BYTES` of images."""
+        return min(self.options.reorder_window, max(16, PENDING_BYTES // self._image_bytes()))
+
+    def _chunk_steps(self) -> int:
+        """Steps per chunk, at most :data:`CHUNK_BYTES` of float64 observations."""
+        return min(self.options.chunk_steps, max(1, CHUNK_BYTES // (8 * self._image_bytes())))
+
+    def _too_late(self, topic: str, index: int, stamp: int, window: int) -> BagError:
         return BagError(
             f"bag {str(self.path)!r}, topic {topic!r}, message {index} (stamp {stamp} ns) "
             f"comes after messages of {window} or more later stamps: steps are paired in a "
             f"stream that allows messages out of stamp order by fewer than {window} stamps "
-            "(or the stamp repeats)"
+            "(or the stamp repeats; a larger reorder_window of read_trajectory reads it)"
         )
 
     def _finish(self, stamp: int, entry: list[Any]) -> _Steps | None:
@@ -297,7 +319,7 @@ class _BagSteps:
                 f"bag {str(self.path)!r} lacks ground truth for some steps: the step at stamp "
                 f"{stamp} ns has no message on {missing!r}"
             )
-        chunk = self._take() if len(self.buffer) == self.options.chunk_steps else None
+        chunk = self._take() if len(self.buffer) >= self._chunk_steps() else None
         if self.steps == 0:
             self.first_stamp = stamp
         self.steps += 1
@@ -328,7 +350,13 @@ class _BagSteps:
         try:
             actions = velocities_to_actions(velocities, self.options.action_tolerance)
         except DataError as exc:
-            raise DataError(f"bag {str(self.path)!r}: {exc}") from None
+            with np.errstate(invalid="ignore"):
+                far = np.abs(velocities[:, :, None] - VELOCITIES).min(axis=2).max(axis=1)
+            first = int(np.argmax(~(far <= self.options.action_tolerance)))
+            raise DataError(
+                f"bag {str(self.path)!r}, topic {self.options.topics.action!r}, the step at "
+                f"stamp {int(stamps[first])} ns: {exc}"
+            ) from None
         return _Steps(
             stamps=stamps,
             pixels=pixels.reshape(count, height, width, 3),
@@ -382,11 +410,12 @@ def iter_trajectory_chunks(
 ) -> Iterator[Trajectory]:
     """The steps of ``bags`` as trajectories of at most ``chunk_steps`` steps, in order.
 
-    Concatenated, the chunks are :func:`read_trajectory` of the same arguments (segments
-    numbered over all bags). A chunk holds steps of one bag; ``sources`` is empty except
-    on each bag's last chunk, which carries that bag's source dict. Memory is bounded by
-    ``chunk_steps`` and ``reorder_window`` (see the module docstring), not by the bags.
-    Arguments are checked here; bags are read as the chunks are taken.
+    Concatenated, the chunks are :func:`read_trajectory` of the same arguments and
+    ``reorder_window`` (segments numbered over all bags). A chunk holds steps of one bag;
+    ``sources`` is empty except on each bag's last chunk, which carries that bag's source
+    dict. Memory is bounded by ``chunk_steps`` and ``reorder_window``, each capped in bytes
+    for large images (see the module docstring), not by the bags. Arguments are checked
+    here; bags are read as the chunks are taken.
     """
     options = _options(bags, topics, step_ns, action_tolerance, require_ground_truth,
                        chunk_steps, reorder_window)
@@ -401,13 +430,15 @@ def read_trajectory(
     step_ns: int = STEP_NS,
     action_tolerance: float = DEFAULT_ACTION_TOLERANCE,
     require_ground_truth: bool = False,
+    reorder_window: int = REORDER_WINDOW,
 ) -> Trajectory:
     """Read and pair the steps of ``bags`` (see the module docstring).
 
     ``image_shape=None`` accepts any size, but all images must share it.
-    ``require_ground_truth`` also demands the pose and reward topics. The chunks of
+    ``require_ground_truth`` also demands the pose and reward topics; ``reorder_window``
+    is how far out of stamp order a message may come. The chunks of
     :func:`iter_trajectory_chunks` concatenated (pixels converted to observations once).
     """
     options = _options(bags, topics, step_ns, action_tolerance, require_ground_truth,
-                       DEFAULT_CHUNK_STEPS, REORDER_WINDOW)
+                       DEFAULT_CHUNK_STEPS, reorder_window)
     return _trajectory(list(_read_steps(bags, image_shape, options)))
