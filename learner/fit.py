@@ -27,7 +27,7 @@ import numpy as np
 from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible, dask_client
 from learner.streams import add_stream_options, fit_options_from_args, topics_from_args
 from tpsr_ros.cli import positive_float, positive_int
-from tpsr_ros.core.episodes import Trajectory, make_episodes
+from tpsr_ros.core.episodes import Trajectory, common_value, make_episodes
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.core.state_model import StateModel
@@ -329,13 +329,15 @@ def _run_streamed(
     if stream_options is None:
         _say(f"checking {len(args.bags)} bag(s) agree (image size, action type)")
         surveys = survey_bags(args.bags, topics)
-        environment = _common_value([s.environment for s in surveys])
+        environment = common_value(s.environment for s in surveys)
+        image_shape = list(surveys[0].image_size)
     else:  # robot bags: the spec reads every bag's commands; then each bag is read whole
         spec = fit_stream_spec(
             args.bags, stream_options, image_topic=topics.image, action_topic=topics.action
         )
         _say(_spec_line(spec))
         environment = None
+        image_shape = [spec.preprocessing.height, spec.preprocessing.width]
     reader = BagChunks(
         topics=topics,
         chunk_steps=args.chunk_steps,
@@ -355,8 +357,9 @@ def _run_streamed(
             test_length=n,
             max_episodes=args.episodes,
         )
-        steps = int(model.fit_info["steps"])
-        episodes, segments, stamps = steps // (m + 1 + n), None, []
+        steps, segments = model.fit_info["steps"], model.fit_info["segments"]
+        stamps = model.fit_info["stamps_ns"]
+        episodes = int(model.fit_info["observations"]) // (m + 1 + n)
     else:
         fit = functools.partial(
             fit_tpsr_streamed,
@@ -385,6 +388,7 @@ def _run_streamed(
         "segments": segments,
         "stamps_ns": stamps,
         "environment": environment,
+        "image_shape": image_shape,
         "episodes": episodes,
         "max_episodes": args.episodes,
         "history_length": m,
@@ -405,11 +409,6 @@ def _run_streamed(
 
 def _topic_names(topics: Topics) -> dict[str, str]:
     return {f.name: getattr(topics, f.name) for f in dataclasses.fields(Topics)}
-
-
-def _common_value(values: list[Any]) -> Any:
-    distinct = set(values)
-    return distinct.pop() if len(distinct) == 1 else sorted(map(str, distinct))
 
 
 def _spec_line(spec: StreamSpec) -> str:

@@ -17,7 +17,7 @@ from tpsr_ros.core.pca_baseline import fit_pca
 from tpsr_ros.core.streamed_fit import fit_pca_streamed, fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
 from tpsr_ros.io.bag_chunks import BagChunks, survey_bags
-from tpsr_ros.io.model_io import load_model
+from tpsr_ros.io.model_io import load_model, read_metadata
 from tpsr_ros.io.trajectory import read_trajectory
 
 SMALL = ["--obs-centers", "40", "--ht-centers", "80", "--rank", "3"]
@@ -63,6 +63,14 @@ def test_stream_option_writes_the_in_memory_model(bags, reference, tmp_path, cap
     assert "pass 1: whitening statistics" in stderr and "pass 2" in stderr
     assert "1200 steps, 2 segment(s), 399 episodes" in stdout
     assert_same(load_model(out), reference)
+    training = read_metadata(out)["training"]  # what the filter node and `info` read
+    assert training["image_shape"] == [16, 16] and training["environment"] == "full"
+    pca = tmp_path / "pca.npz"
+    code, stdout, stderr = run_entry(
+        ["fit", *map(str, bags), "-o", str(pca), "--stream", "--method", "pca"], capsys
+    )
+    assert code == 0, stderr
+    assert "1200 steps, 2 segment(s), 399 episodes" in stdout  # as the in-memory PCA fit
 
 
 def test_streamed_pca_baseline_equals_fit_pca(bags):

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 from learning_fixtures import example_pomdp, one_hot
@@ -38,16 +36,7 @@ def chunks_of(trajectory: Trajectory, size: int):
 
     def source():
         for start in range(0, len(trajectory), size):
-            part = slice(start, start + size)
-            yield dataclasses.replace(
-                trajectory,
-                **{
-                    name: getattr(trajectory, name)[part]
-                    for name in ("stamps", "observations", "actions", "velocities", "positions")
-                },
-                rewards=trajectory.rewards[part],
-                segments=trajectory.segments[part],
-            )
+            yield trajectory.rows(start, start + size)
 
     return source
 

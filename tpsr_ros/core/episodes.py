@@ -21,7 +21,7 @@ steps without it hold NaN.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -82,6 +82,12 @@ def velocities_to_actions(
         return np.asarray(action_indices(vel, tolerance), dtype=np.int64)
     except ConfigError as exc:
         raise DataError(f"an action cannot be mapped to the 25 velocity pairs: {exc}") from None
+
+
+STEP_FIELDS = (
+    "stamps", "observations", "actions", "velocities", "positions", "rewards", "segments"
+)
+"""The per-step arrays of a :class:`Trajectory`, in field order."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,6 +189,11 @@ class Trajectory:
     def __len__(self) -> int:
         return int(self.stamps.shape[0])
 
+    def rows(self, start: int, stop: int) -> Trajectory:
+        """Steps ``[start, stop)``, without ``sources`` (they describe whole bags)."""
+        part = slice(start, stop)
+        return replace(self, sources=[], **{n: getattr(self, n)[part] for n in STEP_FIELDS})
+
     def segment_bounds(self) -> list[tuple[int, int]]:
         """``[start, stop)`` row ranges of the segments."""
         if len(self) == 0:
@@ -199,12 +210,13 @@ class Trajectory:
             "steps": len(self),
             "segments": len(self.segment_bounds()),
             "stamps_ns": [int(self.stamps[0]), int(self.stamps[-1])] if len(self) else [],
-            "environment": _common(s.get("environment") for s in self.sources),
+            "environment": common_value(s.get("environment") for s in self.sources),
             "image_shape": list(self.image_shape),
         }
 
 
-def _common(values: Iterable[Any]) -> Any:
+def common_value(values: Iterable[Any]) -> Any:
+    """The one value of ``values``, or their sorted texts when they differ (metadata)."""
     distinct = {v for v in values}
     return distinct.pop() if len(distinct) == 1 else sorted(map(str, distinct))
 

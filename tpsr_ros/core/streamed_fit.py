@@ -44,7 +44,13 @@ from typing import Protocol
 import numpy as np
 import scipy.linalg.blas
 
-from tpsr_ros.core.episodes import Episodes, Trajectory, episode_starts, episodes_at
+from tpsr_ros.core.episodes import (
+    STEP_FIELDS,
+    Episodes,
+    Trajectory,
+    episode_starts,
+    episodes_at,
+)
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import select_centers
 from tpsr_ros.core.moments import Moments
@@ -101,26 +107,10 @@ def block_rows(n_features: int) -> int:
     return int(min(8192, max(512, BLOCK_BYTES // (8 * max(1, n_features)))))
 
 
-def _rows(trajectory: Trajectory, start: int, stop: int) -> Trajectory:
-    part = slice(start, stop)
-    return dataclasses.replace(
-        trajectory,
-        stamps=trajectory.stamps[part],
-        observations=trajectory.observations[part],
-        actions=trajectory.actions[part],
-        velocities=trajectory.velocities[part],
-        positions=trajectory.positions[part],
-        rewards=trajectory.rewards[part],
-        segments=trajectory.segments[part],
-        sources=[],
-    )
-
-
 def _joined(head: Trajectory, tail: Trajectory) -> Trajectory:
-    names = ("stamps", "observations", "actions", "velocities", "positions", "rewards", "segments")
     return dataclasses.replace(
         tail,
-        **{name: np.concatenate([getattr(head, name), getattr(tail, name)]) for name in names},
+        **{n: np.concatenate([getattr(head, n), getattr(tail, n)]) for n in STEP_FIELDS},
     )
 
 
@@ -172,7 +162,7 @@ class EpisodeCutter:
             data = _joined(self._carry, chunk)
         last_start = data.segment_bounds()[-1][0]
         done = last_start + (len(data) - last_start) // self.span * self.span
-        self._carry = _rows(data, done, len(data)) if done < len(data) else None
+        self._carry = data.rows(done, len(data)) if done < len(data) else None
         first = episode_starts(data, self.span)
         if self.limit is not None:
             first = first[: self.limit - self.emitted]
@@ -771,7 +761,10 @@ def fit_pca_streamed(
         eigenvalues=pca.eigenvalues_,
         explained_variance_ratio=pca.explained_variance_ratio_,
         fit_info={
-            "steps": int(total.count),
+            "steps": int(cutter.steps),
+            "segments": int(cutter.segments),
+            "stamps_ns": list(cutter.stamps or ()),
+            "observations": int(total.count),
             "timings": {"PCA (streamed)": round(time.perf_counter() - start, 6)},
         },
     )

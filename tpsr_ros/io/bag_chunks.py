@@ -64,7 +64,10 @@ class BagChunks:
             )
             for start in range(0, len(whole), self.chunk_steps):
                 stop = min(start + self.chunk_steps, len(whole))
-                yield _slice(whole, start, stop)
+                yield dataclasses.replace(
+                    whole.rows(start, stop),
+                    sources=whole.sources if stop == len(whole) else [],
+                )
         except OSError as exc:
             raise BagError(f"bag {str(bag)!r} could not be read: {exc}") from None
 
@@ -78,21 +81,6 @@ class BagChunks:
                     last = int(chunk.segments[-1])
                 yield _renumbered(chunk, offset)
             offset += last + 1
-
-
-def _slice(whole: Trajectory, start: int, stop: int) -> Trajectory:
-    part = slice(start, stop)
-    return dataclasses.replace(
-        whole,
-        stamps=whole.stamps[part],
-        observations=whole.observations[part],
-        actions=whole.actions[part],
-        velocities=whole.velocities[part],
-        positions=whole.positions[part],
-        rewards=whole.rewards[part],
-        segments=whole.segments[part],
-        sources=whole.sources if stop == len(whole) else [],
-    )
 
 
 @dataclass(frozen=True)
