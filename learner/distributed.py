@@ -20,9 +20,11 @@ the limit falls with its share; later bags are left out.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import CancelledError
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -47,7 +49,16 @@ from tpsr_ros.core.streamed_fit import (
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.io.bag_chunks import BagChunks
 
-__all__ = ["MAX_SHIPPED_P_TH_BYTES", "DaskEngine", "check_bags_visible", "dask_client"]
+__all__ = [
+    "MAX_SHIPPED_P_TH_BYTES",
+    "DaskEngine",
+    "check_bags_visible",
+    "dask_client",
+    "gather",
+    "result",
+    "tree_reduce",
+    "wait_for",
+]
 
 MAX_SHIPPED_P_TH_BYTES = 256 * 2**20
 DEFAULT_TIMEOUT = 10.0
@@ -65,25 +76,45 @@ def _distributed() -> Any:
     return distributed
 
 
+async def _probe(address: str, timeout: float) -> None:
+    """Open and close one comm to ``address``, the whole handshake bounded by ``timeout``.
+
+    ``distributed.Client(address, timeout=...)`` bounds only the TCP connect: a listener that
+    accepts and never answers would hold it forever.
+    """
+    import distributed.comm
+
+    comm = await asyncio.wait_for(distributed.comm.connect(address, timeout=timeout), timeout)
+    await comm.close()
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
 @contextlib.contextmanager
 def dask_client(
     *, scheduler: str | None = None, workers: int | None = None, timeout: float = DEFAULT_TIMEOUT
 ) -> Iterator[Any]:
     """Yield a ``distributed.Client`` of the scheduler at ``scheduler`` or of a local cluster.
 
-    A scheduler that does not answer within ``timeout`` seconds is a one-line ``ConfigError``.
-    The local cluster has ``workers`` processes of one thread each. On exit the client (and
-    the local cluster) close; a worker lost mid-fit becomes a one-line ``ConfigError``.
+    A scheduler that does not answer within ``timeout`` seconds (no connection, or a
+    connection with no handshake) is a one-line ``ConfigError``. The local cluster has
+    ``workers`` processes of one thread each, with worker logs silenced below CRITICAL (a
+    failed task is reported once, by the client, as one line). On exit the client (and the
+    local cluster) close; a task lost with its worker becomes a one-line ``ConfigError``.
     """
     distributed = _distributed()
     with contextlib.ExitStack() as stack:
         if scheduler is not None:
             try:
+                asyncio.run(_probe(scheduler, timeout))
                 client = distributed.Client(scheduler, timeout=f"{timeout}s", set_as_default=False)
             except (OSError, TimeoutError, ValueError) as exc:
-                reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
                 raise ConfigError(
-                    f"no Dask scheduler answers at {scheduler!r} within {timeout:g} s ({reason})"
+                    f"no Dask scheduler answers at {scheduler!r} within {timeout:g} s "
+                    f"({_first_line(exc)})"
                 ) from None
         else:
             cluster = stack.enter_context(
@@ -92,15 +123,48 @@ def dask_client(
                     threads_per_worker=1,
                     processes=True,
                     dashboard_address=None,
-                    silence_logs=logging.ERROR,
+                    silence_logs=logging.CRITICAL,
                 )
             )
             client = distributed.Client(cluster, set_as_default=False)
         stack.callback(client.close)
         try:
             yield client
-        except (distributed.client.FutureCancelledError, distributed.KilledWorker) as exc:
-            raise ConfigError(f"the Dask cluster lost a task: {exc}") from None
+        except (CancelledError, distributed.KilledWorker) as exc:
+            first_sentence = _first_line(exc).split(". ")[0].rstrip(".")
+            raise ConfigError(f"the Dask cluster lost a task: {first_sentence}") from None
+
+
+def wait_for(client: Any, futures: Sequence[Any], poll: float = DEFAULT_TIMEOUT) -> None:
+    """Wait until ``futures`` are done; a cluster left with no workers is a ``ConfigError``.
+
+    Dask waits for new workers forever when every worker has gone; this checks the
+    scheduler every ``poll`` seconds instead.
+    """
+    distributed = _distributed()
+    while True:
+        try:
+            with client.as_current():
+                distributed.wait(list(futures), timeout=poll)
+            return
+        except TimeoutError:
+            if not client.nthreads():
+                raise ConfigError(
+                    f"the Dask scheduler at {client.scheduler.address} has no workers left "
+                    "(tasks would wait for new workers forever)"
+                ) from None
+
+
+def result(client: Any, future: Any, poll: float = DEFAULT_TIMEOUT) -> Any:
+    """``future.result()`` after :func:`wait_for`."""
+    wait_for(client, [future], poll)
+    return future.result()
+
+
+def gather(client: Any, futures: Sequence[Any], poll: float = DEFAULT_TIMEOUT) -> list[Any]:
+    """``client.gather(futures)`` after :func:`wait_for`."""
+    wait_for(client, futures, poll)
+    return client.gather(list(futures))  # type: ignore[no-any-return]
 
 
 def _missing(bags: Sequence[str]) -> list[str]:
@@ -155,7 +219,9 @@ def _merge_action_sums(a: ActionSums, b: ActionSums) -> ActionSums:
     return a.merged(b)
 
 
-def tree_reduce(client: Any, futures: list[Any], combine: Callable[[T, T], T]) -> T:
+def tree_reduce(
+    client: Any, futures: list[Any], combine: Callable[[T, T], T], poll: float = DEFAULT_TIMEOUT
+) -> T:
     """Combine ``futures`` pairwise on the cluster, level by level, and fetch the result."""
     if not futures:
         raise ConfigError("nothing to reduce")
@@ -163,14 +229,22 @@ def tree_reduce(client: Any, futures: list[Any], combine: Callable[[T, T], T]) -
         pairs = zip(futures[::2], futures[1::2], strict=False)
         merged = [client.submit(combine, a, b, pure=False) for a, b in pairs]
         futures = merged + ([futures[-1]] if len(futures) % 2 else [])
-    return futures[0].result()  # type: ignore[no-any-return]
+    return result(client, futures[0], poll)  # type: ignore[no-any-return]
 
 
 class DaskEngine:
     """Runs the streamed fit's passes on the workers of ``client`` (one task per bag)."""
 
-    def __init__(self, client: Any, bags: Sequence[Path | str], reader: BagChunks) -> None:
+    def __init__(
+        self,
+        client: Any,
+        bags: Sequence[Path | str],
+        reader: BagChunks,
+        poll: float = DEFAULT_TIMEOUT,
+    ) -> None:
         self.client = client
+        self.poll = poll
+        """Seconds between checks that the cluster still has workers."""
         self.bags = [str(Path(bag).absolute()) for bag in bags]
         self.reader = reader
         self.n_workers = max(1, len(client.scheduler_info().get("workers", {})))
@@ -185,7 +259,7 @@ class DaskEngine:
         futures = [
             submit(_bag_moments, self.reader, bag, m, n, None, pure=False) for bag in self.bags
         ]
-        counts = self.client.gather([submit(_count, f, pure=False) for f in futures])
+        counts = gather(self.client, [submit(_count, f, pure=False) for f in futures], self.poll)
         limits: list[int | None] = [None] * len(self.bags)
         if max_episodes is not None:
             remaining = max_episodes
@@ -199,7 +273,7 @@ class DaskEngine:
                 remaining -= counts[i]
         self._limits, self._counts = limits, counts
         kept = [f for f, c in zip(futures, counts, strict=True) if c > 0]
-        return tree_reduce(self.client, kept, merge_moments) if kept else None
+        return tree_reduce(self.client, kept, merge_moments, self.poll) if kept else None
 
     def whiten(
         self,
@@ -219,7 +293,7 @@ class DaskEngine:
             if self._counts[i] > 0
         }
         for future, i in futures.items():  # all run at once; fetched in bag order
-            rows = future.result()
+            rows = result(self.client, future, self.poll)
             got = 0 if rows is None else len(rows)
             if got != self._counts[i]:
                 raise DataError(
@@ -242,7 +316,7 @@ class DaskEngine:
             self.client.submit(p_sums, part, shared, cfg, pure=False)
             for part in self._parts(rows, max(n_t, n_h))
         ]
-        return tree_reduce(self.client, futures, _merge_psums)
+        return tree_reduce(self.client, futures, _merge_psums, self.poll)
 
     def parameter_sums(
         self,
@@ -259,7 +333,7 @@ class DaskEngine:
             self.client.submit(_parameter_sums, part, shared, cfg, n_actions, pure=False)
             for part in self._parts(rows, widest)
         ]
-        return tree_reduce(self.client, futures, _merge_action_sums)
+        return tree_reduce(self.client, futures, _merge_action_sums, self.poll)
 
 
 def _parameter_sums(

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import shutil
 import socket
+import time
+import types
 
 import numpy as np
 import pytest
@@ -174,3 +176,68 @@ def test_robot_bags_stream_on_their_step_grid(bags, tmp_path, capsys):
     )
     assert code == 0, stderr
     assert_same(load_model(tmp_path / "str.npz"), load_model(tmp_path / "mem.npz"))
+
+
+@pytest.fixture
+def silent_listener():
+    """A TCP port that accepts connections and never says a word."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.listen(5)
+        yield sock.getsockname()[1]
+
+
+def test_a_scheduler_that_accepts_but_never_answers_is_one_line_in_time(
+    bags, tmp_path, capsys, silent_listener
+):
+    pytest.importorskip("distributed")
+    out = tmp_path / "m.npz"
+    argv = ["fit", str(bags[0]), "-o", str(out), "--scheduler", f"tcp://127.0.0.1:{silent_listener}"]
+    start = time.perf_counter()
+    code, _, stderr = run_entry([*argv, "--scheduler-timeout", "1.5", *SMALL], capsys)
+    assert time.perf_counter() - start < 6
+    assert code == 1
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("learner: error: no Dask scheduler answers at")
+    assert f"127.0.0.1:{silent_listener}" in last and "within 1.5 s" in last
+    assert "Traceback" not in stderr and not out.exists()
+
+
+def test_a_real_scheduler_passes_the_probe_and_lost_tasks_are_one_line():
+    distributed = pytest.importorskip("distributed")
+    from learner.distributed import dask_client
+
+    with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster:
+        address = cluster.scheduler_address
+        with dask_client(scheduler=address, timeout=5) as client:
+            assert client.scheduler.address == address
+        killed = distributed.KilledWorker("fit-1", types.SimpleNamespace(address="tcp://w:1"), 3)
+        lost = [killed, distributed.client.FutureCancelledError("fit-2", reason="scheduler gone")]
+        for error in lost:
+            with pytest.raises(ConfigError) as caught, dask_client(scheduler=address):
+                raise error
+            message = str(caught.value)
+            assert message.startswith("the Dask cluster lost a task") and "\n" not in message
+        assert "'fit-1' on 4 different workers" in message or "fit-2" in message
+
+
+def test_a_cluster_with_no_workers_left_is_a_one_line_error_not_a_hang():
+    distributed = pytest.importorskip("distributed")
+    from learner.distributed import gather
+
+    with (
+        distributed.LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster, set_as_default=False) as client,
+    ):
+        assert gather(client, [client.submit(sum, [1, 2], pure=False)], poll=0.5) == [3]
+        client.retire_workers(list(client.nthreads()))
+        deadline = time.monotonic() + 10
+        while client.nthreads() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        future = client.submit(sum, [3, 4], pure=False)  # no worker will ever run it
+        start = time.perf_counter()
+        with pytest.raises(ConfigError, match="has no workers left"):
+            gather(client, [future], poll=0.5)
+        assert time.perf_counter() - start < 5
