@@ -241,3 +241,42 @@ def test_a_cluster_with_no_workers_left_is_a_one_line_error_not_a_hang():
         with pytest.raises(ConfigError, match="has no workers left"):
             gather(client, [future], poll=0.5)
         assert time.perf_counter() - start < 5
+
+
+def test_workers_option_writes_the_streamed_model(bags, tmp_path, capfd):
+    pytest.importorskip("distributed")
+    common = ["fit", *map(str, bags), *SMALL]
+    code, _, stderr = run_entry([*common, "-o", str(tmp_path / "s.npz"), "--stream"], capfd)
+    assert code == 0, stderr
+    argv = [*common, "-o", str(tmp_path / "d.npz"), "--workers", "1"]
+    code, stdout, stderr = run_entry(argv, capfd)
+    assert code == 0, stderr
+    assert "connecting to a local cluster of 1 worker(s)" in stderr
+    assert "1200 steps, 2 segment(s), 399 episodes" in stdout
+    model = load_model(tmp_path / "d.npz")
+    assert model.fit_info["streamed"]["engine"].startswith("dask, 1 worker(s)")
+    assert_same(model, load_model(tmp_path / "s.npz"))
+
+
+def test_a_bag_that_vanishes_under_dask_is_one_line_without_worker_tracebacks(
+    bags, tmp_path, capfd, monkeypatch
+):
+    pytest.importorskip("distributed")
+    import learner.fit
+
+    doomed = tmp_path / "doomed"
+    shutil.copytree(bags[1], doomed)
+    visible = learner.fit.check_bags_visible
+
+    def check_then_delete(client, paths):  # the bag goes after the check, before pass 1
+        visible(client, paths)
+        shutil.rmtree(doomed)
+
+    monkeypatch.setattr(learner.fit, "check_bags_visible", check_then_delete)
+    out = tmp_path / "m.npz"
+    argv = ["fit", str(bags[0]), str(doomed), "-o", str(out), "--workers", "1", *SMALL]
+    code, _, stderr = run_entry(argv, capfd)
+    assert code == 1 and not out.exists()
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("learner: error:") and str(doomed) in last
+    assert "Traceback" not in stderr and "Compute Failed" not in stderr
