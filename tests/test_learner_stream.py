@@ -222,25 +222,19 @@ def test_a_real_scheduler_passes_the_probe_and_lost_tasks_are_one_line():
 
 
 def test_a_cluster_with_no_workers_left_is_a_one_line_error_not_a_hang():
+    """Dask would wait for new workers forever (e.g. every remote worker disconnected)."""
     distributed = pytest.importorskip("distributed")
     from learner.distributed import gather
 
     with (
-        distributed.LocalCluster(
-            n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
-        ) as cluster,
+        distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster,
         distributed.Client(cluster, set_as_default=False) as client,
     ):
-        assert gather(client, [client.submit(sum, [1, 2], pure=False)], poll=0.5) == [3]
-        client.retire_workers(list(client.nthreads()))
-        deadline = time.monotonic() + 10
-        while client.nthreads() and time.monotonic() < deadline:
-            time.sleep(0.05)
         future = client.submit(sum, [3, 4], pure=False)  # no worker will ever run it
         start = time.perf_counter()
-        with pytest.raises(ConfigError, match="has no workers left"):
+        with pytest.raises(ConfigError, match="has no workers left") as caught:
             gather(client, [future], poll=0.5)
-        assert time.perf_counter() - start < 5
+        assert time.perf_counter() - start < 5 and "\n" not in str(caught.value)
 
 
 def test_workers_option_writes_the_streamed_model(bags, tmp_path, capfd):
