@@ -1,18 +1,22 @@
 """The streamed TPSR fit on a Dask cluster (``learner fit --workers N`` / ``--scheduler ADDR``).
 
 :class:`DaskEngine` runs the passes of :func:`tpsr_ros.core.streamed_fit.fit_tpsr_streamed`
-as ``dask.distributed`` tasks:
+as ``dask.distributed`` tasks. Workers read the bags themselves, from the same paths, and
+what they compute stays on them as futures; the client receives sums:
 
-- pass 1 and pass 2: one task per bag (segments never cross bags, so each bag's episodes
-  are its own). Workers read the bags themselves, from the same paths, so only the results
-  travel: pass 1 the moments (two ``k x k`` scatters and one more per bag, e.g. 3 x 4.7 MB
-  for 16x16 RGB), merged as a binary tree of tasks; pass 2 each bag's whitened rows
-  (~30 floats per episode), written into the client's memory maps in bag order, so 'first'
-  centres are the first episodes of the first bag;
-- the feature sums: the training rows split into a few parts per worker, one task each,
-  reduced as a tree. ``P_TH`` partial sums travel only while ``P_TH`` is at most
-  :data:`MAX_SHIPPED_P_TH_BYTES`; larger ones (thousands of centres) are summed in the
-  client's process, in place.
+- pass 1: one task per bag (segments never cross bags, so each bag's episodes are its
+  own); the moments (two ``k x k`` scatters and one more per bag, e.g. 3 x 4.7 MB for
+  16x16 RGB) are merged as a binary tree of tasks and only the total is fetched;
+- pass 2: one task per bag; each bag's whitened rows (~30 floats per episode) **stay on
+  its worker**. The client fetches only each bag's episode count and the rows kernel
+  centres are chosen from: for 'first' centres the first ``max(l_H, l_O)`` episodes in
+  bag order (client memory independent of the data), for k-means every row (the
+  client runs k-means on all of them, as the in-memory fit does);
+- the feature sums (action counts, ``P_H``/``P_TH``, the per-action ``B`` sums): tasks on
+  slices of those futures, a few per worker, reduced as a tree. ``P_TH`` partial sums
+  travel only while ``P_TH`` is at most :data:`MAX_SHIPPED_P_TH_BYTES`; for larger ones
+  (thousands of centres) each bag's training rows are fetched in turn and summed into one
+  ``P_TH`` in the client, in place (a worker's and a tree's copies of 3 GB would not fit).
 
 With ``max_episodes`` the first pass counts each bag's episodes and re-reads the bag where
 the limit falls with its share; later bags are left out.
@@ -211,6 +215,38 @@ def _count(moments: EpisodeMoments | None) -> int:
     return 0 if moments is None else moments.episodes
 
 
+def _length(rows: WhitenedRows | None) -> int:
+    return 0 if rows is None else len(rows)
+
+
+def _slice(rows: WhitenedRows, start: int, stop: int) -> WhitenedRows:
+    return rows.rows(start, stop).copy()
+
+
+def _action_counts(rows: WhitenedRows, start: int, stop: int, n_actions: int) -> np.ndarray:
+    return np.bincount(rows.actions[start:stop], minlength=n_actions)
+
+
+def _p_sums(rows: WhitenedRows, start: int, stop: int, centres: Centres, cfg: TPSRConfig) -> PSums:
+    return p_sums(rows.rows(start, stop), centres, cfg)
+
+
+def _parameter_sums(
+    rows: WhitenedRows,
+    start: int,
+    stop: int,
+    shared: tuple[Centres, tuple[np.ndarray, np.ndarray, np.ndarray]],
+    cfg: TPSRConfig,
+    n_actions: int,
+) -> ActionSums:
+    centres, svd = shared
+    return parameter_sums(rows.rows(start, stop), centres, svd, cfg, n_actions)
+
+
+def _add(a: Any, b: Any) -> Any:
+    return a + b
+
+
 def _merge_psums(a: PSums, b: PSums) -> PSums:
     return a.merged(b)
 
@@ -233,7 +269,12 @@ def tree_reduce(
 
 
 class DaskEngine:
-    """Runs the streamed fit's passes on the workers of ``client`` (one task per bag)."""
+    """Runs the streamed fit's passes on the workers of ``client`` (one task per bag).
+
+    After pass 2 each bag's whitened rows are a future on a worker (:attr:`keeps_rows`).
+    """
+
+    keeps_rows = True
 
     def __init__(
         self,
@@ -251,6 +292,8 @@ class DaskEngine:
         self.description = f"dask, {self.n_workers} worker(s) at {client.scheduler.address}"
         self._limits: list[int | None] = []
         self._counts: list[int] = []
+        self._rows: list[tuple[Any, int, int]] = []
+        """Pass 2: each bag's whitened rows (a future) with its first episode and count."""
 
     def moments(self, history_length: int, test_length: int, max_episodes: int | None) -> Any:
         """Pass 1: one task per bag, counts fetched, moments merged as a tree."""
@@ -282,65 +325,85 @@ class DaskEngine:
         max_episodes: int | None,
         store: WhitenedStore,
     ) -> None:
-        """Pass 2: one task per bag; each bag's rows go to its place in ``store``."""
+        """Pass 2: one task per bag, rows kept on the workers; ``store`` gets the first rows."""
         shared = self.client.scatter(whitenings, broadcast=True, hash=False)
         offsets = np.concatenate([[0], np.cumsum(self._counts)]).astype(int)
-        futures = {
+        kept = [i for i in range(len(self.bags)) if self._counts[i] > 0]
+        futures = [
             self.client.submit(
-                _bag_whitened, self.reader, bag, shared, cfg, self._limits[i], pure=False
-            ): i
-            for i, bag in enumerate(self.bags)
-            if self._counts[i] > 0
-        }
-        for future, i in futures.items():  # all run at once; fetched in bag order
-            rows = result(self.client, future, self.poll)
-            got = 0 if rows is None else len(rows)
+                _bag_whitened, self.reader, self.bags[i], shared, cfg, self._limits[i], pure=False
+            )
+            for i in kept
+        ]
+        lengths = gather(
+            self.client, [self.client.submit(_length, f, pure=False) for f in futures], self.poll
+        )
+        for i, got in zip(kept, lengths, strict=True):
             if got != self._counts[i]:
                 raise DataError(
                     f"bag {self.bags[i]!r} gave {got} episodes in the second pass and "
                     f"{self._counts[i]} in the first (did it change during the fit?)"
                 )
-            store.write(int(offsets[i]), rows)
+        self._rows = [
+            (future, int(offsets[i]), self._counts[i])
+            for future, i in zip(futures, kept, strict=True)
+        ]
+        for future, first, count in self._rows:  # one bag at a time, in bag order
+            wanted = min(count, store.n_episodes - first)
+            if wanted <= 0:
+                break
+            part = self.client.submit(_slice, future, 0, wanted, pure=False)
+            store.write(first, result(self.client, part, self.poll))
 
-    def _parts(self, rows: WhitenedRows, n_features: int) -> list[WhitenedRows]:
-        size = max(block_rows(n_features), -(-len(rows) // (2 * self.n_workers)))
-        return [rows.rows(a, a + size).copy() for a in range(0, len(rows), size)]
+    def _ranges(self, start: int, n_features: int) -> list[tuple[Any, int, int]]:
+        """Slices ``(future, a, b)`` of the rows ``start:``, a few per worker."""
+        total = sum(count for _, _, count in self._rows) - start
+        size = max(block_rows(n_features), -(-total // (2 * self.n_workers)))
+        ranges = []
+        for future, first, count in self._rows:
+            for a in range(max(0, start - first), count, size):
+                ranges.append((future, a, min(a + size, count)))
+        return ranges
 
-    def p_sums(self, rows: WhitenedRows, centres: Centres, cfg: TPSRConfig) -> PSums:
-        """Eqs. 3.1-3.2 sums: parts of the rows on the workers, or here for a huge ``P_TH``."""
+    def action_counts(self, store: WhitenedStore, start: int, n_actions: int) -> np.ndarray:
+        """Training episodes per action, counted on the workers."""
+        futures = [
+            self.client.submit(_action_counts, future, a, b, n_actions, pure=False)
+            for future, a, b in self._ranges(start, 1)
+        ]
+        return tree_reduce(self.client, futures, _add, self.poll)
+
+    def p_sums(self, store: WhitenedStore, start: int, centres: Centres, cfg: TPSRConfig) -> PSums:
+        """Eqs. 3.1-3.2 sums on the workers (or here, bag by bag, for a huge ``P_TH``)."""
         n_t, n_h = centres.test.shape[0] + 1, centres.history.shape[0] + 1
+        ranges = self._ranges(start, max(n_t, n_h))
         if n_t * n_h * 8 > MAX_SHIPPED_P_TH_BYTES:
-            return p_sums(rows, centres, cfg)
+            sums = PSums.zeros(n_t, n_h)
+            for future, a, b in ranges:  # the rows come here, one slice at a time
+                part = self.client.submit(_slice, future, a, b, pure=False)
+                p_sums(result(self.client, part, self.poll), centres, cfg, into=sums)
+            return sums
         shared = self.client.scatter(centres, broadcast=True, hash=False)
         futures = [
-            self.client.submit(p_sums, part, shared, cfg, pure=False)
-            for part in self._parts(rows, max(n_t, n_h))
+            self.client.submit(_p_sums, future, a, b, shared, cfg, pure=False)
+            for future, a, b in ranges
         ]
         return tree_reduce(self.client, futures, _merge_psums, self.poll)
 
     def parameter_sums(
         self,
-        rows: WhitenedRows,
+        store: WhitenedStore,
+        start: int,
         centres: Centres,
         svd: tuple[np.ndarray, np.ndarray, np.ndarray],
         cfg: TPSRConfig,
         n_actions: int,
     ) -> ActionSums:
-        """Eqs. 3.3 and 3.7 sums over parts of the rows on the workers."""
+        """Eqs. 3.3 and 3.7 sums on the workers, reduced as a tree."""
         shared = self.client.scatter((centres, svd), broadcast=True, hash=False)
         widest = max(centres.test.shape[0], centres.history.shape[0]) + 1
         futures = [
-            self.client.submit(_parameter_sums, part, shared, cfg, n_actions, pure=False)
-            for part in self._parts(rows, widest)
+            self.client.submit(_parameter_sums, future, a, b, shared, cfg, n_actions, pure=False)
+            for future, a, b in self._ranges(start, widest)
         ]
         return tree_reduce(self.client, futures, _merge_action_sums, self.poll)
-
-
-def _parameter_sums(
-    rows: WhitenedRows,
-    shared: tuple[Centres, tuple[np.ndarray, np.ndarray, np.ndarray]],
-    cfg: TPSRConfig,
-    n_actions: int,
-) -> ActionSums:
-    centres, svd = shared
-    return parameter_sums(rows, centres, svd, cfg, n_actions)

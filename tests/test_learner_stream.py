@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import socket
 import time
@@ -77,9 +78,13 @@ def test_streamed_pca_baseline_equals_fit_pca(bags):
         assert np.abs(a - b).max() <= 1e-9 * np.abs(b).max(), name
 
 
-def test_dask_local_cluster_equals_one_process(bags, reference):
+def test_dask_local_cluster_equals_one_process(bags, reference, monkeypatch):
+    """Rows stay on the workers: the client holds only the 'first' centres' rows."""
     distributed = pytest.importorskip("distributed")
+    import learner.distributed
     from learner.distributed import DaskEngine, check_bags_visible
+
+    kmeans = dataclasses.replace(CONFIG, center_selection="kmeans")
 
     reader = BagChunks(chunk_steps=512)
     with (
@@ -92,12 +97,22 @@ def test_dask_local_cluster_equals_one_process(bags, reference):
         engine = DaskEngine(client, bags, reader)
         model = fit_tpsr_streamed(engine, config=CONFIG)
         limited = fit_tpsr_streamed(engine, config=CONFIG, max_episodes=230)  # bag b left out
+        with_kmeans = fit_tpsr_streamed(engine, config=kmeans)  # the client gathers every row
+        monkeypatch.setattr(learner.distributed, "MAX_SHIPPED_P_TH_BYTES", 0)
+        p_th_here = fit_tpsr_streamed(engine, config=CONFIG)  # P_TH summed in the client
         with pytest.raises(ConfigError, match=r"cannot see bag\(s\)"):
             check_bags_visible(client, [*bags, bags[0].parent / "elsewhere"])
     assert model.fit_info["streamed"]["engine"].startswith("dask, 2 worker(s)")
     assert_same(model, reference)
     one_process = fit_tpsr_streamed(lambda: reader.read_all(bags), config=CONFIG)
     assert_same(model, one_process)
+    assert_same(p_th_here, one_process)
+    row_bytes = one_process.fit_info["streamed"]["scratch_bytes"] // 399  # 248: 3 x 10 + 1
+    assert row_bytes == 8 * (3 * 10 + 1)
+    centre_rows = max(CONFIG.ht_centers, CONFIG.obs_centers)
+    assert model.fit_info["streamed"]["scratch_bytes"] == centre_rows * row_bytes
+    assert with_kmeans.fit_info["streamed"]["scratch_bytes"] == 399 * row_bytes
+    assert_same(with_kmeans, fit_tpsr_streamed(lambda: reader.read_all(bags), config=kmeans))
     first_230 = make_episodes(read_trajectory(bags), 1, 1, max_episodes=230)
     assert_same(limited, fit_tpsr_episodes(first_230, config=CONFIG))
 
