@@ -115,7 +115,7 @@ def dask_client(
             try:
                 asyncio.run(_probe(scheduler, timeout))
                 client = distributed.Client(scheduler, timeout=f"{timeout}s", set_as_default=False)
-            except (OSError, TimeoutError, ValueError) as exc:
+            except (OSError, TimeoutError, asyncio.TimeoutError, ValueError) as exc:
                 raise ConfigError(
                     f"no Dask scheduler answers at {scheduler!r} within {timeout:g} s "
                     f"({_first_line(exc)})"
@@ -151,7 +151,7 @@ def wait_for(client: Any, futures: Sequence[Any], poll: float = DEFAULT_TIMEOUT)
             with client.as_current():
                 distributed.wait(list(futures), timeout=poll)
             return
-        except TimeoutError:
+        except distributed.TimeoutError:  # asyncio's, not the builtin, on Python 3.10
             if not client.nthreads():
                 raise ConfigError(
                     f"the Dask scheduler at {client.scheduler.address} has no workers left "
