@@ -5,9 +5,11 @@ speedup of 2 local Dask workers over 1, and fit time and peak memory at 1 000 / 
 Data: synthetic bags tiled from one real 24 000-step simulated run with perturbed pixels
 (``benchmarks/synthetic_bags.py``; good for timing and memory, not for model quality), in
 bags of 25 000 steps. Every fit is ``learner fit --stream`` (or ``--workers N``) in a child
-process; its peak RSS is the child's ``ru_maxrss`` (``os.wait4``), which for ``--workers``
-covers only the client process, not the workers. The machine is shared: the load average
-is printed with every figure. ``SCALE_MAX_STEPS`` (default 1000000) caps the largest run.
+process; its peak RSS is the child's ``ru_maxrss`` (``os.wait4``). That figure is the
+largest of the child and the descendants it reaped, so for ``--workers`` it is the max of
+the client and the LocalCluster's worker processes, not the client alone. The machine is
+shared: the load average is printed with every figure. ``SCALE_MAX_STEPS`` (default
+1000000) caps the largest run.
 """
 
 from __future__ import annotations
@@ -86,8 +88,8 @@ def _dask(root: Path, bags: list[Path]) -> None:
         results[workers] = (seconds, sum(timings.values()), timings)
         print(
             f"  Dask, {workers} local worker(s), {len(bags)} bags: {seconds:.1f} s wall (incl. "
-            f"cluster start), stages {results[workers][1]:.1f} s; client RSS {rss:,.0f} MiB; "
-            f"{_load()}",
+            f"cluster start), stages {results[workers][1]:.1f} s; peak RSS (max of client "
+            f"and workers) {rss:,.0f} MiB; {_load()}",
             flush=True,
         )
         print(f"    stages: {_stages(timings)}", flush=True)

@@ -1,18 +1,22 @@
 """The streamed TPSR fit on a Dask cluster (``learner fit --workers N`` / ``--scheduler ADDR``).
 
 :class:`DaskEngine` runs the passes of :func:`tpsr_ros.core.streamed_fit.fit_tpsr_streamed`
-as ``dask.distributed`` tasks:
+as ``dask.distributed`` tasks. Workers read the bags themselves, from the same paths, and
+what they compute stays on them as futures; the client receives sums:
 
-- pass 1 and pass 2: one task per bag (segments never cross bags, so each bag's episodes
-  are its own). Workers read the bags themselves, from the same paths, so only the results
-  travel: pass 1 the moments (two ``k x k`` scatters and one more per bag, e.g. 3 x 4.7 MB
-  for 16x16 RGB), merged as a binary tree of tasks; pass 2 each bag's whitened rows
-  (~30 floats per episode), written into the client's memory maps in bag order, so 'first'
-  centres are the first episodes of the first bag;
-- the feature sums: the training rows split into a few parts per worker, one task each,
-  reduced as a tree. ``P_TH`` partial sums travel only while ``P_TH`` is at most
-  :data:`MAX_SHIPPED_P_TH_BYTES`; larger ones (thousands of centres) are summed in the
-  client's process, in place.
+- pass 1: one task per bag (segments never cross bags, so each bag's episodes are its
+  own); the moments (two ``k x k`` scatters and one more per bag, e.g. 3 x 4.7 MB for
+  16x16 RGB) are merged as a binary tree of tasks and only the total is fetched;
+- pass 2: one task per bag; each bag's whitened rows (~30 floats per episode) **stay on
+  its worker**. The client fetches only each bag's episode count and the rows kernel
+  centres are chosen from: for 'first' centres the first ``max(l_H, l_O)`` episodes in
+  bag order (client memory independent of the data), for k-means every row (the
+  client runs k-means on all of them, as the in-memory fit does);
+- the feature sums (action counts, ``P_H``/``P_TH``, the per-action ``B`` sums): tasks on
+  slices of those futures, a few per worker, reduced as a tree. ``P_TH`` partial sums
+  travel only while ``P_TH`` is at most :data:`MAX_SHIPPED_P_TH_BYTES`; for larger ones
+  (thousands of centres) each bag's training rows are fetched in turn and summed into one
+  ``P_TH`` in the client, in place (a worker's and a tree's copies of 3 GB would not fit).
 
 With ``max_episodes`` the first pass counts each bag's episodes and re-reads the bag where
 the limit falls with its share; later bags are left out.
@@ -20,9 +24,11 @@ the limit falls with its share; later bags are left out.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import CancelledError
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -47,7 +53,16 @@ from tpsr_ros.core.streamed_fit import (
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.io.bag_chunks import BagChunks
 
-__all__ = ["MAX_SHIPPED_P_TH_BYTES", "DaskEngine", "check_bags_visible", "dask_client"]
+__all__ = [
+    "MAX_SHIPPED_P_TH_BYTES",
+    "DaskEngine",
+    "check_bags_visible",
+    "dask_client",
+    "gather",
+    "result",
+    "tree_reduce",
+    "wait_for",
+]
 
 MAX_SHIPPED_P_TH_BYTES = 256 * 2**20
 DEFAULT_TIMEOUT = 10.0
@@ -65,25 +80,45 @@ def _distributed() -> Any:
     return distributed
 
 
+async def _probe(address: str, timeout: float) -> None:
+    """Open and close one comm to ``address``, the whole handshake bounded by ``timeout``.
+
+    ``distributed.Client(address, timeout=...)`` bounds only the TCP connect: a listener that
+    accepts and never answers would hold it forever.
+    """
+    import distributed.comm
+
+    comm = await asyncio.wait_for(distributed.comm.connect(address, timeout=timeout), timeout)
+    await comm.close()
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
 @contextlib.contextmanager
 def dask_client(
     *, scheduler: str | None = None, workers: int | None = None, timeout: float = DEFAULT_TIMEOUT
 ) -> Iterator[Any]:
     """Yield a ``distributed.Client`` of the scheduler at ``scheduler`` or of a local cluster.
 
-    A scheduler that does not answer within ``timeout`` seconds is a one-line ``ConfigError``.
-    The local cluster has ``workers`` processes of one thread each. On exit the client (and
-    the local cluster) close; a worker lost mid-fit becomes a one-line ``ConfigError``.
+    A scheduler that does not answer within ``timeout`` seconds (no connection, or a
+    connection with no handshake) is a one-line ``ConfigError``. The local cluster has
+    ``workers`` processes of one thread each, with worker logs silenced below CRITICAL (a
+    failed task is reported once, by the client, as one line). On exit the client (and the
+    local cluster) close; a task lost with its worker becomes a one-line ``ConfigError``.
     """
     distributed = _distributed()
     with contextlib.ExitStack() as stack:
         if scheduler is not None:
             try:
+                asyncio.run(_probe(scheduler, timeout))
                 client = distributed.Client(scheduler, timeout=f"{timeout}s", set_as_default=False)
-            except (OSError, TimeoutError, ValueError) as exc:
-                reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            except (OSError, TimeoutError, asyncio.TimeoutError, ValueError) as exc:
                 raise ConfigError(
-                    f"no Dask scheduler answers at {scheduler!r} within {timeout:g} s ({reason})"
+                    f"no Dask scheduler answers at {scheduler!r} within {timeout:g} s "
+                    f"({_first_line(exc)})"
                 ) from None
         else:
             cluster = stack.enter_context(
@@ -92,15 +127,48 @@ def dask_client(
                     threads_per_worker=1,
                     processes=True,
                     dashboard_address=None,
-                    silence_logs=logging.ERROR,
+                    silence_logs=logging.CRITICAL,
                 )
             )
             client = distributed.Client(cluster, set_as_default=False)
         stack.callback(client.close)
         try:
             yield client
-        except (distributed.client.FutureCancelledError, distributed.KilledWorker) as exc:
-            raise ConfigError(f"the Dask cluster lost a task: {exc}") from None
+        except (CancelledError, distributed.KilledWorker) as exc:
+            first_sentence = _first_line(exc).split(". ")[0].rstrip(".")
+            raise ConfigError(f"the Dask cluster lost a task: {first_sentence}") from None
+
+
+def wait_for(client: Any, futures: Sequence[Any], poll: float = DEFAULT_TIMEOUT) -> None:
+    """Wait until ``futures`` are done; a cluster left with no workers is a ``ConfigError``.
+
+    Dask waits for new workers forever when every worker has gone; this checks the
+    scheduler every ``poll`` seconds instead.
+    """
+    distributed = _distributed()
+    while True:
+        try:
+            with client.as_current():
+                distributed.wait(list(futures), timeout=poll)
+            return
+        except distributed.TimeoutError:  # asyncio's, not the builtin, on Python 3.10
+            if not client.nthreads():
+                raise ConfigError(
+                    f"the Dask scheduler at {client.scheduler.address} has no workers left "
+                    "(tasks would wait for new workers forever)"
+                ) from None
+
+
+def result(client: Any, future: Any, poll: float = DEFAULT_TIMEOUT) -> Any:
+    """``future.result()`` after :func:`wait_for`."""
+    wait_for(client, [future], poll)
+    return future.result()
+
+
+def gather(client: Any, futures: Sequence[Any], poll: float = DEFAULT_TIMEOUT) -> list[Any]:
+    """``client.gather(futures)`` after :func:`wait_for`."""
+    wait_for(client, futures, poll)
+    return client.gather(list(futures))  # type: ignore[no-any-return]
 
 
 def _missing(bags: Sequence[str]) -> list[str]:
@@ -147,6 +215,38 @@ def _count(moments: EpisodeMoments | None) -> int:
     return 0 if moments is None else moments.episodes
 
 
+def _length(rows: WhitenedRows | None) -> int:
+    return 0 if rows is None else len(rows)
+
+
+def _slice(rows: WhitenedRows, start: int, stop: int) -> WhitenedRows:
+    return rows.rows(start, stop).copy()
+
+
+def _action_counts(rows: WhitenedRows, start: int, stop: int, n_actions: int) -> np.ndarray:
+    return np.bincount(rows.actions[start:stop], minlength=n_actions)
+
+
+def _p_sums(rows: WhitenedRows, start: int, stop: int, centres: Centres, cfg: TPSRConfig) -> PSums:
+    return p_sums(rows.rows(start, stop), centres, cfg)
+
+
+def _parameter_sums(
+    rows: WhitenedRows,
+    start: int,
+    stop: int,
+    shared: tuple[Centres, tuple[np.ndarray, np.ndarray, np.ndarray]],
+    cfg: TPSRConfig,
+    n_actions: int,
+) -> ActionSums:
+    centres, svd = shared
+    return parameter_sums(rows.rows(start, stop), centres, svd, cfg, n_actions)
+
+
+def _add(a: Any, b: Any) -> Any:
+    return a + b
+
+
 def _merge_psums(a: PSums, b: PSums) -> PSums:
     return a.merged(b)
 
@@ -155,7 +255,9 @@ def _merge_action_sums(a: ActionSums, b: ActionSums) -> ActionSums:
     return a.merged(b)
 
 
-def tree_reduce(client: Any, futures: list[Any], combine: Callable[[T, T], T]) -> T:
+def tree_reduce(
+    client: Any, futures: list[Any], combine: Callable[[T, T], T], poll: float = DEFAULT_TIMEOUT
+) -> T:
     """Combine ``futures`` pairwise on the cluster, level by level, and fetch the result."""
     if not futures:
         raise ConfigError("nothing to reduce")
@@ -163,20 +265,35 @@ def tree_reduce(client: Any, futures: list[Any], combine: Callable[[T, T], T]) -
         pairs = zip(futures[::2], futures[1::2], strict=False)
         merged = [client.submit(combine, a, b, pure=False) for a, b in pairs]
         futures = merged + ([futures[-1]] if len(futures) % 2 else [])
-    return futures[0].result()  # type: ignore[no-any-return]
+    return result(client, futures[0], poll)  # type: ignore[no-any-return]
 
 
 class DaskEngine:
-    """Runs the streamed fit's passes on the workers of ``client`` (one task per bag)."""
+    """Runs the streamed fit's passes on the workers of ``client`` (one task per bag).
 
-    def __init__(self, client: Any, bags: Sequence[Path | str], reader: BagChunks) -> None:
+    After pass 2 each bag's whitened rows are a future on a worker (:attr:`keeps_rows`).
+    """
+
+    keeps_rows = True
+
+    def __init__(
+        self,
+        client: Any,
+        bags: Sequence[Path | str],
+        reader: BagChunks,
+        poll: float = DEFAULT_TIMEOUT,
+    ) -> None:
         self.client = client
+        self.poll = poll
+        """Seconds between checks that the cluster still has workers."""
         self.bags = [str(Path(bag).absolute()) for bag in bags]
         self.reader = reader
         self.n_workers = max(1, len(client.scheduler_info().get("workers", {})))
         self.description = f"dask, {self.n_workers} worker(s) at {client.scheduler.address}"
         self._limits: list[int | None] = []
         self._counts: list[int] = []
+        self._rows: list[tuple[Any, int, int]] = []
+        """Pass 2: each bag's whitened rows (a future) with its first episode and count."""
 
     def moments(self, history_length: int, test_length: int, max_episodes: int | None) -> Any:
         """Pass 1: one task per bag, counts fetched, moments merged as a tree."""
@@ -185,7 +302,7 @@ class DaskEngine:
         futures = [
             submit(_bag_moments, self.reader, bag, m, n, None, pure=False) for bag in self.bags
         ]
-        counts = self.client.gather([submit(_count, f, pure=False) for f in futures])
+        counts = gather(self.client, [submit(_count, f, pure=False) for f in futures], self.poll)
         limits: list[int | None] = [None] * len(self.bags)
         if max_episodes is not None:
             remaining = max_episodes
@@ -199,7 +316,7 @@ class DaskEngine:
                 remaining -= counts[i]
         self._limits, self._counts = limits, counts
         kept = [f for f, c in zip(futures, counts, strict=True) if c > 0]
-        return tree_reduce(self.client, kept, merge_moments) if kept else None
+        return tree_reduce(self.client, kept, merge_moments, self.poll) if kept else None
 
     def whiten(
         self,
@@ -208,65 +325,85 @@ class DaskEngine:
         max_episodes: int | None,
         store: WhitenedStore,
     ) -> None:
-        """Pass 2: one task per bag; each bag's rows go to its place in ``store``."""
+        """Pass 2: one task per bag, rows kept on the workers; ``store`` gets the first rows."""
         shared = self.client.scatter(whitenings, broadcast=True, hash=False)
         offsets = np.concatenate([[0], np.cumsum(self._counts)]).astype(int)
-        futures = {
+        kept = [i for i in range(len(self.bags)) if self._counts[i] > 0]
+        futures = [
             self.client.submit(
-                _bag_whitened, self.reader, bag, shared, cfg, self._limits[i], pure=False
-            ): i
-            for i, bag in enumerate(self.bags)
-            if self._counts[i] > 0
-        }
-        for future, i in futures.items():  # all run at once; fetched in bag order
-            rows = future.result()
-            got = 0 if rows is None else len(rows)
+                _bag_whitened, self.reader, self.bags[i], shared, cfg, self._limits[i], pure=False
+            )
+            for i in kept
+        ]
+        lengths = gather(
+            self.client, [self.client.submit(_length, f, pure=False) for f in futures], self.poll
+        )
+        for i, got in zip(kept, lengths, strict=True):
             if got != self._counts[i]:
                 raise DataError(
                     f"bag {self.bags[i]!r} gave {got} episodes in the second pass and "
                     f"{self._counts[i]} in the first (did it change during the fit?)"
                 )
-            store.write(int(offsets[i]), rows)
+        self._rows = [
+            (future, int(offsets[i]), self._counts[i])
+            for future, i in zip(futures, kept, strict=True)
+        ]
+        for future, first, count in self._rows:  # one bag at a time, in bag order
+            wanted = min(count, store.n_episodes - first)
+            if wanted <= 0:
+                break
+            part = self.client.submit(_slice, future, 0, wanted, pure=False)
+            store.write(first, result(self.client, part, self.poll))
 
-    def _parts(self, rows: WhitenedRows, n_features: int) -> list[WhitenedRows]:
-        size = max(block_rows(n_features), -(-len(rows) // (2 * self.n_workers)))
-        return [rows.rows(a, a + size).copy() for a in range(0, len(rows), size)]
+    def _ranges(self, start: int, n_features: int) -> list[tuple[Any, int, int]]:
+        """Slices ``(future, a, b)`` of the rows ``start:``, a few per worker."""
+        total = sum(count for _, _, count in self._rows) - start
+        size = max(block_rows(n_features), -(-total // (2 * self.n_workers)))
+        ranges = []
+        for future, first, count in self._rows:
+            for a in range(max(0, start - first), count, size):
+                ranges.append((future, a, min(a + size, count)))
+        return ranges
 
-    def p_sums(self, rows: WhitenedRows, centres: Centres, cfg: TPSRConfig) -> PSums:
-        """Eqs. 3.1-3.2 sums: parts of the rows on the workers, or here for a huge ``P_TH``."""
+    def action_counts(self, store: WhitenedStore, start: int, n_actions: int) -> np.ndarray:
+        """Training episodes per action, counted on the workers."""
+        futures = [
+            self.client.submit(_action_counts, future, a, b, n_actions, pure=False)
+            for future, a, b in self._ranges(start, 1)
+        ]
+        return tree_reduce(self.client, futures, _add, self.poll)
+
+    def p_sums(self, store: WhitenedStore, start: int, centres: Centres, cfg: TPSRConfig) -> PSums:
+        """Eqs. 3.1-3.2 sums on the workers (or here, bag by bag, for a huge ``P_TH``)."""
         n_t, n_h = centres.test.shape[0] + 1, centres.history.shape[0] + 1
+        ranges = self._ranges(start, max(n_t, n_h))
         if n_t * n_h * 8 > MAX_SHIPPED_P_TH_BYTES:
-            return p_sums(rows, centres, cfg)
+            sums = PSums.zeros(n_t, n_h)
+            for future, a, b in ranges:  # the rows come here, one slice at a time
+                part = self.client.submit(_slice, future, a, b, pure=False)
+                p_sums(result(self.client, part, self.poll), centres, cfg, into=sums)
+            return sums
         shared = self.client.scatter(centres, broadcast=True, hash=False)
         futures = [
-            self.client.submit(p_sums, part, shared, cfg, pure=False)
-            for part in self._parts(rows, max(n_t, n_h))
+            self.client.submit(_p_sums, future, a, b, shared, cfg, pure=False)
+            for future, a, b in ranges
         ]
-        return tree_reduce(self.client, futures, _merge_psums)
+        return tree_reduce(self.client, futures, _merge_psums, self.poll)
 
     def parameter_sums(
         self,
-        rows: WhitenedRows,
+        store: WhitenedStore,
+        start: int,
         centres: Centres,
         svd: tuple[np.ndarray, np.ndarray, np.ndarray],
         cfg: TPSRConfig,
         n_actions: int,
     ) -> ActionSums:
-        """Eqs. 3.3 and 3.7 sums over parts of the rows on the workers."""
+        """Eqs. 3.3 and 3.7 sums on the workers, reduced as a tree."""
         shared = self.client.scatter((centres, svd), broadcast=True, hash=False)
         widest = max(centres.test.shape[0], centres.history.shape[0]) + 1
         futures = [
-            self.client.submit(_parameter_sums, part, shared, cfg, n_actions, pure=False)
-            for part in self._parts(rows, widest)
+            self.client.submit(_parameter_sums, future, a, b, shared, cfg, n_actions, pure=False)
+            for future, a, b in self._ranges(start, widest)
         ]
-        return tree_reduce(self.client, futures, _merge_action_sums)
-
-
-def _parameter_sums(
-    rows: WhitenedRows,
-    shared: tuple[Centres, tuple[np.ndarray, np.ndarray, np.ndarray]],
-    cfg: TPSRConfig,
-    n_actions: int,
-) -> ActionSums:
-    centres, svd = shared
-    return parameter_sums(rows, centres, svd, cfg, n_actions)
+        return tree_reduce(self.client, futures, _merge_action_sums, self.poll)

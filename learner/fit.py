@@ -225,8 +225,9 @@ def add_streamed_options(parser: argparse.ArgumentParser | argparse._ArgumentGro
         type=Path,
         default=None,
         metavar="DIR",
-        help="where a streamed fit keeps its temporary whitened episodes (~320 bytes per "
-        "episode; default: the system's temporary directory)",
+        help="where a streamed fit keeps its temporary whitened episodes (248 bytes per "
+        "episode with the default dimensions, 328 with --p-th-tests from-current; default: "
+        "the system's temporary directory)",
     )
 
 

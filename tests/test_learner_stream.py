@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import socket
+import time
+import types
 
 import numpy as np
 import pytest
@@ -83,9 +86,13 @@ def test_streamed_pca_baseline_equals_fit_pca(bags):
         assert np.abs(a - b).max() <= 1e-9 * np.abs(b).max(), name
 
 
-def test_dask_local_cluster_equals_one_process(bags, reference):
+def test_dask_local_cluster_equals_one_process(bags, reference, monkeypatch):
+    """Rows stay on the workers: the client holds only the 'first' centres' rows."""
     distributed = pytest.importorskip("distributed")
+    import learner.distributed
     from learner.distributed import DaskEngine, check_bags_visible
+
+    kmeans = dataclasses.replace(CONFIG, center_selection="kmeans")
 
     reader = BagChunks(chunk_steps=512)
     with (
@@ -98,12 +105,22 @@ def test_dask_local_cluster_equals_one_process(bags, reference):
         engine = DaskEngine(client, bags, reader)
         model = fit_tpsr_streamed(engine, config=CONFIG)
         limited = fit_tpsr_streamed(engine, config=CONFIG, max_episodes=230)  # bag b left out
+        with_kmeans = fit_tpsr_streamed(engine, config=kmeans)  # the client gathers every row
+        monkeypatch.setattr(learner.distributed, "MAX_SHIPPED_P_TH_BYTES", 0)
+        p_th_here = fit_tpsr_streamed(engine, config=CONFIG)  # P_TH summed in the client
         with pytest.raises(ConfigError, match=r"cannot see bag\(s\)"):
             check_bags_visible(client, [*bags, bags[0].parent / "elsewhere"])
     assert model.fit_info["streamed"]["engine"].startswith("dask, 2 worker(s)")
     assert_same(model, reference)
     one_process = fit_tpsr_streamed(lambda: reader.read_all(bags), config=CONFIG)
     assert_same(model, one_process)
+    assert_same(p_th_here, one_process)
+    row_bytes = one_process.fit_info["streamed"]["scratch_bytes"] // 399  # 248: 3 x 10 + 1
+    assert row_bytes == 8 * (3 * 10 + 1)
+    centre_rows = max(CONFIG.ht_centers, CONFIG.obs_centers)
+    assert model.fit_info["streamed"]["scratch_bytes"] == centre_rows * row_bytes
+    assert with_kmeans.fit_info["streamed"]["scratch_bytes"] == 399 * row_bytes
+    assert_same(with_kmeans, fit_tpsr_streamed(lambda: reader.read_all(bags), config=kmeans))
     first_230 = make_episodes(read_trajectory(bags), 1, 1, max_episodes=230)
     assert_same(limited, fit_tpsr_episodes(first_230, config=CONFIG))
 
@@ -182,3 +199,101 @@ def test_robot_bags_stream_on_their_step_grid(bags, tmp_path, capsys):
     )
     assert code == 0, stderr
     assert_same(load_model(tmp_path / "str.npz"), load_model(tmp_path / "mem.npz"))
+
+
+@pytest.fixture
+def silent_listener():
+    """A TCP port that accepts connections and never says a word."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.listen(5)
+        yield sock.getsockname()[1]
+
+
+def test_a_scheduler_that_accepts_but_never_answers_is_one_line_in_time(
+    bags, tmp_path, capsys, silent_listener
+):
+    pytest.importorskip("distributed")
+    out = tmp_path / "m.npz"
+    argv = ["fit", str(bags[0]), "-o", str(out), "--scheduler", f"tcp://127.0.0.1:{silent_listener}"]
+    start = time.perf_counter()
+    code, _, stderr = run_entry([*argv, "--scheduler-timeout", "1.5", *SMALL], capsys)
+    assert time.perf_counter() - start < 6
+    assert code == 1
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("learner: error: no Dask scheduler answers at")
+    assert f"127.0.0.1:{silent_listener}" in last and "within 1.5 s" in last
+    assert "Traceback" not in stderr and not out.exists()
+
+
+def test_a_real_scheduler_passes_the_probe_and_lost_tasks_are_one_line():
+    distributed = pytest.importorskip("distributed")
+    from learner.distributed import dask_client
+
+    with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster:
+        address = cluster.scheduler_address
+        with dask_client(scheduler=address, timeout=5) as client:
+            assert client.scheduler.address == address
+        killed = distributed.KilledWorker("fit-1", types.SimpleNamespace(address="tcp://w:1"), 3)
+        lost = [killed, distributed.client.FutureCancelledError("fit-2", reason="scheduler gone")]
+        for error in lost:
+            with pytest.raises(ConfigError) as caught, dask_client(scheduler=address):
+                raise error
+            message = str(caught.value)
+            assert message.startswith("the Dask cluster lost a task") and "\n" not in message
+        assert "'fit-1' on 4 different workers" in message or "fit-2" in message
+
+
+def test_a_cluster_with_no_workers_left_is_a_one_line_error_not_a_hang():
+    """Dask would wait for new workers forever (e.g. every remote worker disconnected)."""
+    distributed = pytest.importorskip("distributed")
+    from learner.distributed import gather
+
+    with (
+        distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster,
+        distributed.Client(cluster, set_as_default=False) as client,
+    ):
+        future = client.submit(sum, [3, 4], pure=False)  # no worker will ever run it
+        start = time.perf_counter()
+        with pytest.raises(ConfigError, match="has no workers left") as caught:
+            gather(client, [future], poll=0.5)
+        assert time.perf_counter() - start < 5 and "\n" not in str(caught.value)
+
+
+def test_workers_option_writes_the_streamed_model(bags, tmp_path, capfd):
+    pytest.importorskip("distributed")
+    common = ["fit", *map(str, bags), *SMALL]
+    code, _, stderr = run_entry([*common, "-o", str(tmp_path / "s.npz"), "--stream"], capfd)
+    assert code == 0, stderr
+    argv = [*common, "-o", str(tmp_path / "d.npz"), "--workers", "1"]
+    code, stdout, stderr = run_entry(argv, capfd)
+    assert code == 0, stderr
+    assert "connecting to a local cluster of 1 worker(s)" in stderr
+    assert "1200 steps, 2 segment(s), 399 episodes" in stdout
+    model = load_model(tmp_path / "d.npz")
+    assert model.fit_info["streamed"]["engine"].startswith("dask, 1 worker(s)")
+    assert_same(model, load_model(tmp_path / "s.npz"))
+
+
+def test_a_bag_that_vanishes_under_dask_is_one_line_without_worker_tracebacks(
+    bags, tmp_path, capfd, monkeypatch
+):
+    pytest.importorskip("distributed")
+    import learner.fit
+
+    doomed = tmp_path / "doomed"
+    shutil.copytree(bags[1], doomed)
+    visible = learner.fit.check_bags_visible
+
+    def check_then_delete(client, paths):  # the bag goes after the check, before pass 1
+        visible(client, paths)
+        shutil.rmtree(doomed)
+
+    monkeypatch.setattr(learner.fit, "check_bags_visible", check_then_delete)
+    out = tmp_path / "m.npz"
+    argv = ["fit", str(bags[0]), str(doomed), "-o", str(out), "--workers", "1", *SMALL]
+    code, _, stderr = run_entry(argv, capfd)
+    assert code == 1 and not out.exists()
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("learner: error:") and str(doomed) in last
+    assert "Traceback" not in stderr and "Compute Failed" not in stderr

@@ -13,7 +13,7 @@ data twice:
    whitenings (Algorithm 1) come from the merged covariances.
 2. **pass 2**: every episode is whitened and only its whitened rows (``d_H + d_T + d_O``
    floats, ~30, plus ``d_T`` for ``from-current``) and current action are kept, in ``.npy``
-   memory maps in a temporary directory (:class:`WhitenedStore`).
+   memory maps in a temporary directory (:class:`WhitenedStore`; on Dask, on the workers).
 
 Then, from the store and without reading the data again: kernel centres (the first rows, or
 k-means on the whitened rows exactly as :func:`~tpsr_ros.core.features.select_centers`), the
@@ -484,9 +484,12 @@ class PSums:
         )
 
 
-def p_sums(rows: WhitenedRows, centres: Centres, cfg: TPSRConfig) -> PSums:
-    """Eqs. 3.1 and 3.2 unnormalised over ``rows``, computed block by block."""
-    sums = PSums.zeros(centres.test.shape[0] + 1, centres.history.shape[0] + 1)
+def p_sums(
+    rows: WhitenedRows, centres: Centres, cfg: TPSRConfig, into: PSums | None = None
+) -> PSums:
+    """Eqs. 3.1 and 3.2 unnormalised over ``rows``, block by block (added to ``into`` if given)."""
+    n_t, n_h = centres.test.shape[0] + 1, centres.history.shape[0] + 1
+    sums = PSums.zeros(n_t, n_h) if into is None else into
     step = block_rows(max(centres.test.shape[0], centres.history.shape[0]) + 1)
     for start in range(0, len(rows), step):
         block = rows.rows(start, start + step)
@@ -542,9 +545,17 @@ def parameter_sums(
 
 
 class StreamEngine(Protocol):
-    """Where the streamed fit's passes run (this process, or a Dask cluster)."""
+    """Where the streamed fit's passes run (this process, or a Dask cluster).
+
+    After pass 2 the engine holds every episode's whitened rows (:class:`ChunkEngine`: in
+    the fit's :class:`WhitenedStore`; Dask: on the workers) and sums over the training rows
+    ``start:`` where they are.
+    """
 
     description: str
+    keeps_rows: bool
+    """True: the engine keeps the rows itself and fills only the store's rows (those kernel
+    centres are chosen from); False: the store holds every episode."""
 
     def moments(
         self, history_length: int, test_length: int, max_episodes: int | None
@@ -558,26 +569,31 @@ class StreamEngine(Protocol):
         max_episodes: int | None,
         store: WhitenedStore,
     ) -> None:
-        """Pass 2: write every episode's whitened rows into ``store``, in order."""
+        """Pass 2: whiten every episode; write the first ``store.n_episodes`` into ``store``."""
 
-    def p_sums(self, rows: WhitenedRows, centres: Centres, cfg: TPSRConfig) -> PSums:
-        """:func:`p_sums` over ``rows`` (split and reduced as the engine likes)."""
+    def action_counts(self, store: WhitenedStore, start: int, n_actions: int) -> np.ndarray:
+        """Training episodes per action over the rows ``start:``."""
+
+    def p_sums(self, store: WhitenedStore, start: int, centres: Centres, cfg: TPSRConfig) -> PSums:
+        """:func:`p_sums` over the rows ``start:`` (split and reduced as the engine likes)."""
 
     def parameter_sums(
         self,
-        rows: WhitenedRows,
+        store: WhitenedStore,
+        start: int,
         centres: Centres,
         svd: tuple[np.ndarray, np.ndarray, np.ndarray],
         cfg: TPSRConfig,
         n_actions: int,
     ) -> ActionSums:
-        """:func:`parameter_sums` over ``rows``."""
+        """:func:`parameter_sums` over the rows ``start:``."""
 
 
 class ChunkEngine:
     """Runs every pass in this process, reading the chunks of ``source`` in order."""
 
     description = "streamed, 1 process"
+    keeps_rows = False
 
     def __init__(self, source: ChunkSource) -> None:
         if not callable(source):
@@ -607,20 +623,25 @@ class ChunkEngine:
             written += len(rows)
         check_pass_counts(written, store.n_episodes)
 
-    def p_sums(self, rows: WhitenedRows, centres: Centres, cfg: TPSRConfig) -> PSums:
+    def action_counts(self, store: WhitenedStore, start: int, n_actions: int) -> np.ndarray:
         """See :class:`StreamEngine`."""
-        return p_sums(rows, centres, cfg)
+        return np.bincount(np.asarray(store.rows(start).actions), minlength=n_actions)
+
+    def p_sums(self, store: WhitenedStore, start: int, centres: Centres, cfg: TPSRConfig) -> PSums:
+        """See :class:`StreamEngine`."""
+        return p_sums(store.rows(start), centres, cfg)
 
     def parameter_sums(
         self,
-        rows: WhitenedRows,
+        store: WhitenedStore,
+        start: int,
         centres: Centres,
         svd: tuple[np.ndarray, np.ndarray, np.ndarray],
         cfg: TPSRConfig,
         n_actions: int,
     ) -> ActionSums:
         """See :class:`StreamEngine`."""
-        return parameter_sums(rows, centres, svd, cfg, n_actions)
+        return parameter_sums(store.rows(start), centres, svd, cfg, n_actions)
 
 
 def check_pass_counts(second: int, first: int) -> None:
@@ -670,17 +691,17 @@ def fit_tpsr_streamed(
     check_enough_episodes(n_episodes, cfg)
     watch.stage("whitening")
     whitenings = Whitenings.fit(moments, cfg)
-    with WhitenedStore(n_episodes, whitenings, cfg, scratch_dir) as store:
+    first = cfg.center_selection == "first"
+    start = max(cfg.ht_centers, cfg.obs_centers) if first else 0  # first training row
+    stored = start if first and engine.keeps_rows else n_episodes  # k-means reads every row
+    with WhitenedStore(stored, whitenings, cfg, scratch_dir) as store:
         watch.stage("pass 2: whitened episodes")
         engine.whiten(whitenings, cfg, max_episodes, store)
         watch.stage("kernel centres")
         centres = _select_centres(store.rows(), cfg)
-        first = cfg.center_selection == "first"
-        train = store.rows(max(cfg.ht_centers, cfg.obs_centers) if first else 0)
-        counts = np.bincount(np.asarray(train.actions), minlength=n_actions)
-        check_action_counts(counts)
+        check_action_counts(engine.action_counts(store, start, n_actions))
         watch.stage("P-statistics")
-        sums = engine.p_sums(train, centres, cfg)
+        sums = engine.p_sums(store, start, centres, cfg)
         n_train = sums.count
         p_h = sums.history / n_train
         p_th = sums.cross
@@ -691,7 +712,7 @@ def fit_tpsr_streamed(
         del p_th
         watch.stage("parameters")
         b_star, b_inf = start_and_normaliser(p_h, s, v)
-        b_sums = engine.parameter_sums(train, centres, (u, s, v), cfg, n_actions)
+        b_sums = engine.parameter_sums(store, start, centres, (u, s, v), cfg, n_actions)
         scratch = store.nbytes
     watch.stop()
     big_b = b_sums.sums
