@@ -30,8 +30,9 @@ rejected (counted per reason, at most one warning per topic every 5 s); incomple
 duplicated, late and out-of-order messages are counted by the synchroniser; degenerate
 normalisers are recovered by the guard of :mod:`tpsr_ros.core.filtering` and counted.
 ``/diagnostics`` reports it all once a second, with the input rates, the time since each
-input last delivered (WARN when one is silent, STALE when both are) and the steps lost in
-the middleware (gaps in the simulator's stamps).
+input last delivered (WARN when one is silent, STALE when both are) and the messages lost in
+the middleware (gaps in the simulator's stamps, or what the middleware itself knows it lost:
+:meth:`~tpsr_ros.runtime.node.Subscription.get_lost_count`).
 """
 
 from __future__ import annotations
@@ -319,7 +320,6 @@ class FilterNode(Node):
         self._throttle = _Throttle(WARN_PERIOD_S)
         self._recovery_run = 0
         self._action_cache: dict[tuple[float, float], int] = {}
-        self._last_report = (time.monotonic(), 0, self._problem_counts())
         self._pending_command: tuple[int, int | None] | None = None
         self._ready_since: float | None = None
         self.commands_ready = self.policy is None
@@ -363,6 +363,7 @@ class FilterNode(Node):
         self.clock_topic = self.create_subscription(
             CLOCK_TOPIC, m.CLOCK_TYPE, self._on_clock, CLOCK_QOS, raw=True
         ).topic
+        self._last_report = (time.monotonic(), 0, self._problem_counts())
         self.create_timer(p.diagnostics_period, self.publish_diagnostics)
         if self.policy is not None:
             self._ready_timer = self.create_timer(0.01, self._check_ready)
@@ -402,8 +403,10 @@ class FilterNode(Node):
             "gaps": self.tracker.gaps,
             "recoveries": self.tracker.recoveries,
             "errors": self.errors,
-            "lost_images": self.lost["image"],
-            "lost_actions": self.lost["action"],
+            # both lower bounds of the same loss: stamp gaps (simulator streams) and what
+            # the middleware knows it lost (sequence gaps, lost-sample events)
+            "lost_images": max(self.lost["image"], self.image_sub.get_lost_count()),
+            "lost_actions": max(self.lost["action"], self.action_sub.get_lost_count()),
         }
         if self.grid is not None:
             counts["dropped"] = self.grid.images_out_of_order
