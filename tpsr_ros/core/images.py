@@ -145,8 +145,9 @@ def _shrink_rows(arr: np.ndarray, n_out: int) -> np.ndarray:
     exact integer sum of the input rows ``floor(e_i) .. floor(e_(i+1)) - 1``, less the
     fraction ``e_i - floor(e_i)`` of row ``floor(e_i)`` (it belongs to the row before), plus
     the fraction ``e_(i+1) - floor(e_(i+1))`` of row ``floor(e_(i+1))``. The same weights as
-    :func:`area_weights`, summed in another order. A band holds at most 4097 rows, so its
-    sums of 16-bit pixels fit in uint32.
+    :func:`area_weights`, summed in another order. Band sums are exact integers: uint16 when
+    they fit (8-bit pixels, bands of up to 257 rows: faster), else uint32 (a band holds at
+    most 4097 rows, so sums of 16-bit pixels fit).
     """
     count, n_in, width, channels = arr.shape
     edges = np.arange(n_out + 1) * (n_in / n_out)
@@ -154,9 +155,11 @@ def _shrink_rows(arr: np.ndarray, n_out: int) -> np.ndarray:
     first[-1] = n_in
     frac = edges - first
     frac[-1] = 0.0
+    band = int(np.max(np.diff(first)))
+    exact = np.uint16 if band * np.iinfo(arr.dtype).max <= np.iinfo(np.uint16).max else np.uint32
     sums = np.empty((count, n_out, width, channels), dtype=np.float64)
     for i in range(n_out):  # one vectorised reduction per output row (16 for 16x16)
-        sums[:, i] = arr[:, first[i] : first[i + 1]].sum(axis=1, dtype=np.uint32)
+        sums[:, i] = arr[:, first[i] : first[i + 1]].sum(axis=1, dtype=exact)
     sums -= frac[:-1, None, None] * arr[:, first[:-1]]
     inside = first[1:] < n_in
     sums[:, inside] += frac[1:][inside, None, None] * arr[:, first[1:][inside]]
