@@ -142,6 +142,33 @@ def test_a_replayed_robot_bag_gives_the_offline_states(robot):
         feed.close()
 
 
+def test_a_bad_image_loses_the_steps_that_hold_it_and_only_those(robot):
+    # Images are downsampled on arrival; one that cannot be decoded stays on the grid as
+    # a hole, so each step holding it is rejected (counted) and the others are untouched.
+    expected = offline(robot)
+    feed = RobotFeed(robot["model"])
+    bad = range(20, 24)  # a second of a 4 Hz camera: some step holds one of them
+    try:
+        images = 0
+        for topic, data in robot["inputs"]:
+            if topic == CAMERA:
+                images += 1
+                if images in bad:
+                    msg = m.deserialize(data, m.IMAGE_TYPE)
+                    msg.encoding = "yuv422"
+                    data = m.serialize(msg, m.IMAGE_TYPE)
+            feed.send(topic, data)
+        values = feed.node.diagnostics_values()
+        lost = len(expected) - len(feed.states)
+        assert lost >= 1 and values["rejected_encoding"] == lost
+        assert feed.node.ok()
+        for stamp, state in feed.states:  # the others as offline, until the hole
+            if stamp < min(set(expected) - {s for s, _ in feed.states}):
+                assert np.array_equal(state, expected[stamp]), stamp
+    finally:
+        feed.close()
+
+
 def test_with_a_policy_commands_are_codes_in_the_robots_type(robot, tmp_path):
     # a robot whose commands come in on /teleop: the node's own go out on cmd_vel
     bag = tmp_path / "teleop"

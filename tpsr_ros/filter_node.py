@@ -52,7 +52,7 @@ from tpsr_ros.core.episodes import (
     velocities_to_actions,
 )
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
-from tpsr_ros.core.images import preprocess_images
+from tpsr_ros.core.images import Preprocessing, preprocess_images
 from tpsr_ros.core.online import OnlineTracker
 from tpsr_ros.core.resample import GridStep, GridStepper
 from tpsr_ros.core.units import NS_PER_S as _NS
@@ -236,6 +236,26 @@ def _action(msg: Any, frame: str, cache: dict[tuple[float, float], int]) -> int:
         return index
     except TpsrError as exc:
         raise _Rejected("action", str(exc)) from None
+
+
+class _Frame:
+    """A camera image as the grid holds it: its observation, or why it has none."""
+
+    __slots__ = ("detail", "observation", "reason")
+
+    def __init__(self) -> None:
+        self.observation: np.ndarray | None = None
+        self.reason, self.detail = "data", "not decoded"
+
+    def reduce(self, msg: Any, msgtype: str, preprocessing: Preprocessing) -> None:
+        """Decode and preprocess ``msg`` (the offline observation, bit for bit)."""
+        try:
+            pixels = decode_image(msg, msgtype)
+            self.observation = preprocess_images(pixels[None], preprocessing)[0]
+        except MessageError as exc:
+            self.detail = str(exc)
+            is_format = "encoding" in self.detail or "format" in self.detail
+            self.reason = "encoding" if is_format else "data"
 
 
 class _Throttle:
@@ -510,26 +530,26 @@ class FilterNode(Node):
             self.grid.reset()
             self.sync.stats.time_jumps += 1
             self._reinit(f"camera time jumped back to {stamp / _NS:.3f} s")
-        steps = self.grid.add_image(stamp, msg)
+        frame = _Frame()
+        steps = self.grid.add_image(stamp, frame)
         self._last_image_arrival_ns = time.monotonic_ns()
         self._grid_steps(steps, start)
+        # Downsampled at the input, once: after this image's steps have been published
+        # (they hold the previous image), so it adds nothing to their latency, and the
+        # node keeps an observation, not the camera's megabytes.
+        frame.reduce(msg, self.image_type, self.spec.preprocessing)
 
     def _grid_steps(self, steps: list[GridStep], start: float) -> None:
         """Process the steps one image completed; they all hold the previous image."""
         if not steps:
             return
-        assert self.spec is not None
-        try:  # decoded once however many steps share the image
-            pixels = decode_image(steps[0].image, self.image_type)
-            observation = preprocess_images(pixels[None], self.spec.preprocessing)[0]
-        except MessageError as exc:
-            text = str(exc)
-            reason = "encoding" if "encoding" in text or "format" in text else "data"
+        frame: _Frame = steps[0].image
+        if frame.observation is None:
             for _ in steps:  # one rejection per step, as each step is lost
-                self._reject(self.image_topic, reason, text)
+                self._reject(self.image_topic, frame.reason, frame.detail)
             return
         for step in steps:
-            self._process(step.stamp, int(step.command), observation, start)
+            self._process(step.stamp, int(step.command), frame.observation, start)
 
     def _on_grid_command(self, data: bytes) -> None:
         assert self.grid is not None and self.spec is not None
