@@ -8,12 +8,14 @@ weights over the model's states (the node's cost does not depend on the weights)
 
 Run: ``python -m tpsr_ros.filter_node`` (model, policy, ``command_type:=twist_stamped``) in a
 child process; this process is the robot: a 1920x1080 rgb8 camera (reliable, keep-last 10)
-on a fixed 30 Hz schedule, 300 images (8 random frames, new stamps), and a command before
-each image. The node downsamples every image to 16x16 at the input and completes one
+on a fixed 30 Hz schedule, 300 images (8 random frames, new stamps), and a command half a
+period before each image. The node downsamples every image to 16x16 at the input and completes one
 step per image (the step holding the previous image), publishing its command stamped with
 the step time; the image whose stamp follows that time completed it, so latency = command
 received - that image's publish (one clock). Dropped: images that produced no command, next
-to what the node counted lost (``lost_images`` on /diagnostics). Target: p99 <= 20 ms,
+to what the node counted on /diagnostics (``lost_images``; ``command_gaps``: the image's
+step had no command in force, e.g. the command arrived after the image that needed it;
+``camera_gaps``) and its own processing time (``latency_p99_ms``). Target: p99 <= 20 ms,
 nothing dropped. Three runs per backend; the medians of their p50 and p99 are printed.
 """
 
@@ -39,6 +41,7 @@ TARGET_P99_MS = 20.0
 CAMERA = "/front_camera/image_raw"
 COMMANDS_IN = "/teleop/cmd_vel"
 TRAIN_STEPS = 6000
+_COUNTED = ("lost_images", "command_gaps", "camera_gaps")
 
 
 def train(tmp: Path) -> tuple[Path, Path]:
@@ -141,7 +144,10 @@ class FilterRun:
             raise RuntimeError(f"no command from the filter node:\n{self.child.text()}")
 
     def images(self, count: int) -> list[tuple[int, int]]:
-        """Publish ``count`` images at 30 Hz, each after a command; (stamp, sent ns) each."""
+        """Publish ``count`` images at 30 Hz, each half a period after a command.
+
+        Returns (stamp, sent perf_counter_ns) of each image.
+        """
         from tpsr_ros.io import messages as m
 
         sent = []
@@ -151,17 +157,24 @@ class FilterRun:
             frame = self.frames[(self.stamp_ns // self.period_ns) % len(self.frames)]
             data = m.serialize(m.image_msg(self.stamp_ns, frame, "front_camera"), m.IMAGE_TYPE)
             due = start + k * self.period_ns
-            while (wait := due - time.perf_counter_ns()) > 0:
-                self.node.spin_once(wait / 1e9)
-            self.teleop.publish_raw(self.command)
+            for at in (due - self.period_ns // 2, due):  # the command half a period ahead
+                while (wait := at - time.perf_counter_ns()) > 0:
+                    self.node.spin_once(wait / 1e9)
+                if at != due:
+                    self.teleop.publish_raw(self.command)
             sent.append((self.stamp_ns, time.perf_counter_ns()))
             self.camera.publish_raw(data)
             self.node.spin_once(0.0)
         return sent
 
-    def measure(self) -> tuple[np.ndarray, int, int]:
-        """One run: (latencies in ms, images without a command, lost counted by the node)."""
-        lost_before = self.lost()
+    def measure(self) -> tuple[np.ndarray, int, dict[str, float]]:
+        """One run: (latencies in ms, images without a command, the node's counters).
+
+        Counters: ``lost_images``, ``command_gaps`` and ``camera_gaps`` during the run (an
+        image without a command was lost, or its step had no command in force or came
+        after camera silence), and the node's own processing time ``latency_p99_ms``.
+        """
+        before = self.counters()
         self.commands.clear()
         sent = self.images(IMAGES)
         self.node.wait_for(lambda: len(self.commands) >= IMAGES - 1, 5)
@@ -175,14 +188,17 @@ class FilterRun:
                 latencies.append((received - sent[index][1]) / 1e6)
         # image 0 completes the step of the image before the run
         dropped = IMAGES - 1 - len(answered - {0})
-        return np.array(latencies), dropped, self.lost() - lost_before
+        after = self.counters()
+        counts = {k: after[k] - before[k] for k in _COUNTED}
+        counts["latency_p99_ms"] = after["latency_p99_ms"]
+        return np.array(latencies), dropped, counts
 
-    def lost(self) -> int:
-        """``lost_images`` in the node's latest /diagnostics report."""
+    def counters(self) -> dict[str, float]:
+        """The node's counters in its latest /diagnostics report (0 before one)."""
         for report in reversed(self.reports):
             if "lost_images" in report:
-                return int(report["lost_images"])
-        return 0
+                return {k: float(report[k]) for k in (*_COUNTED, "latency_p99_ms")}
+        return dict.fromkeys((*_COUNTED, "latency_p99_ms"), 0.0)
 
     def close(self) -> None:
         try:
@@ -212,7 +228,7 @@ def main(argv: list[str] | None = None) -> None:
             try:
                 run.connect()
                 for index in range(RUNS):
-                    ms, dropped, lost = run.measure()
+                    ms, dropped, counts = run.measure()
                     p50, p99 = np.percentile(ms, [50, 99]) if ms.size else (np.nan, np.nan)
                     p50s.append(p50)
                     p99s.append(p99)
@@ -221,7 +237,10 @@ def main(argv: list[str] | None = None) -> None:
                         f"   {backend} run {index + 1}: {IMAGES} images at {RATE_HZ:.0f} Hz, "
                         f"{ms.size} commands; p50 {p50:.2f} ms  p99 {p99:.2f} ms  max "
                         f"{ms.max() if ms.size else np.nan:.2f} ms; {dropped} images without a "
-                        f"command, {lost} counted lost by the node",
+                        f"command; the node counted {counts['lost_images']:.0f} images lost, "
+                        f"{counts['command_gaps']:.0f} steps without a command in force, "
+                        f"{counts['camera_gaps']:.0f} after camera silence; its own p99 "
+                        f"processing {counts['latency_p99_ms']:.2f} ms",
                         flush=True,
                     )
             finally:
