@@ -25,6 +25,7 @@ from tpsr_ros.core.errors import MessageError, TpsrError
 from tpsr_ros.io.messages import deserialize, serialize
 from tpsr_ros.io.qos import Durability, History, QoSProfile, Reliability
 from tpsr_ros.runtime.allocator import tune_allocator
+from tpsr_ros.runtime.fastdds_tuning import tune_fastdds
 from tpsr_ros.runtime.transport import (
     BytesCallback,
     ParameterCheck,
@@ -197,6 +198,7 @@ class RclpyTransport(Transport):
 
         self._rclpy = rclpy
         tune_allocator()
+        tune_fastdds()  # before the process's first participant; the user's settings win
         self.context = rclpy.Context()
         try:
             rclpy.init(
