@@ -51,6 +51,13 @@ def test_the_users_fast_dds_configuration_wins(tmp_path, setting):
     assert env == setting and not list(tmp_path.iterdir())
 
 
+def test_a_profile_in_the_working_directory_wins(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "DEFAULT_FASTRTPS_PROFILES.xml").write_text("<profiles/>")
+    env: dict[str, str] = {}
+    assert tune_fastdds(env, tmp_path / "out") is None and env == {}
+
+
 def test_an_unwritable_directory_changes_nothing(tmp_path):
     env: dict[str, str] = {}
     assert tune_fastdds(env, tmp_path / "missing") is None and env == {}

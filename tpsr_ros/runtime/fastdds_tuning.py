@@ -16,7 +16,8 @@ transport), loaded from ``FASTRTPS_DEFAULT_PROFILES_FILE``.
 as without it, so other hosts and other participants are reached as before) and points
 the variable at it, before the process's first ``rclpy.init``. The user's own Fast DDS
 configuration always wins: nothing is changed when a profile file or
-``FASTDDS_BUILTIN_TRANSPORTS`` is set, or another RMW is selected.
+``FASTDDS_BUILTIN_TRANSPORTS`` is set, a ``DEFAULT_FASTRTPS_PROFILES.xml`` is in the working
+directory, or another RMW is selected.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ holds two 1080p rgb8 images in flight."""
 
 PROFILE_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
 _USER_SETTINGS = (PROFILE_VARIABLE, "FASTDDS_DEFAULT_PROFILES_FILE", "FASTDDS_BUILTIN_TRANSPORTS")
+_WORKING_DIRECTORY_PROFILE = "DEFAULT_FASTRTPS_PROFILES.xml"
 
 
 def profile_xml(segment_bytes: int = SHM_SEGMENT_BYTES) -> str:
@@ -71,13 +73,16 @@ def tune_fastdds(
     """Point ``FASTRTPS_DEFAULT_PROFILES_FILE`` at our profile unless the user configured Fast DDS.
 
     Returns the profile's path, or None when nothing was changed (a profile file or
-    ``FASTDDS_BUILTIN_TRANSPORTS`` is set, ``RMW_IMPLEMENTATION`` names another RMW, or
-    the file cannot be written). Fast DDS reads the variable when the process creates its
+    ``FASTDDS_BUILTIN_TRANSPORTS`` is set, the working directory has Fast DDS's
+    ``DEFAULT_FASTRTPS_PROFILES.xml``, ``RMW_IMPLEMENTATION`` names another RMW, or the
+    file cannot be written). Fast DDS reads the variable when the process creates its
     first participant, so this must run before the first ``rclpy.init``; children inherit
     it. ``directory`` defaults to the temporary directory.
     """
     env = os.environ if environ is None else environ
     if any(env.get(name, "").strip() for name in _USER_SETTINGS):
+        return None
+    if Path(_WORKING_DIRECTORY_PROFILE).is_file():  # Fast DDS loads it when no variable is set
         return None
     if env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").strip() not in ("", "rmw_fastrtps_cpp"):
         return None
