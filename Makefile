@@ -10,10 +10,10 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	@# the ros extra (ROS 2 Jazzy wheels) exists for some Pythons only: fall back without it
-	@echo "installing tpsr-ros with its test, dds and ros (ROS 2 Jazzy wheels) extras into $(VENV)"
-	@$(PY) -m pip install --quiet -e '.[test,dds,ros]' 2> $(VENV)/ros-extra.log \
+	@echo "installing tpsr-ros with its test, dds, dask and ros (ROS 2 Jazzy wheels) extras into $(VENV)"
+	@$(PY) -m pip install --quiet -e '.[test,dds,dask,ros]' 2> $(VENV)/ros-extra.log \
 	|| { echo "note: no ROS 2 Jazzy wheels for $$($(PY) -V); installing without rclpy (Cyclone DDS backend; pip's reason in $(VENV)/ros-extra.log)"; \
-	     $(PY) -m pip install --quiet -e '.[test,dds]'; }
+	     $(PY) -m pip install --quiet -e '.[test,dds,dask]'; }
 	@# colcon must not take the venv's ROS packages (share/*/package.xml) for the workspace's
 	touch $(VENV)/COLCON_IGNORE
 	touch $(STAMP)

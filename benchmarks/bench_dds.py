@@ -9,6 +9,7 @@ per run and their medians. Target: p99 < 5 ms.
 from __future__ import annotations
 
 import os
+import shutil
 import statistics
 import sys
 import tempfile
@@ -79,6 +80,7 @@ def one_run(env: dict[str, str]) -> np.ndarray:
     finally:
         child.kill()
         node.close()
+        shutil.rmtree(log.parent, ignore_errors=True)
     if len(latencies) < MESSAGES:
         raise RuntimeError(f"received {len(latencies)} of {MESSAGES} messages")
     return np.array(latencies) / 1e6

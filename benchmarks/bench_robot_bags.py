@@ -4,7 +4,8 @@ For each camera (bgr8 ``Image``, jpeg ``CompressedImage``, mono8 ``Image``) a ba
 robot-shaped generator (``sim_node.robot_bag``: 40x40 at 4 Hz with 5-40 ms stamp jitter,
 ``Twist`` at 2 Hz with +-0.6 m/s jitter, ``/odom``) is fitted with exactly the issue's
 command (``--step-period 1.0 --image-size 16 --actions 25``, every other parameter at its
-default), and ``learner plot`` prints the R^2 of the true position from the states.
+default, which for robot bags includes normalised history/test features), and
+``learner plot`` prints the R^2 of the true position from the states.
 Target: R^2 >= 0.8 in x and y.
 """
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -98,6 +99,7 @@ def one_run(backend: str, size: str, count: int, env: dict[str, str]) -> tuple[f
         node.close()
     received = len(arrivals)
     text = log.read_text() if log.exists() else ""
+    shutil.rmtree(log.parent, ignore_errors=True)
     pub_cpu = [float(w[6:]) for w in text.split() if w.startswith("cpu_s=")]
     if received > 1:
         rx_ms = (cpu[-1] - cpu[0]) / (received - 1) * 1e3

@@ -253,3 +253,32 @@ def test_recovery_copies_in_bounded_memory(tmp_path):
         tracemalloc.stop()
     assert report.messages == 3000
     assert peak < 4 * 2**20, f"peak {peak / 2**20:.1f} MiB for a 6 MB file"
+
+
+def test_damage_full_of_chunk_opcodes_is_skipped_without_parsing_each(tmp_path, monkeypatch):
+    # damaged bytes made of 0x06 opcodes with lengths that stay inside the file: each is a
+    # chunk candidate, and copying + parsing every one takes time quadratic in the damage
+    import tpsr_ros.bag_recover as recover
+
+    parsed: list[int] = []
+    real_parse = recover._parse_at
+    monkeypatch.setattr(recover, "_parse_at", lambda d, o: parsed.append(o) or real_parse(d, o))
+    junk = (b"\x06" + (1000).to_bytes(8, "little")) * 600
+    parses = {}
+    for name in ("clean", "junk"):
+        bag, counts = _bag(tmp_path, name, messages=200, chunk_size=512)
+        mcap = bag / f"{name}.mcap"
+        data = bytearray(mcap.read_bytes())
+        if name == "junk":
+            with mcap.open("rb") as handle:
+                chunks = list(make_reader(handle).get_summary().chunk_indexes)
+            start = chunks[len(chunks) // 2].chunk_start_offset
+            data[start:start] = junk
+            mcap.write_bytes(bytes(data))
+        parsed.clear()
+        report = recover_bag(bag)
+        assert report.messages == sum(counts.values())  # the junk was inserted: nothing lost
+        parses[name] = len(parsed)
+    assert report.skipped == ((start, start + len(junk)),)
+    # the 600 candidates are refused from their header fields (the old scan parsed 1200 more)
+    assert parses["junk"] <= parses["clean"] + 10, parses

@@ -189,9 +189,10 @@ def test_velocities_far_from_every_action(tmp_path):
     np.testing.assert_array_equal(
         velocities_to_actions(np.array([[-6.0, 6.0], [2.6, -0.4]])), [4, 17]
     )
-    bag = write_bag(tmp_path / "a", range(1, 4), velocity=lambda k: (4.5, 0.0))
-    with pytest.raises(DataError, match="cannot be mapped"):
+    bag = write_bag(tmp_path / "a", range(1, 4), velocity=lambda k: (4.5 if k == 2 else 3, 0.0))
+    with pytest.raises(DataError, match="cannot be mapped") as exc:
         read_trajectory([bag])
+    assert "topic '/action', the step at stamp 2000000000 ns" in str(exc.value)  # the far one
 
 
 def test_wrong_topic_type_and_duplicate_stamps(tmp_path):
@@ -210,7 +211,7 @@ def test_wrong_topic_type_and_duplicate_stamps(tmp_path):
         for log in (S, S + 1):
             writer.write_message("/camera/image_raw", log, m.image_msg(S, image_for(1)))
         writer.write_message("/action", S, m.twist_stamped_msg(S, 0, 0))
-    with pytest.raises(BagError, match="two messages on '/camera/image_raw'"):
+    with pytest.raises(BagError, match="'/camera/image_raw', message 1: a second message with"):
         read_trajectory([dup])
 
 

@@ -119,6 +119,16 @@ def test_center_selection():
     np.testing.assert_allclose(np.sort(a[:, 0]), [-5, 0, 5], atol=0.1)
 
 
+def test_kmeans_that_would_not_fit_in_memory_is_refused_before_it_starts(monkeypatch):
+    import tpsr_ros.core.features as features
+
+    x = np.random.default_rng(0).normal(size=(300, 2))
+    monkeypatch.setattr(features, "KMEANS_MAX_BYTES", 8 * 10 * 300 - 1)  # 10 x 300 distances
+    with pytest.raises(DataError, match="k-means of 10 history centres over 300 episodes"):
+        select_centers(x, 10, "kmeans", what="history")
+    assert select_centers(x, 9, "kmeans").shape == (9, 2)  # just within
+
+
 def test_bad_input():
     x = np.zeros((5, 2))
     with pytest.raises(ConfigError, match="sigma"):

@@ -272,7 +272,7 @@ def test_the_node_tracks_a_play_replay_over_rclpy_like_offline(robot, tmp_path, 
     expected = offline(robot)
     probe = Node(NodeOptions(name="probe"))  # rclpy, from TPSR_TRANSPORT
     states: list = []
-    probe.create_subscription(
+    state_sub = probe.create_subscription(
         "/tpsr/state", m.STATE_TYPE,
         lambda x: states.append((m.stamp_of(x), m.state_to_array(x))),
     )
@@ -282,6 +282,8 @@ def test_the_node_tracks_a_play_replay_over_rclpy_like_offline(robot, tmp_path, 
                 "filter", "tpsr_ros.filter_node", ["--ros-args", "-p", f"model:={robot['model']}"]
             )
             launch.wait("the filter's subscriptions", lambda: "steps of 1 s from" in node.text())
+            # the probe must have matched the state publisher before the first state is sent
+            launch.wait("the filter's state publisher", lambda: state_sub.get_publisher_count() > 0)
             player = launch.start("play", "tpsr_ros.play", [
                 str(robot["feed"]), "--rate", "8", "--topics", CAMERA, "/cmd_vel",
                 "--wait-for-subscribers", "1", "--no-clock",

@@ -309,3 +309,12 @@ def test_a_model_path_too_long_for_the_file_system_is_a_one_line_error(tmp_path)
         load_model(tmp_path)
     with pytest.raises(ModelFormatError, match="does not exist"):
         load_model(tmp_path / "missing.npz")
+
+
+def test_library_error_text_is_cut_to_one_line():
+    from tpsr_ros.core.errors import one_line
+
+    assert one_line(ValueError("bad\n  header\tat 3")) == "bad header at 3"
+    assert one_line(OSError()) == "OSError"
+    long = one_line(ValueError("x" * 500), limit=50)
+    assert len(long) == 50 and long.endswith("...")

@@ -125,6 +125,8 @@ def test_fit_info_plot_policy_need_no_options_again(robot, capsys):
     err = capsys.readouterr().err
     assert "steps of 1 s (camera period 0.25 s); observations 8x8 colour" in err
     assert "commands: 0 of 898 farther than" in err  # none far from its code: reported
+    assert "features normalised to sum 1 (the robot-bag default" in err
+    assert load_model(model).config.normalize_ht_features  # robot bags' default
     metadata = read_metadata(model)
     spec = model_stream_spec(model, metadata)
     assert spec is not None and len(spec.codebook) == 25 and spec.image_topic == CAMERA
@@ -143,6 +145,16 @@ def test_fit_info_plot_policy_need_no_options_again(robot, capsys):
     code, out, _ = run_entry(["info", str(model)], capsys)
     assert code == 0 and f"input: camera {CAMERA} (sensor_msgs/msg/Image) as 8x8 colour" in out
     assert "25 kmeans actions over linear.x, linear.y; steps of 1 s" in out
+
+
+def test_the_robot_bag_default_yields_to_an_explicit_option(robot, capsys):
+    tmp, bag = robot["tmp"], robot["bag"]
+    model = tmp / "guide_features.npz"
+    argv = ["fit", str(bag), "--image-topic", CAMERA, *ROBOT, "--image-size", "8",
+            "--actions", "25", "-o", str(model), *SMALL, "--no-normalize-ht-features"]
+    assert main(argv) == 0
+    assert "robot-bag default" not in capsys.readouterr().err
+    assert not load_model(model).config.normalize_ht_features
 
 
 def test_a_model_whose_input_entry_is_wrong_is_refused(robot):

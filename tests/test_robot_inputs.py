@@ -79,6 +79,18 @@ def test_every_raw_encoding_decodes_to_rgb_or_grey():
     assert np.array_equal(decode_image(big, IMAGE_TYPE), deep)
 
 
+def test_padded_rows_decode_to_the_pixels_without_the_padding():
+    # drivers may pad each row (step > width x bytes per pixel); the padding is not pixels
+    padded = np.concatenate([RGB, np.full((6, 1, 3), 99, np.uint8)], axis=1)
+    msg = raw_msg(padded, "rgb8", width=10)  # step 33 = 30 pixel bytes + 3 padding
+    assert msg.step == 33
+    assert np.array_equal(decode_image(msg, IMAGE_TYPE), RGB)
+    deep = (RGB[:, :, :1].astype(np.uint16) * 257).astype(">u2")
+    odd = np.concatenate([deep.view(np.uint8).reshape(6, 20), np.zeros((6, 1), np.uint8)], 1)
+    msg = raw_msg(odd[:, :, None], "mono16", width=10, is_bigendian=1)  # step 21: odd rows
+    assert np.array_equal(decode_image(msg, IMAGE_TYPE), deep.astype(np.uint16))
+
+
 def test_png_is_lossless_and_jpeg_close():
     png = decode_image(compressed_msg(encoded(RGB, "PNG"), "png"), COMPRESSED_IMAGE_TYPE)
     assert np.array_equal(png, RGB)
@@ -92,7 +104,8 @@ def test_png_is_lossless_and_jpeg_close():
     ("msg", "rule"),
     [
         (raw_msg(RGB, "yuv422"), "encoding 'yuv422' is not one of"),
-        (raw_msg(RGB, "rgb8", step=31), "step 31 does not match width 10 x 3 bytes"),
+        (raw_msg(RGB, "rgb8", step=29), "step 29 is less than width 10 x 3 bytes"),
+        (raw_msg(RGB, "rgb8", step=31), "holds 180 bytes, expected 6 x 31"),
         (raw_msg(RGB, "rgb8", data=np.zeros(17, np.uint8)), "holds 17 bytes, expected 6 x 30"),
         (raw_msg(RGB, "rgb8", width=0), "image size 6x0 is empty"),
         (compressed_msg(encoded(RGB, "JPEG")[:40]), "corrupt jpeg image"),

@@ -52,6 +52,7 @@ _API = {
     "Policy": "tpsr_ros.io.policy",
     "load_policy": "tpsr_ros.io.policy",
     "save_policy": "tpsr_ros.io.policy",
+    "iter_trajectory_chunks": "tpsr_ros.io.trajectory",
     "read_trajectory": "tpsr_ros.io.trajectory",
 }
 
@@ -77,6 +78,7 @@ __all__ = [
     "fit_q",
     "fit_tpsr",
     "images_to_observations",
+    "iter_trajectory_chunks",
     "load_model",
     "load_policy",
     "make_episodes",
@@ -103,7 +105,7 @@ if TYPE_CHECKING:
     from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr
     from tpsr_ros.io.model_io import load_model, save_model
     from tpsr_ros.io.policy import Policy, load_policy, save_policy
-    from tpsr_ros.io.trajectory import read_trajectory
+    from tpsr_ros.io.trajectory import iter_trajectory_chunks, read_trajectory
 
 
 def __getattr__(name: str) -> Any:

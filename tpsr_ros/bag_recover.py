@@ -36,6 +36,7 @@ import dataclasses
 import io
 import mmap
 import re
+import struct
 import tempfile
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -49,9 +50,9 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
 from tpsr_ros.cli import ArgumentParser, run_cli
-from tpsr_ros.core.errors import BagError
+from tpsr_ros.core.errors import BagError, one_line
 from tpsr_ros.io.bag import BagFile, rosbag2_metadata
-from tpsr_ros.io.mcap_layout import MAGIC, RECORD_HEADER
+from tpsr_ros.io.mcap_layout import MAGIC, MAX_CHUNK_BYTES, RECORD_HEADER
 
 __all__ = ["FileRecovery", "RecoveryReport", "main", "recover_bag"]
 
@@ -86,11 +87,31 @@ def _parse_at(data: mmap.mmap | bytes, offset: int) -> tuple[list[Any], int] | N
     return (records, end) if records else None
 
 
+def _chunk_fields_fit(data: mmap.mmap | bytes, offset: int) -> bool:
+    """Whether a chunk record could start at ``offset``: its fields fit its declared length.
+
+    Reads a few header fields only, so that scanning damaged bytes for the next chunk does
+    not copy and parse a record body at every 0x06 byte (quadratic time on hostile files).
+    A chunk body is start and end time, uncompressed size and CRC, the compression name
+    (u32 length + bytes) and the records (u64 length + bytes).
+    """
+    end = _record_end(data, offset)
+    if end is None or end - offset < RECORD_HEADER.size + 40:
+        return False
+    body = offset + RECORD_HEADER.size
+    (uncompressed,) = struct.unpack_from("<Q", data, body + 16)
+    (name_length,) = struct.unpack_from("<I", data, body + 28)
+    if uncompressed > MAX_CHUNK_BYTES or name_length > 16 or body + 40 + name_length > end:
+        return False
+    (compressed,) = struct.unpack_from("<Q", data, body + 32 + name_length)
+    return compressed <= end - body - 40 - name_length
+
+
 def _next_chunk(data: mmap.mmap | bytes, start: int) -> int | None:
     """The first offset from ``start`` at which a whole chunk record parses."""
     offset = data.find(bytes([_CHUNK]), start)
     while offset != -1:
-        if _parse_at(data, offset) is not None:
+        if _chunk_fields_fit(data, offset) and _parse_at(data, offset) is not None:
             return offset
         offset = data.find(bytes([_CHUNK]), offset + 1)
     return None
@@ -264,7 +285,9 @@ def _verify(target: Path, written: _Written) -> None:
             for _, channel, _ in make_reader(handle).iter_messages():
                 found[channel.topic] = found.get(channel.topic, 0) + 1
     except (McapError, ValueError, OSError) as exc:
-        raise BagError(f"the recovered file does not read back ({exc}); original kept") from None
+        raise BagError(
+            f"the recovered file does not read back ({one_line(exc)}); original kept"
+        ) from None
     if found != expected:
         raise BagError(
             f"the recovered file reads back {found}, not the {expected} written; original kept"

@@ -21,7 +21,7 @@ steps without it hold NaN.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -38,6 +38,8 @@ __all__ = [
     "STEP_NS",
     "Episodes",
     "Trajectory",
+    "episode_starts",
+    "episodes_at",
     "image_to_observation",
     "images_to_observations",
     "make_episodes",
@@ -80,6 +82,12 @@ def velocities_to_actions(
         return np.asarray(action_indices(vel, tolerance), dtype=np.int64)
     except ConfigError as exc:
         raise DataError(f"an action cannot be mapped to the 25 velocity pairs: {exc}") from None
+
+
+STEP_FIELDS = (
+    "stamps", "observations", "actions", "velocities", "positions", "rewards", "segments"
+)
+"""The per-step arrays of a :class:`Trajectory`, in field order."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -181,6 +189,11 @@ class Trajectory:
     def __len__(self) -> int:
         return int(self.stamps.shape[0])
 
+    def rows(self, start: int, stop: int) -> Trajectory:
+        """Steps ``[start, stop)``, without ``sources`` (they describe whole bags)."""
+        part = slice(start, stop)
+        return replace(self, sources=[], **{n: getattr(self, n)[part] for n in STEP_FIELDS})
+
     def segment_bounds(self) -> list[tuple[int, int]]:
         """``[start, stop)`` row ranges of the segments."""
         if len(self) == 0:
@@ -197,12 +210,13 @@ class Trajectory:
             "steps": len(self),
             "segments": len(self.segment_bounds()),
             "stamps_ns": [int(self.stamps[0]), int(self.stamps[-1])] if len(self) else [],
-            "environment": _common(s.get("environment") for s in self.sources),
+            "environment": common_value(s.get("environment") for s in self.sources),
             "image_shape": list(self.image_shape),
         }
 
 
-def _common(values: Iterable[Any]) -> Any:
+def common_value(values: Iterable[Any]) -> Any:
+    """The one value of ``values``, or their sorted texts when they differ (metadata)."""
     distinct = {v for v in values}
     return distinct.pop() if len(distinct) == 1 else sorted(map(str, distinct))
 
@@ -265,11 +279,7 @@ def make_episodes(
     if max_episodes is not None and max_episodes < 1:
         raise ConfigError(f"the number of episodes must be at least 1, not {max_episodes}")
     span = m + 1 + n
-    starts = [
-        np.arange(start, stop - span + 1, span, dtype=np.int64)
-        for start, stop in trajectory.segment_bounds()
-    ]
-    first = np.concatenate(starts) if starts else np.zeros(0, dtype=np.int64)
+    first = episode_starts(trajectory, span)
     if max_episodes is not None:
         first = first[:max_episodes]
     if first.size == 0:
@@ -277,6 +287,20 @@ def make_episodes(
             f"no usable episodes: no run of {span} consecutive steps (history {m} + current + "
             f"test {n}) in {len(trajectory)} steps ({len(trajectory.segment_bounds())} segments)"
         )
+    return episodes_at(trajectory, first, m, n)
+
+
+def episode_starts(trajectory: Trajectory, span: int) -> np.ndarray:
+    """First rows of the episodes of ``span`` steps cut from the start of every segment."""
+    starts = [
+        np.arange(start, stop - span + 1, span, dtype=np.int64)
+        for start, stop in trajectory.segment_bounds()
+    ]
+    return np.concatenate(starts) if starts else np.zeros(0, dtype=np.int64)
+
+
+def episodes_at(trajectory: Trajectory, first: np.ndarray, m: int, n: int) -> Episodes:
+    """Cut the episodes (history ``m``, current, test ``n``) whose first rows are ``first``."""
     obs = trajectory.observations
     k = obs.shape[1]
     current = first + m

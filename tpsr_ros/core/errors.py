@@ -15,7 +15,17 @@ __all__ = [
     "ModelFormatError",
     "NotFittedError",
     "TpsrError",
+    "one_line",
 ]
+
+
+def one_line(exc: BaseException, limit: int = 200) -> str:
+    """A foreign exception's text on one line (whitespace collapsed), cut to ``limit`` chars.
+
+    For wrapping library errors (zip, zstd, mcap...) into our one-line messages.
+    """
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 class TpsrError(Exception):

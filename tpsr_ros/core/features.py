@@ -34,6 +34,7 @@ from tpsr_ros.core.whitening import check_finite_matrix
 __all__ = [
     "CONSTANT_FEATURE",
     "CONSTANT_SCALE",
+    "KMEANS_MAX_BYTES",
     "RBFFeatures",
     "constant_vector",
     "rbf_features",
@@ -112,6 +113,10 @@ def constant_vector(n_features: int) -> np.ndarray:
     return e
 
 
+KMEANS_MAX_BYTES = 8 * 2**30
+"""Memory k-means centres may take: scipy's k-means++ start holds ``l x t`` distances."""
+
+
 def select_centers(
     x: np.ndarray,
     n_centers: int,
@@ -138,6 +143,13 @@ def select_centers(
     if method == "first":
         return np.array(x[:n_centers])
     if method == "kmeans":
+        need = 8 * n_centers * x.shape[0]  # k-means++ start: a (l, t) distance matrix
+        if need > KMEANS_MAX_BYTES:
+            raise DataError(
+                f"k-means of {n_centers} {what} centres over {x.shape[0]} episodes would "
+                f"take {need / 2**30:.1f} GiB (limit {KMEANS_MAX_BYTES / 2**30:.0f} GiB); use "
+                "'first' centres, fewer centres or fewer episodes"
+            )
         rng = np.random.default_rng(seed)
         centroids, _ = kmeans2(x, n_centers, iter=20, minit="++", seed=rng)
         return np.ascontiguousarray(centroids, dtype=np.float64)

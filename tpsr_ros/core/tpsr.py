@@ -356,7 +356,7 @@ class TPSRModel:
         )
 
 
-class _Stopwatch:
+class Stopwatch:
     """Records the duration of named stages and announces each one."""
 
     def __init__(self, progress: Progress | None) -> None:
@@ -403,15 +403,7 @@ def _check_data(
     if int(n_actions) < 1:
         raise ConfigError(f"n_actions must be at least 1, not {n_actions}")
     action = _as_actions(action, n_episodes, int(n_actions))
-    n_centres = max(cfg.ht_centers, cfg.obs_centers)
-    # 'first' centres are taken out of the data (t = |E| - max l); k-means centres are not.
-    needed = n_centres + cfg.rank if cfg.center_selection == "first" else n_centres
-    if n_episodes < needed:
-        raise DataError(
-            f"{n_episodes} episodes are too few for {n_centres} kernel centres: "
-            f"'{cfg.center_selection}' centres with rank {cfg.rank} need at least {needed} "
-            "(lower obs_centers/ht_centers or record more data)"
-        )
+    check_enough_episodes(n_episodes, cfg)
     return history, observation, action, test
 
 
@@ -441,12 +433,29 @@ def _whiten(
     wh_t, t_white = Whitening.fit_transform(test, cfg.ht_dim, what="tests")
     wh_o, o_white = Whitening.fit_transform(observation, cfg.obs_dim, what="current observations")
     if cfg.p_th_tests == "from-current":
-        k = observation.shape[1]
-        window = np.concatenate([observation, test[:, : (cfg.test_length - 1) * k]], axis=1)
-        t0_white = wh_t.transform(window)
+        t0_white = wh_t.transform(p_th_test_window(observation, test, cfg.test_length))
     else:
         t0_white = t_white
     return _Whitened(wh_h, wh_t, wh_o, h_white, t_white, o_white, t0_white)
+
+
+def p_th_test_window(observation: np.ndarray, test: np.ndarray, test_length: int) -> np.ndarray:
+    """Boots et al.'s test of ``P_TH``: the current observation and ``n - 1`` test steps."""
+    k = observation.shape[1]
+    return np.concatenate([observation, test[:, : (test_length - 1) * k]], axis=1)
+
+
+def check_enough_episodes(n_episodes: int, cfg: TPSRConfig) -> None:
+    """Refuse fewer episodes than the kernel centres (and, for 'first' ones, the rank) need."""
+    n_centres = max(cfg.ht_centers, cfg.obs_centers)
+    # 'first' centres are taken out of the data (t = |E| - max l); k-means centres are not.
+    needed = n_centres + cfg.rank if cfg.center_selection == "first" else n_centres
+    if n_episodes < needed:
+        raise DataError(
+            f"{n_episodes} episodes are too few for {n_centres} kernel centres: "
+            f"'{cfg.center_selection}' centres with rank {cfg.rank} need at least {needed} "
+            "(lower obs_centers/ht_centers or record more data)"
+        )
 
 
 def _kernel_centres(
@@ -480,21 +489,26 @@ def _features(
     ``from-current``).
     """
     c_h, c_t, c_o = centres
-    norm_ht = cfg.normalize_ht_features
-    phi_h = rbf_features(
-        white.h_white[train], c_h, cfg.sigma_ht, normalize=norm_ht, add_constant=True
-    )
-    phi_t = rbf_features(
-        white.t_white[train], c_t, cfg.sigma_ht, normalize=norm_ht, add_constant=True
-    )
+    phi_h = ht_features(white.h_white[train], c_h, cfg)
+    phi_t = ht_features(white.t_white[train], c_t, cfg)
     if white.t0_white is white.t_white:
         phi_t0 = phi_t
     else:
-        phi_t0 = rbf_features(
-            white.t0_white[train], c_t, cfg.sigma_ht, normalize=norm_ht, add_constant=True
-        )
-    phi_o = rbf_features(white.o_white[train], c_o, cfg.sigma_obs, normalize=True)
+        phi_t0 = ht_features(white.t0_white[train], c_t, cfg)
+    phi_o = obs_features(white.o_white[train], c_o, cfg)
     return phi_h, phi_t, phi_t0, phi_o
+
+
+def ht_features(rows: np.ndarray, centres: np.ndarray, cfg: TPSRConfig) -> np.ndarray:
+    """History or test features of whitened ``rows``: ``(t, l + 1)`` with the constant feature."""
+    return rbf_features(
+        rows, centres, cfg.sigma_ht, normalize=cfg.normalize_ht_features, add_constant=True
+    )
+
+
+def obs_features(rows: np.ndarray, centres: np.ndarray, cfg: TPSRConfig) -> np.ndarray:
+    """Normalised features of whitened current observations: ``(t, l_O)``."""
+    return rbf_features(rows, centres, cfg.sigma_obs, normalize=True)
 
 
 def _p_statistics(phi_h: np.ndarray, phi_t0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -505,7 +519,7 @@ def _p_statistics(phi_h: np.ndarray, phi_t0: np.ndarray) -> tuple[np.ndarray, np
     return p_h, p_th
 
 
-def _truncated_svd(
+def truncated_svd(
     p_th: np.ndarray, cfg: TPSRConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Algorithm 3's compact rank-``r`` SVD ``P_TH ~ U S V^T``.
@@ -542,29 +556,64 @@ def _parameters(
     ``A_T = phi_T U`` and ``A_H = phi_H V S^-1``: one matrix product per action (see the
     module docstring).
     """
+    _, s, v = svd
+    r = s.shape[0]
+    b_star, b_inf = start_and_normaliser(p_h, s, v)
+    outer = projected_outer(phi_h, phi_t, svd)
+    counts = np.bincount(actions, minlength=n_actions)
+    check_action_counts(counts)
+    sums = action_sums(phi_o, outer, actions, counts)
+    sums /= counts[:, None, None]
+    return b_star, b_inf, sums.reshape(n_actions, phi_o.shape[1], r, r), counts
+
+
+def start_and_normaliser(
+    p_h: np.ndarray, s: np.ndarray, v: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eqs. 3.5 and 3.6: ``b_* = S V^T e`` (``e = (0, ..., 0, 1000)``), ``b_inf = P_H^T V S^-1``."""
+    b_star = s * v[-1] * CONSTANT_SCALE
+    b_inf = (p_h @ v) / s
+    return b_star, b_inf
+
+
+def projected_outer(
+    phi_h: np.ndarray, phi_t: np.ndarray, svd: tuple[np.ndarray, np.ndarray, np.ndarray]
+) -> np.ndarray:
+    """Per sample ``outer(U^T phi_T[i], S^-1 V^T phi_H[i])`` flattened: ``(t, r^2)``."""
     u, s, v = svd
     n_train, r = phi_h.shape[0], s.shape[0]
-    b_star = s * v[-1] * CONSTANT_SCALE  # eq. 3.5: S V^T e with e = (0, ..., 0, 1000)
-    b_inf = (p_h @ v) / s  # eq. 3.6
     a_t = phi_t @ u  # (t, r): U^T phi_T, transposed
     a_h = phi_h @ v
     a_h /= s  # (t, r): phi_H^T V S^-1
-    outer = (a_t[:, :, None] * a_h[:, None, :]).reshape(n_train, r * r)
-    counts = np.bincount(actions, minlength=n_actions)
+    return (a_t[:, :, None] * a_h[:, None, :]).reshape(n_train, r * r)
+
+
+def check_action_counts(counts: np.ndarray) -> None:
+    """Refuse an action that is never the current action of a training episode."""
     if (missing := np.flatnonzero(counts == 0)).size:
         raise DataError(
             f"action(s) {missing.tolist()} never occur as the current action of a training "
             "episode; record more data or check the action mapping"
         )
-    big_b = np.empty((n_actions, phi_o.shape[1], r, r))
+
+
+def action_sums(
+    phi_o: np.ndarray, outer: np.ndarray, actions: np.ndarray, counts: np.ndarray
+) -> np.ndarray:
+    """Eqs. 3.3 and 3.7 unnormalised: ``sum_{i in Y_a} phi_O[i, o'] outer[i]`` per action.
+
+    Returns ``(n_actions, l_O, r^2)``; one ``(l_O x t_a) @ (t_a x r^2)`` product per action
+    (``counts`` = samples per action in ``actions``, which may be a block of the samples).
+    """
+    n_actions = counts.shape[0]
+    sums = np.zeros((n_actions, phi_o.shape[1], outer.shape[1]))
     order = np.argsort(actions, kind="stable")
     bounds = np.concatenate([[0], np.cumsum(counts)])
     for a in range(n_actions):
-        rows = order[bounds[a] : bounds[a + 1]]
-        block = phi_o[rows].T @ outer[rows]  # eqs. 3.3 and 3.7, (l_O, r^2)
-        block /= counts[a]
-        big_b[a] = block.reshape(-1, r, r)
-    return b_star, b_inf, big_b, counts
+        if counts[a]:
+            rows = order[bounds[a] : bounds[a + 1]]
+            sums[a] = phi_o[rows].T @ outer[rows]
+    return sums
 
 
 def fit_tpsr(
@@ -594,7 +643,7 @@ def fit_tpsr(
 
     """
     cfg = config if config is not None else TPSRConfig()
-    watch = _Stopwatch(progress)
+    watch = Stopwatch(progress)
     watch.stage("checking data")
     history, observation, action, test = _check_data(
         history, observation, action, test, n_actions, cfg
@@ -608,7 +657,7 @@ def fit_tpsr(
     watch.stage("P-statistics")
     p_h, p_th = _p_statistics(phi_h, phi_t0)
     watch.stage("SVD")
-    u, s, v, s_all, usable = _truncated_svd(p_th, cfg)
+    u, s, v, s_all, usable = truncated_svd(p_th, cfg)
     watch.stage("parameters")
     b_star, b_inf, big_b, counts = _parameters(
         p_h, phi_h, phi_t, phi_o, action[train], (u, s, v), int(n_actions)

@@ -17,6 +17,9 @@ scikit-learn's ``svd_flip`` does: the entry of largest magnitude of every direct
 positive. A direction whose eigenvalue is negligible
 (at most ``max(r, b) * eps`` times the largest) would blow up under ``1 / sqrt``; asking
 for more dimensions than the data's numerical rank is therefore refused with a ``DataError``.
+:meth:`Whitening.from_moments` fits the same transform from merged
+:class:`~tpsr_ros.core.moments.Moments` (mean and centred scatter gathered chunk by chunk,
+the streamed fit's path), always through the dense covariance.
 
 Threads: LAPACK's symmetric eigensolver (and ARPACK, used by the TPSR fit) make thousands of
 small level-2 BLAS calls; with a multithreaded OpenBLAS on a busy machine every call waits
@@ -36,11 +39,13 @@ import scipy.linalg
 import scipy.sparse.linalg
 
 from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.moments import Moments
 
 __all__ = [
     "DENSE_MAX_DIM",
     "Whitening",
     "check_finite_matrix",
+    "covariance_eigenpairs",
     "flip_signs",
     "single_blas_thread",
     "top_eigenpairs",
@@ -88,6 +93,14 @@ def flip_signs(vectors: np.ndarray, other: np.ndarray | None = None) -> tuple[np
     return vectors * signs, other * signs
 
 
+def covariance_eigenpairs(cov: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Return the ``d`` largest eigenpairs (ascending) of a covariance ``(b, b)`` and its trace."""
+    b = cov.shape[0]
+    with single_blas_thread():
+        values, vectors = scipy.linalg.eigh(cov, subset_by_index=[b - d, b - 1])
+    return values, vectors, float(np.trace(cov))
+
+
 def top_eigenpairs(centred: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray, float]:
     """The ``d`` largest eigenpairs of the sample covariance of ``centred`` rows, and its trace.
 
@@ -100,9 +113,7 @@ def top_eigenpairs(centred: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray,
     if b <= DENSE_MAX_DIM or d >= b - 1:
         cov = centred.T @ centred
         cov *= scale
-        with single_blas_thread():
-            values, vectors = scipy.linalg.eigh(cov, subset_by_index=[b - d, b - 1])
-        return values, vectors, float(np.trace(cov))
+        return covariance_eigenpairs(cov, d)
     operator = scipy.sparse.linalg.LinearOperator(
         (b, b), matvec=lambda v: centred.T @ (centred @ v) * scale, dtype=np.float64
     )
@@ -111,6 +122,17 @@ def top_eigenpairs(centred: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray,
     order = np.argsort(values)
     total = float(np.einsum("ij,ij->", centred, centred)) * scale
     return values[order], vectors[:, order], total
+
+
+def _check_dimensions(n: int, b: int, n_components: int, what: str) -> int:
+    d = int(n_components)
+    if d < 1:
+        raise ConfigError(f"whitening of {what} must keep at least 1 dimension, not {d}")
+    if d > b:
+        raise ConfigError(f"whitening of {what} cannot keep {d} dimensions: the data have only {b}")
+    if n < 2:
+        raise DataError(f"whitening of {what} needs at least 2 data points, got {n}")
+    return d
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,17 +177,38 @@ class Whitening:
         """
         x = check_finite_matrix(x, what)
         n, b = x.shape
-        d = int(n_components)
-        if d < 1:
-            raise ConfigError(f"whitening of {what} must keep at least 1 dimension, not {d}")
-        if d > b:
-            raise ConfigError(
-                f"whitening of {what} cannot keep {d} dimensions: the data have only {b}"
-            )
-        if n < 2:
-            raise DataError(f"whitening of {what} needs at least 2 data points, got {n}")
+        d = _check_dimensions(n, b, n_components, what)
         mean = x.mean(axis=0)
         values, vectors, total = top_eigenpairs(x - mean, d)
+        return cls._from_eigenpairs(mean, values, vectors, total, n, what)
+
+    @classmethod
+    def from_moments(cls, moments: Moments, n_components: int, *, what: str = "data") -> Whitening:
+        """Fit from merged :class:`~tpsr_ros.core.moments.Moments` (the streamed fit's path).
+
+        Equal to :meth:`fit` on the rows up to rounding: the same covariance (``1 / (r - 1)``)
+        and the same eigenpair, tolerance and sign rules.
+        """
+        n, b = moments.count, moments.dim
+        d = _check_dimensions(n, b, n_components, what)
+        if not (np.isfinite(moments.mean).all() and np.isfinite(moments.scatter).all()):
+            raise DataError(f"non-finite values (NaN or infinity) in the {what}")
+        cov = moments.scatter * (1.0 / (n - 1))
+        values, vectors, total = covariance_eigenpairs(cov, d)
+        return cls._from_eigenpairs(moments.mean.copy(), values, vectors, total, n, what)
+
+    @classmethod
+    def _from_eigenpairs(
+        cls,
+        mean: np.ndarray,
+        values: np.ndarray,
+        vectors: np.ndarray,
+        total: float,
+        n: int,
+        what: str,
+    ) -> Whitening:
+        """Algorithm 1's lines 4-8 from ascending eigenpairs; refuse a rank-deficient ``d``."""
+        b, d = vectors.shape
         values, vectors = values[::-1], vectors[:, ::-1]
         largest = float(values[0]) if values.size else 0.0
         tol = max(b, n) * np.finfo(np.float64).eps * max(largest, 0.0)

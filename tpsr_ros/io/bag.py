@@ -518,6 +518,31 @@ class BagReader:
         Read to the end, the messages must number what ``metadata.yaml`` lists for those
         topics; otherwise a ``BagError`` says how many were missing.
         """
+        for conn, log_time, data in self._checked(topics):
+            yield BagMessage(conn.topic, conn.msgtype, log_time, data)
+
+    def raw_messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
+        """``(topic, log_time_ns, cdr_bytes)`` as :meth:`messages` reads them, with no object
+        per message: for readers that decode a few known types themselves.
+
+        The type of a topic is :attr:`topics`'s: a topic whose connections have different
+        types is refused (its bytes could not be decoded as one type).
+        """
+        wanted = None if topics is None else set(topics)
+        types: dict[str, str] = {}
+        for conn in self._reader.connections:
+            if wanted is not None and conn.topic not in wanted:
+                continue
+            if types.setdefault(conn.topic, conn.msgtype) != conn.msgtype:
+                raise BagError(
+                    f"bag {str(self.path)!r}: topic {conn.topic!r} has messages of two types, "
+                    f"{types[conn.topic]} and {conn.msgtype}"
+                )
+        for conn, log_time, data in self._checked(topics):
+            yield conn.topic, log_time, data
+
+    def _checked(self, topics: Iterable[str] | None) -> Iterator[tuple[Any, int, bytes]]:
+        """rosbags' ``(connection, log time, bytes)``; damage and lost messages as BagError."""
         wanted = None if topics is None else set(topics)
         connections = [c for c in self._reader.connections if wanted is None or c.topic in wanted]
         if wanted is not None and not connections:
@@ -527,7 +552,7 @@ class BagReader:
         try:
             for conn, log_time, data in self._reader.messages(connections=connections):
                 read += 1
-                yield BagMessage(conn.topic, conn.msgtype, int(log_time), bytes(data))
+                yield conn, int(log_time), bytes(data)
         except ReaderError as exc:
             raise BagError(f"bag {str(self.path)!r} is damaged: {_one_line(exc)}") from None
         except _DAMAGE as exc:

@@ -25,6 +25,7 @@ __all__ = [
     "IMAGE_TYPES",
     "decode_image",
     "image_observations",
+    "raw_pixels",
 ]
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
@@ -47,25 +48,37 @@ COMPRESSED_FORMATS = ("jpeg", "png")
 
 
 def _raw(msg: Any) -> np.ndarray:
-    encoding = str(msg.encoding)
+    return raw_pixels(
+        np.asarray(msg.data, dtype=np.uint8), int(msg.height), int(msg.width), int(msg.step),
+        str(msg.encoding), bool(msg.is_bigendian),
+    )
+
+
+def raw_pixels(
+    data: np.ndarray | memoryview, height: int, width: int, step: int, encoding: str,
+    is_bigendian: bool,
+) -> np.ndarray:
+    """Pixels ``(H, W, C)`` of a raw ``Image``'s fields (``data``: its bytes as uint8)."""
     if encoding not in ENCODINGS:
         raise MessageError(
             f"image encoding {encoding[:40]!r} is not one of {', '.join(ENCODINGS)}"
         )
     channels, dtype, order = ENCODINGS[encoding]
-    height, width, step = int(msg.height), int(msg.width), int(msg.step)
     if height < 1 or width < 1 or height * width > MAX_PIXELS:
         raise MessageError(f"image size {height}x{width} is empty or larger than {MAX_PIXELS} px")
     item = np.dtype(dtype).itemsize
-    if step != width * channels * item:
+    row_bytes = width * channels * item
+    if step < row_bytes:  # drivers may pad rows (step > row bytes), never shorten them
         raise MessageError(
-            f"image step {step} does not match width {width} x {channels * item} bytes "
+            f"image step {step} is less than width {width} x {channels * item} bytes "
             f"per {encoding} pixel"
         )
-    data = np.frombuffer(memoryview(np.asarray(msg.data, dtype=np.uint8)), dtype=np.uint8)
+    data = np.frombuffer(memoryview(data), dtype=np.uint8)
     if data.size != height * step:
         raise MessageError(f"image holds {data.size} bytes, expected {height} x {step}")
-    endian = ">" if int(msg.is_bigendian) else "<"
+    if step != row_bytes:
+        data = np.ascontiguousarray(data.reshape(height, step)[:, :row_bytes]).ravel()
+    endian = ">" if is_bigendian else "<"
     pixels = data.view(np.dtype(dtype).newbyteorder(endian) if item > 1 else dtype)
     pixels = pixels.reshape(height, width, channels)
     if item > 1:

@@ -35,7 +35,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from tpsr_ros.core.errors import ModelFormatError
+from tpsr_ros.core.errors import ModelFormatError, one_line
 
 __all__ = [
     "MAX_ARRAY_BYTES",
@@ -119,7 +119,7 @@ def write_archive(
     try:
         text = json.dumps(jsonable(metadata), allow_nan=False)
     except ValueError as exc:
-        raise ModelFormatError(f"metadata cannot be stored as JSON: {exc}") from None
+        raise ModelFormatError(f"metadata cannot be stored as JSON: {one_line(exc)}") from None
     arrays = {name: np.asarray(arr) for name, arr in arrays.items()}
     if METADATA_KEY in arrays:
         raise ModelFormatError(f"an array may not be called {METADATA_KEY!r}")
@@ -255,7 +255,9 @@ def _parse_metadata(path: Path, raw: np.ndarray) -> dict[str, Any]:
     try:
         metadata = json.loads(text)
     except (json.JSONDecodeError, RecursionError) as exc:
-        raise ModelFormatError(f"the metadata of {str(path)!r} is not valid JSON: {exc}") from None
+        raise ModelFormatError(
+            f"the metadata of {str(path)!r} is not valid JSON: {one_line(exc)}"
+        ) from None
     if not isinstance(metadata, dict):
         raise ModelFormatError(f"the metadata of {str(path)!r} is not a JSON object")
     return metadata
@@ -314,7 +316,7 @@ def read_archive(
     except _UNREADABLE as exc:
         raise ModelFormatError(
             f"{str(path)!r} is not a readable {what} file (truncated or foreign): "
-            f"{str(exc)[:200] or type(exc).__name__}"
+            f"{one_line(exc)}"
         ) from None
     return metadata, arrays
 

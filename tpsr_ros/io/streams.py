@@ -41,7 +41,8 @@ from tpsr_ros.core.images import Preprocessing
 from tpsr_ros.core.resample import GridConfig, increasing, resample_grid
 from tpsr_ros.core.units import NS_PER_S
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.io.images import IMAGE_TYPES, decode_image
+from tpsr_ros.io.cdr_fields import RawImageDecoder
+from tpsr_ros.io.images import IMAGE_TYPE, IMAGE_TYPES, decode_image
 from tpsr_ros.io.images import image_observations as _observations
 from tpsr_ros.io.messages import (
     REWARD_TYPE,
@@ -201,34 +202,32 @@ def _read_streams(
         is_tf = bool(pose_topic) and available.get(pose_topic or "") == TF_TYPE
         reward_times: list[int] = []
         rewards: list[float] = []
-        for bag_msg in reader.messages(wanted):
-            topic = bag_msg.topic
+        types = {topic: available[topic] for topic in wanted}
+        for topic, log_time, data in reader.raw_messages(wanted):
             index = numbers[topic]
             numbers[topic] += 1
             try:
                 if topic == image_topic:  # placed in time now, decoded only if a step uses it
-                    image_times.append(_fast_time(bag_msg))
+                    image_times.append(_fast_time(data, log_time))
                 elif topic == pose_topic and is_tf:  # the transforms to the pose frame
-                    for transform in bag_msg.decode().transforms:
+                    for transform in deserialize(data, TF_TYPE).transforms:
                         if transform.child_frame_id == pose_frame:
-                            pose_times.append(_time(transform, bag_msg.log_time_ns))
+                            pose_times.append(_time(transform, log_time))
                             tf_values.append(_pose_xy(transform, TRANSFORM_TYPE))
                 elif topic == pose_topic:
-                    pose_times.append(_fast_time(bag_msg))
-                    pose_data.append(bag_msg.data)
+                    pose_times.append(_fast_time(data, log_time))
+                    pose_data.append(data)
                 elif topic == action_topic:
-                    msg = bag_msg.decode()
+                    msg = deserialize(data, types[topic])
                     commands.append(twist_components(msg, components))
                     command_times.append(
-                        bag_msg.log_time_ns
-                        if action_type == TWIST_TYPE
-                        else _time(msg, bag_msg.log_time_ns)
+                        log_time if action_type == TWIST_TYPE else _time(msg, log_time)
                     )
                 else:
-                    msg = bag_msg.decode()
+                    msg = deserialize(data, types[topic])
                     if tuple(msg.name[:1]) != ("reward",) or len(msg.position) < 1:
                         raise MessageError("a reward message names 'reward' first")
-                    reward_times.append(_time(msg, bag_msg.log_time_ns))
+                    reward_times.append(_time(msg, log_time))
                     rewards.append(float(msg.position[0]))
             except MessageError as exc:
                 raise MessageError(f"{_where(path, topic, index)}: {exc}") from None
@@ -261,10 +260,10 @@ def _read_streams(
     )
 
 
-def _fast_time(bag_msg: Any) -> int:
+def _fast_time(data: bytes, log_time_ns: int) -> int:
     """Header stamp read from the CDR bytes, or the log time where the stamp is zero."""
-    stamp = header_stamp_ns(bag_msg.data)
-    return stamp if stamp > 0 else int(bag_msg.log_time_ns)
+    stamp = header_stamp_ns(data)
+    return stamp if stamp > 0 else int(log_time_ns)
 
 
 def _poses_at(streams: _Streams, at: np.ndarray) -> np.ndarray:
@@ -307,12 +306,16 @@ def _decode_images(
         batch.clear()
         rows.clear()
 
+    raw = RawImageDecoder() if msgtype == IMAGE_TYPE else None  # pixels straight from CDR
     with BagReader(path) as reader:
-        for index, bag_msg in enumerate(reader.messages([topic])):
+        for index, (_, _, data) in enumerate(reader.raw_messages([topic])):
             if index not in wanted:
                 continue
             try:
-                pixels = decode_image(bag_msg.decode(), msgtype)
+                if raw is not None:
+                    pixels = raw.decode(data)[1]
+                else:
+                    pixels = decode_image(deserialize(data, msgtype), msgtype)
                 if pixels.shape[2] == 1 and not preprocessing.grey:
                     raise MessageError("a grey image cannot give the model's colour observations")
             except MessageError as exc:
@@ -423,10 +426,10 @@ def _first_pixels(streams: _Streams, topic: str) -> np.ndarray:
     """Decoded pixels of the first image kept on ``topic`` (its size and colour)."""
     first = int(streams.image_numbers[0]) if streams.image_numbers.size else 0
     with BagReader(streams.path) as reader:
-        for index, bag_msg in enumerate(reader.messages([topic])):
+        for index, (_, _, data) in enumerate(reader.raw_messages([topic])):
             if index == first:
                 try:
-                    return decode_image(bag_msg.decode(), streams.image_type)
+                    return decode_image(deserialize(data, streams.image_type), streams.image_type)
                 except MessageError as exc:
                     raise MessageError(f"{_where(streams.path, topic, index)}: {exc}") from None
     raise DataError(f"bag {str(streams.path)!r} has no image on {topic!r}")

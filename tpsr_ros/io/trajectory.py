@@ -6,19 +6,33 @@ split into *segments* of consecutive stamps (exactly ``step_ns`` apart): a gap, 
 image or action is missing, and a bag boundary each end a segment. The pure part (the
 :class:`~tpsr_ros.core.episodes.Trajectory` and how it is cut into episodes) is in
 :mod:`tpsr_ros.core.episodes`.
+
+Bags are read as a stream, in log-time order, so memory does not grow with their length
+(:func:`iter_trajectory_chunks`; :func:`read_trajectory` is its chunks concatenated).
+Messages are decoded straight from their CDR bytes (:mod:`tpsr_ros.io.cdr_fields`). A
+step's messages need not be adjacent in the file: each stamp waits, with whatever of its
+image, action, pose and reward has arrived, until ``reorder_window`` (default
+:data:`REORDER_WINDOW`) later distinct stamps of the four topics have been read; then it
+is final, a step if it has an image and an action. So a bag may be out of stamp order as
+long as no message comes after messages of ``reorder_window`` later stamps; one whose
+stamp is already final may be refused with a ``BagError`` naming it (it cannot be placed:
+the steps before it may already be handed out). Memory is bounded by the pending stamps'
+message bytes plus one chunk: both are capped in bytes (:data:`PENDING_BYTES`,
+:data:`CHUNK_BYTES`), so large images get a shorter window and smaller chunks.
 """
 
 from __future__ import annotations
 
+import heapq
 import json
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from tpsr_ros.core.actions import NUM_ACTIONS
+from tpsr_ros.core.actions import NUM_ACTIONS, VELOCITIES
 from tpsr_ros.core.episodes import (
     DEFAULT_ACTION_TOLERANCE,
     DEFAULT_IMAGE_SHAPE,
@@ -29,19 +43,35 @@ from tpsr_ros.core.episodes import (
 )
 from tpsr_ros.core.errors import BagError, ConfigError, DataError, MessageError
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.io.messages import (
-    ACTION_TYPE,
-    IMAGE_TYPE,
-    POSE_TYPE,
-    REWARD_TYPE,
-    image_to_array,
-    pose_to_xy,
-    reward_to_sample,
-    stamp_of,
-    twist_to_xy,
+from tpsr_ros.io.cdr_fields import (
+    ImageDecoder,
+    PoseDecoder,
+    RewardDecoder,
+    TwistDecoder,
+    peek_stamp,
 )
+from tpsr_ros.io.messages import ACTION_TYPE, IMAGE_TYPE, POSE_TYPE, REWARD_TYPE
 
-__all__ = ["Topics", "read_trajectory"]
+__all__ = [
+    "DEFAULT_CHUNK_STEPS",
+    "REORDER_WINDOW",
+    "Topics",
+    "iter_trajectory_chunks",
+    "read_trajectory",
+]
+
+DEFAULT_CHUNK_STEPS = 8192
+"""Steps per chunk of :func:`iter_trajectory_chunks` (16x16 images: 50 MB of observations)."""
+REORDER_WINDOW = 4096
+"""Distinct stamps (over the four topics) a message may trail in a bag (module docstring):
+4096 steps of 1 s when only images and actions are stamped; pending messages of 16x16
+images take about 4 MB."""
+CHUNK_BYTES = 128 * 2**20
+"""Float64 observations of one chunk at most: a chunk has at most this many bytes' worth of
+steps (16x16 images: 21 845, above the default 8192; 640x480: 18)."""
+PENDING_BYTES = 256 * 2**20
+"""Image bytes waiting to be paired at most: the window is at most this many bytes' worth of
+stamps (16x16 images: 349 525, above the default 4096; 640x480: 291)."""
 
 
 @dataclass(frozen=True)
@@ -85,59 +115,311 @@ def _bag_custom_data(reader: BagReader) -> tuple[str | None, Any]:
     return (str(env) if env else None), generator
 
 
-def _read_bag(
-    path: Path, topics: Topics, image_shape: tuple[int, int] | None, require_ground_truth: bool
-) -> dict[str, Any]:
-    wanted = topics.types()
-    with BagReader(path) as reader:
+@dataclass(frozen=True)
+class _Options:
+    topics: Topics
+    step_ns: int
+    action_tolerance: float
+    require_ground_truth: bool
+    chunk_steps: int
+    reorder_window: int
+
+
+@dataclass(frozen=True)
+class _Steps:
+    """Consecutive steps of one bag, with pixels still uint8 (a chunk before conversion)."""
+
+    stamps: np.ndarray  # (n,) int64
+    pixels: np.ndarray  # (n, H, W, 3) uint8
+    actions: np.ndarray  # (n,) int64
+    velocities: np.ndarray  # (n, 2)
+    positions: np.ndarray  # (n, 2), NaN where no pose
+    rewards: np.ndarray  # (n,), NaN where no reward
+    segments: np.ndarray  # (n,) int64, numbered over all bags
+    source: dict[str, Any] | None  # the bag's source dict on its last chunk only
+
+    def trajectory(self) -> Trajectory:
+        return _trajectory([self])
+
+
+def _trajectory(parts: Sequence[_Steps]) -> Trajectory:
+    """One trajectory of ``parts`` in order (pixels converted once, after concatenating)."""
+
+    def joined(name: str) -> np.ndarray:
+        arrays = [getattr(p, name) for p in parts]
+        return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
+
+    pixels = joined("pixels")
+    return Trajectory(
+        stamps=joined("stamps"),
+        observations=images_to_observations(pixels),
+        actions=joined("actions"),
+        velocities=joined("velocities"),
+        positions=joined("positions"),
+        rewards=joined("rewards"),
+        segments=joined("segments"),
+        image_shape=(int(pixels.shape[1]), int(pixels.shape[2])),
+        n_actions=NUM_ACTIONS,
+        sources=[p.source for p in parts if p.source is not None],
+    )
+
+
+_NO_POSE = (float("nan"), float("nan"))
+_IMAGE, _ACTION, _POSE, _REWARD = range(4)
+
+
+class _BagSteps:
+    """The steps of one bag, paired by stamp as its messages stream past (module docstring).
+
+    ``pending`` holds the stamps read but not yet final, each with its image, velocity,
+    pose and reward as they arrive; when more than ``reorder_window`` stamps are pending
+    the smallest becomes final: a step if it has an image and an action, otherwise its
+    messages are unpaired. Final steps collect in a buffer that is handed out as a chunk
+    of ``chunk_steps`` when the next step arrives (or when the bag ends, with its source).
+    """
+
+    def __init__(self, path: Path, images: ImageDecoder, options: _Options, segment: int):
+        self.path = path
+        self.options = options
+        self.images = images
+        self.first_segment = segment
+        self.segment = segment - 1  # of the last step handed out
+        self.last_stamp: int | None = None
+        self.steps = 0
+        self.first_stamp = 0
+        self.buffer: list[tuple[int, list[Any]]] = []
+
+    def chunks(self) -> Iterator[_Steps]:
+        """The bag's steps in stamp order, ``chunk_steps`` at a time."""
+        topics = self.options.topics
+        with BagReader(self.path) as reader:
+            present = self._check_topics(reader)
+            decoders = {
+                topics.image: (_IMAGE, self.images),
+                topics.action: (_ACTION, TwistDecoder()),
+                topics.pose: (_POSE, PoseDecoder()),
+                topics.reward: (_REWARD, RewardDecoder()),
+            }
+            window = self.options.reorder_window  # until the image size is known
+            counts = [0, 0, 0, 0]
+            pending: dict[int, list[Any]] = {}
+            heap: list[int] = []
+            final = -(2**63)  # the largest stamp made final
+            for topic, _, data in reader.raw_messages(present):
+                kind, decoder = decoders[topic]
+                try:
+                    stamp, value = decoder.decode(data)
+                except MessageError as exc:
+                    raise self._bad_message(topic, counts[kind], data, exc) from None
+                counts[kind] += 1
+                if kind == _IMAGE and counts[_IMAGE] == 1:
+                    window = self._window()
+                entry = pending.get(stamp)
+                if entry is None:
+                    if stamp <= final:
+                        raise self._too_late(topic, counts[kind] - 1, stamp, window)
+                    entry = pending[stamp] = [None, None, None, None]
+                    entry[kind] = value
+                    heapq.heappush(heap, stamp)
+                    if len(heap) > window:
+                        final = heapq.heappop(heap)
+                        if (chunk := self._finish(final, pending.pop(final))) is not None:
+                            yield chunk
+                elif entry[kind] is not None:
+                    raise BagError(
+                        f"bag {str(self.path)!r}, topic {topic!r}, message {counts[kind] - 1}: "
+                        f"a second message with stamp {stamp} ns"
+                    )
+                else:
+                    entry[kind] = value
+            while heap:
+                final = heapq.heappop(heap)
+                if (chunk := self._finish(final, pending.pop(final))) is not None:
+                    yield chunk
+            environment, generator = _bag_custom_data(reader)
+        if not self.buffer:
+            raise DataError(
+                f"bag {str(self.path)!r} has no image and action with the same stamp "
+                f"({counts[_IMAGE]} images, {counts[_ACTION]} actions)"
+            )
+        last = self._take()
+        source = {
+            "path": str(self.path),
+            "steps": self.steps,
+            "segments": self.segment - self.first_segment + 1,
+            "unpaired_messages": counts[_IMAGE] + counts[_ACTION] - 2 * self.steps,
+            "stamps_ns": [self.first_stamp, int(last.stamps[-1])],
+            "environment": environment,
+            "generator": generator,
+            "topics": {
+                "image": topics.image,
+                "action": topics.action,
+                "pose": topics.pose,
+                "reward": topics.reward,
+            },
+        }
+        yield replace(last, source=source)
+
+    def _check_topics(self, reader: BagReader) -> list[str]:
+        """The wanted topics the bag has messages on; missing or mistyped ones refused."""
+        topics = self.options.topics
         counts = reader.message_counts
         available = {t: ty for t, ty in reader.topics.items() if counts.get(t, 0) > 0}
         required = [topics.image, topics.action]
-        if require_ground_truth:
+        if self.options.require_ground_truth:
             required += [topics.pose, topics.reward]
         if missing := [t for t in required if t not in available]:
             raise BagError(
-                f"bag {str(path)!r} has no messages on topic(s) {missing} (it has "
+                f"bag {str(self.path)!r} has no messages on topic(s) {missing} (it has "
                 f"{sorted(available)})"
             )
+        wanted = topics.types()
         for topic, msgtype in wanted.items():
             if topic in available and available[topic] != msgtype:
                 raise BagError(
-                    f"topic {topic!r} of bag {str(path)!r} has type {available[topic]}, "
+                    f"topic {topic!r} of bag {str(self.path)!r} has type {available[topic]}, "
                     f"expected {msgtype}"
                 )
-        data: dict[str, dict[int, Any]] = {t: {} for t in wanted}
-        for bag_msg in reader.messages([t for t in wanted if t in available]):
-            msg = bag_msg.decode()
-            stamp = stamp_of(msg)
-            if stamp in data[bag_msg.topic]:
-                raise BagError(
-                    f"bag {str(path)!r} has two messages on {bag_msg.topic!r} with stamp {stamp} ns"
-                )
-            try:
-                if bag_msg.topic == topics.image:
-                    value: Any = image_to_array(msg, shape=image_shape)
-                    image_shape = image_shape or value.shape[:2]
-                elif bag_msg.topic == topics.action:
-                    value = twist_to_xy(msg)
-                elif bag_msg.topic == topics.pose:
-                    value = pose_to_xy(msg)
-                else:
-                    value = reward_to_sample(msg).reward
-                if bag_msg.topic != topics.image and not np.isfinite(value).all():
-                    raise MessageError(f"value {value} is not finite")
-            except MessageError as exc:
-                raise MessageError(
-                    f"bag {str(path)!r}, topic {bag_msg.topic!r} at stamp {stamp} ns: {exc}"
-                ) from None
-            data[bag_msg.topic][stamp] = value
-        environment, generator = _bag_custom_data(reader)
-    return {
-        "data": data,
-        "environment": environment,
-        "generator": generator,
-        "image_shape": image_shape,
-    }
+        return [t for t in wanted if t in available]
+
+    def _bad_message(self, topic: str, index: int, data: bytes, exc: MessageError) -> Exception:
+        stamp = peek_stamp(data)
+        where = f"message {index}" + (f" (stamp {stamp} ns)" if stamp is not None else "")
+        return MessageError(f"bag {str(self.path)!r}, topic {topic!r}, {where}: {exc}")
+
+    def _image_bytes(self) -> int:
+        height, width = self.images.shape or (1, 1)
+        return height * width * 3
+
+    def _window(self) -> int:
+        """The reorder window, at most :data:`PENDING_BYTES` of images."""
+        return min(self.options.reorder_window, max(16, PENDING_BYTES // self._image_bytes()))
+
+    def _chunk_steps(self) -> int:
+        """Steps per chunk, at most :data:`CHUNK_BYTES` of float64 observations."""
+        return min(self.options.chunk_steps, max(1, CHUNK_BYTES // (8 * self._image_bytes())))
+
+    def _too_late(self, topic: str, index: int, stamp: int, window: int) -> BagError:
+        return BagError(
+            f"bag {str(self.path)!r}, topic {topic!r}, message {index} (stamp {stamp} ns) "
+            f"comes after messages of {window} or more later stamps: steps are paired in a "
+            f"stream that allows messages out of stamp order by fewer than {window} stamps "
+            "(or the stamp repeats; a larger reorder_window of read_trajectory reads it)"
+        )
+
+    def _finish(self, stamp: int, entry: list[Any]) -> _Steps | None:
+        """Make ``stamp`` final; return the full buffer if a new step needs the room."""
+        image, velocity, pose, reward = entry
+        if image is None or velocity is None:
+            return None
+        if self.options.require_ground_truth and (pose is None or reward is None):
+            topics = self.options.topics
+            missing = topics.pose if pose is None else topics.reward
+            raise DataError(
+                f"bag {str(self.path)!r} lacks ground truth for some steps: the step at stamp "
+                f"{stamp} ns has no message on {missing!r}"
+            )
+        chunk = self._take() if len(self.buffer) >= self._chunk_steps() else None
+        if self.steps == 0:
+            self.first_stamp = stamp
+        self.steps += 1
+        self.buffer.append((stamp, entry))
+        return chunk
+
+    def _take(self) -> _Steps:
+        """Empty the buffer into a chunk, numbering its segments after the previous one's."""
+        count = len(self.buffer)
+        stamps = np.fromiter((s for s, _ in self.buffer), dtype=np.int64, count=count)
+        entries = [e for _, e in self.buffer]
+        self.buffer = []
+        assert self.images.shape is not None  # set by the first image decoded
+        height, width = self.images.shape
+        pixels = np.frombuffer(b"".join(e[_IMAGE] for e in entries), dtype=np.uint8)
+        velocities = np.array([e[_ACTION] for e in entries], dtype=np.float64).reshape(count, 2)
+        positions = np.array(
+            [_NO_POSE if e[_POSE] is None else e[_POSE] for e in entries], dtype=np.float64
+        ).reshape(count, 2)
+        rewards = np.array(
+            [np.nan if e[_REWARD] is None else e[_REWARD] for e in entries], dtype=np.float64
+        )
+        breaks = np.empty(count, dtype=bool)
+        breaks[0] = self.last_stamp is None or stamps[0] - self.last_stamp != self.options.step_ns
+        breaks[1:] = np.diff(stamps) != self.options.step_ns
+        segments = self.segment + np.cumsum(breaks, dtype=np.int64)
+        self.segment, self.last_stamp = int(segments[-1]), int(stamps[-1])
+        try:
+            actions = velocities_to_actions(velocities, self.options.action_tolerance)
+        except DataError as exc:
+            with np.errstate(invalid="ignore"):
+                far = np.abs(velocities[:, :, None] - VELOCITIES).min(axis=2).max(axis=1)
+            first = int(np.argmax(~(far <= self.options.action_tolerance)))
+            raise DataError(
+                f"bag {str(self.path)!r}, topic {self.options.topics.action!r}, the step at "
+                f"stamp {int(stamps[first])} ns: {exc}"
+            ) from None
+        return _Steps(
+            stamps=stamps,
+            pixels=pixels.reshape(count, height, width, 3),
+            actions=actions,
+            velocities=velocities,
+            positions=positions,
+            rewards=rewards,
+            segments=segments,
+            source=None,
+        )
+
+
+def _read_steps(bags: Sequence[Path | str], image_shape: tuple[int, int] | None,
+                options: _Options) -> Iterator[_Steps]:
+    images = ImageDecoder(image_shape)  # one shape for all bags
+    segment = 0
+    for bag in bags:
+        reader = _BagSteps(Path(bag), images, options, segment)
+        yield from reader.chunks()
+        segment = reader.segment + 1
+
+
+def _options(
+    bags: Sequence[Path | str], topics: Topics | None, step_ns: int, action_tolerance: float,
+    require_ground_truth: bool, chunk_steps: int, reorder_window: int,
+) -> _Options:
+    if not bags:
+        raise ConfigError("no bag given")
+    if step_ns <= 0:
+        raise ConfigError(f"step duration must be positive, not {step_ns} ns")
+    if chunk_steps < 1:
+        raise ConfigError(f"chunk_steps must be at least 1, not {chunk_steps}")
+    if reorder_window < 1:
+        raise ConfigError(f"reorder_window must be at least 1 stamp, not {reorder_window}")
+    return _Options(
+        topics or Topics(), int(step_ns), float(action_tolerance), bool(require_ground_truth),
+        int(chunk_steps), int(reorder_window),
+    )
+
+
+def iter_trajectory_chunks(
+    bags: Sequence[Path | str],
+    *,
+    topics: Topics | None = None,
+    image_shape: tuple[int, int] | None = DEFAULT_IMAGE_SHAPE,
+    step_ns: int = STEP_NS,
+    action_tolerance: float = DEFAULT_ACTION_TOLERANCE,
+    require_ground_truth: bool = False,
+    chunk_steps: int = DEFAULT_CHUNK_STEPS,
+    reorder_window: int = REORDER_WINDOW,
+) -> Iterator[Trajectory]:
+    """The steps of ``bags`` as trajectories of at most ``chunk_steps`` steps, in order.
+
+    Concatenated, the chunks are :func:`read_trajectory` of the same arguments and
+    ``reorder_window`` (segments numbered over all bags). A chunk holds steps of one bag;
+    ``sources`` is empty except on each bag's last chunk, which carries that bag's source
+    dict. Memory is bounded by ``chunk_steps`` and ``reorder_window``, each capped in bytes
+    for large images (see the module docstring), not by the bags. Arguments are checked
+    here; bags are read as the chunks are taken.
+    """
+    options = _options(bags, topics, step_ns, action_tolerance, require_ground_truth,
+                       chunk_steps, reorder_window)
+    return (steps.trajectory() for steps in _read_steps(bags, image_shape, options))
 
 
 def read_trajectory(
@@ -148,76 +430,15 @@ def read_trajectory(
     step_ns: int = STEP_NS,
     action_tolerance: float = DEFAULT_ACTION_TOLERANCE,
     require_ground_truth: bool = False,
+    reorder_window: int = REORDER_WINDOW,
 ) -> Trajectory:
     """Read and pair the steps of ``bags`` (see the module docstring).
 
     ``image_shape=None`` accepts any size, but all images must share it.
-    ``require_ground_truth`` also demands the pose and reward topics.
+    ``require_ground_truth`` also demands the pose and reward topics; ``reorder_window``
+    is how far out of stamp order a message may come. The chunks of
+    :func:`iter_trajectory_chunks` concatenated (pixels converted to observations once).
     """
-    topics = topics or Topics()
-    if not bags:
-        raise ConfigError("no bag given")
-    if step_ns <= 0:
-        raise ConfigError(f"step duration must be positive, not {step_ns} ns")
-    parts: list[dict[str, np.ndarray]] = []
-    sources: list[dict[str, Any]] = []
-    shape = image_shape
-    segment_offset = 0
-    for bag in bags:
-        path = Path(bag)
-        read = _read_bag(path, topics, shape, require_ground_truth)
-        shape = read["image_shape"]
-        data = read["data"]
-        images, actions = data[topics.image], data[topics.action]
-        stamps = np.array(sorted(set(images) & set(actions)), dtype=np.int64)
-        if stamps.size == 0:
-            raise DataError(
-                f"bag {str(path)!r} has no image and action with the same stamp "
-                f"({len(images)} images, {len(actions)} actions)"
-            )
-        velocities = np.array([actions[s] for s in stamps], dtype=np.float64)
-        obs = images_to_observations(np.stack([images[s] for s in stamps]))
-        nan2 = (float("nan"), float("nan"))
-        positions = np.array([data[topics.pose].get(s, nan2) for s in stamps], dtype=np.float64)
-        rewards = np.array([data[topics.reward].get(s, np.nan) for s in stamps], dtype=np.float64)
-        if require_ground_truth and (np.isnan(positions).any() or np.isnan(rewards).any()):
-            raise DataError(f"bag {str(path)!r} lacks ground truth (pose or reward) for some steps")
-        breaks = np.diff(stamps) != step_ns
-        segments = segment_offset + np.concatenate([[0], np.cumsum(breaks)])
-        segment_offset = int(segments[-1]) + 1
-        parts.append(
-            {
-                "stamps": stamps,
-                "observations": obs,
-                "actions": velocities_to_actions(velocities, action_tolerance),
-                "velocities": velocities,
-                "positions": positions,
-                "rewards": rewards,
-                "segments": segments.astype(np.int64),
-            }
-        )
-        sources.append(
-            {
-                "path": str(path),
-                "steps": int(stamps.size),
-                "segments": int(breaks.sum()) + 1,
-                "unpaired_messages": int(len(images) + len(actions) - 2 * stamps.size),
-                "stamps_ns": [int(stamps[0]), int(stamps[-1])],
-                "environment": read["environment"],
-                "generator": read["generator"],
-                "topics": {
-                    "image": topics.image,
-                    "action": topics.action,
-                    "pose": topics.pose,
-                    "reward": topics.reward,
-                },
-            }
-        )
-    merged = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-    assert shape is not None
-    return Trajectory(
-        **merged,
-        image_shape=(int(shape[0]), int(shape[1])),
-        n_actions=NUM_ACTIONS,
-        sources=sources,
-    )
+    options = _options(bags, topics, step_ns, action_tolerance, require_ground_truth,
+                       DEFAULT_CHUNK_STEPS, reorder_window)
+    return _trajectory(list(_read_steps(bags, image_shape, options)))

@@ -1,0 +1,184 @@
+"""``learner fit --stream / --workers / --scheduler``: the same model from bags, and bad input."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+
+import numpy as np
+import pytest
+
+from learner.cli import entry
+from sim_node import SimConfig
+from sim_node.generate import generate_bag
+from tpsr_ros.core.episodes import make_episodes
+from tpsr_ros.core.errors import BagError, ConfigError
+from tpsr_ros.core.pca_baseline import fit_pca
+from tpsr_ros.core.streamed_fit import fit_pca_streamed, fit_tpsr_streamed
+from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
+from tpsr_ros.io.bag_chunks import BagChunks, survey_bags
+from tpsr_ros.io.model_io import load_model, read_metadata
+from tpsr_ros.io.trajectory import read_trajectory
+
+SMALL = ["--obs-centers", "40", "--ht-centers", "80", "--rank", "3"]
+CONFIG = TPSRConfig(obs_centers=40, ht_centers=80, rank=3)
+ARRAYS = ("obs_mean", "obs_whitening", "obs_centers", "b_star", "b_inf", "B", "singular_values")
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory):
+    root = tmp_path_factory.mktemp("stream_bags")
+    paths = [root / "a", root / "b"]
+    generate_bag(paths[0], SimConfig(environment="full"), 700, seed=3)
+    generate_bag(paths[1], SimConfig(environment="full"), 500, seed=4)
+    return paths
+
+
+@pytest.fixture(scope="module")
+def reference(bags):
+    return fit_tpsr_episodes(make_episodes(read_trajectory(bags), 1, 1), config=CONFIG)
+
+
+def assert_same(model, reference, tol=1e-9):
+    for name in ARRAYS:
+        a, b = getattr(model, name), getattr(reference, name)
+        assert a.shape == b.shape
+        assert np.abs(a - b).max() <= tol * np.abs(b).max(), name
+
+
+def run_entry(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        entry(argv)
+    out, err = capsys.readouterr()
+    return exc.value.code, out, err
+
+
+def test_stream_option_writes_the_in_memory_model(bags, reference, tmp_path, capsys):
+    out = tmp_path / "m.npz"
+    code, stdout, stderr = run_entry(
+        ["fit", *map(str, bags), "-o", str(out), "--stream", "--chunk-steps", "97", *SMALL],
+        capsys,
+    )
+    assert code == 0, stderr
+    assert "pass 1: whitening statistics" in stderr and "pass 2" in stderr
+    assert "1200 steps, 2 segment(s), 399 episodes" in stdout
+    assert_same(load_model(out), reference)
+    training = read_metadata(out)["training"]  # what the filter node and `info` read
+    assert training["image_shape"] == [16, 16] and training["environment"] == "full"
+    pca = tmp_path / "pca.npz"
+    code, stdout, stderr = run_entry(
+        ["fit", *map(str, bags), "-o", str(pca), "--stream", "--method", "pca"], capsys
+    )
+    assert code == 0, stderr
+    assert "1200 steps, 2 segment(s), 399 episodes" in stdout  # as the in-memory PCA fit
+
+
+def test_streamed_pca_baseline_equals_fit_pca(bags):
+    reader = BagChunks(chunk_steps=111)
+    episodes = make_episodes(read_trajectory(bags), 1, 1)
+    whole = fit_pca(episodes.steps(), n_actions=25)
+    streamed = fit_pca_streamed(lambda: reader.read_all(bags))
+    for name in ("mean", "components", "eigenvalues", "explained_variance_ratio"):
+        a, b = getattr(streamed, name), getattr(whole, name)
+        assert np.abs(a - b).max() <= 1e-9 * np.abs(b).max(), name
+
+
+def test_dask_local_cluster_equals_one_process(bags, reference):
+    distributed = pytest.importorskip("distributed")
+    from learner.distributed import DaskEngine, check_bags_visible
+
+    reader = BagChunks(chunk_steps=512)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster, set_as_default=False) as client,
+    ):
+        check_bags_visible(client, bags)
+        engine = DaskEngine(client, bags, reader)
+        model = fit_tpsr_streamed(engine, config=CONFIG)
+        limited = fit_tpsr_streamed(engine, config=CONFIG, max_episodes=230)  # bag b left out
+        with pytest.raises(ConfigError, match=r"cannot see bag\(s\)"):
+            check_bags_visible(client, [*bags, bags[0].parent / "elsewhere"])
+    assert model.fit_info["streamed"]["engine"].startswith("dask, 2 worker(s)")
+    assert_same(model, reference)
+    one_process = fit_tpsr_streamed(lambda: reader.read_all(bags), config=CONFIG)
+    assert_same(model, one_process)
+    first_230 = make_episodes(read_trajectory(bags), 1, 1, max_episodes=230)
+    assert_same(limited, fit_tpsr_episodes(first_230, config=CONFIG))
+
+
+def test_a_scheduler_that_does_not_answer_is_one_line(bags, tmp_path, capsys):
+    pytest.importorskip("distributed")
+    with socket.socket() as sock:  # a port nobody listens on
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    out = tmp_path / "m.npz"
+    argv = ["fit", str(bags[0]), "-o", str(out), "--scheduler", f"tcp://127.0.0.1:{port}"]
+    code, _, stderr = run_entry([*argv, "--scheduler-timeout", "2", *SMALL], capsys)
+    assert code == 1
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("learner: error: no Dask scheduler answers at")
+    assert f"127.0.0.1:{port}" in last and "within 2 s" in last
+    assert "Traceback" not in stderr and not out.exists()
+
+
+def test_a_bag_that_vanishes_mid_fit_fails_naming_it_and_writes_nothing(
+    bags, tmp_path, capsys, monkeypatch
+):
+    doomed = tmp_path / "doomed"
+    shutil.copytree(bags[1], doomed)
+    original = BagChunks.read_all
+    calls = []
+
+    def read_all(self, paths):
+        calls.append(1)
+        if len(calls) == 2:  # the second pass: the bag is gone
+            shutil.rmtree(doomed)
+        return original(self, paths)
+
+    monkeypatch.setattr(BagChunks, "read_all", read_all)
+    out = tmp_path / "m.npz"
+    code, _, stderr = run_entry(
+        ["fit", str(bags[0]), str(doomed), "-o", str(out), "--stream", *SMALL], capsys
+    )
+    assert code == 1 and len(calls) == 2
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("learner: error:") and str(doomed) in last
+    assert not out.exists()
+
+
+def test_bags_with_other_images_are_refused_before_the_first_pass(bags, tmp_path, capsys):
+    small = tmp_path / "eight"
+    generate_bag(small, SimConfig(environment="full", image_size=8), 40, seed=5)
+    with pytest.raises(BagError, match="cannot be fitted together: images 16x16 rgb8 vs 8x8"):
+        survey_bags([bags[0], small])
+    out = tmp_path / "m.npz"
+    argv = ["fit", str(bags[0]), str(small), "-o", str(out), "--stream"]
+    code, _, stderr = run_entry(argv, capsys)
+    assert code == 1 and "pass 1" not in stderr and not out.exists()
+    assert str(small) in stderr.strip().splitlines()[-1]
+
+
+def test_option_conflicts_are_one_line(bags, tmp_path, capsys):
+    out = str(tmp_path / "m.npz")
+    code, _, stderr = run_entry(
+        ["fit", str(bags[0]), "-o", out, "--workers", "1", "--scheduler", "tcp://x:1"], capsys
+    )
+    assert code == 1 and "not both" in stderr
+    code, _, stderr = run_entry(
+        ["fit", str(bags[0]), "-o", out, "--method", "pca", "--workers", "1"], capsys
+    )
+    assert code == 1 and "PCA baseline streams in one process only" in stderr
+
+
+def test_robot_bags_stream_on_their_step_grid(bags, tmp_path, capsys):
+    """--step-period: each bag is read whole on the grid and sliced into chunks."""
+    common = ["fit", *map(str, bags), "--step-period", "1", *SMALL]
+    code, _, stderr = run_entry([*common, "-o", str(tmp_path / "mem.npz")], capsys)
+    assert code == 0, stderr
+    code, _, stderr = run_entry(
+        [*common, "-o", str(tmp_path / "str.npz"), "--stream", "--chunk-steps", "100"], capsys
+    )
+    assert code == 0, stderr
+    assert_same(load_model(tmp_path / "str.npz"), load_model(tmp_path / "mem.npz"))
