@@ -6,7 +6,11 @@ schedule is never shifted) for 300 images; ``python -m tpsr_ros.record --compres
 records it in a child process. Prints, per backend, the images in the bag, those missing,
 those the recorder reported lost or dropped (they must match), and the rate the camera actually kept
 (a reliable DDS writer waits for a slow recorder instead of dropping, so a recorder that
-cannot keep up shows as a camera below 60 Hz, not as loss). Target: 300 recorded at 60 Hz.
+cannot keep up shows as a camera below 60 Hz, not as loss), and the UDP datagrams the host
+dropped at full socket receive buffers meanwhile (a burst larger than the buffer, which
+the kernel caps at net.core.rmem_max, overflows it when the receiving thread is not
+scheduled in time, and the reliable protocol's repairs then fall behind).
+Target: 300 recorded at 60 Hz.
 """
 
 from __future__ import annotations
@@ -28,6 +32,20 @@ from benchmarks.bench_record import (
 
 RATE_HZ = 60.0
 IMAGES = 300
+
+
+def udp_receive_buffer_errors() -> int | None:
+    """This host's UDP datagrams dropped at a full socket receive buffer so far (Linux).
+
+    Host-wide (every process, ours or not), from ``RcvbufErrors`` in /proc/net/snmp; None
+    where it cannot be read.
+    """
+    try:
+        lines = [x.split() for x in Path("/proc/net/snmp").read_text().splitlines()]
+        names, values = (x for x in lines if x and x[0] == "Udp:")
+        return int(values[names.index("RcvbufErrors")])
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def one_run(tmp: Path, backend: str, rate_hz: float) -> tuple[int, int, int, float]:
@@ -61,7 +79,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"   bags in {root or 'the temporary directory'}", flush=True)
     with tempfile.TemporaryDirectory(dir=root) as tmp:
         for backend in backends:
+            drops_before = udp_receive_buffer_errors()
             recorded, missing, lost, rate = one_run(Path(tmp), backend, args.rate)
+            drops_after = udp_receive_buffer_errors()
             met = recorded == IMAGES and rate >= 0.97 * args.rate
             print(
                 f"camera 1080p rgb8 at {args.rate:.0f} Hz, {IMAGES} images, {backend}: "
@@ -71,11 +91,17 @@ def main(argv: list[str] | None = None) -> None:
                 f"{'met' if met else 'NOT met'})",
                 flush=True,
             )
+            if drops_before is not None and drops_after is not None:
+                print(
+                    f"   UDP datagrams this host dropped at full socket receive buffers during "
+                    f"the run: {drops_after - drops_before} (net.core.rmem_max caps the buffer)",
+                    flush=True,
+                )
             if backend == "dds" and missing > lost:
                 print(
                     "   (the DDS backend cannot count these: the camera's keep-last 30 history "
                     "overwrote them before the recorder's Cyclone reader had them, and Cyclone "
-                    "raises no sample-lost status for that)",
+                    "raises no sample-lost status for that and gives no sequence numbers)",
                     flush=True,
                 )
 

@@ -24,7 +24,7 @@ from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.model_io import load_model, model_fingerprint, model_stream_spec, read_metadata
 from tpsr_ros.io.policy import Policy, save_policy
 from tpsr_ros.io.streams import read_stream_trajectory
-from tpsr_ros.runtime import Node, NodeOptions, parse_ros_args
+from tpsr_ros.runtime import Node, NodeOptions, QoSProfile, parse_ros_args
 from tpsr_ros.runtime.diagnostics import DIAGNOSTICS_TYPE, OK, STALE, WARN
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
 
@@ -138,6 +138,33 @@ def test_a_replayed_robot_bag_gives_the_offline_states(robot):
         far = int((book.assign(commands)[1] > book.far_distance).sum())
         assert values["camera_gaps"] == 0 and values["far_commands"] == far > 0
         assert values["image_topic"] == CAMERA and values["image_rate_hz"] > 0
+    finally:
+        feed.close()
+
+
+def test_a_bad_image_loses_the_steps_that_hold_it_and_only_those(robot):
+    # Images are downsampled on arrival; one that cannot be decoded stays on the grid as
+    # a hole, so each step holding it is rejected (counted) and the others are untouched.
+    expected = offline(robot)
+    feed = RobotFeed(robot["model"])
+    bad = range(20, 24)  # a second of a 4 Hz camera: some step holds one of them
+    try:
+        images = 0
+        for topic, data in robot["inputs"]:
+            if topic == CAMERA:
+                images += 1
+                if images in bad:
+                    msg = m.deserialize(data, m.IMAGE_TYPE)
+                    msg.encoding = "yuv422"
+                    data = m.serialize(msg, m.IMAGE_TYPE)
+            feed.send(topic, data)
+        values = feed.node.diagnostics_values()
+        lost = len(expected) - len(feed.states)
+        assert lost >= 1 and values["rejected_encoding"] == lost
+        assert feed.node.ok()
+        for stamp, state in feed.states:  # the others as offline, until the hole
+            if stamp < min(set(expected) - {s for s, _ in feed.states}):
+                assert np.array_equal(state, expected[stamp]), stamp
     finally:
         feed.close()
 
@@ -271,3 +298,42 @@ def test_the_node_tracks_a_play_replay_over_rclpy_like_offline(robot, tmp_path, 
     assert [s for s, _ in states] == sorted(expected)
     for stamp, state in states:
         assert np.array_equal(state, expected[stamp]), stamp
+
+
+@pytest.mark.rclpy
+@pytest.mark.skipif(not rclpy_available(), reason="rclpy (ROS 2) not importable")
+def test_camera_images_the_middleware_overwrote_are_counted_as_lost(robot, monkeypatch):
+    # Robot images carry no step numbers; the loss comes from the middleware: the image
+    # subscription keeps the last 10, so 25 images sent while the node is busy lose 15.
+    from rclpy.duration import Duration
+
+    from tpsr_ros.runtime.rclpy_backend import RclpyTransport
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain(19)))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    camera = Node(NodeOptions(name="camera"), transport=RclpyTransport("camera"))
+    pub = camera.create_publisher(CAMERA, m.IMAGE_TYPE, QoSProfile(depth=100))
+    options = NodeOptions.for_node(FilterNode, parse_ros_args(["-p", f"model:={robot['model']}"]))
+    node = FilterNode(options, transport=RclpyTransport("tpsr_filter"))
+    node.logger.stream = io.StringIO()
+    images = [data for topic, data in robot["inputs"] if topic == CAMERA][:26]
+
+    def send(batch: list[bytes]) -> None:  # in the node's reader before it spins
+        for data in batch:
+            pub.publish_raw(data)
+        assert pub._handle.publisher.wait_for_all_acked(Duration(seconds=10))
+
+    try:
+        assert node.wait_for(lambda: pub.get_subscription_count() == 1, 10)
+        send(images[:1])
+        assert node.wait_for(lambda: node.diagnostics_values()["image_age_s"] != "never", 10)
+        send(images[1:])
+        node.spin(timeout_s=0.3)
+        assert node.grid is not None and node.grid.images == 11  # the first, then the last 10
+        values = node.diagnostics_values()
+        assert values["lost_images"] == 15 and values["lost_actions"] == 0
+        level, message = node.health(values)
+        assert level == WARN and "lost_images" in message
+    finally:
+        node.close()
+        camera.close()

@@ -105,6 +105,44 @@ def test_messages_travel_as_cdr_bytes_both_ways(ros_env):
         listener.close()
 
 
+def test_messages_overwritten_in_a_keep_last_reader_are_counted_from_sequence_gaps(ros_env):
+    # Fast DDS raises no MESSAGE_LOST for what a reader's own keep-last history overwrote;
+    # the gaps in the publisher's sequence numbers show it exactly.
+    from rclpy.duration import Duration
+
+    talker, listener = rclpy_node("talker"), rclpy_node("listener")
+    try:
+        got = []
+        sub = listener.create_subscription(
+            "/ticks", m.CLOCK_TYPE, lambda x: got.append(x.clock.sec), QoSProfile(depth=1)
+        )
+        pub = talker.create_publisher("/ticks", m.CLOCK_TYPE, QoSProfile(depth=100))
+        nodes = (talker, listener)
+        assert spin_all(
+            nodes, lambda: pub.get_subscription_count() == 1 and sub.get_publisher_count() == 1
+        )
+        rclpy_pub = pub._handle.publisher
+
+        def burst(seconds: range) -> None:  # all in the reader's history before it spins
+            for sec in seconds:
+                pub.publish(m.clock_msg(sec * S))
+            assert rclpy_pub.wait_for_all_acked(Duration(seconds=10))
+
+        burst(range(1, 2))
+        assert spin_all(nodes, lambda: len(got) == 1)
+        burst(range(2, 12))
+        assert spin_all(nodes, lambda: len(got) == 2)
+        listener.spin(timeout_s=0.1)
+        assert got == [1, 11]
+        assert sub.get_lost_count() == 9  # 2..10, each overwritten by the next in the history
+        burst(range(12, 13))
+        assert spin_all(nodes, lambda: len(got) == 3)
+        assert sub.get_lost_count() == 9  # no gap, nothing more
+    finally:
+        talker.close()
+        listener.close()
+
+
 def test_qos_maps_to_rclpy_profiles_and_matching_follows_it(ros_env):
     from rclpy.qos import ReliabilityPolicy
 

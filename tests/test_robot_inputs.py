@@ -142,6 +142,29 @@ def test_area_averaging_equals_block_means_of_an_upsampled_image():
     assert weights[0, :3].tolist() == [0.4, 0.4, 0.2]
 
 
+@pytest.mark.parametrize(
+    ("shape", "size"),
+    [
+        ((1, 1080, 1920, 3), (16, 16)),  # a 1080p camera: 67.5 rows per output row
+        ((2, 37, 41, 1), (5, 7)),  # fractional borders on both axes
+        ((1, 50, 50, 3), (16, 50)),  # rows only
+        ((1, 7, 9, 3), (16, 12)),  # growing
+    ],
+)
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_the_fast_row_pass_equals_the_weight_matrices(shape, size, dtype):
+    top = np.iinfo(dtype).max
+    images = np.random.default_rng(4).integers(0, top, shape, dtype=dtype, endpoint=True)
+    literal = np.einsum(
+        "ih,thwc,jw->tijc",
+        area_weights(shape[1], size[0]),
+        images.astype(np.float64),
+        area_weights(shape[2], size[1]),
+    ).reshape(shape[0], -1) / top
+    got = preprocess_images(images, Preprocessing(*size, grey=shape[3] == 1))
+    np.testing.assert_allclose(got, literal, rtol=0, atol=1e-13)
+
+
 def test_grey_is_luma_and_a_grey_camera_cannot_give_colour():
     image = RGB[None, :4, :4]
     grey = preprocess_images(image, Preprocessing(4, 4, grey=True))
@@ -161,7 +184,7 @@ def test_grey_is_luma_and_a_grey_camera_cannot_give_colour():
 
 def test_a_batch_and_single_images_give_identical_observations():
     images = np.random.default_rng(3).integers(0, 256, (7, 40, 40, 3), dtype=np.uint8)
-    for prep in (Preprocessing(16, 16), Preprocessing(9, 13, grey=True)):
+    for prep in (Preprocessing(16, 16), Preprocessing(9, 13, grey=True), Preprocessing(50, 7)):
         batch = preprocess_images(images, prep)
         for i in range(len(images)):
             assert np.array_equal(batch[i], preprocess_images(images[i : i + 1], prep)[0])

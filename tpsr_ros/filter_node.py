@@ -30,8 +30,9 @@ rejected (counted per reason, at most one warning per topic every 5 s); incomple
 duplicated, late and out-of-order messages are counted by the synchroniser; degenerate
 normalisers are recovered by the guard of :mod:`tpsr_ros.core.filtering` and counted.
 ``/diagnostics`` reports it all once a second, with the input rates, the time since each
-input last delivered (WARN when one is silent, STALE when both are) and the steps lost in
-the middleware (gaps in the simulator's stamps).
+input last delivered (WARN when one is silent, STALE when both are) and the messages lost in
+the middleware (gaps in the simulator's stamps, or what the middleware itself knows it lost:
+:meth:`~tpsr_ros.runtime.node.Subscription.get_lost_count`).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from tpsr_ros.core.episodes import (
     velocities_to_actions,
 )
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
-from tpsr_ros.core.images import preprocess_images
+from tpsr_ros.core.images import Preprocessing, preprocess_images
 from tpsr_ros.core.online import OnlineTracker
 from tpsr_ros.core.resample import GridStep, GridStepper
 from tpsr_ros.core.units import NS_PER_S as _NS
@@ -237,6 +238,26 @@ def _action(msg: Any, frame: str, cache: dict[tuple[float, float], int]) -> int:
         raise _Rejected("action", str(exc)) from None
 
 
+class _Frame:
+    """A camera image as the grid holds it: its observation, or why it has none."""
+
+    __slots__ = ("detail", "observation", "reason")
+
+    def __init__(self) -> None:
+        self.observation: np.ndarray | None = None
+        self.reason, self.detail = "data", "not decoded"
+
+    def reduce(self, msg: Any, msgtype: str, preprocessing: Preprocessing) -> None:
+        """Decode and preprocess ``msg`` (the offline observation, bit for bit)."""
+        try:
+            pixels = decode_image(msg, msgtype)
+            self.observation = preprocess_images(pixels[None], preprocessing)[0]
+        except MessageError as exc:
+            self.detail = str(exc)
+            is_format = "encoding" in self.detail or "format" in self.detail
+            self.reason = "encoding" if is_format else "data"
+
+
 class _Throttle:
     """True at most once per key every ``period_s`` (wall clock); counts what it held back."""
 
@@ -319,7 +340,6 @@ class FilterNode(Node):
         self._throttle = _Throttle(WARN_PERIOD_S)
         self._recovery_run = 0
         self._action_cache: dict[tuple[float, float], int] = {}
-        self._last_report = (time.monotonic(), 0, self._problem_counts())
         self._pending_command: tuple[int, int | None] | None = None
         self._ready_since: float | None = None
         self.commands_ready = self.policy is None
@@ -363,6 +383,7 @@ class FilterNode(Node):
         self.clock_topic = self.create_subscription(
             CLOCK_TOPIC, m.CLOCK_TYPE, self._on_clock, CLOCK_QOS, raw=True
         ).topic
+        self._last_report = (time.monotonic(), 0, self._problem_counts())
         self.create_timer(p.diagnostics_period, self.publish_diagnostics)
         if self.policy is not None:
             self._ready_timer = self.create_timer(0.01, self._check_ready)
@@ -402,8 +423,10 @@ class FilterNode(Node):
             "gaps": self.tracker.gaps,
             "recoveries": self.tracker.recoveries,
             "errors": self.errors,
-            "lost_images": self.lost["image"],
-            "lost_actions": self.lost["action"],
+            # both lower bounds of the same loss: stamp gaps (simulator streams) and what
+            # the middleware knows it lost (sequence gaps, lost-sample events)
+            "lost_images": max(self.lost["image"], self.image_sub.get_lost_count()),
+            "lost_actions": max(self.lost["action"], self.action_sub.get_lost_count()),
         }
         if self.grid is not None:
             counts["dropped"] = self.grid.images_out_of_order
@@ -507,26 +530,26 @@ class FilterNode(Node):
             self.grid.reset()
             self.sync.stats.time_jumps += 1
             self._reinit(f"camera time jumped back to {stamp / _NS:.3f} s")
-        steps = self.grid.add_image(stamp, msg)
+        frame = _Frame()
+        steps = self.grid.add_image(stamp, frame)
         self._last_image_arrival_ns = time.monotonic_ns()
         self._grid_steps(steps, start)
+        # Downsampled at the input, once: after this image's steps have been published
+        # (they hold the previous image), so it adds nothing to their latency, and the
+        # node keeps an observation, not the camera's megabytes.
+        frame.reduce(msg, self.image_type, self.spec.preprocessing)
 
     def _grid_steps(self, steps: list[GridStep], start: float) -> None:
         """Process the steps one image completed; they all hold the previous image."""
         if not steps:
             return
-        assert self.spec is not None
-        try:  # decoded once however many steps share the image
-            pixels = decode_image(steps[0].image, self.image_type)
-            observation = preprocess_images(pixels[None], self.spec.preprocessing)[0]
-        except MessageError as exc:
-            text = str(exc)
-            reason = "encoding" if "encoding" in text or "format" in text else "data"
+        frame: _Frame = steps[0].image
+        if frame.observation is None:
             for _ in steps:  # one rejection per step, as each step is lost
-                self._reject(self.image_topic, reason, text)
+                self._reject(self.image_topic, frame.reason, frame.detail)
             return
         for step in steps:
-            self._process(step.stamp, int(step.command), observation, start)
+            self._process(step.stamp, int(step.command), frame.observation, start)
 
     def _on_grid_command(self, data: bytes) -> None:
         assert self.grid is not None and self.spec is not None

@@ -24,8 +24,9 @@ Receiving never waits for the disk: messages go to an in-memory cache of at most
 (:class:`~tpsr_ros.io.bag_cache.CachedBagWriter`); past it new messages are dropped.
 
 Nothing is lost silently. Messages the middleware reports lost before the recorder got
-them (DDS sample-lost events; Fast DDS's message-lost event under rclpy; best-effort
-samples Cyclone rejected because the recorder fell 256 samples behind) and messages
+them (DDS sample-lost events; under rclpy Fast DDS's message-lost event or the gaps in the
+publisher's sequence numbers; best-effort samples Cyclone rejected because the recorder
+fell 256 samples behind) and messages
 dropped at a full cache are counted per topic and logged; messages the recorder refuses
 (larger than ``--max-message-size``, or an ``Image`` that cannot be a whole image:
 truncated data, rows shorter than width x bytes per pixel) are logged with their index

@@ -4,11 +4,18 @@ Decoded camera pixels ``(T, H, W, C)`` (``C`` = 3 for colour in RGB order, 1 for
 or uint16) become float observation vectors ``(T, h * w * c)`` in ``[0, 1]``, row-major
 ``(row, column, channel)``:
 
-1. grey (``c = 1``): a colour image is converted to luma ``0.299 R + 0.587 G + 0.114 B``
-   (ITU-R BT.601, as OpenCV's and Pillow's grey conversion); colour output needs colour input;
-2. resize by area averaging to ``h x w`` (each output pixel is the mean of the input area it
-   covers, with fractional weights at its borders: one matrix per axis, exact for any size);
+1. resize by area averaging to ``h x w`` (each output pixel is the mean of the input area it
+   covers, with fractional weights at its borders, exact for any size);
+2. grey (``c = 1``): a colour image is converted to luma ``0.299 R + 0.587 G + 0.114 B``
+   (ITU-R BT.601, as OpenCV's and Pillow's grey conversion); colour output needs colour input.
+   Both steps are linear, so converting after resizing equals converting first;
 3. divide by the largest pixel value (255 for 8-bit, 65535 for 16-bit).
+
+Speed (a 1080p camera at 30 Hz leaves 33 ms per image): shrinking rows, the one pass over
+the whole frame, sums the integer pixels of each output row's band exactly
+(:func:`_shrink_rows`; about 5 ms for 1920x1080 rgb8) and adds the fractional border rows;
+no float copy of the frame is made. The columns of the few rows left are then averaged with
+:func:`area_weights`. Growing an axis (output larger than input) uses the weight matrix.
 
 An image already of the target size and channels skips steps 1 and 2, so the simulator's
 16x16 rgb8 images give exactly ``pixels / 255`` (the observations of every earlier model).
@@ -107,17 +114,54 @@ def preprocess_images(pixels: np.ndarray, preprocessing: Preprocessing) -> np.nd
     if same_size and channels == preprocessing.channels:
         # one pass, one array: the same values as astype(float64) / scale
         return np.divide(arr.reshape(count, -1), scale, dtype=np.float64)
-    values = arr.astype(np.float64)
+    values = _resize(arr, preprocessing.height, preprocessing.width)
     if preprocessing.grey and channels == 3:
         # elementwise, so every pixel's sum has one order whatever the batch size
         values = (
             LUMA[0] * values[..., 0] + LUMA[1] * values[..., 1] + LUMA[2] * values[..., 2]
         )[..., None]
-    if not same_size:
-        rows = area_weights(height, preprocessing.height)
-        cols = area_weights(width, preprocessing.width)
-        # (T, C, H, W) stacks of 2-d products: each image is computed on its own.
-        planes = np.ascontiguousarray(values.transpose(0, 3, 1, 2))
-        planes = np.matmul(np.matmul(rows, planes), cols.T)
-        values = planes.transpose(0, 2, 3, 1)
     return np.ascontiguousarray(values).reshape(count, -1) / scale
+
+
+def _resize(arr: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Area-averaged ``(T, height, width, C)`` float64 of integer pixels ``(T, H, W, C)``."""
+    if arr.shape[1] == height:
+        values = arr.astype(np.float64)
+    elif arr.shape[1] > height:
+        values = _shrink_rows(arr, height)
+    else:  # growing: the input is smaller than the output, so the float copy is small
+        planes = np.ascontiguousarray(arr.astype(np.float64).transpose(0, 3, 1, 2))
+        values = np.matmul(area_weights(arr.shape[1], height), planes).transpose(0, 2, 3, 1)
+    if arr.shape[2] != width:
+        # (T, C, h, W) stacks of 2-d products: each image is computed on its own.
+        planes = np.ascontiguousarray(values.transpose(0, 3, 1, 2))
+        values = np.matmul(planes, area_weights(arr.shape[2], width).T).transpose(0, 2, 3, 1)
+    return values
+
+
+def _shrink_rows(arr: np.ndarray, n_out: int) -> np.ndarray:
+    """Rows of ``(T, H, W, C)`` integer pixels area-averaged to ``n_out < H``, float64.
+
+    Output row ``i`` covers ``[e_i, e_(i+1))`` with ``e_i = i H / n_out``. Its area is the
+    exact integer sum of the input rows ``floor(e_i) .. floor(e_(i+1)) - 1``, less the
+    fraction ``e_i - floor(e_i)`` of row ``floor(e_i)`` (it belongs to the row before), plus
+    the fraction ``e_(i+1) - floor(e_(i+1))`` of row ``floor(e_(i+1))``. The same weights as
+    :func:`area_weights`, summed in another order. Band sums are exact integers: uint16 when
+    they fit (8-bit pixels, bands of up to 257 rows: faster), else uint32 (a band holds at
+    most 4097 rows, so sums of 16-bit pixels fit).
+    """
+    count, n_in, width, channels = arr.shape
+    edges = np.arange(n_out + 1) * (n_in / n_out)
+    first = np.floor(edges).astype(np.intp)
+    first[-1] = n_in
+    frac = edges - first
+    frac[-1] = 0.0
+    band = int(np.max(np.diff(first)))
+    exact = np.uint16 if band * np.iinfo(arr.dtype).max <= np.iinfo(np.uint16).max else np.uint32
+    sums = np.empty((count, n_out, width, channels), dtype=np.float64)
+    for i in range(n_out):  # one vectorised reduction per output row (16 for 16x16)
+        sums[:, i] = arr[:, first[i] : first[i + 1]].sum(axis=1, dtype=exact)
+    sums -= frac[:-1, None, None] * arr[:, first[:-1]]
+    inside = first[1:] < n_in
+    sums[:, inside] += frac[1:][inside, None, None] * arr[:, first[1:][inside]]
+    return sums / (n_in / n_out)

@@ -25,6 +25,7 @@ from tpsr_ros.core.errors import MessageError, TpsrError
 from tpsr_ros.io.messages import deserialize, serialize
 from tpsr_ros.io.qos import Durability, History, QoSProfile, Reliability
 from tpsr_ros.runtime.allocator import tune_allocator
+from tpsr_ros.runtime.fastdds_tuning import tune_fastdds
 from tpsr_ros.runtime.transport import (
     BytesCallback,
     ParameterCheck,
@@ -37,6 +38,8 @@ from tpsr_ros.runtime.transport import (
 
 __all__ = ["RclpyTransport", "from_rclpy", "message_class", "to_rclpy", "to_rclpy_qos"]
 
+_UNSUPPORTED_SEQUENCE = 2**64 - 1
+"""rmw's RMW_MESSAGE_INFO_SEQUENCE_NUMBER_UNSUPPORTED."""
 _SEVERITY = {"debug": "DEBUG", "info": "INFO", "warn": "WARN", "error": "ERROR", "fatal": "FATAL"}
 
 
@@ -133,20 +136,49 @@ class _Publisher(PublisherHandle):
 
 
 class _Subscription(SubscriptionHandle):
+    """An rclpy subscription and the messages it knows were lost.
+
+    Two counts, each a lower bound of the loss: Fast DDS's MESSAGE_LOST event (samples the
+    reader learnt it will never get, e.g. a keep-last writer dropped them before they were
+    acknowledged), and the gaps in the publisher's sequence numbers (rclpy's MessageInfo
+    ``publication_sequence_number``), which also see samples overwritten in this reader's
+    own keep-last history before they were taken. :meth:`lost_count` reports the larger.
+    Sequence numbers belong to one publisher and MessageInfo does not say which, so gaps
+    are counted only while exactly one publisher is matched, and a MATCHED event (a
+    publisher came or went) starts the count afresh. Not counted: the tail of a burst with
+    no later message to reveal the gap (unless the event reports it).
+    """
+
     def __init__(self, owner: RclpyTransport) -> None:
         self.owner = owner
         self.subscription: Any = None
-        self.lost = 0
+        self.lost = 0  # reported by MESSAGE_LOST events
+        self.gap_lost = 0  # from gaps in the publisher's sequence numbers
+        self._last_sequence: int | None = None
 
     def matched_count(self) -> int:
         return int(self.subscription.get_publisher_count()) if self.subscription else 0
 
     def lost_count(self) -> int:
-        return self.lost
+        return max(self.lost, self.gap_lost)
 
     def on_message_lost(self, info: Any) -> None:
         """rclpy's MESSAGE_LOST event (Fast DDS: samples the reader will never get)."""
         self.lost += int(info.total_count_change)
+
+    def on_matched(self, _info: Any) -> None:
+        """A publisher came or went: the next sequence number starts a new count."""
+        self._last_sequence = None
+
+    def note_sequence(self, info: Any) -> None:
+        """Count the publisher's messages skipped before this one (see the class docstring)."""
+        sequence = info.get("publication_sequence_number") if isinstance(info, dict) else None
+        if not isinstance(sequence, int) or sequence <= 0 or sequence >= _UNSUPPORTED_SEQUENCE:
+            return  # an rmw without publication sequence numbers
+        last = self._last_sequence
+        if last is not None and sequence > last + 1 and self.matched_count() == 1:
+            self.gap_lost += sequence - last - 1
+        self._last_sequence = sequence
 
     def close(self) -> None:
         if self.subscription is not None:
@@ -166,6 +198,7 @@ class RclpyTransport(Transport):
 
         self._rclpy = rclpy
         tune_allocator()
+        tune_fastdds()  # before the process's first participant; the user's settings win
         self.context = rclpy.Context()
         try:
             rclpy.init(
@@ -196,9 +229,10 @@ class RclpyTransport(Transport):
     ) -> SubscriptionHandle:
         handle = _Subscription(self)
 
-        def on_raw(data: bytes) -> None:
+        def on_raw(data: bytes, info: Any) -> None:
             self._dispatched += 1
-            callback(bytes(data))
+            handle.note_sequence(info)
+            callback(data)
 
         from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError
 
@@ -207,9 +241,11 @@ class RclpyTransport(Transport):
             handle.subscription = self.node.create_subscription(
                 *args,
                 raw=True,
-                event_callbacks=SubscriptionEventCallbacks(message_lost=handle.on_message_lost),
+                event_callbacks=SubscriptionEventCallbacks(
+                    message_lost=handle.on_message_lost, matched=handle.on_matched
+                ),
             )
-        except UnsupportedEventTypeError:  # an rmw without the event: losses are not known
+        except UnsupportedEventTypeError:  # an rmw without the events: gaps only
             handle.subscription = self.node.create_subscription(*args, raw=True)
         return handle
 

@@ -77,10 +77,13 @@ class SubscriptionHandle(ABC):
         """Number of publishers currently matched (any process)."""
 
     def lost_count(self) -> int:
-        """Messages the middleware reported lost on this subscription so far (cumulative).
+        """Messages known lost on this subscription so far (cumulative).
 
-        DDS sample-lost events, and samples a best-effort subscription had to reject;
-        0 from a backend that cannot lose or cannot tell.
+        What each backend can know: rclpy, the larger of Fast DDS's message-lost events and
+        the gaps in the publisher's sequence numbers; Cyclone DDS, its sample-lost status
+        and the samples a best-effort subscription had to reject (it exposes no sequence
+        numbers, so what a remote keep-last writer dropped before this reader had it is
+        not seen). 0 from a backend that cannot lose or cannot tell.
         """
         return 0
 

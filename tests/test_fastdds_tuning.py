@@ -1,0 +1,96 @@
+"""Fast DDS's shared-memory segment for large messages (tpsr_ros.runtime.fastdds_tuning).
+
+The profile is checked against the real Fast DDS of the rclpy wheels: a node started in a
+fresh process allocates a shared-memory segment of the profile's size, and the user's own
+Fast DDS settings leave Fast DDS at its default (512 KiB).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from graph_support import fresh_domain, rclpy_available
+
+from tpsr_ros.runtime.fastdds_tuning import (
+    PROFILE_VARIABLE,
+    SHM_SEGMENT_BYTES,
+    profile_xml,
+    tune_fastdds,
+)
+
+
+def test_the_profile_is_written_once_and_the_variable_points_at_it(tmp_path):
+    env: dict[str, str] = {}
+    path = tune_fastdds(env, tmp_path)
+    assert path is not None and env == {PROFILE_VARIABLE: str(path)}
+    text = path.read_text()
+    assert text == profile_xml() and f"<segment_size>{SHM_SEGMENT_BYTES}<" in text
+    assert "<type>UDPv4</type>" in text  # other hosts are reached as without it
+    stamp = path.stat().st_mtime_ns
+    assert tune_fastdds({}, tmp_path) == path and path.stat().st_mtime_ns == stamp
+    assert list(tmp_path.iterdir()) == [path]  # no temporary file left
+
+
+@pytest.mark.parametrize(
+    "setting",
+    [
+        {PROFILE_VARIABLE: "/etc/my_fastdds.xml"},
+        {"FASTDDS_DEFAULT_PROFILES_FILE": "/etc/my_fastdds.xml"},
+        {"FASTDDS_BUILTIN_TRANSPORTS": "LARGE_DATA"},
+        {"RMW_IMPLEMENTATION": "rmw_cyclonedds_cpp"},
+    ],
+)
+def test_the_users_fast_dds_configuration_wins(tmp_path, setting):
+    env = dict(setting)
+    assert tune_fastdds(env, tmp_path) is None
+    assert env == setting and not list(tmp_path.iterdir())
+
+
+def test_a_profile_in_the_working_directory_wins(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "DEFAULT_FASTRTPS_PROFILES.xml").write_text("<profiles/>")
+    env: dict[str, str] = {}
+    assert tune_fastdds(env, tmp_path / "out") is None and env == {}
+
+
+def test_an_unwritable_directory_changes_nothing(tmp_path):
+    env: dict[str, str] = {}
+    assert tune_fastdds(env, tmp_path / "missing") is None and env == {}
+
+
+_PROBE = """
+import json, os
+from tpsr_ros.runtime.rclpy_backend import RclpyTransport
+transport = RclpyTransport("segment_probe")
+with open("/proc/self/maps") as maps:  # this process's own segments, not other processes'
+    mapped = {line.split()[-1] for line in maps if "/dev/shm/fastrtps_" in line}
+sizes = [os.path.getsize(f) for f in mapped if "_port" not in f and not f.endswith("_el")]
+transport.close()
+print(json.dumps(sizes))
+"""
+
+@pytest.mark.rclpy
+@pytest.mark.skipif(not rclpy_available(), reason="rclpy (ROS 2) not importable")
+@pytest.mark.skipif(not os.path.isfile("/proc/self/maps"), reason="Linux only")
+@pytest.mark.parametrize("users_own", [False, True])
+def test_a_node_gets_the_larger_segment_unless_the_user_configured_fast_dds(users_own):
+    env = {k: v for k, v in os.environ.items() if k != PROFILE_VARIABLE}
+    env.update(ROS_DOMAIN_ID=str(fresh_domain(41)), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).parents[1]), *sys.path])
+    if users_own:
+        env["FASTDDS_BUILTIN_TRANSPORTS"] = "DEFAULT"
+    done = subprocess.run(
+        [sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 0, done.stderr
+    sizes = json.loads(done.stdout.splitlines()[-1])
+    assert sizes, "no Fast DDS segment mapped"  # its own, and any it reads from
+    if users_own:
+        assert max(sizes) < 1024 * 1024  # Fast DDS's own 512 KiB (plus its bookkeeping)
+    else:
+        assert SHM_SEGMENT_BYTES <= max(sizes) < 2 * SHM_SEGMENT_BYTES

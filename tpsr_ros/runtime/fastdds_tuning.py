@@ -1,0 +1,103 @@
+"""Fast DDS settings for large messages under rclpy (rmw_fastrtps_cpp), the way ROS 2 tunes it.
+
+Why (measured with ``python -m benchmarks.bench_camera --backends rclpy``: a 1080p rgb8
+camera at 60 Hz, reliable keep-last 30, into ``tpsr_ros.record``, 2-core machine at load
+average 2-4): with Fast DDS's defaults the recorder got 122-236 of 300 images (the rest
+reported lost); with a 16 MiB shared-memory segment, 300 of 300 in three runs of three
+(also with 32 and 64 MiB).
+On one host Fast DDS moves data through shared memory, and each participant writes its
+samples into its own segment, 512 KiB by default: a 6.2 MB image does not fit, so its
+fragments wait for the reader to free room, the writer falls behind, and a keep-last
+writer overwrites what was not delivered. A larger segment is the remedy Fast DDS's
+documentation gives for large data; it is an XML profile (``segment_size`` of the SHM
+transport), loaded from ``FASTRTPS_DEFAULT_PROFILES_FILE``.
+
+:func:`tune_fastdds` writes that profile (shared memory with the larger segment, and UDPv4
+as without it, so other hosts and other participants are reached as before) and points
+the variable at it, before the process's first ``rclpy.init``. The user's own Fast DDS
+configuration always wins: nothing is changed when a profile file or
+``FASTDDS_BUILTIN_TRANSPORTS`` is set, a ``DEFAULT_FASTRTPS_PROFILES.xml`` is in the working
+directory, or another RMW is selected.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import MutableMapping
+from pathlib import Path
+
+__all__ = ["SHM_SEGMENT_BYTES", "profile_xml", "tune_fastdds"]
+
+SHM_SEGMENT_BYTES = 16 * 1024 * 1024
+"""Shared-memory segment per participant (allocated in /dev/shm while the node runs);
+holds two 1080p rgb8 images in flight."""
+
+PROFILE_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
+_USER_SETTINGS = (PROFILE_VARIABLE, "FASTDDS_DEFAULT_PROFILES_FILE", "FASTDDS_BUILTIN_TRANSPORTS")
+_WORKING_DIRECTORY_PROFILE = "DEFAULT_FASTRTPS_PROFILES.xml"
+
+
+def profile_xml(segment_bytes: int = SHM_SEGMENT_BYTES) -> str:
+    """Fast DDS XML: the default participant uses SHM with ``segment_bytes`` and UDPv4."""
+    return f"""<?xml version="1.0" encoding="UTF-8" ?>
+<!-- written by tpsr_ros.runtime.fastdds_tuning: large messages (camera images) -->
+<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <transport_descriptors>
+    <transport_descriptor>
+      <transport_id>tpsr_shm</transport_id>
+      <type>SHM</type>
+      <segment_size>{int(segment_bytes)}</segment_size>
+    </transport_descriptor>
+    <transport_descriptor>
+      <transport_id>tpsr_udp</transport_id>
+      <type>UDPv4</type>
+    </transport_descriptor>
+  </transport_descriptors>
+  <participant profile_name="tpsr_ros_large_messages" is_default_profile="true">
+    <rtps>
+      <userTransports>
+        <transport_id>tpsr_shm</transport_id>
+        <transport_id>tpsr_udp</transport_id>
+      </userTransports>
+      <useBuiltinTransports>false</useBuiltinTransports>
+    </rtps>
+  </participant>
+</profiles>
+"""
+
+
+def tune_fastdds(
+    environ: MutableMapping[str, str] | None = None, directory: Path | None = None
+) -> Path | None:
+    """Point ``FASTRTPS_DEFAULT_PROFILES_FILE`` at our profile unless the user configured Fast DDS.
+
+    Returns the profile's path, or None when nothing was changed (a profile file or
+    ``FASTDDS_BUILTIN_TRANSPORTS`` is set, the working directory has Fast DDS's
+    ``DEFAULT_FASTRTPS_PROFILES.xml``, ``RMW_IMPLEMENTATION`` names another RMW, or the
+    file cannot be written). Fast DDS reads the variable when the process creates its
+    first participant, so this must run before the first ``rclpy.init``; children inherit
+    it. ``directory`` defaults to the temporary directory.
+    """
+    env = os.environ if environ is None else environ
+    if any(env.get(name, "").strip() for name in _USER_SETTINGS):
+        return None
+    if Path(_WORKING_DIRECTORY_PROFILE).is_file():  # Fast DDS loads it when no variable is set
+        return None
+    if env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").strip() not in ("", "rmw_fastrtps_cpp"):
+        return None
+    folder = Path(tempfile.gettempdir()) if directory is None else Path(directory)
+    path = folder / f"tpsr_ros_fastdds_{os.getuid() if hasattr(os, 'getuid') else 0}.xml"
+    text = profile_xml()
+    try:
+        if not path.is_file() or path.read_text(encoding="utf-8") != text:
+            partial = path.with_suffix(f".{os.getpid()}.tmp")
+            # O_EXCL: never through a file or link someone else put there
+            fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            with os.fdopen(fd, "w", encoding="utf-8") as handle:
+                handle.write(text)
+            os.replace(partial, path)  # atomic: a concurrent reader sees old or new
+    except OSError:
+        return None
+    env[PROFILE_VARIABLE] = str(path)
+    return path
