@@ -36,6 +36,20 @@ def test_the_profile_is_written_once_and_the_variable_points_at_it(tmp_path):
     assert list(tmp_path.iterdir()) == [path]  # no temporary file left
 
 
+def test_a_profile_others_can_change_or_a_link_is_replaced_not_trusted(tmp_path):
+    # in a shared /tmp another user could plant the path with our text and edit it later
+    path = tune_fastdds({}, tmp_path)
+    assert path is not None
+    path.chmod(0o666)  # right text, but writable by anyone
+    assert tune_fastdds({}, tmp_path) == path and not path.stat().st_mode & 0o022
+    elsewhere = tmp_path / "planted.xml"
+    elsewhere.write_text(profile_xml())
+    path.unlink()
+    path.symlink_to(elsewhere)  # right text, behind a link
+    assert tune_fastdds({}, tmp_path) == path and not path.is_symlink()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([path.name, "planted.xml"])
+
+
 @pytest.mark.parametrize(
     "setting",
     [

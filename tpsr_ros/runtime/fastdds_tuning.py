@@ -23,6 +23,7 @@ directory, or another RMW is selected.
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from collections.abc import MutableMapping
 from pathlib import Path
@@ -67,6 +68,21 @@ def profile_xml(segment_bytes: int = SHM_SEGMENT_BYTES) -> str:
 """
 
 
+def _ours(path: Path) -> bool:
+    """A regular file (not a link) of this user that only this user can write.
+
+    In a shared temporary directory another user could create the path first, with our
+    text, and change it after it was checked; such a file is replaced (or, if the
+    directory forbids that, nothing is tuned).
+    """
+    try:
+        info = path.lstat()
+    except OSError:
+        return False
+    uid = os.getuid() if hasattr(os, "getuid") else info.st_uid
+    return stat.S_ISREG(info.st_mode) and info.st_uid == uid and not info.st_mode & 0o022
+
+
 def tune_fastdds(
     environ: MutableMapping[str, str] | None = None, directory: Path | None = None
 ) -> Path | None:
@@ -90,13 +106,16 @@ def tune_fastdds(
     path = folder / f"tpsr_ros_fastdds_{os.getuid() if hasattr(os, 'getuid') else 0}.xml"
     text = profile_xml()
     try:
-        if not path.is_file() or path.read_text(encoding="utf-8") != text:
+        if not _ours(path) or path.read_text(encoding="utf-8") != text:
             partial = path.with_suffix(f".{os.getpid()}.tmp")
             # O_EXCL: never through a file or link someone else put there
             fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
-            with os.fdopen(fd, "w", encoding="utf-8") as handle:
-                handle.write(text)
-            os.replace(partial, path)  # atomic: a concurrent reader sees old or new
+            try:
+                with os.fdopen(fd, "w", encoding="utf-8") as handle:
+                    handle.write(text)
+                os.replace(partial, path)  # atomic: a concurrent reader sees old or new
+            finally:
+                partial.unlink(missing_ok=True)
     except OSError:
         return None
     env[PROFILE_VARIABLE] = str(path)
