@@ -301,12 +301,7 @@ def run(args: argparse.Namespace) -> int:
         "reading_seconds": round(timings["reading bags"], 6),
         "fit_seconds": round(timings["fit"], 6),
     }
-    _say(f"writing {output}")
-    start = time.perf_counter()
-    save_model(model, output, training=training, inputs=spec, force=args.force)
-    timings["writing"] = time.perf_counter() - start
-    for line in summary_lines(model, training, timings, output):
-        print(line)
+    _write(model, output, training, spec, timings, force=args.force)
     return 0
 
 
@@ -399,13 +394,26 @@ def _run_streamed(
         "reading_seconds": round(timings["reading bags"], 6),
         "fit_seconds": round(timings["fit"], 6),
     }  # fmt: skip
+    _write(model, output, training, spec, timings, force=args.force)
+    return 0
+
+
+def _write(
+    model: StateModel,
+    output: Path,
+    training: dict[str, Any],
+    spec: StreamSpec | None,
+    timings: dict[str, float],
+    *,
+    force: bool,
+) -> None:
+    """Write the model file, then print the summary (with the time writing took)."""
     _say(f"writing {output}")
     start = time.perf_counter()
-    save_model(model, output, training=training, inputs=spec, force=args.force)
+    save_model(model, output, training=training, inputs=spec, force=force)
     timings["writing"] = time.perf_counter() - start
     for line in summary_lines(model, training, timings, output):
         print(line)
-    return 0
 
 
 def _topic_names(topics: Topics) -> dict[str, str]:
