@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import argparse
 import bisect
+import contextlib
+import io
 import os
 import statistics
 import sys
@@ -217,8 +219,6 @@ def main(argv: list[str] | None = None) -> None:
     print(f"   load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores", flush=True)
     with tempfile.TemporaryDirectory(prefix="bench_filter_camera_") as tmpdir:
         tmp = Path(tmpdir)
-        import contextlib
-        import io
 
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
             model, policy = train(tmp)

@@ -110,7 +110,8 @@ def test_inconsistent_shapes_are_refused(tmp_path, policy):
     broken = tmp_path / "broken.npz"
     write_archive(broken, arrays, metadata)
     # (the temporary path holds this test's name, so match more than "inconsistent")
-    with pytest.raises(ModelFormatError, match=r"'weights' .* has shape \(9, 4\); its metadata implies \(10, 4\)"):
+    rule = r"'weights' .* has shape \(9, 4\); its metadata implies \(10, 4\)"
+    with pytest.raises(ModelFormatError, match=rule):
         load_policy(broken)
 
 

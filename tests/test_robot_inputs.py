@@ -165,6 +165,20 @@ def test_the_fast_row_pass_equals_the_weight_matrices(shape, size, dtype):
     np.testing.assert_allclose(got, literal, rtol=0, atol=1e-13)
 
 
+def test_colour_to_grey_after_resizing_equals_luma_first():
+    images = np.random.default_rng(5).integers(0, 256, (1, 37, 41, 3), dtype=np.uint8)
+    luma = images.astype(np.float64) @ LUMA
+    literal = np.einsum("ih,thw,jw->tij", area_weights(37, 5), luma, area_weights(41, 7))
+    got = preprocess_images(images, Preprocessing(5, 7, grey=True))
+    np.testing.assert_allclose(got, literal.reshape(1, -1) / 255.0, rtol=0, atol=1e-13)
+
+
+def test_band_sums_of_16_bit_pixels_do_not_overflow_on_very_tall_images():
+    # 70 000 rows into one: a band of 16-bit sums past uint32 (65 537 rows of 65535)
+    image = np.full((1, 70_000, 1, 1), 65535, dtype=np.uint16)
+    np.testing.assert_allclose(preprocess_images(image, Preprocessing(1, 1, grey=True)), 1.0)
+
+
 def test_grey_is_luma_and_a_grey_camera_cannot_give_colour():
     image = RGB[None, :4, :4]
     grey = preprocess_images(image, Preprocessing(4, 4, grey=True))

@@ -3,7 +3,7 @@
 Why (measured with ``python -m benchmarks.bench_camera --backends rclpy``: a 1080p rgb8
 camera at 60 Hz, reliable keep-last 30, into ``tpsr_ros.record``, 2-core machine at load
 average 2-4): with Fast DDS's defaults the recorder got 122-236 of 300 images (the rest
-reported lost); with a 16 MiB shared-memory segment, 300 of 300 in three runs of three
+reported lost); with a 16 MiB shared-memory segment, 300 of 300 in eight runs of eight
 (also with 32 and 64 MiB).
 On one host Fast DDS moves data through shared memory, and each participant writes its
 samples into its own segment, 512 KiB by default: a 6.2 MB image does not fit, so its

@@ -155,6 +155,7 @@ class _Subscription(SubscriptionHandle):
         self.lost = 0  # reported by MESSAGE_LOST events
         self.gap_lost = 0  # from gaps in the publisher's sequence numbers
         self._last_sequence: int | None = None
+        self._last_matched = 0  # publishers matched when the last sequence number came
 
     def matched_count(self) -> int:
         return int(self.subscription.get_publisher_count()) if self.subscription else 0
@@ -175,10 +176,13 @@ class _Subscription(SubscriptionHandle):
         sequence = info.get("publication_sequence_number") if isinstance(info, dict) else None
         if not isinstance(sequence, int) or sequence <= 0 or sequence >= _UNSUPPORTED_SEQUENCE:
             return  # an rmw without publication sequence numbers
-        last = self._last_sequence
-        if last is not None and sequence > last + 1 and self.matched_count() == 1:
+        # rclpy may run this callback before the MATCHED event of a publisher that came or
+        # went in the same pass: a changed publisher count also starts a new count
+        matched = self.matched_count()
+        last = None if matched != self._last_matched else self._last_sequence
+        if last is not None and sequence > last + 1 and matched == 1:
             self.gap_lost += sequence - last - 1
-        self._last_sequence = sequence
+        self._last_sequence, self._last_matched = sequence, matched
 
     def close(self) -> None:
         if self.subscription is not None:
