@@ -259,11 +259,7 @@ def run(args: argparse.Namespace) -> int:
             args.bags, stream_options, image_topic=topics.image, action_topic=topics.action
         )
         _say(_spec_line(spec))
-        if args.method == "tpsr" and args.normalize_ht_features is None:
-            _say(
-                "history/test features normalised to sum 1 (the robot-bag default; "
-                "--no-normalize-ht-features for the guide's unnormalised ones)"
-            )
+        _say_robot_defaults(args)
         trajectory = read_stream_trajectory(
             args.bags,
             spec,
@@ -332,6 +328,7 @@ def _run_streamed(
             args.bags, stream_options, image_topic=topics.image, action_topic=topics.action
         )
         _say(_spec_line(spec))
+        _say_robot_defaults(args)
         environment = None
         image_shape = [spec.preprocessing.height, spec.preprocessing.width]
     reader = BagChunks(
@@ -396,6 +393,15 @@ def _run_streamed(
     }  # fmt: skip
     _write(model, output, training, spec, timings, force=args.force)
     return 0
+
+
+def _say_robot_defaults(args: argparse.Namespace) -> None:
+    """Say which robot-bag defaults (``ROBOT_BAG_TPSR_DEFAULTS``) the fit took."""
+    if args.method == "tpsr" and args.normalize_ht_features is None:
+        _say(
+            "history/test features normalised to sum 1 (the robot-bag default; "
+            "--no-normalize-ht-features for the guide's unnormalised ones)"
+        )
 
 
 def _write(

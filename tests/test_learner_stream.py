@@ -198,7 +198,10 @@ def test_robot_bags_stream_on_their_step_grid(bags, tmp_path, capsys):
         [*common, "-o", str(tmp_path / "str.npz"), "--stream", "--chunk-steps", "100"], capsys
     )
     assert code == 0, stderr
-    assert_same(load_model(tmp_path / "str.npz"), load_model(tmp_path / "mem.npz"))
+    assert "features normalised to sum 1 (the robot-bag default" in stderr
+    streamed = load_model(tmp_path / "str.npz")
+    assert streamed.config.normalize_ht_features  # the robot-bag default, streamed too
+    assert_same(streamed, load_model(tmp_path / "mem.npz"))
 
 
 @pytest.fixture
