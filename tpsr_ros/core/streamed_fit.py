@@ -61,6 +61,7 @@ from tpsr_ros.core.tpsr import (
     TPSRConfig,
     TPSRModel,
     action_sums,
+    assemble_model,
     check_action_counts,
     check_enough_episodes,
     ht_features,
@@ -728,21 +729,14 @@ def fit_tpsr_streamed(
         "timings": {name: round(sec, 6) for name, sec in watch.timings.items()},
         "streamed": {"engine": engine.description, "scratch_bytes": scratch},
     }
-    return TPSRModel(
-        config=cfg,
-        obs_mean=whitenings.obs.mean_,
-        obs_whitening=np.ascontiguousarray(whitenings.obs.matrix_),
-        obs_centers=centres.observation,
-        b_star=b_star,
-        b_inf=b_inf,
-        B=big_b.reshape(n_actions, centres.observation.shape[0], cfg.rank, cfg.rank),
-        singular_values=s_all,
-        explained_variance={
-            "obs": whitenings.obs.explained_variance_ratio_,
-            "history": whitenings.history.explained_variance_ratio_,
-            "test": whitenings.test.explained_variance_ratio_,
-        },
-        fit_info=fit_info,
+    big_b = big_b.reshape(n_actions, centres.observation.shape[0], cfg.rank, cfg.rank)
+    return assemble_model(
+        cfg,
+        (whitenings.history, whitenings.test, whitenings.obs),
+        centres.observation,
+        (b_star, b_inf, big_b),
+        s_all,
+        fit_info,
     )
 
 

@@ -671,19 +671,37 @@ def fit_tpsr(
         "usable_singular_values": usable,
         "timings": {name: round(sec, 6) for name, sec in watch.timings.items()},
     }
+    return assemble_model(
+        cfg, (white.history, white.test, white.obs), c_o, (b_star, b_inf, big_b), s_all, fit_info
+    )
+
+
+def assemble_model(
+    cfg: TPSRConfig,
+    whitenings: tuple[Whitening, Whitening, Whitening],
+    obs_centers: np.ndarray,
+    parameters: tuple[np.ndarray, np.ndarray, np.ndarray],
+    singular_values: np.ndarray,
+    fit_info: dict[str, Any],
+) -> TPSRModel:
+    """The model of a fit (in memory or streamed): the observation whitening and centres,
+    ``(b_*, b_inf, B)``, and the explained variance of the history, test and observation
+    whitenings."""
+    history, test, obs = whitenings
+    b_star, b_inf, big_b = parameters
     return TPSRModel(
         config=cfg,
-        obs_mean=white.obs.mean_,
-        obs_whitening=np.ascontiguousarray(white.obs.matrix_),
-        obs_centers=c_o,
+        obs_mean=obs.mean_,
+        obs_whitening=np.ascontiguousarray(obs.matrix_),
+        obs_centers=obs_centers,
         b_star=b_star,
         b_inf=b_inf,
         B=big_b,
-        singular_values=s_all,
+        singular_values=singular_values,
         explained_variance={
-            "obs": white.obs.explained_variance_ratio_,
-            "history": white.history.explained_variance_ratio_,
-            "test": white.test.explained_variance_ratio_,
+            "obs": obs.explained_variance_ratio_,
+            "history": history.explained_variance_ratio_,
+            "test": test.explained_variance_ratio_,
         },
         fit_info=fit_info,
     )
