@@ -36,7 +36,12 @@ from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
 from tpsr_ros.io.bag_chunks import DEFAULT_CHUNK_STEPS, BagChunks, survey_bags
 from tpsr_ros.io.model_io import check_output_path, save_model
 from tpsr_ros.io.stream_spec import StreamSpec
-from tpsr_ros.io.streams import DEFAULT_POSE_FRAME, fit_stream_spec, read_stream_trajectory
+from tpsr_ros.io.streams import (
+    DEFAULT_POSE_FRAME,
+    FitOptions,
+    fit_stream_spec,
+    read_stream_trajectory,
+)
 from tpsr_ros.io.trajectory import Topics, read_trajectory
 
 __all__ = [
@@ -244,22 +249,17 @@ def run(args: argparse.Namespace) -> int:
         TPSRConfig, args, ROBOT_BAG_TPSR_DEFAULTS if robot_bags else None
     )
     pca_config = config_from_args(PCAConfig, args)
+    topics = topics_from_args(args)
     if args.stream or args.workers is not None or args.scheduler is not None:
-        return _run_streamed(args, output, tpsr_config, pca_config)
+        return _run_streamed(args, output, tpsr_config, pca_config, topics, stream_options)
     timings: dict[str, float] = {}
 
     _say(f"reading {len(args.bags)} bag(s)")
     start = time.perf_counter()
-    topics = topics_from_args(args)
-    spec: StreamSpec | None = None
-    if stream_options is None:
+    spec = _robot_spec(args, stream_options, topics)
+    if spec is None:
         trajectory = read_trajectory(args.bags, topics=topics)
     else:
-        spec = fit_stream_spec(
-            args.bags, stream_options, image_topic=topics.image, action_topic=topics.action
-        )
-        _say(_spec_line(spec))
-        _say_robot_defaults(args)
         trajectory = read_stream_trajectory(
             args.bags,
             spec,
@@ -301,8 +301,25 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _robot_spec(
+    args: argparse.Namespace, options: FitOptions | None, topics: Topics
+) -> StreamSpec | None:
+    """Robot bags (``--step-period``): the step grid, preprocessing and codebook, said."""
+    if options is None:
+        return None
+    spec = fit_stream_spec(args.bags, options, image_topic=topics.image, action_topic=topics.action)
+    _say(_spec_line(spec))
+    _say_robot_defaults(args)
+    return spec
+
+
 def _run_streamed(
-    args: argparse.Namespace, output: Path, tpsr_config: TPSRConfig, pca_config: PCAConfig
+    args: argparse.Namespace,
+    output: Path,
+    tpsr_config: TPSRConfig,
+    pca_config: PCAConfig,
+    topics: Topics,
+    stream_options: FitOptions | None,
 ) -> int:
     """``--stream`` (and ``--workers`` / ``--scheduler``): the streamed fit, then as :func:`run`."""
     distributed = args.workers is not None or args.scheduler is not None
@@ -314,28 +331,21 @@ def _run_streamed(
             "--workers/--scheduler or use --stream alone"
         )
     timings: dict[str, float] = {}
-    topics = topics_from_args(args)
-    stream_options = fit_options_from_args(args)
     start = time.perf_counter()
-    spec: StreamSpec | None = None
-    if stream_options is None:
+    pose_frame = args.pose_frame or DEFAULT_POSE_FRAME
+    recorded = dataclasses.asdict(topics)
+    spec = _robot_spec(args, stream_options, topics)
+    if spec is None:
         _say(f"checking {len(args.bags)} bag(s) agree (image size, action type)")
         surveys = survey_bags(args.bags, topics)
         environment = common_value(s.environment for s in surveys)
         image_shape = list(surveys[0].image_size)
     else:  # robot bags: the spec reads every bag's commands; then each bag is read whole
-        spec = fit_stream_spec(
-            args.bags, stream_options, image_topic=topics.image, action_topic=topics.action
-        )
-        _say(_spec_line(spec))
-        _say_robot_defaults(args)
         environment = None
         image_shape = [spec.preprocessing.height, spec.preprocessing.width]
+        recorded["pose_frame"] = pose_frame  # as the in-memory fit records it
     reader = BagChunks(
-        topics=topics,
-        chunk_steps=args.chunk_steps,
-        spec=spec,
-        pose_frame=args.pose_frame or DEFAULT_POSE_FRAME,
+        topics=topics, chunk_steps=args.chunk_steps, spec=spec, pose_frame=pose_frame
     )
     timings["reading bags"] = time.perf_counter() - start
     start = time.perf_counter()
@@ -350,8 +360,6 @@ def _run_streamed(
             test_length=n,
             max_episodes=args.episodes,
         )
-        steps, segments = model.fit_info["steps"], model.fit_info["segments"]
-        stamps = model.fit_info["stamps_ns"]
         episodes = int(model.fit_info["observations"]) // (m + 1 + n)
     else:
         fit = functools.partial(
@@ -372,14 +380,13 @@ def _run_streamed(
         else:
             model = fit(lambda: reader.read_all(args.bags))
         episodes = int(model.fit_info["episodes"])
-        steps, segments = model.fit_info["steps"], model.fit_info["segments"]
-        stamps = model.fit_info["stamps_ns"]
     timings["fit"] = time.perf_counter() - start
+    info = model.fit_info
     training = {
-        "bags": [{"path": str(bag), "topics": _topic_names(topics)} for bag in args.bags],
-        "steps": steps,
-        "segments": segments,
-        "stamps_ns": stamps,
+        "bags": [{"path": str(bag), "topics": recorded} for bag in args.bags],
+        "steps": info["steps"],
+        "segments": info["segments"],
+        "stamps_ns": info["stamps_ns"],
         "environment": environment,
         "image_shape": image_shape,
         "episodes": episodes,
@@ -420,10 +427,6 @@ def _write(
     timings["writing"] = time.perf_counter() - start
     for line in summary_lines(model, training, timings, output):
         print(line)
-
-
-def _topic_names(topics: Topics) -> dict[str, str]:
-    return {f.name: getattr(topics, f.name) for f in dataclasses.fields(Topics)}
 
 
 def _spec_line(spec: StreamSpec) -> str:

@@ -202,6 +202,9 @@ def test_robot_bags_stream_on_their_step_grid(bags, tmp_path, capsys):
     streamed = load_model(tmp_path / "str.npz")
     assert streamed.config.normalize_ht_features  # the robot-bag default, streamed too
     assert_same(streamed, load_model(tmp_path / "mem.npz"))
+    recorded = [read_metadata(tmp_path / f"{name}.npz")["training"]["bags"][0]["topics"]
+                for name in ("str", "mem")]
+    assert recorded[0]["pose_frame"] == recorded[1]["pose_frame"]  # plot and policy read it
 
 
 @pytest.fixture
