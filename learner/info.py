@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from tpsr_ros.io.model_io import load_model, model_stream_spec, read_metadata
+from tpsr_ros.io.model_io import load_model, metadata_field, model_stream_spec, read_metadata
 
 __all__ = ["info_lines", "register", "run"]
 
@@ -45,19 +45,6 @@ def _num(value: Any, spec: str) -> str:
     return str(value)
 
 
-def _get(value: Any, *keys: str) -> Any:
-    """``value[k1][k2]...``; None where a level is missing or not a mapping.
-
-    The descriptive metadata (training data, summary, software) is not needed to load a
-    model and is not validated by :func:`load_model`; a file may carry anything there.
-    """
-    for key in keys:
-        if not isinstance(value, dict):
-            return None
-        value = value.get(key)
-    return value
-
-
 def _mapping(value: Any) -> dict[str, Any]:
     return value if isinstance(value, dict) else {}
 
@@ -69,15 +56,15 @@ def info_lines(path: Path, metadata: dict[str, Any]) -> list[str]:
     lines = [
         f"model: {path}",
         f"format: {metadata['format']} version {metadata['format_version']}, created "
-        f"{metadata.get('created')}, tpsr_ros {_get(metadata, 'software', 'tpsr_ros')}",
+        f"{metadata.get('created')}, tpsr_ros {metadata_field(metadata, 'software', 'tpsr_ros')}",
         f"method: {metadata['method']}, state dimension {metadata.get('state_dim')}, "
         f"{metadata['n_actions']} actions, observation size "
-        f"{_get(metadata, 'observation', 'size')}",
+        f"{metadata_field(metadata, 'observation', 'size')}",
         "parameters: " + ", ".join(f"{k}={v}" for k, v in metadata["parameters"].items()),
     ]
     if training:
         bags = training.get("bags")
-        paths = [_get(b, "path") for b in bags] if isinstance(bags, list) else []
+        paths = [metadata_field(b, "path") for b in bags] if isinstance(bags, list) else []
         lines.append(
             f"training data: {training.get('steps')} steps, {training.get('segments')} "
             f"segment(s), {training.get('episodes')} episodes, environment "
@@ -99,7 +86,7 @@ def info_lines(path: Path, metadata: dict[str, Any]) -> list[str]:
     if "singular_values" in summary:
         lines.append(f"singular values of P_TH: {_short(summary['singular_values'])}")
     for key, ev in _mapping(summary.get("explained_variance")).items():
-        lines.append(f"explained variance ({key}): {_num(_get(ev, 'total'), '.3f')}")
+        lines.append(f"explained variance ({key}): {_num(metadata_field(ev, 'total'), '.3f')}")
     if "timings" in summary:
         timings = _mapping(summary["timings"])
         lines.append(

@@ -18,7 +18,7 @@ from tpsr_ros.cli import positive_int
 from tpsr_ros.core.codebook import COMPONENTS, DEFAULT_COMPONENTS
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError
-from tpsr_ros.io.model_io import model_stream_spec, read_metadata
+from tpsr_ros.io.model_io import metadata_field, model_stream_spec, read_metadata
 from tpsr_ros.io.stream_spec import StreamSpec
 from tpsr_ros.io.streams import DEFAULT_POSE_FRAME, FitOptions, read_stream_trajectory
 from tpsr_ros.io.trajectory import Topics, read_trajectory
@@ -161,12 +161,9 @@ def topics_from_args(args: argparse.Namespace) -> Topics:
 
 def recorded_topic(metadata: dict[str, Any], name: str) -> str | None:
     """The ``name`` topic (or ``pose_frame``) recorded by the model's first training bag."""
-    bags = metadata.get("training", {}).get("bags") if isinstance(metadata, dict) else None
-    if isinstance(bags, list) and bags and isinstance(bags[0], dict):
-        topics = bags[0].get("topics")
-        if isinstance(topics, dict) and isinstance(topics.get(name), str):
-            return str(topics[name])
-    return None
+    bags = metadata_field(metadata, "training", "bags")
+    topic = metadata_field(bags[0], "topics", name) if isinstance(bags, list) and bags else None
+    return topic if isinstance(topic, str) else None
 
 
 def read_for_model(

@@ -322,3 +322,14 @@ def test_steps_sharing_an_image_all_get_it(robot):
     alone = [_decode_images(bag, config.image_topic, msgs.IMAGE_TYPE, np.array([n]), prep)[0]
              for n in (0, 1, 2)]
     assert np.array_equal(shared, np.array([alone[0], alone[0], alone[1], alone[1], alone[2]]))
+
+
+def test_the_recorded_topic_of_odd_training_metadata_is_none():
+    from learner.streams import recorded_topic
+
+    # the descriptive metadata is not validated on load: anything may stand there
+    for odd in ({}, {"training": []}, {"training": None}, {"training": {"bags": [1]}}):
+        assert recorded_topic(odd, "pose") is None
+    good = {"training": {"bags": [{"topics": {"pose": "/odom", "pose_frame": 3}}]}}
+    assert recorded_topic(good, "pose") == "/odom"
+    assert recorded_topic(good, "pose_frame") is None

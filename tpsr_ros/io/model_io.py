@@ -51,6 +51,7 @@ __all__ = [
     "METHODS",
     "check_output_path",
     "load_model",
+    "metadata_field",
     "model_fingerprint",
     "model_stream_spec",
     "read_metadata",
@@ -61,6 +62,19 @@ FORMAT_NAME = "tpsr-ros model"
 FORMAT_VERSION = 1
 METHODS: dict[str, type[TPSRModel] | type[PCAModel]] = {"tpsr": TPSRModel, "pca": PCAModel}
 _INTEGER_ARRAYS = {"n_actions"}
+
+
+def metadata_field(value: Any, *keys: str) -> Any:
+    """``value[k1][k2]...``; None where a level is missing or not a mapping.
+
+    The descriptive metadata (training data, summary, software) is not needed to load a
+    model and is not validated by :func:`load_model`; a file may carry anything there.
+    """
+    for key in keys:
+        if not isinstance(value, dict):
+            return None
+        value = value.get(key)
+    return value
 
 
 def save_model(
