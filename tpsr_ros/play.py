@@ -35,10 +35,11 @@ from pathlib import Path
 from typing import Any
 
 from tpsr_ros.cli import ArgumentParser, non_negative_int, positive_float
-from tpsr_ros.core.errors import BagError, MessageError, TpsrError
+from tpsr_ros.core.errors import BagError, TpsrError
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.io.messages import CLOCK_TYPE, clock_msg, header_stamp_ns, jazzy_typestore
+from tpsr_ros.io.cdr_fields import peek_stamp
+from tpsr_ros.io.messages import CLOCK_TYPE, clock_msg, jazzy_typestore
 from tpsr_ros.io.qos import from_bag_qos
 from tpsr_ros.runtime import DEFAULT_QOS, Node, NodeOptions, Publisher, run_node
 from tpsr_ros.runtime.diagnostics import RollingPercentiles
@@ -55,14 +56,6 @@ def _starts_with_header(msgtype: str) -> bool:
         return False
     _, node = defs[1][0]
     return bool(node[0].name == "NAME" and node[1] == "std_msgs/msg/Header")
-
-
-def _header_stamp_or_none(data: bytes) -> int | None:
-    """``header.stamp`` of CDR bytes starting with a std_msgs/Header; None when unreadable."""
-    try:
-        return header_stamp_ns(data)
-    except MessageError:
-        return None
 
 
 _END = object()
@@ -224,7 +217,7 @@ class PlayerNode(Node):
             self.lateness_ms.add((time.monotonic_ns() - due) / 1e6)
             if self.clock is not None:
                 stamp = (
-                    _header_stamp_or_none(message.data)
+                    peek_stamp(message.data)
                     if self.header_first[message.topic]
                     else message.log_time_ns
                 )

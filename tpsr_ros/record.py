@@ -255,11 +255,13 @@ class RecorderNode(Node):
                 self._log_refusal("rejected", topic, index, rejected[topic], problem)
             else:
                 dropped[topic] += 1
-                self._log_refusal(
-                    "dropped", topic, index, dropped[topic],
-                    f"the write cache holds {self.writer.queued_bytes} bytes "
-                    "(--max-cache-size): the bag is written more slowly than messages arrive",
-                )  # fmt: skip
+                if dropped[topic] <= _LOGGED_REJECTIONS:  # the reason only for those logged
+                    self._log_refusal(
+                        "dropped", topic, index, dropped[topic],
+                        f"the write cache holds {self.writer.queued_bytes} bytes "
+                        "(--max-cache-size): the bag is written more slowly than messages "
+                        "arrive",
+                    )  # fmt: skip
 
         return on_message
 

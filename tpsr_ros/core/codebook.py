@@ -21,6 +21,7 @@ from functools import cached_property
 from typing import Any
 
 import numpy as np
+from scipy.cluster.vq import vq
 
 from tpsr_ros.core.actions import ACTIONS, action_indices
 from tpsr_ros.core.errors import ConfigError, DataError
@@ -103,8 +104,7 @@ class ActionCodebook:
         if self.kind == "sim":
             index = action_indices(cmd)
         else:
-            squared = ((cmd[:, None, :] - self.codes[None, :, :]) ** 2).sum(axis=2)
-            index = squared.argmin(axis=1)
+            index, _ = vq(cmd, self.codes, check_finite=False)  # no (N, K, d) temporaries
         distance = np.linalg.norm(cmd - self.codes[index], axis=1)
         return index.astype(np.int64), distance
 

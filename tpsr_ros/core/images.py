@@ -156,7 +156,6 @@ def _shrink_rows(arr: np.ndarray, n_out: int) -> np.ndarray:
     first = np.floor(edges).astype(np.intp)
     first[-1] = n_in
     frac = edges - first
-    frac[-1] = 0.0
     band = int(np.max(np.diff(first)))
     need = band * int(np.iinfo(arr.dtype).max)
     exact = next(t for t in (np.uint16, np.uint32, np.uint64) if need <= np.iinfo(t).max)
@@ -164,6 +163,5 @@ def _shrink_rows(arr: np.ndarray, n_out: int) -> np.ndarray:
     for i in range(n_out):  # one vectorised reduction per output row (16 for 16x16)
         sums[:, i] = arr[:, first[i] : first[i + 1]].sum(axis=1, dtype=exact)
     sums -= frac[:-1, None, None] * arr[:, first[:-1]]
-    inside = first[1:] < n_in
-    sums[:, inside] += frac[1:][inside, None, None] * arr[:, first[1:][inside]]
+    sums[:, :-1] += frac[1:-1, None, None] * arr[:, first[1:-1]]  # the last band ends at H
     return sums / (n_in / n_out)

@@ -32,7 +32,7 @@ from rosbags.interfaces import Qos
 from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.rosbag2.metadata import dump_qos_v9
 
-from tpsr_ros.core.errors import BagError
+from tpsr_ros.core.errors import BagError, one_line
 from tpsr_ros.io.mcap_layout import check_mcap_layout
 from tpsr_ros.io.messages import deserialize, jazzy_typestore, serialize
 from tpsr_ros.io.safe_yaml import YamlInputError, load_yaml
@@ -77,14 +77,8 @@ and offsets (``OverflowError``, ``struct.error``, ``MemoryError`` from an alloca
 was refused before it happened). A damaged bag is reported, never a traceback."""
 
 
-def _one_line(exc: BaseException, limit: int = 200) -> str:
-    """An exception's text on one line, cut to ``limit`` characters."""
-    text = " ".join(str(exc).split()) or type(exc).__name__
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
 def _describe(exc: BaseException) -> str:
-    return f"{type(exc).__name__}: {_one_line(exc, 120)}"
+    return f"{type(exc).__name__}: {one_line(exc, 120)}"
 
 
 def check_bag_path_free(path: Path) -> Path:
@@ -449,7 +443,7 @@ class BagReader:
         try:
             self._reader.open()
         except (ReaderError, OSError) as exc:
-            raise BagError(f"cannot open bag {str(self.path)!r}: {_one_line(exc)}") from None
+            raise BagError(f"cannot open bag {str(self.path)!r}: {one_line(exc)}") from None
         except (*_DAMAGE, TypeError, AttributeError) as exc:  # metadata rosbags did not expect
             damage = _describe(exc)
             raise BagError(f"cannot open bag {str(self.path)!r}: damaged ({damage})") from None
@@ -554,7 +548,7 @@ class BagReader:
                 read += 1
                 yield conn, int(log_time), bytes(data)
         except ReaderError as exc:
-            raise BagError(f"bag {str(self.path)!r} is damaged: {_one_line(exc)}") from None
+            raise BagError(f"bag {str(self.path)!r} is damaged: {one_line(exc)}") from None
         except _DAMAGE as exc:
             raise BagError(f"bag {str(self.path)!r} is damaged: {_describe(exc)}") from None
         if read != listed:  # nothing may go missing silently (rosbag2's talker bag did)

@@ -89,10 +89,9 @@ class CachedBagWriter:
                 self._error = exc
                 return
             finally:
-                with self._ready:
+                with self._ready:  # put() never waits: nobody to wake
                     self._items.popleft()
                     self.queued_bytes -= len(data)
-                    self._ready.notify_all()
 
     def close(self) -> None:
         """Write everything queued, stop the thread and close the bag (it stays readable)."""

@@ -188,6 +188,7 @@ class _BagSteps:
         self.steps = 0
         self.first_stamp = 0
         self.buffer: list[tuple[int, list[Any]]] = []
+        self.chunk_limit = options.chunk_steps  # capped in bytes once the image size is known
 
     def chunks(self) -> Iterator[_Steps]:
         """The bag's steps in stamp order, ``chunk_steps`` at a time."""
@@ -213,7 +214,7 @@ class _BagSteps:
                     raise self._bad_message(topic, counts[kind], data, exc) from None
                 counts[kind] += 1
                 if kind == _IMAGE and counts[_IMAGE] == 1:
-                    window = self._window()
+                    window, self.chunk_limit = self._window(), self._chunk_steps()
                 entry = pending.get(stamp)
                 if entry is None:
                     if stamp <= final:
@@ -319,7 +320,7 @@ class _BagSteps:
                 f"bag {str(self.path)!r} lacks ground truth for some steps: the step at stamp "
                 f"{stamp} ns has no message on {missing!r}"
             )
-        chunk = self._take() if len(self.buffer) >= self._chunk_steps() else None
+        chunk = self._take() if len(self.buffer) >= self.chunk_limit else None
         if self.steps == 0:
             self.first_stamp = stamp
         self.steps += 1
