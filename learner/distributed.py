@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import operator
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import CancelledError
 from pathlib import Path
@@ -243,16 +244,9 @@ def _parameter_sums(
     return parameter_sums(rows.rows(start, stop), centres, svd, cfg, n_actions)
 
 
-def _add(a: Any, b: Any) -> Any:
-    return a + b
-
-
-def _merge_psums(a: PSums, b: PSums) -> PSums:
-    return a.merged(b)
-
-
-def _merge_action_sums(a: ActionSums, b: ActionSums) -> ActionSums:
-    return a.merged(b)
+def _merged(a: T, b: T) -> T:
+    """``a.merged(b)`` of two partial sums (PSums, ActionSums), as a picklable function."""
+    return a.merged(b)  # type: ignore[attr-defined,no-any-return]
 
 
 def tree_reduce(
@@ -371,7 +365,7 @@ class DaskEngine:
             self.client.submit(_action_counts, future, a, b, n_actions, pure=False)
             for future, a, b in self._ranges(start, 1)
         ]
-        return tree_reduce(self.client, futures, _add, self.poll)
+        return tree_reduce(self.client, futures, operator.add, self.poll)
 
     def p_sums(self, store: WhitenedStore, start: int, centres: Centres, cfg: TPSRConfig) -> PSums:
         """Eqs. 3.1-3.2 sums on the workers (or here, bag by bag, for a huge ``P_TH``)."""
@@ -388,7 +382,7 @@ class DaskEngine:
             self.client.submit(_p_sums, future, a, b, shared, cfg, pure=False)
             for future, a, b in ranges
         ]
-        return tree_reduce(self.client, futures, _merge_psums, self.poll)
+        return tree_reduce(self.client, futures, _merged, self.poll)
 
     def parameter_sums(
         self,
@@ -406,4 +400,4 @@ class DaskEngine:
             self.client.submit(_parameter_sums, future, a, b, shared, cfg, n_actions, pure=False)
             for future, a, b in self._ranges(start, widest)
         ]
-        return tree_reduce(self.client, futures, _merge_action_sums, self.poll)
+        return tree_reduce(self.client, futures, _merged, self.poll)

@@ -464,7 +464,7 @@ class FilterNode(Node):
         time starts the count afresh from time 0.
         """
         last = self._last_input_stamp[which]
-        if last is None or stamp < last - round(self.params.jump_threshold * _NS):
+        if last is None or stamp < last - self.sync.jump_threshold_ns:
             last = 0
         step = self.tracker.step_ns
         if stamp > last and (stamp - last) % step == 0:
@@ -526,7 +526,7 @@ class FilterNode(Node):
             return
         stamp = self._stream_time(msg)
         last = self.grid.last_image_time
-        if last is not None and stamp < last - round(self.params.jump_threshold * _NS):
+        if last is not None and stamp < last - self.sync.jump_threshold_ns:
             self.grid.reset()
             self.sync.stats.time_jumps += 1
             self._reinit(f"camera time jumped back to {stamp / _NS:.3f} s")

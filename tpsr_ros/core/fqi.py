@@ -24,6 +24,7 @@ parameters over one long random trajectory (never embedded histories; guide 4.2)
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from functools import cached_property
 from typing import Any, Literal
 
 import numpy as np
@@ -131,16 +132,25 @@ class QFunction:
         """Normalised RBF features ``(T, c)`` of states ``(T, r)``, each member's summing to 1/M."""
         return self.unit_features(self.planner_units(states))
 
+    @cached_property
+    def _denominators(self) -> np.ndarray:
+        """``2 width^2`` of every centre (fixed by the fit; computed once, not per step)."""
+        widths = np.repeat(self.width, self.group_sizes)
+        return 2.0 * widths**2
+
+    @cached_property
+    def _group_starts(self) -> np.ndarray:
+        """First centre of each ensemble member."""
+        return np.concatenate([[0], np.cumsum(self.group_sizes)[:-1]])
+
     def unit_features(self, units: np.ndarray) -> np.ndarray:
         """:meth:`features` of states already in planner units (:meth:`planner_units`)."""
-        sizes = self.group_sizes
-        widths = np.repeat(self.width, sizes)
-        sq = cdist(units, self.centers, "sqeuclidean") / (2.0 * widths**2)
+        sq = cdist(units, self.centers, "sqeuclidean") / self._denominators
         if self.members == 1:  # the guide's planner, summed exactly as it always was
             sq -= sq.min(axis=1, keepdims=True)  # exact nearest-centre limit, never 0/0
             activation = np.exp(-sq)
             return activation / activation.sum(axis=1, keepdims=True)
-        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        sizes, starts = self.group_sizes, self._group_starts
         sq -= np.repeat(np.minimum.reduceat(sq, starts, axis=1), sizes, axis=1)
         activation = np.exp(-sq)
         totals = np.add.reduceat(activation, starts, axis=1) * self.members

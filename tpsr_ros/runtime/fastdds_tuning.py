@@ -37,6 +37,7 @@ holds two 1080p rgb8 images in flight."""
 PROFILE_VARIABLE = "FASTRTPS_DEFAULT_PROFILES_FILE"
 _USER_SETTINGS = (PROFILE_VARIABLE, "FASTDDS_DEFAULT_PROFILES_FILE", "FASTDDS_BUILTIN_TRANSPORTS")
 _WORKING_DIRECTORY_PROFILE = "DEFAULT_FASTRTPS_PROFILES.xml"
+_UID = os.getuid() if hasattr(os, "getuid") else 0
 
 
 def profile_xml(segment_bytes: int = SHM_SEGMENT_BYTES) -> str:
@@ -79,8 +80,7 @@ def _ours(path: Path) -> bool:
         info = path.lstat()
     except OSError:
         return False
-    uid = os.getuid() if hasattr(os, "getuid") else info.st_uid
-    return stat.S_ISREG(info.st_mode) and info.st_uid == uid and not info.st_mode & 0o022
+    return stat.S_ISREG(info.st_mode) and info.st_uid == _UID and not info.st_mode & 0o022
 
 
 def tune_fastdds(
@@ -103,13 +103,13 @@ def tune_fastdds(
     if env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").strip() not in ("", "rmw_fastrtps_cpp"):
         return None
     folder = Path(tempfile.gettempdir()) if directory is None else Path(directory)
-    path = folder / f"tpsr_ros_fastdds_{os.getuid() if hasattr(os, 'getuid') else 0}.xml"
+    path = folder / f"tpsr_ros_fastdds_{_UID}.xml"
     text = profile_xml()
     try:
         if not _ours(path) or path.read_text(encoding="utf-8") != text:
-            partial = path.with_suffix(f".{os.getpid()}.tmp")
-            # O_EXCL: never through a file or link someone else put there
-            fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            # mkstemp: a new file of ours (exclusive, never through a link), in the folder
+            fd, name = tempfile.mkstemp(prefix=f"{path.name}.", suffix=".tmp", dir=folder)
+            partial = Path(name)
             try:
                 with os.fdopen(fd, "w", encoding="utf-8") as handle:
                     handle.write(text)
