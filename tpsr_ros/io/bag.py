@@ -479,6 +479,12 @@ class BagReader:
         return counts
 
     @property
+    def topics_with_messages(self) -> dict[str, str]:
+        """Topic name to ROS type, for the topics that have at least one message."""
+        counts = self.message_counts
+        return {t: ty for t, ty in self.topics.items() if counts.get(t, 0) > 0}
+
+    @property
     def start_time_ns(self) -> int:
         """Log time of the first message."""
         return int(self._reader.start_time)

@@ -112,12 +112,12 @@ class BagSurvey:
 def _survey(path: Path, topics: Topics) -> BagSurvey:
     with BagReader(path) as reader:
         types = reader.topics
-        counts = reader.message_counts
+        available = reader.topics_with_messages
         for topic in (topics.image, topics.action):
-            if counts.get(topic, 0) == 0:
+            if topic not in available:
                 raise BagError(
                     f"bag {str(path)!r} has no messages on topic {topic!r} (it has "
-                    f"{sorted(t for t in types if counts.get(t, 0))})"
+                    f"{sorted(available)})"
                 )
         first = next(iter(reader.messages([topics.image]))).decode()
         return BagSurvey(

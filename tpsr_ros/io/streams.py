@@ -182,8 +182,7 @@ def _read_streams(
     pose_frame: str = DEFAULT_POSE_FRAME,
 ) -> _Streams:
     with BagReader(path) as reader:
-        counts = reader.message_counts
-        available = {t: ty for t, ty in reader.topics.items() if counts.get(t, 0) > 0}
+        available = reader.topics_with_messages
         image_type = _check_types(path, available, image_topic, IMAGE_TYPES, "camera")
         action_type = _check_types(path, available, action_topic, COMMAND_TYPES, "command")
         wanted = [image_topic, action_topic]

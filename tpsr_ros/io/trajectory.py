@@ -264,8 +264,7 @@ class _BagSteps:
     def _check_topics(self, reader: BagReader) -> list[str]:
         """The wanted topics the bag has messages on; missing or mistyped ones refused."""
         topics = self.options.topics
-        counts = reader.message_counts
-        available = {t: ty for t, ty in reader.topics.items() if counts.get(t, 0) > 0}
+        available = reader.topics_with_messages
         required = [topics.image, topics.action]
         if self.options.require_ground_truth:
             required += [topics.pose, topics.reward]
