@@ -48,6 +48,7 @@ __all__ = [
     "serialize",
     "split_stamp",
     "stamp_of",
+    "stamped_twist",
     "state_msg",
     "state_to_array",
     "twist_components",
@@ -259,7 +260,12 @@ def twist_msg(vx: float, vy: float) -> Any:
 
 def twist_stamped_msg(stamp_ns: int, vx: float, vy: float, frame_id: str = "base_link") -> Any:
     """Executed action as ``geometry_msgs/msg/TwistStamped`` (m/s, commanded, pre-noise)."""
-    return _t(ACTION_TYPE)(header=_header(stamp_ns, frame_id), twist=twist_msg(vx, vy))
+    return stamped_twist(stamp_ns, twist_msg(vx, vy), frame_id)
+
+
+def stamped_twist(stamp_ns: int, twist: Any, frame_id: str = "base_link") -> Any:
+    """``twist`` (a ``geometry_msgs/msg/Twist``) as ``geometry_msgs/msg/TwistStamped``."""
+    return _t(ACTION_TYPE)(header=_header(stamp_ns, frame_id), twist=twist)
 
 
 def twist_to_xy(msg: Any) -> tuple[float, float]:
