@@ -49,6 +49,7 @@ __all__ = [
     "split_stamp",
     "stamp_of",
     "stamped_twist",
+    "starts_with_header",
     "state_msg",
     "state_to_array",
     "twist_components",
@@ -99,6 +100,15 @@ def stamp_of(msg: Any) -> int:
     """Stamp of a message with a ``header`` (or a Clock) in integer nanoseconds."""
     stamp = msg.clock if hasattr(msg, "clock") else msg.header.stamp
     return int(stamp.sec) * _NS + int(stamp.nanosec)
+
+
+def starts_with_header(msgtype: str) -> bool:
+    """Whether messages of ``msgtype`` start with a ``std_msgs/Header`` (a stamp to read)."""
+    defs = jazzy_typestore().fielddefs.get(msgtype)
+    if not defs or not defs[1]:
+        return False
+    _, node = defs[1][0]
+    return bool(node[0].name == "NAME" and node[1] == "std_msgs/msg/Header")
 
 
 def header_stamp_ns(data: bytes | memoryview) -> int:
