@@ -196,6 +196,20 @@ def test_with_a_policy_commands_are_codes_in_the_robots_type(robot, tmp_path):
         RobotFeed(robot["model"], policy=codebook_policy(robot["model"], tmp_path / "p2.npz"))
 
 
+def test_camera_images_missing_from_the_stamps_count_as_lost(robot):
+    # lost on the way without a word from the middleware (Cyclone's keep-last overwrites)
+    images = [k for k, (topic, _) in enumerate(robot["inputs"]) if topic == CAMERA]
+    skipped = set(images[60:63])
+    feed = RobotFeed(robot["model"])
+    try:
+        for k, (topic, data) in enumerate(robot["inputs"]):
+            if k not in skipped:
+                feed.send(topic, data)
+        assert feed.node.diagnostics_values()["lost_images"] == 3
+    finally:
+        feed.close()
+
+
 def test_a_clock_jump_back_restarts_the_grid_and_the_state(robot):
     feed = RobotFeed(robot["model"])
     feed.pubs["/clock"] = feed.feeder.create_publisher("/clock", m.CLOCK_TYPE)

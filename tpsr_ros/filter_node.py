@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 
 from tpsr_ros.core.actions import ACTIONS
+from tpsr_ros.core.cadence import CadenceGaps
 from tpsr_ros.core.episodes import (
     DEFAULT_ACTION_TOLERANCE,
     image_to_observation,
@@ -319,6 +320,8 @@ class FilterNode(Node):
         step_ns = self.spec.grid.step_ns if self.spec else round(p.step_period * _NS)
         self.tracker = OnlineTracker(self.model, step_ns)
         self.grid = GridStepper(self.spec.grid) if self.spec else None
+        # a robot camera's images the middleware lost without saying show in its stamps
+        self.camera_cadence = CadenceGaps() if self.spec else None
         self.lost = {"image": 0, "action": 0}
         self._last_input_stamp: dict[str, int | None] = {"image": None, "action": None}
         self._arrivals: dict[str, deque[float]] = {
@@ -530,6 +533,8 @@ class FilterNode(Node):
         stamp = self._stream_time(msg)
         if self._grid_time_jumped(stamp):
             self._reinit(f"camera time jumped back to {stamp / _NS:.3f} s")
+        assert self.camera_cadence is not None
+        self.lost["image"] += self.camera_cadence.add(stamp)
         frame = _Frame()
         steps = self.grid.add_image(stamp, frame)
         self._last_image_arrival_ns = time.monotonic_ns()
