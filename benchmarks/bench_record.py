@@ -107,17 +107,23 @@ class RecorderRun:
         return pub
 
     def reported(self) -> tuple[int, int]:
-        """(recorded, lost or dropped) in the recorder's latest /diagnostics report."""
+        """(recorded, not recorded) in the recorder's latest /diagnostics report.
+
+        Not recorded: lost or dropped, or missing by the header stamps if that is more (the
+        two count the same messages where both see them).
+        """
         if not self.reports:
             return 0, 0
         last = self.reports[-1]
         lost = sum(int(last.get(f"{TOPIC} {kind}", 0)) for kind in ("lost", "dropped"))
-        return int(last.get(f"{TOPIC} recorded", 0)), lost
+        missing = int(last.get(f"{TOPIC} missing by stamps", 0))
+        return int(last.get(f"{TOPIC} recorded", 0)), max(lost, missing)
 
-    def finish(self, expected: int, timeout_s: float) -> tuple[list[int], int]:
-        """Wait until ``expected`` images are recorded or lost, stop; (log times, lost).
+    def finish(self, expected: int, timeout_s: float) -> tuple[list[int], int, int]:
+        """Wait until ``expected`` images are accounted for, stop; (log times, lost, missing).
 
-        Lost counts what the middleware reported and what the recorder dropped.
+        Lost counts what the middleware reported and what the recorder dropped; missing,
+        what the recorder found missing from the images' stamps.
         """
         from tpsr_ros.io.bag import BagReader
 
@@ -134,7 +140,8 @@ class RecorderRun:
             lost = sum(
                 int(custom.get(f"recorder.{kind}_messages", "0")) for kind in ("lost", "dropped")
             )
-        return times, lost
+            missing = int(custom.get("recorder.missing_by_stamps", "0"))
+        return times, lost, missing
 
 
 def one_run(tmp: Path, backend: str, size: str) -> tuple[float, int, int]:
@@ -150,7 +157,7 @@ def one_run(tmp: Path, backend: str, size: str) -> tuple[float, int, int]:
     for payload in data:
         pub.publish_raw(payload)
         run.node.spin_once(0.0)
-    times, lost = run.finish(count, timeout_s=120)
+    times, lost, _ = run.finish(count, timeout_s=120)
     span = (times[-1] - start_ns) / 1e9 if times else float("nan")
     return len(times) / span, count - len(times), lost
 

@@ -196,6 +196,53 @@ def test_with_a_policy_commands_are_codes_in_the_robots_type(robot, tmp_path):
         RobotFeed(robot["model"], policy=codebook_policy(robot["model"], tmp_path / "p2.npz"))
 
 
+def test_camera_images_missing_from_the_stamps_count_as_lost(robot):
+    # lost on the way without a word from the middleware (Cyclone's keep-last overwrites)
+    images = [k for k, (topic, _) in enumerate(robot["inputs"]) if topic == CAMERA]
+    skipped = set(images[60:63])
+    feed = RobotFeed(robot["model"])
+    try:
+        for k, (topic, data) in enumerate(robot["inputs"]):
+            if k not in skipped:
+                feed.send(topic, data)
+        assert feed.node.diagnostics_values()["lost_images"] == 3
+    finally:
+        feed.close()
+
+
+def test_a_clock_jump_back_restarts_the_grid_and_the_state(robot):
+    feed = RobotFeed(robot["model"])
+    feed.pubs["/clock"] = feed.feeder.create_publisher("/clock", m.CLOCK_TYPE)
+    try:
+        for topic, data in robot["inputs"][: len(robot["inputs"]) // 2]:
+            feed.send(topic, data)
+        newest, reinits = feed.node.grid.last_image_time, feed.node.tracker.reinits
+        assert newest is not None
+        clock = m.serialize(m.clock_msg(newest - 4 * S), m.CLOCK_TYPE)  # within 5 s: no jump
+        feed.send("/clock", clock)
+        assert feed.node.diagnostics_values()["time_jumps"] == 0
+        feed.send("/clock", m.serialize(m.clock_msg(newest - 6 * S), m.CLOCK_TYPE))
+        assert feed.node.diagnostics_values()["time_jumps"] == 1
+        assert feed.node.grid.last_image_time is None
+        assert feed.node.tracker.reinits == reinits + 1
+        np.testing.assert_array_equal(feed.node.tracker.state, feed.node.model.initial_state())
+    finally:
+        feed.close()
+
+
+def test_a_simulator_model_cannot_take_its_own_commands_as_executed_actions(tmp_path):
+    from test_filter_node import fit_small_model, random_policy
+
+    model = fit_small_model(tmp_path)
+    policy = random_policy(model, tmp_path / "policy.npz")
+    args = ["-p", f"model:={model}", "-p", f"policy:={policy}",
+            "-p", "command_type:=twist_stamped", "-p", "check_topics:=false",
+            "-r", "/action:=/cmd_vel"]  # fmt: skip
+    options = NodeOptions.for_node(FilterNode, parse_ros_args(args))
+    with pytest.raises(ConfigError, match="action the simulator executed for that step"):
+        FilterNode(options, transport=InprocTransport("/f", InprocBus()))
+
+
 def test_silence_makes_diagnostics_warn_then_stale(robot):
     feed = RobotFeed(robot["model"], "input_timeout:=0.3")
     try:

@@ -83,7 +83,13 @@ def test_dds_recorder_that_falls_behind_a_best_effort_camera_reports_each_lost_i
     recorded, lost, rejected, by_topic = _reported(bag)
     assert 0 < recorded < sent and rejected == 0
     assert lost == sent - recorded  # exactly what is missing from the bag
-    assert by_topic[TOPIC] == {"recorded": recorded, "lost": lost, "dropped": 0, "rejected": 0}
+    assert by_topic[TOPIC] == {
+        "recorded": recorded,
+        "lost": lost,
+        "dropped": 0,
+        "rejected": 0,
+        "missing_by_stamps": by_topic[TOPIC]["missing_by_stamps"],
+    }
     err = capfd.readouterr().err
     assert f"lost {lost} messages on {TOPIC} before they reached the recorder" in err
     assert f"recorded {recorded} messages on 1 topics to {bag}; lost {lost}" in err
@@ -148,6 +154,71 @@ def test_rclpy_recorder_stalled_behind_a_keep_last_publisher_reports_each_lost_i
     assert lost > 0 and rejected == 0
     assert lost == 42 - recorded, recorder.text()
     assert f"recorded {recorded} messages on 1 topics to {bag}; lost {lost}" in recorder.text()
+
+
+def test_dds_recorder_stalled_behind_a_keep_last_camera_counts_the_missing_by_stamps(
+    tmp_path, monkeypatch
+):
+    # Cyclone raises no status for samples a keep-last writer dropped before the stalled
+    # recorder had them; the camera's steady stamps show them.
+    pytest.importorskip("cyclonedds")
+    from tpsr_ros.runtime.dds import DdsTransport
+
+    domain = fresh_domain(31)
+    env = {**os.environ, "TPSR_TRANSPORT": "dds", "ROS_DOMAIN_ID": str(domain),
+           "CYCLONEDDS_URI": LOOPBACK}  # fmt: skip
+    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
+    node = Node(NodeOptions(name="camera"), transport=DdsTransport("camera", domain_id=domain))
+    pub = node.create_publisher(TOPIC, m.IMAGE_TYPE, QoSProfile(depth=1))
+    reports: list[dict[str, str]] = []
+    node.create_subscription(
+        "/diagnostics",
+        DIAGNOSTICS_TYPE,
+        lambda msg: reports.extend(status_values(s) for s in msg.status),
+    )
+    bag = tmp_path / "bag"
+    recorder = NodeProcess(
+        "rec", "tpsr_ros.record", ["-o", str(bag), TOPIC], log_path=tmp_path / "rec.log", env=env
+    )
+
+    def accounted(count: int) -> bool:
+        return any(
+            int(r.get(f"{TOPIC} recorded", 0)) + int(r.get(f"{TOPIC} missing by stamps", 0))
+            >= count
+            for r in reports
+        )
+
+    sent = 60
+    images = _images(sent, 480, 640)  # stamped 1 ms apart
+    try:
+        assert node.wait_for(lambda: pub.get_subscription_count() >= 1, 30), recorder.text()
+        for data in images[:12]:  # the recorder learns the cadence
+            pub.publish_raw(data)
+            time.sleep(0.002)
+        assert node.wait_for(lambda: accounted(12), 20), recorder.text()
+        os.kill(recorder.popen.pid, signal.SIGSTOP)
+        try:
+            for data in images[12:-4]:
+                pub.publish_raw(data)
+                time.sleep(0.002)
+        finally:
+            os.kill(recorder.popen.pid, signal.SIGCONT)
+        node.spin(timeout_s=0.5)
+        for data in images[-4:]:  # reveal the gap before them
+            pub.publish_raw(data)
+        assert node.wait_for(lambda: accounted(sent), 20), recorder.text()
+        assert recorder.stop(timeout_s=20) == 0, recorder.text()
+    finally:
+        recorder.kill()
+        node.close()
+    recorded, _, rejected, by_topic = _reported(bag)
+    assert 12 < recorded < sent and rejected == 0
+    assert by_topic[TOPIC]["missing_by_stamps"] == sent - recorded, recorder.text()
+    with BagReader(bag) as reader:
+        assert reader.custom_data["recorder.missing_by_stamps"] == str(sent - recorded)
+    text = recorder.text()
+    assert f"{sent - recorded} messages missing on {TOPIC} by its header stamps" in text
+    assert f"missing {sent - recorded} by header stamps" in text
 
 
 def test_bad_images_are_refused_counted_and_logged_and_the_bag_stays_readable(

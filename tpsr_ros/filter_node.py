@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 
 from tpsr_ros.core.actions import ACTIONS
+from tpsr_ros.core.cadence import CadenceGaps
 from tpsr_ros.core.episodes import (
     DEFAULT_ACTION_TOLERANCE,
     image_to_observation,
@@ -319,6 +320,8 @@ class FilterNode(Node):
         step_ns = self.spec.grid.step_ns if self.spec else round(p.step_period * _NS)
         self.tracker = OnlineTracker(self.model, step_ns)
         self.grid = GridStepper(self.spec.grid) if self.spec else None
+        # a robot camera's images the middleware lost without saying show in its stamps
+        self.camera_cadence = CadenceGaps() if self.spec else None
         self.lost = {"image": 0, "action": 0}
         self._last_input_stamp: dict[str, int | None] = {"image": None, "action": None}
         self._arrivals: dict[str, deque[float]] = {
@@ -354,17 +357,20 @@ class FilterNode(Node):
             else None
         )
         self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
-        if (
-            self.cmd_pub is not None
-            and self.cmd_pub.topic == self.action_topic
-            and COMMAND_TYPES[p.command_type] != (self.spec.action_type if self.spec else "")
-        ):
-            raise ConfigError(
-                f"the node's commands and its command input are both {self.action_topic}, "
-                f"but of types {COMMAND_TYPES[p.command_type]} and "
-                f"{self.spec.action_type if self.spec else m.ACTION_TYPE}: set command_type "
-                "to the input's type or remap one of them"
-            )
+        if self.cmd_pub is not None and self.cmd_pub.topic == self.action_topic:
+            if self.spec is None:  # executed actions stamped per step, not commands
+                raise ConfigError(
+                    f"the node's commands and its action input are both {self.action_topic}: "
+                    "a simulator model pairs each image with the action the simulator "
+                    "executed for that step, not with the node's own command; remap one of them"
+                )
+            if COMMAND_TYPES[p.command_type] != self.spec.action_type:
+                raise ConfigError(
+                    f"the node's commands and its command input are both {self.action_topic}, "
+                    f"but of types {COMMAND_TYPES[p.command_type]} and "
+                    f"{self.spec.action_type}: set command_type to the input's type or remap "
+                    "one of them"
+                )
         if self.spec is None:
             self.image_type, self.action_type = m.IMAGE_TYPE, m.ACTION_TYPE
             on_image, on_action = self._on_image, self._on_action
@@ -525,11 +531,10 @@ class FilterNode(Node):
         if msg is None:
             return
         stamp = self._stream_time(msg)
-        last = self.grid.last_image_time
-        if last is not None and stamp < last - self.sync.jump_threshold_ns:
-            self.grid.reset()
-            self.sync.stats.time_jumps += 1
+        if self._grid_time_jumped(stamp):
             self._reinit(f"camera time jumped back to {stamp / _NS:.3f} s")
+        assert self.camera_cadence is not None
+        self.lost["image"] += self.camera_cadence.add(stamp)
         frame = _Frame()
         steps = self.grid.add_image(stamp, frame)
         self._last_image_arrival_ns = time.monotonic_ns()
@@ -538,6 +543,16 @@ class FilterNode(Node):
         # (they hold the previous image), so it adds nothing to their latency, and the
         # node keeps an observation, not the camera's megabytes.
         frame.reduce(msg, self.image_type, self.spec.preprocessing)
+
+    def _grid_time_jumped(self, stamp: int) -> bool:
+        """Whether ``stamp`` is a backward jump of the stream's time; if so, restart the grid."""
+        assert self.grid is not None
+        last = self.grid.last_image_time
+        if last is None or stamp >= last - self.sync.jump_threshold_ns:
+            return False
+        self.grid.reset()
+        self.sync.stats.time_jumps += 1
+        return True
 
     def _grid_steps(self, steps: list[GridStep], start: float) -> None:
         """Process the steps one image completed; they all hold the previous image."""
@@ -635,7 +650,9 @@ class FilterNode(Node):
         if msg is None:
             return
         stamp = m.stamp_of(msg)
-        if self.sync.check_time(stamp):
+        # simulator streams are paired by stamp, robot streams stepped on the camera's grid
+        jumped = self.sync.check_time(stamp) if self.grid is None else self._grid_time_jumped(stamp)
+        if jumped:
             self._reinit(f"{self.clock_topic} jumped back to {stamp / _NS:.3f} s")
 
     def _reinit(self, why: str) -> None:
@@ -663,8 +680,7 @@ class FilterNode(Node):
         else:  # the code itself: never outside the codebook
             twist = m.twist_from_components(self.spec.codebook.command(action))
         if self.params.command_type == "twist_stamped":
-            header = m.header_msg(stamp if stamp is not None else time.time_ns(), "base_link")
-            msg = m.jazzy_typestore().types[TWIST_STAMPED_TYPE](header=header, twist=twist)
+            msg = m.stamped_twist(stamp if stamp is not None else time.time_ns(), twist)
         else:
             msg = twist
         self.cmd_pub.publish(msg)

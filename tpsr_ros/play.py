@@ -39,7 +39,7 @@ from tpsr_ros.core.errors import BagError, TpsrError
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.cdr_fields import peek_stamp
-from tpsr_ros.io.messages import CLOCK_TYPE, clock_msg, jazzy_typestore
+from tpsr_ros.io.messages import CLOCK_TYPE, clock_msg, starts_with_header
 from tpsr_ros.io.qos import from_bag_qos
 from tpsr_ros.runtime import DEFAULT_QOS, Node, NodeOptions, Publisher, run_node
 from tpsr_ros.runtime.diagnostics import RollingPercentiles
@@ -48,14 +48,6 @@ __all__ = ["PlayerNode", "ReadAhead", "main"]
 
 PROG = "python -m tpsr_ros.play"
 CLOCK_TOPIC = "/clock"
-
-
-def _starts_with_header(msgtype: str) -> bool:
-    defs = jazzy_typestore().fielddefs.get(msgtype)
-    if not defs or not defs[1]:
-        return False
-    _, node = defs[1][0]
-    return bool(node[0].name == "NAME" and node[1] == "std_msgs/msg/Header")
 
 
 _END = object()
@@ -176,7 +168,7 @@ class PlayerNode(Node):
         self.clock: Publisher | None = None
         if CLOCK_TOPIC not in self.reader.topics and not args.no_clock:
             self.clock = self.create_publisher(CLOCK_TOPIC, CLOCK_TYPE)
-        self.header_first = {t: _starts_with_header(m) for t, m in topics.items()}
+        self.header_first = {t: starts_with_header(m) for t, m in topics.items()}
         self.published = 0
         # every message's lateness in ms (a bag of a million messages: 8 MB)
         self.lateness_ms = RollingPercentiles(size=10_000_000)

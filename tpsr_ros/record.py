@@ -30,9 +30,13 @@ fell 256 samples behind) and messages
 dropped at a full cache are counted per topic and logged; messages the recorder refuses
 (larger than ``--max-message-size``, or an ``Image`` that cannot be a whole image:
 truncated data, rows shorter than width x bytes per pixel) are logged with their index
-and counted. The counts go to ``/diagnostics`` every second, to the bag's
-``custom_data`` (``recorder.lost_messages``, ``recorder.dropped_messages``,
-``recorder.rejected_messages`` and per topic ``recorder.by_topic``) and to the end-of-run
+and counted. Where the middleware cannot say (Cyclone DDS raises no status for samples a
+keep-last writer dropped before the recorder had them; a camera driver drops frames
+itself), topics with a steady cadence of header stamps show it: messages missing from the
+cadence are counted apart (:class:`~tpsr_ros.core.cadence.CadenceGaps`), whoever lost them.
+The counts go to ``/diagnostics`` every second, to the bag's ``custom_data``
+(``recorder.lost_messages``, ``recorder.dropped_messages``, ``recorder.rejected_messages``,
+``recorder.missing_by_stamps`` and per topic ``recorder.by_topic``) and to the end-of-run
 line.
 """
 
@@ -45,10 +49,18 @@ from pathlib import Path
 from typing import Any
 
 from tpsr_ros.cli import ArgumentParser, positive_float, positive_int
+from tpsr_ros.core.cadence import CadenceGaps
 from tpsr_ros.core.errors import BagError, MessageError, TpsrError
 from tpsr_ros.io.bag import BagWriter, check_bag_path_free
 from tpsr_ros.io.bag_cache import CachedBagWriter
-from tpsr_ros.io.messages import IMAGE_TYPE, deserialize, image_problem, jazzy_typestore
+from tpsr_ros.io.cdr_fields import peek_stamp
+from tpsr_ros.io.messages import (
+    IMAGE_TYPE,
+    deserialize,
+    image_problem,
+    jazzy_typestore,
+    starts_with_header,
+)
 from tpsr_ros.io.qos import adapt_to_publishers, compatible, to_bag_qos
 from tpsr_ros.runtime import Node, NodeOptions, QoSProfile, Subscription, run_node
 from tpsr_ros.runtime.diagnostics import (
@@ -151,6 +163,8 @@ class RecorderNode(Node):
         self.lost: dict[str, int] = defaultdict(int)
         self.rejected: dict[str, int] = defaultdict(int)
         self.dropped: dict[str, int] = defaultdict(int)
+        self.cadence: dict[str, CadenceGaps] = {}
+        self._missing_logged: dict[str, int] = defaultdict(int)
         self.subscriptions: dict[str, Subscription] = {}
         self.max_message_size = int(args.max_message_size)
         self._warned: set[tuple[str, str]] = set()
@@ -236,11 +250,16 @@ class RecorderNode(Node):
         max_size = self.max_message_size
         is_image = msgtype == IMAGE_TYPE
         own_reports = topic == DIAGNOSTICS_TOPIC and msgtype == DIAGNOSTICS_TYPE
+        cadence = None
+        if starts_with_header(msgtype) and not own_reports:
+            cadence = self.cadence[topic] = CadenceGaps()
 
         def on_message(data: bytes) -> None:
             received = time.time_ns()
             if own_reports and self._is_own_report(data):
                 return
+            if cadence is not None and (stamp := peek_stamp(data)) is not None:
+                cadence.add(stamp)  # every message that arrived, recorded or not
             problem = None
             if len(data) > max_size:
                 problem = f"{len(data)} bytes is over --max-message-size {max_size}"
@@ -295,6 +314,21 @@ class RecorderNode(Node):
                     f"the recorder (reported by the middleware; {total} on this topic so far)"
                 )
                 self.lost[topic] = total
+        for topic, cadence in self.cadence.items():
+            if cadence.missing > self._missing_logged[topic]:
+                rate = f"{1e9 / cadence.period_ns:.3g} Hz" if cadence.period_ns else "steady"
+                self.logger.warning(
+                    f"{cadence.missing - self._missing_logged[topic]} messages missing on "
+                    f"{topic} by its header stamps (a {rate} stream; lost before the recorder, "
+                    f"by the publisher or the middleware; {cadence.missing} on this topic so far)"
+                )
+                self._missing_logged[topic] = cadence.missing
+
+    def missing_by_stamps(self, topic: str | None = None) -> int:
+        """Messages missing from steady header-stamp cadences (one topic, or all)."""
+        if topic is not None:
+            return self.cadence[topic].missing if topic in self.cadence else 0
+        return sum(c.missing for c in self.cadence.values())
 
     def totals(self) -> tuple[int, int, int, int]:
         """(recorded, lost, dropped, rejected) messages over all topics."""
@@ -306,17 +340,22 @@ class RecorderNode(Node):
         )
 
     def losses(self) -> str:
-        """``lost L (reported by the middleware), dropped D (write cache full), rejected R``."""
+        """``lost L (reported by the middleware), dropped D (write cache full), rejected R;
+        missing M by header stamps``."""
         _, lost, dropped, rejected = self.totals()
         return (
             f"lost {lost} (reported by the middleware), "
-            f"dropped {dropped} (write cache full), rejected {rejected}"
+            f"dropped {dropped} (write cache full), rejected {rejected}; "
+            f"missing {self.missing_by_stamps()} by header stamps"
         )
+
+    def _anything_missing(self) -> bool:
+        return any(self.totals()[1:]) or self.missing_by_stamps() > 0
 
     def publish_diagnostics(self) -> None:
         """One ``DiagnosticStatus``: WARN once anything was lost or rejected, else OK."""
         self.check_losses()
-        recorded, lost, dropped, rejected = self.totals()
+        recorded = self.totals()[0]
         values: dict[str, Any] = {
             "bag": str(self.writer.path),
             "cache bytes": self.writer.queued_bytes,
@@ -326,7 +365,8 @@ class RecorderNode(Node):
             values[f"{topic} lost"] = self.lost[topic]
             values[f"{topic} dropped"] = self.dropped[topic]
             values[f"{topic} rejected"] = self.rejected[topic]
-        level = WARN if lost or dropped or rejected else OK
+            values[f"{topic} missing by stamps"] = self.missing_by_stamps(topic)
+        level = WARN if self._anything_missing() else OK
         message = f"recorded {recorded}; {self.losses()}"
         status = diagnostic_status(level, self._status_name, message, values)
         self.diagnostics.publish(diagnostic_array(time.time_ns(), [status]))
@@ -348,6 +388,7 @@ class RecorderNode(Node):
                     "lost": self.lost[t],
                     "dropped": self.dropped[t],
                     "rejected": self.rejected[t],
+                    "missing_by_stamps": self.missing_by_stamps(t),
                 }
                 for t in sorted(self.subscribed)
             }
@@ -355,17 +396,18 @@ class RecorderNode(Node):
                 ("lost_messages", str(lost)),
                 ("dropped_messages", str(dropped)),
                 ("rejected_messages", str(rejected)),
+                ("missing_by_stamps", str(self.missing_by_stamps())),
                 ("by_topic", json.dumps(by_topic)),
             ):
                 self.writer.set_custom_data(f"recorder.{key}", value)
         finally:
             self.writer.close()
-        recorded, lost, dropped, rejected = self.totals()
+        recorded = self.totals()[0]
         line = (
             f"recorded {recorded} messages on {len(self.subscribed)} topics to "
             f"{self.writer.path}; {self.losses()}"
         )
-        (self.logger.warning if lost or dropped or rejected else self.logger.info)(line)
+        (self.logger.warning if self._anything_missing() else self.logger.info)(line)
 
 
 def _image_cdr_problem(data: bytes) -> str | None:

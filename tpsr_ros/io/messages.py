@@ -48,6 +48,8 @@ __all__ = [
     "serialize",
     "split_stamp",
     "stamp_of",
+    "stamped_twist",
+    "starts_with_header",
     "state_msg",
     "state_to_array",
     "twist_components",
@@ -98,6 +100,15 @@ def stamp_of(msg: Any) -> int:
     """Stamp of a message with a ``header`` (or a Clock) in integer nanoseconds."""
     stamp = msg.clock if hasattr(msg, "clock") else msg.header.stamp
     return int(stamp.sec) * _NS + int(stamp.nanosec)
+
+
+def starts_with_header(msgtype: str) -> bool:
+    """Whether messages of ``msgtype`` start with a ``std_msgs/Header`` (a stamp to read)."""
+    defs = jazzy_typestore().fielddefs.get(msgtype)
+    if not defs or not defs[1]:
+        return False
+    _, node = defs[1][0]
+    return bool(node[0].name == "NAME" and node[1] == "std_msgs/msg/Header")
 
 
 def header_stamp_ns(data: bytes | memoryview) -> int:
@@ -259,7 +270,12 @@ def twist_msg(vx: float, vy: float) -> Any:
 
 def twist_stamped_msg(stamp_ns: int, vx: float, vy: float, frame_id: str = "base_link") -> Any:
     """Executed action as ``geometry_msgs/msg/TwistStamped`` (m/s, commanded, pre-noise)."""
-    return _t(ACTION_TYPE)(header=_header(stamp_ns, frame_id), twist=twist_msg(vx, vy))
+    return stamped_twist(stamp_ns, twist_msg(vx, vy), frame_id)
+
+
+def stamped_twist(stamp_ns: int, twist: Any, frame_id: str = "base_link") -> Any:
+    """``twist`` (a ``geometry_msgs/msg/Twist``) as ``geometry_msgs/msg/TwistStamped``."""
+    return _t(ACTION_TYPE)(header=_header(stamp_ns, frame_id), twist=twist)
 
 
 def twist_to_xy(msg: Any) -> tuple[float, float]:
