@@ -95,6 +95,57 @@ def test_dds_recorder_that_falls_behind_a_best_effort_camera_reports_each_lost_i
     assert f"recorded {recorded} messages on 1 topics to {bag}; lost {lost}" in err
 
 
+def _stall_recorder(
+    tmp_path: Path, node: Node, env: dict[str, str], sent: int, first: int, last: int,
+    counted: str,
+) -> tuple[Path, str]:
+    """Record ``sent`` images from ``node``'s reliable keep-last(1) publisher while the
+    recorder process is stopped (SIGSTOP) between the ``first`` and the ``last`` ones, until
+    the recorder's /diagnostics account for all (recorded + ``counted``); (bag, its log).
+    """
+    bag = tmp_path / "bag"
+    pub = node.create_publisher(TOPIC, m.IMAGE_TYPE, QoSProfile(depth=1))
+    reports: list[dict[str, str]] = []
+    node.create_subscription(
+        "/diagnostics",
+        DIAGNOSTICS_TYPE,
+        lambda msg: reports.extend(status_values(s) for s in msg.status),
+    )
+    recorder = NodeProcess(
+        "rec", "tpsr_ros.record", ["-o", str(bag), TOPIC], log_path=tmp_path / "rec.log", env=env
+    )
+
+    def accounted(count: int) -> bool:
+        return any(
+            int(r.get(f"{TOPIC} recorded", 0)) + int(r.get(f"{TOPIC} {counted}", 0)) >= count
+            for r in reports
+        )
+
+    images = _images(sent, 480, 640)  # stamped 1 ms apart
+    try:
+        assert node.wait_for(lambda: pub.get_subscription_count() >= 1, 30), recorder.text()
+        for data in images[:first]:
+            pub.publish_raw(data)
+            time.sleep(0.002)
+        assert node.wait_for(lambda: accounted(first), 20), recorder.text()
+        os.kill(recorder.popen.pid, signal.SIGSTOP)
+        try:
+            for data in images[first:-last]:
+                pub.publish_raw(data)
+                time.sleep(0.002)
+        finally:
+            os.kill(recorder.popen.pid, signal.SIGCONT)
+        node.spin(timeout_s=0.5)
+        for data in images[-last:]:  # reveal the gap before them, if the tail was lost
+            pub.publish_raw(data)
+        assert node.wait_for(lambda: accounted(sent), 20), recorder.text()
+        assert recorder.stop(timeout_s=20) == 0, recorder.text()
+    finally:
+        recorder.kill()
+        node.close()
+    return bag, recorder.text()
+
+
 @pytest.mark.skipif(not rclpy_available(), reason="rclpy (ROS 2) not importable")
 def test_rclpy_recorder_stalled_behind_a_keep_last_publisher_reports_each_lost_image(
     tmp_path, monkeypatch
@@ -109,58 +160,19 @@ def test_rclpy_recorder_stalled_behind_a_keep_last_publisher_reports_each_lost_i
     }
     for name in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE"):  # this process's node
         monkeypatch.setenv(name, env[name])
-    bag = tmp_path / "bag"
     node = Node(NodeOptions(name="camera"), transport=RclpyTransport("camera"))
-    pub = node.create_publisher(TOPIC, m.IMAGE_TYPE, QoSProfile(depth=1))
-    reports: list[dict[str, str]] = []
-    node.create_subscription(
-        "/diagnostics",
-        DIAGNOSTICS_TYPE,
-        lambda msg: reports.extend(status_values(s) for s in msg.status),
-    )
-    recorder = NodeProcess(
-        "rec", "tpsr_ros.record", ["-o", str(bag), TOPIC], log_path=tmp_path / "rec.log", env=env
-    )
-
-    def recorded_at_least(count: int) -> bool:
-        return any(int(r.get(f"{TOPIC} recorded", 0)) >= count for r in reports)
-
-    images = _images(42, 480, 640)
-    try:
-        assert node.wait_for(lambda: pub.get_subscription_count() >= 1, 30), recorder.text()
-        pub.publish_raw(images[0])
-        assert node.wait_for(lambda: recorded_at_least(1), 20), recorder.text()
-        os.kill(recorder.popen.pid, signal.SIGSTOP)
-        try:
-            for data in images[1:-1]:
-                pub.publish_raw(data)
-                time.sleep(0.002)
-        finally:
-            os.kill(recorder.popen.pid, signal.SIGCONT)
-        node.spin(timeout_s=0.5)
-        pub.publish_raw(images[-1])  # reveals the gap before it, if the tail was lost
-        assert node.wait_for(
-            lambda: any(
-                int(r.get(f"{TOPIC} recorded", 0)) + int(r.get(f"{TOPIC} lost", 0)) >= 42
-                for r in reports
-            ),
-            20,
-        ), recorder.text()
-        assert recorder.stop(timeout_s=20) == 0, recorder.text()
-    finally:
-        recorder.kill()
-        node.close()
+    bag, log = _stall_recorder(tmp_path, node, env, 42, first=1, last=1, counted="lost")
     recorded, lost, rejected, _ = _reported(bag)
     assert lost > 0 and rejected == 0
-    assert lost == 42 - recorded, recorder.text()
-    assert f"recorded {recorded} messages on 1 topics to {bag}; lost {lost}" in recorder.text()
+    assert lost == 42 - recorded, log
+    assert f"recorded {recorded} messages on 1 topics to {bag}; lost {lost}" in log
 
 
 def test_dds_recorder_stalled_behind_a_keep_last_camera_counts_the_missing_by_stamps(
     tmp_path, monkeypatch
 ):
     # Cyclone raises no status for samples a keep-last writer dropped before the stalled
-    # recorder had them; the camera's steady stamps show them.
+    # recorder had them; the camera's steady stamps show them (12 images teach the cadence).
     pytest.importorskip("cyclonedds")
     from tpsr_ros.runtime.dds import DdsTransport
 
@@ -169,56 +181,17 @@ def test_dds_recorder_stalled_behind_a_keep_last_camera_counts_the_missing_by_st
            "CYCLONEDDS_URI": LOOPBACK}  # fmt: skip
     monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
     node = Node(NodeOptions(name="camera"), transport=DdsTransport("camera", domain_id=domain))
-    pub = node.create_publisher(TOPIC, m.IMAGE_TYPE, QoSProfile(depth=1))
-    reports: list[dict[str, str]] = []
-    node.create_subscription(
-        "/diagnostics",
-        DIAGNOSTICS_TYPE,
-        lambda msg: reports.extend(status_values(s) for s in msg.status),
-    )
-    bag = tmp_path / "bag"
-    recorder = NodeProcess(
-        "rec", "tpsr_ros.record", ["-o", str(bag), TOPIC], log_path=tmp_path / "rec.log", env=env
-    )
-
-    def accounted(count: int) -> bool:
-        return any(
-            int(r.get(f"{TOPIC} recorded", 0)) + int(r.get(f"{TOPIC} missing by stamps", 0))
-            >= count
-            for r in reports
-        )
-
     sent = 60
-    images = _images(sent, 480, 640)  # stamped 1 ms apart
-    try:
-        assert node.wait_for(lambda: pub.get_subscription_count() >= 1, 30), recorder.text()
-        for data in images[:12]:  # the recorder learns the cadence
-            pub.publish_raw(data)
-            time.sleep(0.002)
-        assert node.wait_for(lambda: accounted(12), 20), recorder.text()
-        os.kill(recorder.popen.pid, signal.SIGSTOP)
-        try:
-            for data in images[12:-4]:
-                pub.publish_raw(data)
-                time.sleep(0.002)
-        finally:
-            os.kill(recorder.popen.pid, signal.SIGCONT)
-        node.spin(timeout_s=0.5)
-        for data in images[-4:]:  # reveal the gap before them
-            pub.publish_raw(data)
-        assert node.wait_for(lambda: accounted(sent), 20), recorder.text()
-        assert recorder.stop(timeout_s=20) == 0, recorder.text()
-    finally:
-        recorder.kill()
-        node.close()
+    bag, log = _stall_recorder(
+        tmp_path, node, env, sent, first=12, last=4, counted="missing by stamps"
+    )
     recorded, _, rejected, by_topic = _reported(bag)
     assert 12 < recorded < sent and rejected == 0
-    assert by_topic[TOPIC]["missing_by_stamps"] == sent - recorded, recorder.text()
+    assert by_topic[TOPIC]["missing_by_stamps"] == sent - recorded, log
     with BagReader(bag) as reader:
         assert reader.custom_data["recorder.missing_by_stamps"] == str(sent - recorded)
-    text = recorder.text()
-    assert f"{sent - recorded} messages missing on {TOPIC} by its header stamps" in text
-    assert f"missing {sent - recorded} by header stamps" in text
+    assert f"{sent - recorded} messages missing on {TOPIC} by its header stamps" in log
+    assert f"missing {sent - recorded} by header stamps" in log
 
 
 def test_bad_images_are_refused_counted_and_logged_and_the_bag_stays_readable(
