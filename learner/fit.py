@@ -17,7 +17,7 @@ import dataclasses
 import functools
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, TypeVar
@@ -38,8 +38,10 @@ from tpsr_ros.io.model_io import check_output_path, save_model
 from tpsr_ros.io.stream_spec import StreamSpec
 from tpsr_ros.io.streams import (
     DEFAULT_POSE_FRAME,
+    BagStreams,
     FitOptions,
     fit_stream_spec,
+    read_bag_streams,
     read_stream_trajectory,
 )
 from tpsr_ros.io.trajectory import Topics, read_trajectory
@@ -256,16 +258,27 @@ def run(args: argparse.Namespace) -> int:
 
     _say(f"reading {len(args.bags)} bag(s)")
     start = time.perf_counter()
-    spec = _robot_spec(args, stream_options, topics)
-    if spec is None:
+    if stream_options is None:
+        spec = None
         trajectory = read_trajectory(args.bags, topics=topics)
     else:
+        streams = read_bag_streams(  # once, for the spec and the steps
+            args.bags,
+            image_topic=topics.image,
+            action_topic=topics.action,
+            components=stream_options.components,
+            pose_topic=topics.pose,
+            reward_topic=topics.reward,
+            pose_frame=args.pose_frame or DEFAULT_POSE_FRAME,
+        )
+        spec = _robot_spec(args, stream_options, topics, streams)
         trajectory = read_stream_trajectory(
             args.bags,
             spec,
             pose_topic=topics.pose,
             reward_topic=topics.reward,
             pose_frame=args.pose_frame or DEFAULT_POSE_FRAME,
+            streams=streams,
         )
         _say(_commands_line(trajectory, spec))
     timings["reading bags"] = time.perf_counter() - start
@@ -302,12 +315,15 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _robot_spec(
-    args: argparse.Namespace, options: FitOptions | None, topics: Topics
-) -> StreamSpec | None:
+    args: argparse.Namespace,
+    options: FitOptions,
+    topics: Topics,
+    streams: Sequence[BagStreams] | None = None,
+) -> StreamSpec:
     """Robot bags (``--step-period``): the step grid, preprocessing and codebook, said."""
-    if options is None:
-        return None
-    spec = fit_stream_spec(args.bags, options, image_topic=topics.image, action_topic=topics.action)
+    spec = fit_stream_spec(
+        args.bags, options, image_topic=topics.image, action_topic=topics.action, streams=streams
+    )
     _say(_spec_line(spec))
     _say_robot_defaults(args)
     return spec
@@ -334,7 +350,7 @@ def _run_streamed(
     start = time.perf_counter()
     pose_frame = args.pose_frame or DEFAULT_POSE_FRAME
     recorded = dataclasses.asdict(topics)
-    spec = _robot_spec(args, stream_options, topics)
+    spec = None if stream_options is None else _robot_spec(args, stream_options, topics)
     if spec is None:
         _say(f"checking {len(args.bags)} bag(s) agree (image size, action type)")
         surveys = survey_bags(args.bags, topics)

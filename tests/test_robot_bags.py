@@ -16,14 +16,19 @@ from sim_node.generate import generate_bag
 from sim_node.robot_bag import START_S, RobotBagConfig, write_robot_bag
 from sim_node.rollout import random_rollout
 from tpsr_ros.core.episodes import Trajectory, make_episodes
-from tpsr_ros.core.errors import DataError, MessageError, ModelFormatError
+from tpsr_ros.core.errors import ConfigError, DataError, MessageError, ModelFormatError
 from tpsr_ros.core.images import Preprocessing, preprocess_images
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
 from tpsr_ros.io import messages as msgs
 from tpsr_ros.io.bag import BagReader, BagWriter
 from tpsr_ros.io.model_io import load_model, model_fingerprint, model_stream_spec, read_metadata
 from tpsr_ros.io.npz_archive import write_archive
-from tpsr_ros.io.streams import FitOptions, fit_stream_spec, read_stream_trajectory
+from tpsr_ros.io.streams import (
+    FitOptions,
+    fit_stream_spec,
+    read_bag_streams,
+    read_stream_trajectory,
+)
 
 S = 10**9
 CAMERA = "/front_camera/image_raw"
@@ -52,6 +57,27 @@ def options(**changes) -> FitOptions:
 
 
 # -- the resampled steps are the simulator's steps ------------------------------------------
+
+
+def test_streams_read_once_give_the_spec_and_steps_of_reading_twice(robot):
+    bags = [robot["bag"]]
+    topics = {"pose_topic": "/odom", "reward_topic": "/reward"}
+    streams = read_bag_streams(
+        bags, image_topic=CAMERA, action_topic="/cmd_vel", components=options().components,
+        **topics,
+    )  # fmt: skip
+    spec = fit_stream_spec(bags, options(), image_topic=CAMERA, action_topic="/cmd_vel")
+    given = fit_stream_spec(
+        bags, options(), image_topic=CAMERA, action_topic="/cmd_vel", streams=streams
+    )
+    assert given.as_dict() == spec.as_dict()
+    once = read_stream_trajectory(bags, spec, streams=streams, **topics)
+    twice = read_stream_trajectory(bags, spec, **topics)
+    for name in ("stamps", "observations", "actions", "velocities", "positions", "rewards"):
+        np.testing.assert_array_equal(getattr(once, name), getattr(twice, name), err_msg=name)
+    assert once.velocities.shape[1] == len(spec.codebook.components) == 2  # of 3 read
+    with pytest.raises(ConfigError, match="not read from these bags"):
+        read_stream_trajectory([robot["bag"], robot["bag"]], spec, streams=streams)
 
 
 def test_resampled_steps_are_the_simulator_steps(robot):

@@ -16,7 +16,9 @@ the transforms whose child frame is ``pose_frame``); interpolated at the step ti
 reward (``JointState`` as the simulator writes it: the reward of a step is the last one
 stamped within the step).
 :func:`fit_stream_spec` first makes the spec from the training bags (camera period,
-constant command components, k-means codebook).
+constant command components, k-means codebook). Both read each bag's timed streams
+(:func:`read_bag_streams`: stamps and commands, images not decoded); ``learner fit`` reads
+them once and gives them to both.
 """
 
 from __future__ import annotations
@@ -59,9 +61,11 @@ __all__ = [
     "DEFAULT_POSE_FRAME",
     "POSE_TYPES",
     "TF_TYPE",
+    "BagStreams",
     "FitOptions",
     "StreamSpec",
     "fit_stream_spec",
+    "read_bag_streams",
     "read_stream_trajectory",
 ]
 
@@ -115,8 +119,12 @@ class FitOptions:
 
 
 @dataclass
-class _Streams:
+class BagStreams:
+    """One bag's timed streams: image stamps (pixels decoded later, only where a step uses
+    them), commands with their components, poses and rewards."""
+
     path: Path
+    components: tuple[str, ...]  # the columns of ``commands``
     image_type: str
     action_type: str
     image_times: np.ndarray  # (I,) of the images kept (increasing)
@@ -180,7 +188,7 @@ def _read_streams(
     components: tuple[str, ...],
     require_pose: bool,
     pose_frame: str = DEFAULT_POSE_FRAME,
-) -> _Streams:
+) -> BagStreams:
     with BagReader(path) as reader:
         available = reader.topics_with_messages
         image_type = _check_types(path, available, image_topic, IMAGE_TYPES, "camera")
@@ -237,8 +245,9 @@ def _read_streams(
     order = np.argsort(command_t, kind="stable")
     pose_t = np.array(pose_times, dtype=np.int64)
     pose_order = np.argsort(pose_t, kind="stable")
-    return _Streams(
+    return BagStreams(
         path=path,
+        components=components,
         image_type=image_type,
         action_type=action_type,
         image_times=times[keep],
@@ -259,13 +268,46 @@ def _read_streams(
     )
 
 
+def read_bag_streams(
+    bags: Sequence[Path | str],
+    *,
+    image_topic: str,
+    action_topic: str,
+    components: Sequence[str],
+    pose_topic: str | None = None,
+    reward_topic: str | None = None,
+    require_pose: bool = False,
+    pose_frame: str = DEFAULT_POSE_FRAME,
+) -> list[BagStreams]:
+    """Each bag's timed streams, for :func:`fit_stream_spec` and :func:`read_stream_trajectory`.
+
+    ``components`` are the command fields kept (a spec's codebook uses some of them); the
+    pose topic is read when given and present (required with ``require_pose``).
+    """
+    if not bags:
+        raise ConfigError("no bag given")
+    return [
+        _read_streams(
+            Path(bag),
+            image_topic=image_topic,
+            action_topic=action_topic,
+            pose_topic=pose_topic,
+            reward_topic=reward_topic,
+            components=tuple(components),
+            require_pose=require_pose,
+            pose_frame=pose_frame,
+        )
+        for bag in bags
+    ]
+
+
 def _fast_time(data: bytes, log_time_ns: int) -> int:
     """Header stamp read from the CDR bytes, or the log time where the stamp is zero."""
     stamp = header_stamp_ns(data)
     return stamp if stamp > 0 else int(log_time_ns)
 
 
-def _poses_at(streams: _Streams, at: np.ndarray) -> np.ndarray:
+def _poses_at(streams: BagStreams, at: np.ndarray) -> np.ndarray:
     """Ground-truth (x, y) interpolated at ``at``; only the poses around each time are decoded."""
     times = streams.pose_times
     out = np.full((at.size, 2), np.nan)
@@ -359,22 +401,21 @@ def fit_stream_spec(
     *,
     image_topic: str,
     action_topic: str,
+    streams: Sequence[BagStreams] | None = None,
 ) -> StreamSpec:
-    """The spec learned from the training bags: camera period, components and codebook."""
-    if not bags:
-        raise ConfigError("no bag given")
-    streams = [
-        _read_streams(
-            Path(b),
-            image_topic=image_topic,
-            action_topic=action_topic,
-            pose_topic=None,
-            reward_topic=None,
-            components=tuple(options.components),
-            require_pose=False,
-        )
-        for b in bags
-    ]
+    """The spec learned from the training bags: camera period, components and codebook.
+
+    ``streams``: the bags' streams already read with ``options.components`` (else read here).
+    """
+    if streams is None:
+        streams = read_bag_streams(
+            bags, image_topic=image_topic, action_topic=action_topic,
+            components=options.components,
+        )  # fmt: skip
+    elif [s.path for s in streams] != [Path(b) for b in bags] or any(
+        s.components != tuple(options.components) for s in streams
+    ):
+        raise ConfigError("the streams given were not read from these bags with these options")
     types = {(s.image_type, s.action_type) for s in streams}
     if len(types) > 1:
         raise DataError(f"the bags carry different camera or command types: {sorted(types)}")
@@ -421,7 +462,7 @@ def fit_stream_spec(
     )
 
 
-def _first_pixels(streams: _Streams, topic: str) -> np.ndarray:
+def _first_pixels(streams: BagStreams, topic: str) -> np.ndarray:
     """Decoded pixels of the first image kept on ``topic`` (its size and colour)."""
     first = int(streams.image_numbers[0]) if streams.image_numbers.size else 0
     with BagReader(streams.path) as reader:
@@ -442,53 +483,56 @@ def read_stream_trajectory(
     reward_topic: str | None = None,
     require_ground_truth: bool = False,
     pose_frame: str = DEFAULT_POSE_FRAME,
+    streams: Sequence[BagStreams] | None = None,
 ) -> Trajectory:
     """Read ``bags`` onto the spec's step grid (see the module docstring and core.resample).
 
     Every bag starts its own grid and segments. ``require_ground_truth`` demands the pose
     topic. Refused with a one-line error: a camera or command topic missing or of another
     type than the spec's, an undecodable or inconsistent message, a step period at which
-    most steps have no new image, a bag with no usable step.
+    most steps have no new image, a bag with no usable step. ``streams``: the bags' streams
+    already read (:func:`read_bag_streams`, with the same pose and reward topics and
+    components that include the codebook's), else read here.
     """
     if not bags:
         raise ConfigError("no bag given")
     codebook = spec.codebook
+    if streams is None:
+        streams = read_bag_streams(
+            bags, image_topic=spec.image_topic, action_topic=spec.action_topic,
+            components=codebook.components, pose_topic=pose_topic, reward_topic=reward_topic,
+            require_pose=require_ground_truth, pose_frame=pose_frame,
+        )  # fmt: skip
+    elif [s.path for s in streams] != [Path(b) for b in bags] or any(
+        not set(codebook.components) <= set(s.components) for s in streams
+    ):
+        raise ConfigError("the streams given were not read from these bags with these options")
     parts: list[dict[str, np.ndarray]] = []
     sources: list[dict[str, Any]] = []
     segment_offset = 0
-    for bag in bags:
-        path = Path(bag)
-        streams = _read_streams(
-            path,
-            image_topic=spec.image_topic,
-            action_topic=spec.action_topic,
-            pose_topic=pose_topic,
-            reward_topic=reward_topic,
-            components=codebook.components,
-            require_pose=require_ground_truth,
-            pose_frame=pose_frame,
-        )
+    for bag in streams:
+        path = bag.path
         for what, got, expected in (
-            ("camera", streams.image_type, spec.image_type),
-            ("command", streams.action_type, spec.action_type),
+            ("camera", bag.image_type, spec.image_type),
+            ("command", bag.action_type, spec.action_type),
         ):
             if got != expected:
                 raise DataError(
                     f"bag {str(path)!r}: the model's {what} topic carries {expected}, this bag's "
                     f"carries {got}"
                 )
-        if codebook.kind == "sim" and streams.environment is None:
+        if codebook.kind == "sim" and bag.environment is None:
             raise DataError(
                 f"bag {str(path)!r} does not come from sim_node, but the model's actions are "
                 "the simulator's 25 pairs"
             )
-        steps = resample_grid(streams.image_times, streams.command_times, spec.grid)
+        steps = resample_grid(bag.image_times, bag.command_times, spec.grid)
         period = spec.grid.step_ns / NS_PER_S
         if steps.grid_steps == 0 or steps.fresh < MIN_FRESH_FRACTION * steps.grid_steps:
             raise DataError(
                 f"bag {str(path)!r}, topic {spec.image_topic!r}: only {steps.fresh} of "
                 f"{steps.grid_steps} steps of {period:g} s have a new image (the camera's "
-                f"median period is {_median_period(streams.image_times):g} s); use a longer "
+                f"median period is {_median_period(bag.image_times):g} s); use a longer "
                 "--step-period"
             )
         if steps.stamps.size == 0:
@@ -497,22 +541,23 @@ def read_stream_trajectory(
                 f"force ({steps.stale_image} camera gaps, {steps.no_command} without a command "
                 f"on {spec.action_topic!r})"
             )
-        commands = streams.commands[steps.command_index]
+        columns = [bag.components.index(c) for c in codebook.components]
+        commands = bag.commands[steps.command_index][:, columns]
         actions, distance = codebook.assign(commands)
         observations = _decode_images(
             path,
             spec.image_topic,
             spec.image_type,
-            streams.image_numbers[steps.image_index],
+            bag.image_numbers[steps.image_index],
             spec.preprocessing,
         )
-        positions = _poses_at(streams, steps.stamps)
+        positions = _poses_at(bag, steps.stamps)
         if require_ground_truth and np.isnan(positions).all():
             raise DataError(
                 f"bag {str(path)!r}: the poses on {pose_topic!r} cover none of the steps"
             )
         rewards = _step_rewards(
-            streams.reward_times, streams.rewards, steps.stamps, spec.grid.step_ns
+            bag.reward_times, bag.rewards, steps.stamps, spec.grid.step_ns
         )
         breaks = np.diff(steps.stamps) != spec.grid.step_ns
         segments = segment_offset + np.concatenate([[0], np.cumsum(breaks)])
@@ -537,11 +582,11 @@ def read_stream_trajectory(
                 "grid_steps": steps.grid_steps,
                 "camera_gaps": steps.stale_image,
                 "command_gaps": steps.no_command,
-                "images_out_of_order": streams.dropped_images,
+                "images_out_of_order": bag.dropped_images,
                 "far_commands": int(far.sum()),
                 "worst_command_distance": float(distance.max()),
                 "stamps_ns": [int(steps.stamps[0]), int(steps.stamps[-1])],
-                "environment": streams.environment,
+                "environment": bag.environment,
                 "generator": None,
                 "topics": {
                     "image": spec.image_topic,
