@@ -12,7 +12,7 @@ import pytest
 from tpsr_ros.core.actions import ACTIONS
 from tpsr_ros.core.codebook import ActionCodebook, fit_codebook, sim_codebook
 from tpsr_ros.core.episodes import images_to_observations
-from tpsr_ros.core.errors import ConfigError, DataError, MessageError
+from tpsr_ros.core.errors import ConfigError, DataError, EncodingError, MessageError
 from tpsr_ros.core.images import LUMA, Preprocessing, area_weights, preprocess_images
 from tpsr_ros.core.resample import GridConfig, GridStepper, resample_grid
 from tpsr_ros.io.images import COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, decode_image
@@ -101,23 +101,27 @@ def test_png_is_lossless_and_jpeg_close():
 
 
 @pytest.mark.parametrize(
-    ("msg", "rule"),
+    ("msg", "rule", "unreadable_encoding"),
     [
-        (raw_msg(RGB, "yuv422"), "encoding 'yuv422' is not one of"),
-        (raw_msg(RGB, "rgb8", step=29), "step 29 is less than width 10 x 3 bytes"),
-        (raw_msg(RGB, "rgb8", step=31), "holds 180 bytes, expected 6 x 31"),
-        (raw_msg(RGB, "rgb8", data=np.zeros(17, np.uint8)), "holds 17 bytes, expected 6 x 30"),
-        (raw_msg(RGB, "rgb8", width=0), "image size 6x0 is empty"),
-        (compressed_msg(encoded(RGB, "JPEG")[:40]), "corrupt jpeg image"),
-        (compressed_msg(b"\x00" * 64), "corrupt jpeg image"),
-        (compressed_msg(encoded(RGB, "PNG"), "tiff"), "format 'tiff' is not jpeg or png"),
+        (raw_msg(RGB, "yuv422"), "encoding 'yuv422' is not one of", True),
+        (raw_msg(RGB, "rgb8", step=29), "step 29 is less than width 10 x 3 bytes", False),
+        (raw_msg(RGB, "rgb8", step=31), "holds 180 bytes, expected 6 x 31", False),
+        (raw_msg(RGB, "rgb8", data=np.zeros(17, np.uint8)), "holds 17 bytes, expected 6 x 30",
+         False),
+        (raw_msg(RGB, "rgb8", width=0), "image size 6x0 is empty", False),
+        (compressed_msg(encoded(RGB, "JPEG")[:40]), "corrupt jpeg image", False),
+        (compressed_msg(b"\x00" * 64), "corrupt jpeg image", False),
+        (compressed_msg(encoded(RGB, "PNG"), "tiff"), "format 'tiff' is not jpeg or png", True),
+        (compressed_msg(encoded(RGB, "GIF")), "compressed data is GIF, not JPEG or PNG", True),
     ],
-)
-def test_bad_images_are_refused_naming_the_rule(msg, rule):
+)  # fmt: skip
+def test_bad_images_are_refused_naming_the_rule(msg, rule, unreadable_encoding):
     msgtype = COMPRESSED_IMAGE_TYPE if hasattr(msg, "format") else IMAGE_TYPE
     with pytest.raises(MessageError, match=rule) as exc:
         decode_image(msg, msgtype)
     assert "\n" not in str(exc.value)
+    # the filter node counts these as rejected_encoding, damaged data as rejected_data
+    assert isinstance(exc.value, EncodingError) == unreadable_encoding
 
 
 # -- preprocessing --------------------------------------------------------------------------

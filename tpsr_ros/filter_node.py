@@ -52,7 +52,7 @@ from tpsr_ros.core.episodes import (
     image_to_observation,
     velocities_to_actions,
 )
-from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
+from tpsr_ros.core.errors import ConfigError, EncodingError, MessageError, TpsrError
 from tpsr_ros.core.images import Preprocessing, preprocess_images
 from tpsr_ros.core.online import OnlineTracker
 from tpsr_ros.core.resample import GridStep, GridStepper
@@ -255,8 +255,7 @@ class _Frame:
             self.observation = preprocess_images(pixels[None], preprocessing)[0]
         except MessageError as exc:
             self.detail = str(exc)
-            is_format = "encoding" in self.detail or "format" in self.detail
-            self.reason = "encoding" if is_format else "data"
+            self.reason = "encoding" if isinstance(exc, EncodingError) else "data"
 
 
 class _Throttle:

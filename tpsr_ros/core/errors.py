@@ -11,6 +11,7 @@ __all__ = [
     "BagError",
     "ConfigError",
     "DataError",
+    "EncodingError",
     "MessageError",
     "ModelFormatError",
     "NotFittedError",
@@ -42,6 +43,10 @@ class BagError(TpsrError):
 
 class MessageError(TpsrError, ValueError):
     """A message has the wrong type, size, encoding or frame."""
+
+
+class EncodingError(MessageError):
+    """A message's data is in an encoding or format that cannot be read (not damaged data)."""
 
 
 class DataError(TpsrError, ValueError):

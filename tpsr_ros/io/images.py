@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros.core.errors import MessageError
+from tpsr_ros.core.errors import EncodingError, MessageError
 from tpsr_ros.core.images import Preprocessing, preprocess_images
 
 __all__ = [
@@ -60,7 +60,7 @@ def raw_pixels(
 ) -> np.ndarray:
     """Pixels ``(H, W, C)`` of a raw ``Image``'s fields (``data``: its bytes as uint8)."""
     if encoding not in ENCODINGS:
-        raise MessageError(
+        raise EncodingError(
             f"image encoding {encoding[:40]!r} is not one of {', '.join(ENCODINGS)}"
         )
     channels, dtype, order = ENCODINGS[encoding]
@@ -91,12 +91,12 @@ def _compressed(msg: Any) -> np.ndarray:
 
     fmt = str(msg.format).lower()
     if not any(name in fmt for name in COMPRESSED_FORMATS):
-        raise MessageError(f"compressed format {fmt[:40]!r} is not jpeg or png")
+        raise EncodingError(f"compressed format {fmt[:40]!r} is not jpeg or png")
     data = bytes(np.asarray(msg.data, dtype=np.uint8))
     try:
         with PILImage.open(io.BytesIO(data)) as image:
             if image.format not in ("JPEG", "PNG"):
-                raise MessageError(f"compressed data is {image.format}, not JPEG or PNG")
+                raise EncodingError(f"compressed data is {image.format}, not JPEG or PNG")
             if image.width * image.height > MAX_PIXELS:
                 raise MessageError(f"compressed image of {image.width}x{image.height} is too large")
             grey = image.mode in ("L", "I;16", "I", "1", "LA")
