@@ -26,11 +26,15 @@ Whitening the state with its own covariance (fitted on the regression's training
 makes the score invariant to any invertible linear map of the states, so candidates whose
 states differ in scale by orders of magnitude compete on what they predict, not on scale;
 directions with variance below ``1e-10`` of the largest are dropped as numerically absent.
+Whitened states farther than ``clip * sqrt(r)`` from the mean are pulled onto that sphere
+(a rotation-invariant bound), so a filter that explodes on a few held-out steps is
+penalised for those steps without its linear extrapolation swamping every other step.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -67,6 +71,9 @@ class CriterionConfig:
     feature_dim: int = option(10, "principal components of the observations to predict")
     burn_in: int = option(20, "steps at the start of each held-out segment left unscored")
     ridge: float = option(1e-3, "ridge of the state-to-future regression (whitened units)")
+    clip: float = option(
+        3.0, "whitened states farther than clip * sqrt(dimensions) from the mean are pulled in"
+    )
 
     def __post_init__(self) -> None:
         if not 0.05 <= self.holdout <= 0.5:
@@ -79,6 +86,8 @@ class CriterionConfig:
             raise ConfigError(f"burn_in must be a non-negative integer, not {self.burn_in!r}")
         if not (np.isfinite(self.ridge) and self.ridge >= 0):
             raise ConfigError(f"ridge must be a non-negative number, not {self.ridge!r}")
+        if not (np.isfinite(self.clip) and self.clip > 0):
+            raise ConfigError(f"clip must be a positive number, not {self.clip!r}")
 
 
 @dataclass(frozen=True)
@@ -142,8 +151,15 @@ def future_targets(
     return targets, valid
 
 
-def _whiten_states(fit_states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and whitening matrix ``(r, r')`` of states (r' directions kept)."""
+def _state_whitener(fit_states: np.ndarray, clip: float) -> Callable[[np.ndarray], np.ndarray]:
+    """Whiten states with the mean and covariance of ``fit_states`` and pull outliers in.
+
+    Rows farther than ``clip * sqrt(r')`` from the mean (in whitened units) are scaled back
+    onto that sphere: a norm, so orthogonal maps (and thus any invertible linear map of
+    the raw states) leave the result unchanged. Like the planner's RBF features, which
+    fade to zero far from every centre, a rare exploded state then costs a bounded error
+    instead of dominating the score through unbounded linear extrapolation.
+    """
     mean = fit_states.mean(axis=0)
     cov = np.cov(fit_states - mean, rowvar=False).reshape(fit_states.shape[1], -1)
     values, vectors = np.linalg.eigh(cov)
@@ -151,7 +167,16 @@ def _whiten_states(fit_states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if not largest > 0:
         raise DataError("the tracked states do not vary")
     keep = values > RELATIVE_EIGENVALUE_FLOOR * largest
-    return mean, vectors[:, keep] / np.sqrt(values[keep])
+    matrix = vectors[:, keep] / np.sqrt(values[keep])
+    radius = clip * np.sqrt(matrix.shape[1])
+
+    def whiten(states: np.ndarray) -> np.ndarray:
+        white: np.ndarray = (states - mean) @ matrix
+        norms = np.linalg.norm(white, axis=1, keepdims=True)
+        white *= np.minimum(1.0, radius / np.maximum(norms, 1e-300))
+        return white
+
+    return whiten
 
 
 def _ridge_by_action(
@@ -180,6 +205,7 @@ def predictive_r2(
     scored: np.ndarray,
     n_actions: int,
     ridge: float,
+    clip: float = 3.0,
 ) -> np.ndarray:
     """Two-fold held-out R^2 per horizon of predicting ``targets (T, k, d)`` from ``states``.
 
@@ -194,18 +220,12 @@ def predictive_r2(
     sse = np.zeros(horizons)
     sst = np.zeros(horizons)
     for fit_rows, test_rows in ((halves[0], halves[1]), (halves[1], halves[0])):
-        mean, matrix = _whiten_states(states[fit_rows])
+        whiten = _state_whitener(states[fit_rows], clip)
         flat = targets.reshape(len(targets), horizons * d)
         weights = _ridge_by_action(
-            (states[fit_rows] - mean) @ matrix,
-            next_actions[fit_rows],
-            flat[fit_rows],
-            n_actions,
-            ridge,
+            whiten(states[fit_rows]), next_actions[fit_rows], flat[fit_rows], n_actions, ridge
         )
-        design = np.concatenate(
-            [np.ones((test_rows.size, 1)), (states[test_rows] - mean) @ matrix], axis=1
-        )
+        design = np.concatenate([np.ones((test_rows.size, 1)), whiten(states[test_rows])], axis=1)
         predicted = np.einsum("np,npq->nq", design, weights[next_actions[test_rows]])
         error = (flat[test_rows] - predicted).reshape(-1, horizons, d)
         spread = targets[test_rows] - targets[test_rows].mean(axis=0)
@@ -234,7 +254,7 @@ def score_states(
     next_actions = np.zeros(len(heldout), dtype=np.int64)
     next_actions[:-1] = heldout.actions[1:]
     return predictive_r2(
-        states, next_actions, targets, scored, heldout.n_actions, config.ridge
+        states, next_actions, targets, scored, heldout.n_actions, config.ridge, config.clip
     )
 
 

@@ -185,6 +185,16 @@ def tune(
     widths = median_widths(train, base, seed=seed)
     span = base.history_length + 1 + base.test_length
     episodes = len(train) // span
+    if max(base.ht_centers, base.obs_centers) > episodes // 2:
+        base = dataclasses.replace(
+            base,
+            ht_centers=min(base.ht_centers, episodes // 2),
+            obs_centers=min(base.obs_centers, episodes // 2),
+        )
+        say(
+            f"{episodes} training episodes: at most {episodes // 2} kernel centres "
+            f"(ht_centers {base.ht_centers}, obs_centers {base.obs_centers})"
+        )
     say(
         f"median widths: sigma_obs {widths['sigma_obs']:.3g}, sigma_ht {widths['sigma_ht']:.3g} "
         f"({len(train)} steps fitted, {len(heldout)} held out)"
@@ -197,8 +207,11 @@ def tune(
         return max(trials, key=lambda t: t.score.value)
 
     bar = tqdm(
-        total=_planned(widths, episodes), unit="fit", disable=None if progress else True, file=sys.stderr,
+        total=_planned(widths, episodes),
+        unit="fit",
         desc="tune",
+        disable=None if progress else True,  # None: only on a terminal
+        file=sys.stderr,
     )
     for stage, candidate in _candidates(base, widths, episodes, lambda: best().config):
         if candidate in seen:
