@@ -9,14 +9,16 @@ a tiny budget stops after the first candidate; bad config files are one-line err
 
 from __future__ import annotations
 
+import csv
 import dataclasses
+import json
 
 import numpy as np
 import pytest
 import yaml
 from learning_fixtures import POMDP, one_hot
 
-from learner.cli import entry
+from learner.cli import entry, main
 from learner.config_file import read_fit_config
 from learner.criterion import (
     CriterionConfig,
@@ -222,3 +224,20 @@ def test_bad_config_files_are_one_line_errors(bag, tmp_path, capsys, text, messa
 def test_missing_config_file_is_one_line(tmp_path):
     with pytest.raises(ConfigError, match="cannot read config file"):
         read_fit_config(tmp_path / "absent.yaml")
+
+
+def test_experiment_tunes_each_run_on_its_own_training_data(tmp_path):
+    out = tmp_path / "results"
+    grid = ["experiment", "--environment", "full", "--episodes", "300", "--repetitions", "1",
+            "--rl-steps", "2000", "--workers", "1", "--methods", "tpsr", "-o", str(out)]
+    with pytest.raises(ConfigError, match="--tune-budget needs --tune"):
+        main([*grid, "--tune-budget", "2"])
+    assert main([*grid, "--tune", "--tune-budget", "2"]) == 0
+    with (out / "experiment_full.csv").open() as handle:
+        (row,) = list(csv.DictReader(handle))
+    parameters = json.loads(row["parameters"])
+    assert parameters["tune"]["candidates"] >= 1 and parameters["tune"]["budget"] == 2
+    assert np.isfinite(parameters["tune"]["criterion"])
+    # 300 episodes, 75 % fitted: 225 episodes, so the tuner capped the centres at 112
+    assert parameters["tpsr"]["ht_centers"] == parameters["tpsr"]["obs_centers"] == 112
+    assert row["status"] == "ok"
