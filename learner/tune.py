@@ -311,6 +311,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--seed must be >= 0, not {args.seed}")
     if args.output.exists() and not args.force:
         raise ConfigError(f"output file {str(args.output)!r} already exists; use --force")
+    if not args.output.resolve().parent.is_dir():  # refused before the search, not after
+        raise ConfigError(f"output directory {str(args.output.resolve().parent)!r} does not exist")
     _say(f"reading {len(args.bags)} bag(s)")
     trajectory = read_trajectory(args.bags, topics=topics_from_args(args))
     if args.steps is not None:
