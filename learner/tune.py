@@ -3,9 +3,9 @@
 No reward, no ground truth, no RL: candidates are ranked by the held-out predictive
 criterion of :mod:`learner.criterion` (fit on the first 75 % of the steps, track the rest,
 held-out R^2 of predicting the next 1..10 observations' principal components from the
-whitened state). The search starts from data-driven kernel widths (the median pairwise
-distance of the whitened observations and histories, on a seeded sample), then the
-guide's defaults, and walks a coarse grid one parameter at a time around the best so far
+whitened state). The search tries the guide's defaults, then data-driven kernel widths
+(the median pairwise distance of the whitened observations and histories, on a seeded
+sample), then walks a coarse grid one parameter at a time around the best so far
 (widths, normalised features, rank, history/test length, P_TH window, centres, a finer
 width and rank), within ``--budget`` seconds: a candidate is started only if the longest
 one so far would still end within the budget. Every candidate and its criterion is
@@ -151,9 +151,14 @@ def _planned(widths: dict[str, float], episodes: int) -> int:
 def _candidates(
     base: TPSRConfig, widths: dict[str, float], episodes: int, best: Callable[[], TPSRConfig]
 ) -> Iterator[tuple[str, TPSRConfig]]:
-    """Median widths first, the guide's defaults second, then each stage around the best."""
-    yield "median widths", dataclasses.replace(base, **widths)
+    """The guide's defaults first, median widths second, then each stage around the best.
+
+    The defaults come first so that a budget that allows one candidate returns a model
+    no worse than an untuned fit: at the median observation width the filter of a
+    `full` bag explodes (docs/results.md, "Tuning").
+    """
     yield "guide defaults", base
+    yield "median widths", dataclasses.replace(base, **widths)
     for stage, propose in _stages(widths, episodes):
         for candidate in propose(best()):
             yield stage, candidate

@@ -153,8 +153,8 @@ def test_tune_then_fit_with_its_config(bag, tmp_path, capsys):
     assert code == 0, err
     content = yaml.safe_load(config.read_text())
     tried = content["tune"]["tried"]
-    assert tried[0]["stage"] == "median widths" and len(tried) >= 2
-    assert "[1] median widths" in err and "criterion" in out
+    assert [t["stage"] for t in tried[:2]] == ["guide defaults", "median widths"]
+    assert "[1] guide defaults" in err and "[2] median widths" in err and "criterion" in out
     best = max((t for t in tried if "criterion" in t), key=lambda t: t["criterion"])
     assert content["tune"]["criterion"] == best["criterion"]
     model_path = tmp_path / "m.npz"
@@ -177,7 +177,11 @@ def test_a_tiny_budget_stops_after_the_first_candidate(bag, tmp_path, capsys):
     code, _, err = run_entry(["tune", str(bag), "-o", str(config), "--budget", "0.01"], capsys)
     assert code == 0, err
     assert "budget of 0.01 s reached after 1 candidate(s)" in err
-    assert len(yaml.safe_load(config.read_text())["tune"]["tried"]) == 1
+    content = yaml.safe_load(config.read_text())
+    assert len(content["tune"]["tried"]) == 1
+    # one candidate: the guide's defaults, centres capped at half the 600 fitted episodes
+    capped = {"ht_centers": 300, "obs_centers": 300}
+    assert TPSRConfig(**content["tpsr"]) == TPSRConfig(**capped)
 
 
 def test_tune_function_reports_every_candidate():
