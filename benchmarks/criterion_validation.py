@@ -73,7 +73,11 @@ def summary(entries: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 "runs": len(mine),
                 "mean": float(scores.mean()),
                 "median": float(np.median(scores)),
-                "sem": float(scores.std(ddof=1) / np.sqrt(len(scores))),
+                "sem": (
+                    float(scores.std(ddof=1) / np.sqrt(len(scores)))
+                    if len(scores) > 1
+                    else float("nan")
+                ),
                 "r2": float(np.nanmean([e["r2"] for e in mine])),
                 # a failed fit is -inf: the median stays defined
                 "criterion": float(np.median([e["criterion"] for e in mine])),
