@@ -24,6 +24,7 @@ __all__ = ["PROG", "SUBCOMMAND_MODULES", "build_parser", "entry", "main"]
 PROG = "learner"
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "learner.fit",
+    "learner.tune",
     "learner.info",
     "learner.plots",
     "learner.planning",

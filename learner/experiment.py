@@ -43,7 +43,7 @@ from learner.plots import affine_r2
 from learner.representations import ModelTracker, Tracker, TruePositionTracker
 from learner.simulated import random_trajectory
 from sim_node import Environment
-from tpsr_ros.cli import positive_int
+from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError, DataError, TpsrError
 from tpsr_ros.core.fqi import FQIConfig, fit_q
@@ -89,9 +89,13 @@ class ExperimentConfig:
     tpsr: TPSRConfig = field(default_factory=TPSRConfig)
     pca: PCAConfig = field(default_factory=PCAConfig)
     fqi: FQIConfig = field(default_factory=FQIConfig)
+    tune_budget: float | None = None
+    """Seconds of ``learner tune`` on each run's own training data (None: no tuning)."""
 
     def __post_init__(self) -> None:
         Environment.parse(self.environment)
+        if self.tune_budget is not None and not self.tune_budget > 0:
+            raise ConfigError(f"the tuning budget must be positive, not {self.tune_budget!r}")
         if not self.episodes or min(self.episodes) < 1:
             raise ConfigError("data sizes (--episodes) must be positive")
         if self.repetitions < 1 or self.first_repetition < 0:
@@ -233,6 +237,23 @@ def _floor_row(config: ExperimentConfig, method: str, episodes: int, repetition:
     )
 
 
+def _tuned(config: ExperimentConfig, train: Trajectory) -> tuple[TPSRConfig, dict[str, Any]]:
+    """``config.tpsr``, or with ``tune_budget`` what ``learner tune`` picks from ``train``."""
+    if config.tune_budget is None:
+        return config.tpsr, {}
+    from learner.tune import tune
+
+    result = tune(train, budget=config.tune_budget, seed=config.tpsr.seed, base=config.tpsr)
+    return result.best.config, {
+        "tune": {
+            "criterion": round(result.best.score.value, 6),
+            "candidates": len(result.trials),
+            "seconds": round(result.seconds, 1),
+            "budget": config.tune_budget,
+        }
+    }
+
+
 def _learn_states(
     config: ExperimentConfig, method: str, train: Trajectory, rl: Trajectory
 ) -> tuple[Tracker, np.ndarray, int]:
@@ -260,8 +281,12 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
     train = random_trajectory(config.environment, config.steps_for(episodes), train_seed)
     for method in learned:
         start = time.perf_counter()
+        run_config, extra = config, {}
         try:
-            tracker, states, recoveries = _learn_states(config, method, train, rl)
+            if method == "tpsr":
+                tuned, extra = _tuned(config, train)
+                run_config = dataclasses.replace(config, tpsr=tuned)
+            tracker, states, recoveries = _learn_states(run_config, method, train, rl)
             fit_seconds = time.perf_counter() - start
             r2 = affine_r2(states, rl.positions)
             score, trials, ridge, status = _plan_and_score(config, tracker, rl, states)
@@ -270,11 +295,11 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             score, trials, ridge, status = float("nan"), "", config.fqi.ridge, f"error: {exc}"
         rows.append(
             _row(
-                config,
+                run_config,
                 method,
                 episodes,
                 repetition,
-                {},
+                extra,
                 score=score,
                 trial_rewards=trials,
                 fit_seconds=round(fit_seconds, 3),
@@ -475,6 +500,19 @@ def add_grid_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1)
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
     parser.add_argument(
+        "--tune",
+        action="store_true",
+        help="choose each run's TPSR parameters with learner tune on its own training data "
+        "(the --set values are the search's base)",
+    )
+    parser.add_argument(
+        "--tune-budget",
+        type=positive_float,
+        default=None,
+        metavar="SECONDS",
+        help="tuning time per run with --tune (default: learner tune's 300)",
+    )
+    parser.add_argument(
         "--p-th-tests",
         choices=("after-current", "from-current"),
         default="after-current",
@@ -531,6 +569,12 @@ def config_from_args(
         overrides["episodes"] = tuple(args.episodes)
     if args.rl_steps:
         overrides["rl_steps"] = args.rl_steps
+    if args.tune_budget is not None and not args.tune:
+        raise ConfigError("--tune-budget needs --tune")
+    if args.tune:
+        from learner.tune import DEFAULT_BUDGET
+
+        overrides["tune_budget"] = args.tune_budget or DEFAULT_BUDGET
     return default_config(args.environment, **overrides)
 
 

@@ -24,6 +24,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from learner.config_file import describe, read_fit_config
 from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible, dask_client
 from learner.streams import add_stream_options, fit_options_from_args, topics_from_args
 from tpsr_ros.cli import positive_float, positive_int
@@ -76,11 +77,15 @@ def add_config_options(
     parser: argparse.ArgumentParser | argparse._ArgumentGroup,
     cls: type[Any],
     robot_defaults: Mapping[str, Any] | None = None,
+    *,
+    file_defaults: bool = False,
 ) -> None:
     """One option per field of the frozen config dataclass ``cls`` (dest = field name).
 
     Fields in ``robot_defaults`` default to None, resolved by :func:`config_from_args`:
-    the value given there for robot bags, the dataclass default otherwise.
+    the value given there for robot bags, the dataclass default otherwise. With
+    ``file_defaults`` every field defaults to None, so that :func:`config_from_args` can
+    tell an option given on the command line (it wins) from one a config file may set.
     """
     robot_defaults = robot_defaults or {}
     for f in dataclasses.fields(cls):
@@ -95,6 +100,11 @@ def add_config_options(
                 f"{f.metadata.get('help', '')} (default: {robot_defaults[f.name]} for robot "
                 f"bags (--step-period), {f.default} for simulator bags)"
             )
+        elif file_defaults:
+            kwargs["default"] = None
+            kwargs["help"] = f"{f.metadata.get('help', '')} (default: {f.default})"
+        if file_defaults:
+            kwargs["help"] = kwargs["help"][:-1] + ", or the --config file's)"
         if isinstance(f.default, bool):
             kwargs["action"] = argparse.BooleanOptionalAction
         else:
@@ -107,18 +117,25 @@ def add_config_options(
 
 
 def config_from_args(
-    cls: type[C], args: argparse.Namespace, robot_defaults: Mapping[str, Any] | None = None
+    cls: type[C],
+    args: argparse.Namespace,
+    robot_defaults: Mapping[str, Any] | None = None,
+    file_values: Mapping[str, Any] | None = None,
 ) -> C:
     """Build ``cls`` from the options :func:`add_config_options` added (validated there).
 
-    An option left at None takes its value from ``robot_defaults`` when given (robot bags),
-    else the dataclass default.
+    An option left at None takes its value from ``file_values`` (a ``--config`` file)
+    when it sets it, else from ``robot_defaults`` when given (robot bags), else the
+    dataclass default. Options given on the command line always win.
     """
     values = {}
     for f in dataclasses.fields(cls):  # type: ignore[arg-type]
         value = getattr(args, f.name)
         if value is None and f.default is not None:
-            value = (robot_defaults or {}).get(f.name, f.default)
+            if file_values is not None and f.name in file_values:
+                value = file_values[f.name]
+            else:
+                value = (robot_defaults or {}).get(f.name, f.default)
         values[f.name] = value
     return cls(**values)
 
@@ -171,10 +188,19 @@ def register(subparsers: Any) -> None:
         help="use only the first N episodes (guide |E|; default: all)",
     )
     parser.add_argument("--force", action="store_true", help="overwrite an existing MODEL")
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        metavar="CONFIG",
+        help="TPSR parameters from a YAML file written by learner tune (options given "
+        "here win over the file's)",
+    )
     add_config_options(
         parser.add_argument_group("TPSR parameters (guide table 3.5)"),
         TPSRConfig,
         robot_defaults=ROBOT_BAG_TPSR_DEFAULTS,
+        file_defaults=True,
     )
     add_config_options(parser.add_argument_group("PCA baseline"), PCAConfig)
     add_topic_options(parser.add_argument_group("topics"))
@@ -247,9 +273,12 @@ def run(args: argparse.Namespace) -> int:
     output = check_output_path(args.output, force=args.force)
     stream_options = fit_options_from_args(args)
     robot_bags = stream_options is not None
+    file_values = None if args.config is None else read_fit_config(args.config)
     tpsr_config = config_from_args(
-        TPSRConfig, args, ROBOT_BAG_TPSR_DEFAULTS if robot_bags else None
+        TPSRConfig, args, ROBOT_BAG_TPSR_DEFAULTS if robot_bags else None, file_values
     )
+    if file_values is not None:
+        _say(f"TPSR parameters from {args.config}: {describe(tpsr_config)}")
     pca_config = config_from_args(PCAConfig, args)
     topics = topics_from_args(args)
     if args.stream or args.workers is not None or args.scheduler is not None:
@@ -420,7 +449,7 @@ def _run_streamed(
 
 def _say_robot_defaults(args: argparse.Namespace) -> None:
     """Say which robot-bag defaults (``ROBOT_BAG_TPSR_DEFAULTS``) the fit took."""
-    if args.method == "tpsr" and args.normalize_ht_features is None:
+    if args.method == "tpsr" and args.normalize_ht_features is None and args.config is None:
         _say(
             "history/test features normalised to sum 1 (the robot-bag default; "
             "--no-normalize-ht-features for the guide's unnormalised ones)"

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from learner.cli import build_parser, entry, main
-from learner.fit import ROBOT_BAG_TPSR_DEFAULTS
+from learner.fit import ROBOT_BAG_TPSR_DEFAULTS, config_from_args
 from learner.plots import affine_r2
 from sim_node import SimConfig
 from sim_node.generate import generate_bag
@@ -61,11 +61,18 @@ def test_every_table_3_5_parameter_is_an_option():
         "-o",
     ):
         assert name in options, name
-    dests = {a.dest: a.default for a in fit._actions}
+    actions = {a.dest: a for a in fit._actions}
     for f in dataclasses.fields(TPSRConfig):
-        # a robot-bag default is resolved at run time (None here), the others are the config's
-        expected = None if f.name in ROBOT_BAG_TPSR_DEFAULTS else f.default
-        assert dests[f.name] == expected, f.name
+        # resolved at run time (None here): an option given wins over a --config file's
+        # value, which wins over the robot-bag default, which wins over the config's
+        assert actions[f.name].default is None, f.name
+        assert str(f.default) in actions[f.name].help and "--config" in actions[f.name].help
+    args = fit.parse_args(["bag", "-o", "model.npz"])
+    assert config_from_args(TPSRConfig, args) == TPSRConfig()
+    robot = config_from_args(TPSRConfig, args, ROBOT_BAG_TPSR_DEFAULTS)
+    assert robot == TPSRConfig(**ROBOT_BAG_TPSR_DEFAULTS)
+    from_file = config_from_args(TPSRConfig, args, ROBOT_BAG_TPSR_DEFAULTS, {"rank": 3})
+    assert from_file == TPSRConfig(rank=3, **ROBOT_BAG_TPSR_DEFAULTS)
 
 
 def test_fit_info_plot(small_bag, tmp_path, capsys):

@@ -27,6 +27,7 @@ from typing import Literal
 
 import numpy as np
 from scipy.cluster.vq import kmeans2
+from scipy.spatial.distance import pdist
 
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.whitening import check_finite_matrix
@@ -37,6 +38,7 @@ __all__ = [
     "KMEANS_MAX_BYTES",
     "RBFFeatures",
     "constant_vector",
+    "median_distance",
     "rbf_features",
     "select_centers",
     "squared_distances",
@@ -111,6 +113,25 @@ def constant_vector(n_features: int) -> np.ndarray:
     e = np.zeros(n_features)
     e[-1] = CONSTANT_SCALE
     return e
+
+
+def median_distance(x: np.ndarray, *, max_points: int = 1000, seed: int = 0) -> float:
+    """Median pairwise Euclidean distance of the rows of ``x`` (``(t, d)``): the usual
+    data-driven RBF width (the "median heuristic").
+
+    At most ``max_points`` rows, drawn without replacement by a generator seeded with
+    ``seed``, enter the ``O(max_points^2)`` distances, so the cost is bounded on any data.
+    """
+    x = check_finite_matrix(x, "data for the median distance")
+    if x.shape[0] < 2:
+        raise DataError(f"the median distance needs at least 2 rows, got {x.shape[0]}")
+    if x.shape[0] > max_points:
+        rows = np.random.default_rng(seed).choice(x.shape[0], size=max_points, replace=False)
+        x = x[np.sort(rows)]
+    median = float(np.median(pdist(x)))
+    if not median > 0:
+        raise DataError("the median distance is 0: more than half of the rows are identical")
+    return median
 
 
 KMEANS_MAX_BYTES = 8 * 2**30

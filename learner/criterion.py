@@ -1,0 +1,282 @@
+"""A held-out predictive criterion for TPSR fit parameters, from training data alone.
+
+``learner tune`` must rank fit parameters without reward, ground truth or RL. A state is
+good when it predicts the future: a predictive state *is* the expected future given the
+past (guide 2.2), and for the planner it matters only up to an invertible linear map
+(fitted Q with ``fqi.state_scaling=whiten`` is blind to such maps). So:
+
+1. **Split** the trajectory by time: the candidate is fitted on the first
+   ``1 - holdout`` of the steps; the rest is held out, never seen by the fit.
+2. **Fixed targets**: the top ``feature_dim`` principal components of the raw
+   observations of the training part (one PCA, independent of the candidate, so every
+   candidate predicts the same numbers). The target of step ``s`` at horizon ``j`` is the
+   components of ``o_{s+j}``, for ``j = 1..horizons``.
+3. **States**: the candidate's filter tracks the held-out steps (from its start state at
+   each segment; the first ``burn_in`` steps of a segment are not scored).
+4. **Regression**: per first future action ``a_{s+1}``, an affine ridge regression from the
+   *whitened* state to all targets, fitted on one half of the held-out steps and scored
+   on the other (and swapped). Under exploration whose actions do not depend on the state
+   (the random training policy), ``E[f(o_{s+j}) | b_s, a_{s+1}]`` is exactly linear in a
+   predictive state for every feature ``f`` and horizon ``j`` (later actions are averaged
+   over), so the regression is the right model class rather than a guess.
+5. **Score**: held-out R^2 (``1 - SSE / SST`` pooled over components, so weighted by
+   their variance), averaged over horizons. Higher is better; at most 1.
+
+Whitening the state with its own covariance (fitted on the regression's training half)
+makes the score invariant to any invertible linear map of the states, so candidates whose
+states differ in scale by orders of magnitude compete on what they predict, not on scale;
+directions with variance below ``1e-10`` of the largest are dropped as numerically absent.
+Whitened states farther than ``clip * sqrt(r)`` from the mean are pulled onto that sphere
+(a rotation-invariant bound), so a filter that explodes on a few held-out steps is
+penalised for those steps without its linear extrapolation swamping every other step.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tpsr_ros.core.episodes import Trajectory, make_episodes, track_trajectory
+from tpsr_ros.core.errors import ConfigError, DataError, TpsrError
+from tpsr_ros.core.fields import option
+from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
+from tpsr_ros.core.whitening import Whitening
+
+__all__ = [
+    "CriterionConfig",
+    "ObservationFeatures",
+    "Score",
+    "future_targets",
+    "predictive_r2",
+    "score_states",
+    "score_tpsr",
+    "split_trajectory",
+]
+
+RELATIVE_EIGENVALUE_FLOOR = 1e-10
+"""State directions with less variance than this fraction of the largest are dropped."""
+
+
+@dataclass(frozen=True)
+class CriterionConfig:
+    """How the held-out predictive criterion splits, predicts and scores."""
+
+    holdout: float = option(0.25, "fraction of the steps (the last ones) held out of the fit")
+    horizons: int = option(
+        10, "k: score predictions of the next 1..k observations (the planner's 1 / (1 - 0.9))"
+    )
+    feature_dim: int = option(10, "principal components of the observations to predict")
+    burn_in: int = option(20, "steps at the start of each held-out segment left unscored")
+    ridge: float = option(1e-3, "ridge of the state-to-future regression (whitened units)")
+    clip: float = option(
+        3.0, "whitened states farther than clip * sqrt(dimensions) from the mean are pulled in"
+    )
+
+    def __post_init__(self) -> None:
+        if not 0.05 <= self.holdout <= 0.5:
+            raise ConfigError(f"holdout must lie in [0.05, 0.5], not {self.holdout!r}")
+        for name in ("horizons", "feature_dim"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"{name} must be a positive integer, not {value!r}")
+        if isinstance(self.burn_in, bool) or not isinstance(self.burn_in, int) or self.burn_in < 0:
+            raise ConfigError(f"burn_in must be a non-negative integer, not {self.burn_in!r}")
+        if not (np.isfinite(self.ridge) and self.ridge >= 0):
+            raise ConfigError(f"ridge must be a non-negative number, not {self.ridge!r}")
+        if not (np.isfinite(self.clip) and self.clip > 0):
+            raise ConfigError(f"clip must be a positive number, not {self.clip!r}")
+
+
+@dataclass(frozen=True)
+class Score:
+    """A candidate's criterion: ``value`` (mean held-out R^2, -inf when the fit failed)."""
+
+    value: float
+    per_horizon: tuple[float, ...] = ()
+    seconds: float = 0.0
+    error: str = ""
+    details: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        """True when the candidate was fitted and scored."""
+        return not self.error
+
+
+def split_trajectory(trajectory: Trajectory, holdout: float) -> tuple[Trajectory, Trajectory]:
+    """``(training part, held-out part)``: the first ``1 - holdout`` of the steps, the rest."""
+    cut = round(len(trajectory) * (1.0 - holdout))
+    if cut < 2 or len(trajectory) - cut < 2:
+        raise DataError(
+            f"{len(trajectory)} steps are too few to hold out {holdout:.0%} of them for tuning"
+        )
+    return trajectory.rows(0, cut), trajectory.rows(cut, len(trajectory))
+
+
+@dataclass(frozen=True, eq=False)
+class ObservationFeatures:
+    """The fixed targets: top principal components of the training part's raw observations."""
+
+    pca: Whitening
+
+    @classmethod
+    def fit(cls, observations: np.ndarray, dim: int) -> ObservationFeatures:
+        """PCA of ``observations (T, k)`` keeping ``dim`` components."""
+        return cls(Whitening.fit(observations, dim, what="observations for tuning targets"))
+
+    def transform(self, observations: np.ndarray) -> np.ndarray:
+        """Component scores ``(T, dim)`` (not whitened: each component keeps its variance)."""
+        scores: np.ndarray = (observations - self.pca.mean_) @ self.pca.components_
+        return scores
+
+
+def future_targets(
+    features: np.ndarray, segments: np.ndarray, horizons: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Targets ``(T, horizons, d)``: row ``s`` holds the features of steps ``s+1..s+k``.
+
+    Returns the targets and a ``(T,)`` mask of rows whose ``k`` future steps all lie in
+    the same segment (the rest hold zeros).
+    """
+    n, d = features.shape
+    targets = np.zeros((n, horizons, d))
+    valid = np.zeros(n, dtype=bool)
+    if n > horizons:
+        valid[: n - horizons] = segments[horizons:] == segments[: n - horizons]
+        for j in range(1, horizons + 1):
+            targets[: n - j, j - 1] = features[j:]
+    return targets, valid
+
+
+def _state_whitener(fit_states: np.ndarray, clip: float) -> Callable[[np.ndarray], np.ndarray]:
+    """Whiten states with the mean and covariance of ``fit_states`` and pull outliers in.
+
+    Rows farther than ``clip * sqrt(r')`` from the mean (in whitened units) are scaled back
+    onto that sphere: a norm, so orthogonal maps (and thus any invertible linear map of
+    the raw states) leave the result unchanged. Like the planner's RBF features, which
+    fade to zero far from every centre, a rare exploded state then costs a bounded error
+    instead of dominating the score through unbounded linear extrapolation.
+    """
+    mean = fit_states.mean(axis=0)
+    cov = np.cov(fit_states - mean, rowvar=False).reshape(fit_states.shape[1], -1)
+    values, vectors = np.linalg.eigh(cov)
+    largest = float(values[-1]) if values.size else 0.0
+    if not largest > 0:
+        raise DataError("the tracked states do not vary")
+    keep = values > RELATIVE_EIGENVALUE_FLOOR * largest
+    matrix = vectors[:, keep] / np.sqrt(values[keep])
+    radius = clip * np.sqrt(matrix.shape[1])
+
+    def whiten(states: np.ndarray) -> np.ndarray:
+        white: np.ndarray = (states - mean) @ matrix
+        norms = np.linalg.norm(white, axis=1, keepdims=True)
+        white *= np.minimum(1.0, radius / np.maximum(norms, 1e-300))
+        return white
+
+    return whiten
+
+
+def _ridge_by_action(
+    inputs: np.ndarray, actions: np.ndarray, targets: np.ndarray, n_actions: int, ridge: float
+) -> np.ndarray:
+    """Per-action affine ridge weights ``(n_actions, 1 + p, q)``; the intercept is free."""
+    n, p = inputs.shape
+    design = np.concatenate([np.ones((n, 1)), inputs], axis=1)
+    grams = np.zeros((n_actions, p + 1, p + 1))
+    np.add.at(grams, actions, design[:, :, None] * design[:, None, :])
+    moments = np.zeros((n_actions, p + 1, targets.shape[1]))
+    np.add.at(moments, actions, design[:, :, None] * targets[:, None, :])
+    counts = np.bincount(actions, minlength=n_actions).astype(float)
+    penalty = np.eye(p + 1)
+    penalty[0, 0] = 0.0
+    grams += (ridge * np.maximum(counts, 1.0) + 1e-12)[:, None, None] * penalty
+    grams[counts == 0, 0, 0] = 1.0  # unseen action: predicts 0 (scored against the mean)
+    weights: np.ndarray = np.linalg.solve(grams, moments)
+    return weights
+
+
+def predictive_r2(
+    states: np.ndarray,
+    next_actions: np.ndarray,
+    targets: np.ndarray,
+    scored: np.ndarray,
+    n_actions: int,
+    ridge: float,
+    clip: float = 3.0,
+) -> np.ndarray:
+    """Two-fold held-out R^2 per horizon of predicting ``targets (T, k, d)`` from ``states``.
+
+    Rows with ``scored`` False are neither fitted nor scored; the scored rows are split
+    into their first and second halves in time, each fitted on one and scored on the other.
+    """
+    rows = np.flatnonzero(scored)
+    if rows.size < 4:
+        raise DataError(f"only {rows.size} held-out steps can be scored; hold out more steps")
+    horizons, d = targets.shape[1], targets.shape[2]
+    halves = np.array_split(rows, 2)
+    sse = np.zeros(horizons)
+    sst = np.zeros(horizons)
+    for fit_rows, test_rows in ((halves[0], halves[1]), (halves[1], halves[0])):
+        whiten = _state_whitener(states[fit_rows], clip)
+        flat = targets.reshape(len(targets), horizons * d)
+        weights = _ridge_by_action(
+            whiten(states[fit_rows]), next_actions[fit_rows], flat[fit_rows], n_actions, ridge
+        )
+        design = np.concatenate([np.ones((test_rows.size, 1)), whiten(states[test_rows])], axis=1)
+        predicted = np.einsum("np,npq->nq", design, weights[next_actions[test_rows]])
+        error = (flat[test_rows] - predicted).reshape(-1, horizons, d)
+        spread = targets[test_rows] - targets[test_rows].mean(axis=0)
+        sse += np.einsum("nkd,nkd->k", error, error)
+        sst += np.einsum("nkd,nkd->k", spread, spread)
+    r2: np.ndarray = 1.0 - sse / sst
+    return r2
+
+
+def score_states(
+    states: np.ndarray,
+    heldout: Trajectory,
+    features: ObservationFeatures,
+    config: CriterionConfig,
+) -> np.ndarray:
+    """Held-out R^2 per horizon of states ``(T, r)`` tracked over ``heldout``."""
+    if not np.isfinite(states).all():
+        raise DataError("the tracked states hold non-finite values")
+    targets, valid = future_targets(
+        features.transform(heldout.observations), heldout.segments, config.horizons
+    )
+    since_start = np.arange(len(heldout)) - np.searchsorted(
+        heldout.segments, heldout.segments, side="left"
+    )
+    scored = valid & (since_start >= config.burn_in)
+    next_actions = np.zeros(len(heldout), dtype=np.int64)
+    next_actions[:-1] = heldout.actions[1:]
+    return predictive_r2(
+        states, next_actions, targets, scored, heldout.n_actions, config.ridge, config.clip
+    )
+
+
+def score_tpsr(
+    tpsr: TPSRConfig,
+    train: Trajectory,
+    heldout: Trajectory,
+    features: ObservationFeatures,
+    config: CriterionConfig,
+) -> tuple[Score, TPSRModel | None]:
+    """Fit ``tpsr`` on ``train``, track ``heldout``, score; a failed fit scores -inf."""
+    start = time.perf_counter()
+    try:
+        episodes = make_episodes(train, tpsr.history_length, tpsr.test_length)
+        model = fit_tpsr_episodes(episodes, config=tpsr)
+        states = track_trajectory(model, heldout).states
+        r2 = score_states(states, heldout, features, config)
+    except TpsrError as exc:
+        message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        return Score(-np.inf, seconds=time.perf_counter() - start, error=message), None
+    per_horizon = tuple(float(v) for v in r2)
+    score = Score(
+        float(np.mean(r2)), per_horizon=per_horizon, seconds=time.perf_counter() - start
+    )
+    return score, model

@@ -1,0 +1,247 @@
+"""``learner tune`` and its criterion: known answers, invariance, budget, config round trip.
+
+The criterion must prefer the right model of a POMDP with known linear dimension 3 over a
+too-small rank and absurd kernel widths; it must not change when the states are mapped by
+an invertible linear map; the median heuristic must recover a known scale; ``tune`` writes
+a config that ``learner fit --config`` reproduces exactly, with explicit options winning;
+a tiny budget stops after the first candidate; bad config files are one-line errors.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import yaml
+from learning_fixtures import POMDP, one_hot
+
+from learner.cli import entry, main
+from learner.config_file import read_fit_config
+from learner.criterion import (
+    CriterionConfig,
+    ObservationFeatures,
+    future_targets,
+    score_states,
+    score_tpsr,
+    split_trajectory,
+)
+from learner.tune import tune
+from sim_node import SimConfig
+from sim_node.generate import generate_bag
+from tpsr_ros.core.episodes import Trajectory
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.features import median_distance
+from tpsr_ros.core.tpsr import TPSRConfig
+from tpsr_ros.io.model_io import load_model
+
+CRITERION = CriterionConfig(horizons=2, feature_dim=3)
+RIGHT = TPSRConfig(
+    obs_dim=3, ht_dim=3, obs_centers=40, ht_centers=40, sigma_obs=0.05, sigma_ht=0.05, rank=3
+)
+
+
+def sticky_pomdp() -> POMDP:
+    """3 hidden states, 2 actions (stay / rotate, 90 %), 4 symbols; linear dimension 3."""
+    stay = np.full((3, 3), 0.05) + np.eye(3) * 0.85
+    rotate = np.roll(stay, 1, axis=0)
+    observe = np.array([[0.8, 0.1, 0.05], [0.1, 0.8, 0.05], [0.05, 0.05, 0.45], [0.05, 0.05, 0.45]])
+    return POMDP(T=np.stack([stay, rotate]), O=observe)
+
+
+@pytest.fixture(scope="module")
+def pomdp_split():
+    pomdp = sticky_pomdp()
+    obs, actions = pomdp.sample(30_000, seed=1)
+    trajectory = Trajectory.from_arrays(actions, one_hot(obs, pomdp.n_obs), n_actions=2)
+    train, heldout = split_trajectory(trajectory, CRITERION.holdout)
+    features = ObservationFeatures.fit(train.observations, CRITERION.feature_dim)
+    return pomdp, obs, actions, train, heldout, features
+
+
+def _score(config: TPSRConfig, split) -> float:
+    *_, train, heldout, features = split
+    score, _ = score_tpsr(config, train, heldout, features, CRITERION)
+    return score.value
+
+
+def test_criterion_prefers_the_right_model(pomdp_split):
+    right = _score(RIGHT, pomdp_split)
+    assert right > 0.03  # the exact Bayes belief reaches about 0.2 at horizon 1
+    for wrong in (
+        dataclasses.replace(RIGHT, rank=1),
+        dataclasses.replace(RIGHT, rank=2),
+        dataclasses.replace(RIGHT, sigma_obs=50.0, sigma_ht=50.0),
+    ):
+        assert _score(wrong, pomdp_split) < right - 0.02, wrong
+
+
+def test_true_belief_beats_every_learned_model(pomdp_split):
+    pomdp, obs, actions, train, heldout, features = pomdp_split
+    belief, beliefs = pomdp.stationary(), []
+    for o, a in zip(obs[len(train) :], actions[len(train) :], strict=True):
+        belief = pomdp.condition(belief, a, o)
+        beliefs.append(belief)
+    best = score_states(np.array(beliefs), heldout, features, CRITERION).mean()
+    assert best > _score(RIGHT, pomdp_split)
+
+
+def test_a_failed_fit_scores_minus_infinity(pomdp_split):
+    *_, train, heldout, features = pomdp_split
+    score, model = score_tpsr(
+        dataclasses.replace(RIGHT, rank=20), train, heldout, features, CRITERION
+    )
+    assert model is None and score.value == -np.inf and "rank 20" in score.error
+
+
+def test_criterion_is_invariant_to_invertible_linear_maps():
+    rng = np.random.default_rng(0)
+    steps = 4000
+    noise = rng.normal(size=(steps, 2))
+    position = np.zeros((steps, 2))
+    for t in range(1, steps):  # a slow stationary AR(1) "position"
+        position[t] = 0.97 * position[t - 1] + 0.3 * noise[t]
+    observations = np.tanh(position @ rng.normal(size=(2, 12)) + 0.1 * rng.normal(size=(steps, 12)))
+    actions = rng.integers(3, size=steps)
+    trajectory = Trajectory.from_arrays(actions, observations, n_actions=3)
+    states = np.column_stack([position, rng.normal(size=steps)])
+    mixing = np.array([[1e4, 2.0, 0.0], [0.5, 1e-3, 3.0], [0.0, 1.0, 1.0]])
+    features = ObservationFeatures.fit(observations, 4)
+    plain = score_states(states, trajectory, features, CRITERION)
+    mapped = score_states(states @ mixing + 7.0, trajectory, features, CRITERION)
+    np.testing.assert_allclose(mapped, plain, rtol=1e-6, atol=1e-9)
+    assert plain.min() > 0.5  # the position predicts the observations
+
+
+def test_future_targets_stay_inside_segments():
+    features = np.arange(10.0)[:, None]
+    segments = np.array([0, 0, 0, 0, 1, 1, 1, 1, 1, 1])
+    targets, valid = future_targets(features, segments, 2)
+    assert valid.tolist() == [1, 1, 0, 0, 1, 1, 1, 1, 0, 0]
+    assert targets[4, :, 0].tolist() == [5.0, 6.0]
+
+
+def test_median_distance_recovers_a_known_scale():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(5000, 50))
+    # distances between standard normal points in 50-d: sqrt(2 * chi^2_50), median ~ 9.97
+    base = median_distance(x, seed=1)
+    assert base == pytest.approx(np.sqrt(2 * 49.33), rel=0.02)
+    assert median_distance(3.0 * x, seed=1) == pytest.approx(3.0 * base, rel=1e-12)
+    assert median_distance(x, seed=1) == base  # seeded sample: reproducible
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory):
+    path = tmp_path_factory.mktemp("tune") / "bag"
+    generate_bag(path, SimConfig(environment="full"), 2400, seed=4)
+    return path
+
+
+def run_entry(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        entry(argv)
+    out, err = capsys.readouterr()
+    return exc.value.code, out, err
+
+
+def test_tune_then_fit_with_its_config(bag, tmp_path, capsys):
+    config = tmp_path / "tuned.yaml"
+    code, out, err = run_entry(["tune", str(bag), "-o", str(config), "--budget", "5"], capsys)
+    assert code == 0, err
+    content = yaml.safe_load(config.read_text())
+    tried = content["tune"]["tried"]
+    assert [t["stage"] for t in tried[:2]] == ["guide defaults", "median widths"]
+    assert "[1] guide defaults" in err and "[2] median widths" in err and "criterion" in out
+    best = max((t for t in tried if "criterion" in t), key=lambda t: t["criterion"])
+    assert content["tune"]["criterion"] == best["criterion"]
+    model_path = tmp_path / "m.npz"
+    code, _, err = run_entry(
+        ["fit", str(bag), "--config", str(config), "-o", str(model_path)], capsys
+    )
+    assert code == 0, err
+    assert load_model(model_path).config == TPSRConfig(**content["tpsr"])
+    code, _, err = run_entry(
+        ["fit", str(bag), "--config", str(config), "--rank", "2", "-o", str(tmp_path / "r2.npz")],
+        capsys,
+    )
+    assert code == 0, err
+    explicit = load_model(tmp_path / "r2.npz").config
+    assert explicit == TPSRConfig(**{**content["tpsr"], "rank": 2})
+
+
+def test_a_tiny_budget_stops_after_the_first_candidate(bag, tmp_path, capsys):
+    config = tmp_path / "tiny.yaml"
+    code, _, err = run_entry(["tune", str(bag), "-o", str(config), "--budget", "0.01"], capsys)
+    assert code == 0, err
+    assert "budget of 0.01 s reached after 1 candidate(s)" in err
+    content = yaml.safe_load(config.read_text())
+    assert len(content["tune"]["tried"]) == 1
+    # one candidate: the guide's defaults, centres capped at half the 600 fitted episodes
+    capped = {"ht_centers": 300, "obs_centers": 300}
+    assert TPSRConfig(**content["tpsr"]) == TPSRConfig(**capped)
+
+
+def test_tune_function_reports_every_candidate():
+    rng = np.random.default_rng(2)
+    pomdp = sticky_pomdp()
+    obs, actions = pomdp.sample(6000, seed=2)
+    observations = one_hot(obs, 4) + 0.01 * rng.normal(size=(6000, 4))
+    trajectory = Trajectory.from_arrays(actions, observations, n_actions=2)
+    lines: list[str] = []
+    base = TPSRConfig(obs_dim=3, ht_dim=3, obs_centers=40, ht_centers=40, rank=3)
+    result = tune(trajectory, budget=4.0, base=base, criterion=CRITERION, report=lines.append)
+    assert len([line for line in lines if line.startswith("[")]) == len(result.trials)
+    assert result.best.score.value == max(t.score.value for t in result.trials)
+    assert result.best.config.obs_dim == 3  # the base's dimensions are kept
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("tpsr: {rank: 3, colour: red}\n", "unknown TPSR parameter(s) ['colour']"),
+        ("tpsr: {rank: -1}\n", "rank must be a positive integer"),
+        ("tpsr: {rank: 2.5}\n", "rank must be a positive integer"),
+        ("tpsr: {sigma_ht: .nan}\n", "sigma_ht must be a positive finite number"),
+        ("tpsr: {center_selection: best}\n", "center_selection must be one of"),
+        ("tpsr: {rank: 3}\nextra: 1\n", "unknown section(s) ['extra']"),
+        ("- 1\n- 2\n", "expected a mapping"),
+        ("tpsr: [1, 2]\n", "'tpsr' must be a mapping"),
+        ("tpsr: {rank: 3\n", "config file"),
+        ("a: &x [1]\nb: *x\n", "config file"),
+    ],
+)
+def test_bad_config_files_are_one_line_errors(bag, tmp_path, capsys, text, message):
+    config = tmp_path / "bad.yaml"
+    config.write_text(text)
+    with pytest.raises(ConfigError, match=None) as exc:
+        read_fit_config(config)
+    assert message in str(exc.value) and "\n" not in str(exc.value)
+    model = tmp_path / "m.npz"
+    code, _, err = run_entry(["fit", str(bag), "--config", str(config), "-o", str(model)], capsys)
+    assert code == 1 and err.count("\n") == 1 and "learner: error:" in err
+    assert not model.exists()
+
+
+def test_missing_config_file_is_one_line(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read config file"):
+        read_fit_config(tmp_path / "absent.yaml")
+
+
+def test_experiment_tunes_each_run_on_its_own_training_data(tmp_path):
+    out = tmp_path / "results"
+    grid = ["experiment", "--environment", "full", "--episodes", "300", "--repetitions", "1",
+            "--rl-steps", "2000", "--workers", "1", "--methods", "tpsr", "-o", str(out)]
+    with pytest.raises(ConfigError, match="--tune-budget needs --tune"):
+        main([*grid, "--tune-budget", "2"])
+    assert main([*grid, "--tune", "--tune-budget", "2"]) == 0
+    with (out / "experiment_full.csv").open() as handle:
+        (row,) = list(csv.DictReader(handle))
+    parameters = json.loads(row["parameters"])
+    assert parameters["tune"]["candidates"] >= 1 and parameters["tune"]["budget"] == 2
+    assert np.isfinite(parameters["tune"]["criterion"])
+    # 300 episodes, 75 % fitted: 225 episodes, so the tuner capped the centres at 112
+    assert parameters["tpsr"]["ht_centers"] == parameters["tpsr"]["obs_centers"] == 112
+    assert row["status"] == "ok"
