@@ -11,8 +11,6 @@ line naming the file. Writing goes to a temporary file and an atomic rename.
 from __future__ import annotations
 
 import dataclasses
-import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -21,6 +19,7 @@ import yaml
 
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.tpsr import TPSRConfig
+from tpsr_ros.io.atomic import atomic_file
 from tpsr_ros.io.safe_yaml import YamlInputError, load_yaml
 
 __all__ = ["SECTIONS", "changed_parameters", "describe", "read_fit_config", "write_fit_config"]
@@ -103,13 +102,5 @@ def write_fit_config(
     directory = path.resolve().parent
     if not directory.is_dir():
         raise ConfigError(f"output directory {str(directory)!r} does not exist")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(comments + body)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
+    with atomic_file(path, "w") as handle:
+        handle.write(comments + body)

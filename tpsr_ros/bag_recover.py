@@ -51,6 +51,7 @@ from mcap.writer import Writer
 
 from tpsr_ros.cli import ArgumentParser, run_cli
 from tpsr_ros.core.errors import BagError, one_line
+from tpsr_ros.io.atomic import atomic_file
 from tpsr_ros.io.bag import BagFile, rosbag2_metadata
 from tpsr_ros.io.mcap_layout import MAGIC, MAX_CHUNK_BYTES, RECORD_HEADER
 
@@ -460,9 +461,8 @@ def recover_bag(bag: Path | str, *, keep_original: bool = False) -> RecoveryRepo
         text = rosbag2_metadata(
             bag_files, _merged_topics(written_all), {"tpsr_ros.recovered": "true"}
         )
-        temporary = bag / "metadata.yaml.tmp"
-        temporary.write_text(text)
-        temporary.replace(bag / "metadata.yaml")
+        with atomic_file(bag / "metadata.yaml", "w") as handle:
+            handle.write(text)
     return RecoveryReport(bag, tuple(files))
 
 

@@ -33,6 +33,7 @@ from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.rosbag2.metadata import dump_qos_v9
 
 from tpsr_ros.core.errors import BagError, one_line
+from tpsr_ros.io.atomic import atomic_file
 from tpsr_ros.io.mcap_layout import check_mcap_layout
 from tpsr_ros.io.messages import deserialize, jazzy_typestore, serialize
 from tpsr_ros.io.safe_yaml import YamlInputError, load_yaml
@@ -300,9 +301,8 @@ class BagWriter:
         times = self._times if self.message_count else (0, 0)
         file = BagFile(self._file.name, times[0], times[1], self.message_count)
         text = rosbag2_metadata([file], topics, self._custom_data)
-        temporary = self.path / "metadata.yaml.tmp"
-        temporary.write_text(text)
-        temporary.replace(self.path / "metadata.yaml")
+        with atomic_file(self.path / "metadata.yaml", "w", sync=False) as handle:
+            handle.write(text)
 
     def abort(self) -> None:
         """Discard the bag: close files and remove the directory this writer created."""

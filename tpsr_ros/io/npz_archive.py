@@ -22,10 +22,8 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import stat
 import struct
-import tempfile
 import zipfile
 import zlib
 from collections.abc import Callable, Mapping
@@ -36,6 +34,7 @@ from typing import Any, BinaryIO
 import numpy as np
 
 from tpsr_ros.core.errors import ModelFormatError, one_line
+from tpsr_ros.io.atomic import atomic_file
 
 __all__ = [
     "MAX_ARRAY_BYTES",
@@ -126,21 +125,10 @@ def write_archive(
     if any(arr.dtype == object for arr in arrays.values()):
         raise ModelFormatError("arrays must be numeric, not Python objects")
     arrays[METADATA_KEY] = np.array(text)
-    fd, tmp_name = tempfile.mkstemp(
-        prefix=f".{path.name}.", suffix=".tmp", dir=path.resolve().parent
-    )
-    tmp = Path(tmp_name)
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            np.savez(handle, **arrays)  # type: ignore[arg-type]
-            handle.flush()
-            os.fsync(handle.fileno())
+    with atomic_file(path) as handle:
+        np.savez(handle, **arrays)  # type: ignore[arg-type]
         if path.exists() and not force:  # appeared while we were writing
             raise ModelFormatError(f"output file {str(path)!r} already exists; use --force")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
 
 

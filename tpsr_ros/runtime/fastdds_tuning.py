@@ -28,6 +28,8 @@ import tempfile
 from collections.abc import MutableMapping
 from pathlib import Path
 
+from tpsr_ros.io.atomic import atomic_file
+
 __all__ = ["SHM_SEGMENT_BYTES", "profile_xml", "tune_fastdds"]
 
 SHM_SEGMENT_BYTES = 16 * 1024 * 1024
@@ -107,15 +109,10 @@ def tune_fastdds(
     text = profile_xml()
     try:
         if not _ours(path) or path.read_text(encoding="utf-8") != text:
-            # mkstemp: a new file of ours (exclusive, never through a link), in the folder
-            fd, name = tempfile.mkstemp(prefix=f"{path.name}.", suffix=".tmp", dir=folder)
-            partial = Path(name)
-            try:
-                with os.fdopen(fd, "w", encoding="utf-8") as handle:
-                    handle.write(text)
-                os.replace(partial, path)  # atomic: a concurrent reader sees old or new
-            finally:
-                partial.unlink(missing_ok=True)
+            # a new file of ours (exclusive, never through a link), renamed over the old:
+            # a concurrent reader sees the old profile or the new one
+            with atomic_file(path, "w", sync=False) as handle:
+                handle.write(text)
     except OSError:
         return None
     env[PROFILE_VARIABLE] = str(path)

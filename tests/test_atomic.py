@@ -1,0 +1,34 @@
+"""Files are replaced whole or not at all."""
+
+from __future__ import annotations
+
+import pytest
+
+from tpsr_ros.io.atomic import atomic_file
+
+
+def test_the_file_is_replaced_only_when_the_block_ends_well(tmp_path):
+    target = tmp_path / "model.npz"
+    target.write_bytes(b"old")
+    with atomic_file(target) as handle:
+        handle.write(b"new")
+        assert target.read_bytes() == b"old"  # nothing visible before the rename
+    assert target.read_bytes() == b"new"
+    with pytest.raises(RuntimeError), atomic_file(target, "w") as text:
+        text.write("half")
+        raise RuntimeError("disk full")
+    assert target.read_bytes() == b"new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.npz"]  # no temporary left
+
+
+def test_a_link_at_the_target_is_replaced_not_followed(tmp_path):
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    kept = elsewhere / "kept.xml"
+    kept.write_text("theirs")
+    link = tmp_path / "profile.xml"
+    link.symlink_to(kept)
+    with atomic_file(link, "w", sync=False) as handle:
+        handle.write("ours")
+    assert not link.is_symlink() and link.read_text() == "ours"
+    assert kept.read_text() == "theirs" and list(elsewhere.iterdir()) == [kept]

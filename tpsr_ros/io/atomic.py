@@ -1,0 +1,42 @@
+"""Files written whole or not at all: a temporary file beside the target, then a rename.
+
+Why: a model, a config or a bag's ``metadata.yaml`` that a crash (or a full disk) leaves
+half written would be read later as damaged input, and an existing good file would be
+lost. Writing to a new temporary file in the same directory (``mkstemp``: exclusive, never
+through a link), flushing it to disk and renaming it over the target (``os.replace``,
+atomic on POSIX) means a reader sees the old file or the new one, never a part.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import IO, Any
+
+__all__ = ["atomic_file"]
+
+
+@contextmanager
+def atomic_file(path: Path | str, mode: str = "wb", *, sync: bool = True) -> Iterator[IO[Any]]:
+    """A file opened with ``mode`` that replaces ``path`` when the block ends without error.
+
+    On an error in the block (the caller may raise one to give up) the temporary file is
+    removed and ``path`` is left as it was. ``sync`` flushes the data to disk before the
+    rename (off for files that are cheap to rewrite).
+    """
+    target = Path(path)
+    # in the directory that holds the name (not where a link at it points): same file system
+    fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    temporary = Path(name)
+    try:
+        with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": "utf-8"})) as handle:
+            yield handle
+            handle.flush()
+            if sync:
+                os.fsync(handle.fileno())
+        os.replace(temporary, target)
+    finally:
+        temporary.unlink(missing_ok=True)
