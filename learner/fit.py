@@ -324,7 +324,10 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     model: StateModel
     if args.method == "tpsr":
-        model = fit_tpsr_episodes(episodes, config=tpsr_config, progress=_say)
+        codes = None if spec is None else spec.codebook.codes  # action-aware features
+        model = fit_tpsr_episodes(
+            episodes, config=tpsr_config, progress=_say, action_codes=codes
+        )
     else:
         _say("PCA")
         model = fit_pca(episodes.steps(), n_actions=trajectory.n_actions, config=pca_config)

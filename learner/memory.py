@@ -24,6 +24,11 @@ above ``threshold`` (default :data:`THRESHOLD`, 0.1: a tenth of the spread of th
 state space). A model that forgets at once scores 0; the true position never forgets.
 The summary ``memory: N steps`` is the smaller of the two variants' memories; a variant
 whose states are still apart when its run ends reports a lower bound (``at least``).
+
+A filter restart (the guarded normaliser of :mod:`tpsr_ros.core.filtering` gave up and
+the state was rebuilt from ``b_*``) ends the count: two states apart because one run just
+restarted are not remembering anything. The first restart of either run from the first
+identical step on is printed and plotted.
 """
 
 from __future__ import annotations
@@ -118,6 +123,7 @@ class MemoryResult:
     identical_from: int  # first step (1-based) from which every input pair is identical
     memory: int
     censored: bool  # the states were still apart when the run ended
+    restart: int | None = None  # first step >= identical_from at which a run's filter restarted
 
     def describe(self) -> str:
         """``<name>: memory N steps`` (``at least N`` when censored)."""
@@ -192,9 +198,11 @@ def state_spread(model: StateModel, environment: str, steps: int = 3000, seed: i
     return spread
 
 
-def _track(model: StateModel, run: Run) -> np.ndarray:
-    states = model.track(run.actions, run.observations).states
-    return np.vstack([model.initial_state()[None], states])
+def _track(model: StateModel, run: Run) -> tuple[np.ndarray, np.ndarray]:
+    """States ``(T + 1, d)`` (the initial one first) and restarts ``(T + 1,)`` of one run."""
+    track = model.track(run.actions, run.observations)
+    states = np.vstack([model.initial_state()[None], track.states])
+    return states, np.concatenate([[False], np.asarray(track.recovered, dtype=bool)])
 
 
 def measure(
@@ -204,13 +212,22 @@ def measure(
     spread: float,
     threshold: float = THRESHOLD,
 ) -> MemoryResult:
-    """Run ``experiment``, track both runs with ``model`` and measure its memory."""
+    """Run ``experiment``, track both runs with ``model`` and measure its memory.
+
+    The count stops at the first filter restart of either run (see the module docstring).
+    """
     runs = simulate(experiment, environment)
-    states = (_track(model, runs[0]), _track(model, runs[1]))
-    relative = np.linalg.norm(states[0] - states[1], axis=1) / spread
+    (first, restarts_0), (second, restarts_1) = _track(model, runs[0]), _track(model, runs[1])
+    relative = np.linalg.norm(first - second, axis=1) / spread
     start = identical_from(*runs)
     memory, censored = memory_steps(relative, start, threshold)
-    return MemoryResult(experiment, runs, states, relative, start, memory, censored)
+    restarted = np.flatnonzero((restarts_0 | restarts_1)[start:])
+    restart = int(restarted[0]) + start if restarted.size else None
+    if restart is not None and restart < start + memory + int(censored):
+        memory, censored = restart - start, False
+    return MemoryResult(
+        experiment, runs, (first, second), relative, start, memory, censored, restart
+    )
 
 
 def plot(results: Sequence[MemoryResult], threshold: float, path: Path, title: str) -> None:
@@ -247,6 +264,10 @@ def plot(results: Sequence[MemoryResult], threshold: float, path: Path, title: s
         row[2].plot(steps, result.relative_distance, "-o", color="black", markersize=3)
         row[2].axhline(threshold, color="tab:red", linestyle="--", label=f"threshold {threshold}")
         row[2].axvline(start, color="tab:green", label=f"inputs equal from step {start}")
+        if result.restart is not None:
+            row[2].axvline(
+                result.restart, color="tab:purple", linestyle=":", label="filter restart"
+            )
         row[2].set(xlabel="step", ylabel="|b1 - b2| / state spread", title=result.describe())
         row[2].set_ylim(bottom=0)
         row[2].legend(fontsize=8)
@@ -294,9 +315,10 @@ def run(args: argparse.Namespace) -> int:
     results = [measure(model, e, args.environment, spread, args.threshold) for e in EXPERIMENTS]
     for result in results:
         distances = " ".join(f"{d:.3g}" for d in result.relative_distance)
+        restart = "" if result.restart is None else f"; filter restart at step {result.restart}"
         print(
-            f"{result.experiment.name}: inputs identical from step {result.identical_from}; "
-            f"relative distance by step: {distances}"
+            f"{result.experiment.name}: inputs identical from step {result.identical_from}"
+            f"{restart}; relative distance by step: {distances}"
         )
         print(result.describe())
     args.output.mkdir(parents=True, exist_ok=True)

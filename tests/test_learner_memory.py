@@ -69,6 +69,31 @@ def test_a_memory_longer_than_the_run_is_reported_as_a_lower_bound():
     assert result.describe() == f"stand-still: memory at least {shared} steps"
 
 
+@dataclass(frozen=True)
+class RestartingRegister(ShiftRegister):
+    """A shift register whose filter reports a restart at step ``restart`` (1-based)."""
+
+    restart: int = 1
+
+    def track(self, actions, observations, initial=None) -> Track:
+        states, normalizers, recovered = super().track(actions, observations, initial)
+        recovered = recovered.copy()
+        if len(recovered) >= self.restart:
+            recovered[self.restart - 1] = True
+        return Track(states, normalizers, recovered)
+
+
+def test_a_filter_restart_ends_the_memory():
+    experiment = EXPERIMENTS[1]
+    start = identical_from(*simulate(experiment, "partial"))
+    model = RestartingRegister(100, restart=start + 4)
+    spread = state_spread(model, "partial", steps=500)
+    result = measure(model, experiment, "partial", spread)
+    assert (result.memory, result.censored, result.restart) == (4, False, start + 4)
+    early = RestartingRegister(100, restart=start - 1)  # before the inputs are equal: ignored
+    assert measure(early, experiment, "partial", spread).restart is None
+
+
 def test_pca_has_no_memory():
     train = random_trajectory("partial", 3000, seed=1)
     model = fit_pca(train.observations, n_actions=train.n_actions, config=PCAConfig(dim=3))

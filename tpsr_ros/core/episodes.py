@@ -235,6 +235,8 @@ class Episodes:
         rewards: ``(E,)`` reward at the current step.
         history_length, test_length: ``m`` and ``n``.
         n_actions: number of action indices.
+        history_actions: ``(E, m)`` action of each history step (the one that led to it).
+        test_actions: ``(E, n)`` action of each test step.
 
     """
 
@@ -248,6 +250,8 @@ class Episodes:
     history_length: int
     test_length: int
     n_actions: int
+    history_actions: np.ndarray
+    test_actions: np.ndarray
 
     def __len__(self) -> int:
         return int(self.action.shape[0])
@@ -317,6 +321,8 @@ def episodes_at(trajectory: Trajectory, first: np.ndarray, m: int, n: int) -> Ep
         history_length=m,
         test_length=n,
         n_actions=trajectory.n_actions,
+        history_actions=trajectory.actions[hist_idx],
+        test_actions=trajectory.actions[test_idx],
     )
 
 

@@ -674,11 +674,17 @@ def fit_tpsr_streamed(
     Raises:
         DataError: as :func:`~tpsr_ros.core.tpsr.fit_tpsr`, and when the second pass does not
             see the episodes of the first (the data changed).
+        ConfigError: action-aware features (not supported here).
 
     """
     cfg = config if config is not None else TPSRConfig()
     if max_episodes is not None and max_episodes < 1:
         raise ConfigError(f"the number of episodes must be at least 1, not {max_episodes}")
+    if cfg.uses_actions:
+        raise ConfigError(
+            "the streamed fit does not support action-aware features (history_action_weight, "
+            "test_action_weight); fit in memory instead"
+        )
     engine: StreamEngine = source if hasattr(source, "moments") else ChunkEngine(source)  # type: ignore[arg-type,assignment]
     watch = Stopwatch(progress)
     watch.stage("pass 1: whitening statistics")

@@ -49,6 +49,7 @@ import scipy.linalg
 import scipy.sparse.linalg
 
 from tpsr_ros.core import filtering
+from tpsr_ros.core.action_features import join_actions, standardised_codes
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import CONSTANT_SCALE, rbf_features, select_centers
 from tpsr_ros.core.fields import option as _param
@@ -105,6 +106,14 @@ class TPSRConfig:
         "(Boots et al. 2011)",
         choices=("after-current", "from-current"),
     )
+    history_action_weight: float = _param(
+        0.0,
+        "weight of each history step's action code joined to its observations before the "
+        "RBF kernel (0: observations only, the guide; see tpsr_ros.core.action_features)",
+    )
+    test_action_weight: float = _param(
+        0.0, "weight of each test step's action code joined to its observations (0: the guide)"
+    )
     seed: int = _param(0, "seed of k-means and of the SVD start vector")
 
     def __post_init__(self) -> None:
@@ -128,6 +137,14 @@ class TPSRConfig:
                 or not (np.isfinite(value) and value > 0)
             ):
                 raise ConfigError(f"{name} must be a positive finite number, not {value!r}")
+        for name in ("history_action_weight", "test_action_weight"):
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float, np.floating))
+                or not (np.isfinite(value) and value >= 0)
+            ):
+                raise ConfigError(f"{name} must be a non-negative finite number, not {value!r}")
         for f in fields(self):
             allowed = f.metadata.get("choices")
             if allowed is not None and getattr(self, f.name) not in allowed:
@@ -149,6 +166,11 @@ class TPSRConfig:
                 f"rank {self.rank} exceeds the {self.ht_centers + 1} history/test features "
                 "(ht_centers + 1)"
             )
+
+    @property
+    def uses_actions(self) -> bool:
+        """Whether histories or tests carry action codes (:mod:`tpsr_ros.core.action_features`)."""
+        return self.history_action_weight > 0 or self.test_action_weight > 0
 
     def to_dict(self) -> dict[str, Any]:
         """Parameters as a JSON-serialisable dict."""
@@ -421,13 +443,40 @@ class _Whitened:
     """Tests as ``P_TH`` correlates them (``t_white`` itself for ``after-current``)."""
 
 
+@dataclass(frozen=True)
+class StepActions:
+    """The actions of the history and test steps, for action-aware features.
+
+    ``history`` ``(E, m)`` and ``test`` ``(E, n)`` action indices (each step's action led to
+    its observation), ``current`` ``(E,)`` and ``codes`` ``(n_actions, d)`` standardised
+    action codes (:func:`tpsr_ros.core.action_features.standardised_codes`).
+    """
+
+    history: np.ndarray | None
+    test: np.ndarray | None
+    current: np.ndarray
+    codes: np.ndarray
+
+    def test_window(self, test_length: int) -> np.ndarray | None:
+        """Actions of Boots et al.'s ``P_TH`` test: the current one and ``n - 1`` test steps."""
+        if self.test is None:
+            return None
+        return np.concatenate([self.current[:, None], self.test[:, : test_length - 1]], axis=1)
+
+
 def _whiten(
-    history: np.ndarray, observation: np.ndarray, test: np.ndarray, cfg: TPSRConfig
+    history: np.ndarray,
+    observation: np.ndarray,
+    test: np.ndarray,
+    cfg: TPSRConfig,
+    actions: StepActions | None = None,
 ) -> _Whitened:
     """Algorithm 1: whiten histories, tests (``d^H = d^T``) and observations (``d^O``).
 
     With ``p_th_tests="from-current"`` the test window of ``P_TH`` (the current observation
-    and the first ``n - 1`` test observations) is whitened with the tests' whitening.
+    and the first ``n - 1`` test observations) is whitened with the tests' whitening. With
+    action weights the whitened histories and tests get their steps' action codes joined
+    (:func:`tpsr_ros.core.action_features.join_actions`).
     """
     wh_h, h_white = Whitening.fit_transform(history, cfg.ht_dim, what="histories")
     wh_t, t_white = Whitening.fit_transform(test, cfg.ht_dim, what="tests")
@@ -436,6 +485,15 @@ def _whiten(
         t0_white = wh_t.transform(p_th_test_window(observation, test, cfg.test_length))
     else:
         t0_white = t_white
+    if actions is not None and cfg.uses_actions:
+        w_h, w_t = cfg.history_action_weight, cfg.test_action_weight
+        h_white = join_actions(h_white, actions.history, actions.codes, w_h, "history")
+        if t0_white is t_white:
+            t_white = t0_white = join_actions(t_white, actions.test, actions.codes, w_t, "test")
+        else:
+            t_white = join_actions(t_white, actions.test, actions.codes, w_t, "test")
+            window = actions.test_window(cfg.test_length)
+            t0_white = join_actions(t0_white, window, actions.codes, w_t, "test")
     return _Whitened(wh_h, wh_t, wh_o, h_white, t_white, o_white, t0_white)
 
 
@@ -625,6 +683,9 @@ def fit_tpsr(
     n_actions: int,
     config: TPSRConfig | None = None,
     progress: Progress | None = None,
+    history_actions: np.ndarray | None = None,
+    test_actions: np.ndarray | None = None,
+    action_codes: np.ndarray | None = None,
 ) -> TPSRModel:
     """Learn a TPSR from ``E`` episodes (guide Algorithms 1-3), one stage per step above.
 
@@ -636,10 +697,17 @@ def fit_tpsr(
         n_actions: number of actions; every action must occur among the training episodes.
         config: parameters (default :class:`TPSRConfig`).
         progress: called with the name of each stage as it starts.
+        history_actions: ``(E, m)`` action of each history step (the one that led to its
+            observation); needed only with ``history_action_weight > 0``.
+        test_actions: ``(E, n)`` action of each test step; needed only with
+            ``test_action_weight > 0``.
+        action_codes: ``(n_actions, d)`` command of each action for action-aware features
+            (default: the simulator's 25 velocity pairs).
 
     Raises:
         DataError: non-finite or inconsistent data, too few episodes for the kernel
             centres, rank above the usable singular values, an action without samples.
+        ConfigError: action weights without the step actions or codes they need.
 
     """
     cfg = config if config is not None else TPSRConfig()
@@ -648,8 +716,13 @@ def fit_tpsr(
     history, observation, action, test = _check_data(
         history, observation, action, test, n_actions, cfg
     )
+    step_actions = None
+    if cfg.uses_actions:
+        step_actions = StepActions(
+            history_actions, test_actions, action, standardised_codes(action_codes, n_actions)
+        )
     watch.stage("whitening")
-    white = _whiten(history, observation, test, cfg)
+    white = _whiten(history, observation, test, cfg, step_actions)
     watch.stage("kernel centres")
     c_h, c_t, c_o, train = _kernel_centres(white, cfg)
     watch.stage("features")
@@ -720,6 +793,10 @@ class EpisodeArrays(Protocol):
     def test(self) -> np.ndarray: ...
     @property
     def n_actions(self) -> int: ...
+    @property
+    def history_actions(self) -> np.ndarray: ...
+    @property
+    def test_actions(self) -> np.ndarray: ...
 
 
 def fit_tpsr_episodes(
@@ -727,8 +804,9 @@ def fit_tpsr_episodes(
     *,
     config: TPSRConfig | None = None,
     progress: Progress | None = None,
+    action_codes: np.ndarray | None = None,
 ) -> TPSRModel:
-    """:func:`fit_tpsr` on the arrays of cut episodes."""
+    """:func:`fit_tpsr` on the arrays of cut episodes (``action_codes``: see there)."""
     return fit_tpsr(
         episodes.history,
         episodes.observation,
@@ -737,4 +815,7 @@ def fit_tpsr_episodes(
         n_actions=episodes.n_actions,
         config=config,
         progress=progress,
+        history_actions=episodes.history_actions,
+        test_actions=episodes.test_actions,
+        action_codes=action_codes,
     )
