@@ -9,8 +9,9 @@ import sys
 
 import numpy as np
 import pytest
+from cli_support import run_entry
 
-from learner.cli import build_parser, entry, main
+from learner.cli import build_parser, main
 from learner.fit import ROBOT_BAG_TPSR_DEFAULTS, config_from_args
 from learner.plots import affine_r2
 from sim_node import SimConfig
@@ -29,13 +30,6 @@ def small_bag(tmp_path_factory):
     path = tmp_path_factory.mktemp("bags") / "small"
     generate_bag(path, SimConfig(environment="full"), 900, seed=3)
     return path
-
-
-def run_entry(argv, capsys):
-    with pytest.raises(SystemExit) as exc:
-        entry(argv)
-    out, err = capsys.readouterr()
-    return exc.value.code, out, err
 
 
 def test_every_table_3_5_parameter_is_an_option():

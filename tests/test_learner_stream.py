@@ -10,8 +10,8 @@ import types
 
 import numpy as np
 import pytest
+from cli_support import run_entry
 
-from learner.cli import entry
 from sim_node import SimConfig
 from sim_node.generate import generate_bag
 from tpsr_ros.core.episodes import make_episodes
@@ -47,13 +47,6 @@ def assert_same(model, reference, tol=1e-9):
         a, b = getattr(model, name), getattr(reference, name)
         assert a.shape == b.shape
         assert np.abs(a - b).max() <= tol * np.abs(b).max(), name
-
-
-def run_entry(argv, capsys):
-    with pytest.raises(SystemExit) as exc:
-        entry(argv)
-    out, err = capsys.readouterr()
-    return exc.value.code, out, err
 
 
 def test_stream_option_writes_the_in_memory_model(bags, reference, tmp_path, capsys):

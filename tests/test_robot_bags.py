@@ -8,8 +8,9 @@ import re
 
 import numpy as np
 import pytest
+from cli_support import run_entry
 
-from learner.cli import entry, main
+from learner.cli import main
 from sim_node import SimConfig
 from sim_node.camera import Camera
 from sim_node.generate import generate_bag
@@ -43,13 +44,6 @@ def robot(tmp_path_factory):
     bag = tmp / "bgr8"
     write_robot_bag(bag, config)
     return {"tmp": tmp, "bag": bag, "config": config}
-
-
-def run_entry(argv, capsys):
-    with pytest.raises(SystemExit) as exc:
-        entry(argv)
-    out, err = capsys.readouterr()
-    return exc.value.code, out, err
 
 
 def options(**changes) -> FitOptions:

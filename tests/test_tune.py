@@ -16,9 +16,10 @@ import json
 import numpy as np
 import pytest
 import yaml
+from cli_support import run_entry
 from learning_fixtures import POMDP, one_hot
 
-from learner.cli import entry, main
+from learner.cli import main
 from learner.config_file import read_fit_config
 from learner.criterion import (
     CriterionConfig,
@@ -138,13 +139,6 @@ def bag(tmp_path_factory):
     path = tmp_path_factory.mktemp("tune") / "bag"
     generate_bag(path, SimConfig(environment="full"), 2400, seed=4)
     return path
-
-
-def run_entry(argv, capsys):
-    with pytest.raises(SystemExit) as exc:
-        entry(argv)
-    out, err = capsys.readouterr()
-    return exc.value.code, out, err
 
 
 def test_tune_then_fit_with_its_config(bag, tmp_path, capsys):
