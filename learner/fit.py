@@ -17,7 +17,7 @@ import dataclasses
 import functools
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any, TypeVar
@@ -51,6 +51,7 @@ __all__ = [
     "add_config_options",
     "add_topic_options",
     "config_from_args",
+    "read_training_bags",
     "register",
     "run",
     "summary_lines",
@@ -150,8 +151,6 @@ def add_topic_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup)
             metavar="TOPIC",
             help=f"{f.metadata.get('help', '')} (default: {f.default}, or the model's)",
         )
-
-
     parser.add_argument(
         "--pose-frame",
         default=None,
@@ -287,29 +286,9 @@ def run(args: argparse.Namespace) -> int:
 
     _say(f"reading {len(args.bags)} bag(s)")
     start = time.perf_counter()
-    if stream_options is None:
-        spec = None
-        trajectory = read_trajectory(args.bags, topics=topics)
-    else:
-        streams = read_bag_streams(  # once, for the spec and the steps
-            args.bags,
-            image_topic=topics.image,
-            action_topic=topics.action,
-            components=stream_options.components,
-            pose_topic=topics.pose,
-            reward_topic=topics.reward,
-            pose_frame=args.pose_frame or DEFAULT_POSE_FRAME,
-        )
-        spec = _robot_spec(args, stream_options, topics, streams)
-        trajectory = read_stream_trajectory(
-            args.bags,
-            spec,
-            pose_topic=topics.pose,
-            reward_topic=topics.reward,
-            pose_frame=args.pose_frame or DEFAULT_POSE_FRAME,
-            streams=streams,
-        )
-        _say(_commands_line(trajectory, spec))
+    trajectory, spec = read_training_bags(args, topics, stream_options)
+    if spec is not None:
+        _say_robot_defaults(args)
     timings["reading bags"] = time.perf_counter() - start
     episodes = make_episodes(
         trajectory,
@@ -346,18 +325,51 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def read_training_bags(
+    args: argparse.Namespace,
+    topics: Topics,
+    options: FitOptions | None,
+    say: Callable[[str], None] = _say,
+) -> tuple[Trajectory, StreamSpec | None]:
+    """The steps of ``args.bags`` and, for robot bags (``options``), the spec they were read
+    with: simulator bags paired by stamp, robot bags read once and resampled on the grid."""
+    if options is None:
+        return read_trajectory(args.bags, topics=topics), None
+    pose_frame = args.pose_frame or DEFAULT_POSE_FRAME
+    streams = read_bag_streams(  # once, for the spec and the steps
+        args.bags,
+        image_topic=topics.image,
+        action_topic=topics.action,
+        components=options.components,
+        pose_topic=topics.pose,
+        reward_topic=topics.reward,
+        pose_frame=pose_frame,
+    )
+    spec = _robot_spec(args, options, topics, streams, say)
+    trajectory = read_stream_trajectory(
+        args.bags,
+        spec,
+        pose_topic=topics.pose,
+        reward_topic=topics.reward,
+        pose_frame=pose_frame,
+        streams=streams,
+    )
+    say(_commands_line(trajectory, spec))
+    return trajectory, spec
+
+
 def _robot_spec(
     args: argparse.Namespace,
     options: FitOptions,
     topics: Topics,
     streams: Sequence[BagStreams] | None = None,
+    say: Callable[[str], None] = _say,
 ) -> StreamSpec:
     """Robot bags (``--step-period``): the step grid, preprocessing and codebook, said."""
     spec = fit_stream_spec(
         args.bags, options, image_topic=topics.image, action_topic=topics.action, streams=streams
     )
-    _say(_spec_line(spec))
-    _say_robot_defaults(args)
+    say(_spec_line(spec))
     return spec
 
 
@@ -382,7 +394,10 @@ def _run_streamed(
     start = time.perf_counter()
     pose_frame = args.pose_frame or DEFAULT_POSE_FRAME
     recorded = dataclasses.asdict(topics)
-    spec = None if stream_options is None else _robot_spec(args, stream_options, topics)
+    spec = None
+    if stream_options is not None:
+        spec = _robot_spec(args, stream_options, topics)
+        _say_robot_defaults(args)
     if spec is None:
         _say(f"checking {len(args.bags)} bag(s) agree (image size, action type)")
         surveys = survey_bags(args.bags, topics)

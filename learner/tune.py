@@ -297,8 +297,15 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("--force", action="store_true", help="overwrite an existing CONFIG")
     from learner.fit import add_topic_options
+    from learner.streams import add_stream_options
 
     add_topic_options(parser.add_argument_group("topics"))
+    add_stream_options(
+        parser.add_argument_group(
+            "robot bags (give learner fit --config the same options): camera and commands "
+            "resampled onto a step grid"
+        )
+    )
     parser.set_defaults(run=run)
 
 
@@ -308,8 +315,8 @@ def _say(line: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Read the bags, tune within the budget, write CONFIG.yaml, print the best."""
-    from learner.fit import topics_from_args
-    from tpsr_ros.io.trajectory import read_trajectory
+    from learner.fit import ROBOT_BAG_TPSR_DEFAULTS, read_training_bags, topics_from_args
+    from learner.streams import fit_options_from_args
 
     start = time.perf_counter()
     if args.seed < 0:
@@ -319,11 +326,14 @@ def run(args: argparse.Namespace) -> int:
     if not args.output.resolve().parent.is_dir():  # refused before the search, not after
         raise ConfigError(f"output directory {str(args.output.resolve().parent)!r} does not exist")
     _say(f"reading {len(args.bags)} bag(s)")
-    trajectory = read_trajectory(args.bags, topics=topics_from_args(args))
+    stream_options = fit_options_from_args(args)
+    trajectory, spec = read_training_bags(args, topics_from_args(args), stream_options, _say)
     if args.steps is not None:
         trajectory = trajectory.rows(0, min(len(trajectory), args.steps))
+    # the search starts from what learner fit would fit: for robot bags, their defaults
+    base = TPSRConfig(**ROBOT_BAG_TPSR_DEFAULTS) if spec is not None else None
     result = tune(
-        trajectory, budget=args.budget, seed=args.seed, report=_say, progress=True,
+        trajectory, budget=args.budget, seed=args.seed, base=base, report=_say, progress=True,
         started=start,
     )
     header = (

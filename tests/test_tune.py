@@ -166,6 +166,27 @@ def test_tune_then_fit_with_its_config(bag, tmp_path, capsys):
     assert explicit == TPSRConfig(**{**content["tpsr"], "rank": 2})
 
 
+def test_a_robot_bag_is_tuned_from_its_resampled_steps(tmp_path, capsys):
+    from sim_node.robot_bag import RobotBagConfig, write_robot_bag
+
+    bag = tmp_path / "robot"
+    write_robot_bag(bag, RobotBagConfig(steps=900, seed=5))
+    robot = ["--image-topic", "/front_camera/image_raw", "--action-topic", "/cmd_vel",
+             "--step-period", "1.0", "--image-size", "8", "--actions", "9"]  # fmt: skip
+    config = tmp_path / "robot.yaml"
+    code, _, err = run_entry(["tune", str(bag), *robot, "-o", str(config), "--budget", "3"], capsys)
+    assert code == 0, err
+    assert "9 actions over linear.x, linear.y (kmeans)" in err  # read on the step grid
+    tried = yaml.safe_load(config.read_text())["tune"]["tried"]
+    assert tried[0] == {**tried[0], "stage": "guide defaults", "normalize_ht_features": True}
+    code, _, err = run_entry(
+        ["fit", str(bag), *robot, "--config", str(config), "-o", str(tmp_path / "m.npz")], capsys
+    )
+    assert code == 0, err
+    fitted = load_model(tmp_path / "m.npz").config
+    assert fitted == TPSRConfig(**yaml.safe_load(config.read_text())["tpsr"])
+
+
 def test_a_tiny_budget_stops_after_the_first_candidate(bag, tmp_path, capsys):
     config = tmp_path / "tiny.yaml"
     code, _, err = run_entry(["tune", str(bag), "-o", str(config), "--budget", "0.01"], capsys)
