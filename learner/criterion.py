@@ -42,7 +42,7 @@ import numpy as np
 from tpsr_ros.core.episodes import Trajectory, make_episodes, track_trajectory
 from tpsr_ros.core.errors import ConfigError, DataError, TpsrError
 from tpsr_ros.core.fields import option
-from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
+from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, action_sums, fit_tpsr_episodes
 from tpsr_ros.core.whitening import Whitening
 
 __all__ = [
@@ -185,11 +185,9 @@ def _ridge_by_action(
     """Per-action affine ridge weights ``(n_actions, 1 + p, q)``; the intercept is free."""
     n, p = inputs.shape
     design = np.concatenate([np.ones((n, 1)), inputs], axis=1)
-    grams = np.zeros((n_actions, p + 1, p + 1))
-    np.add.at(grams, actions, design[:, :, None] * design[:, None, :])
-    moments = np.zeros((n_actions, p + 1, targets.shape[1]))
-    np.add.at(moments, actions, design[:, :, None] * targets[:, None, :])
-    counts = np.bincount(actions, minlength=n_actions).astype(float)
+    counts = np.bincount(actions, minlength=n_actions)
+    grams = action_sums(design, design, actions, counts)  # one product per action
+    moments = action_sums(design, targets, actions, counts)
     penalty = np.eye(p + 1)
     penalty[0, 0] = 0.0
     grams += (ridge * np.maximum(counts, 1.0) + 1e-12)[:, None, None] * penalty

@@ -60,6 +60,7 @@ __all__ = [
     "DENSE_SVD_LIMIT",
     "TPSRConfig",
     "TPSRModel",
+    "action_sums",
     "fit_tpsr",
     "fit_tpsr_episodes",
     "top_singular_triplets",
