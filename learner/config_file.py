@@ -20,6 +20,7 @@ import yaml
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.io.atomic import atomic_file
+from tpsr_ros.io.model_io import check_output_path
 from tpsr_ros.io.safe_yaml import YamlInputError, load_yaml
 
 __all__ = ["SECTIONS", "changed_parameters", "describe", "read_fit_config", "write_fit_config"]
@@ -90,17 +91,10 @@ def write_fit_config(
     force: bool = False,
 ) -> None:
     """Write ``tpsr`` (every field) and the ``tune`` record atomically, ``header`` as comments."""
-    path = Path(path)
-    if path.is_dir():
-        raise ConfigError(f"output path {str(path)!r} is a directory")
-    if path.exists() and not force:
-        raise ConfigError(f"output file {str(path)!r} already exists; use --force to overwrite it")
+    path = check_output_path(path, force=force)
     body = yaml.safe_dump(
         {"tpsr": tpsr.to_dict(), "tune": dict(tune)}, sort_keys=False, default_flow_style=None
     )
     comments = "".join(f"# {line}\n" if line else "#\n" for line in header.splitlines())
-    directory = path.resolve().parent
-    if not directory.is_dir():
-        raise ConfigError(f"output directory {str(directory)!r} does not exist")
     with atomic_file(path, "w") as handle:
         handle.write(comments + body)

@@ -40,6 +40,7 @@ from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import median_distance
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.core.whitening import Whitening
+from tpsr_ros.io.model_io import check_output_path
 
 __all__ = [
     "DEFAULT_BUDGET",
@@ -315,16 +316,13 @@ def _say(line: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Read the bags, tune within the budget, write CONFIG.yaml, print the best."""
-    from learner.fit import ROBOT_BAG_TPSR_DEFAULTS, read_training_bags, topics_from_args
-    from learner.streams import fit_options_from_args
+    from learner.fit import ROBOT_BAG_TPSR_DEFAULTS, read_training_bags
+    from learner.streams import fit_options_from_args, topics_from_args
 
     start = time.perf_counter()
     if args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, not {args.seed}")
-    if args.output.exists() and not args.force:
-        raise ConfigError(f"output file {str(args.output)!r} already exists; use --force")
-    if not args.output.resolve().parent.is_dir():  # refused before the search, not after
-        raise ConfigError(f"output directory {str(args.output.resolve().parent)!r} does not exist")
+    check_output_path(args.output, force=args.force)  # refused before the search, not after
     _say(f"reading {len(args.bags)} bag(s)")
     stream_options = fit_options_from_args(args)
     trajectory, spec = read_training_bags(args, topics_from_args(args), stream_options, _say)

@@ -199,6 +199,16 @@ def test_a_tiny_budget_stops_after_the_first_candidate(bag, tmp_path, capsys):
     assert TPSRConfig(**content["tpsr"]) == TPSRConfig(**capped)
 
 
+@pytest.mark.parametrize("force", [[], ["--force"]])
+def test_an_unusable_output_is_refused_before_the_search(bag, tmp_path, capsys, force):
+    taken = tmp_path / "taken.yaml"
+    taken.mkdir()  # a directory, even with --force
+    for output, rule in ((taken, "is a directory"), (tmp_path / "no" / "t.yaml", "does not exist")):
+        code, _, err = run_entry(["tune", str(bag), "-o", str(output), *force], capsys)
+        assert code == 1 and rule in err, err
+        assert "[1]" not in err  # no candidate was fitted
+
+
 def test_tune_function_reports_every_candidate():
     rng = np.random.default_rng(2)
     pomdp = sticky_pomdp()
