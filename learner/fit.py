@@ -278,6 +278,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if file_values is not None:
         _say(f"TPSR parameters from {args.config}: {describe(tpsr_config)}")
+    if robot_bags:
+        _say_robot_defaults(args, file_values)
     pca_config = config_from_args(PCAConfig, args)
     topics = topics_from_args(args)
     if args.stream or args.workers is not None or args.scheduler is not None:
@@ -287,8 +289,6 @@ def run(args: argparse.Namespace) -> int:
     _say(f"reading {len(args.bags)} bag(s)")
     start = time.perf_counter()
     trajectory, spec = read_training_bags(args, topics, stream_options)
-    if spec is not None:
-        _say_robot_defaults(args)
     timings["reading bags"] = time.perf_counter() - start
     episodes = make_episodes(
         trajectory,
@@ -397,7 +397,6 @@ def _run_streamed(
     spec = None
     if stream_options is not None:
         spec = _robot_spec(args, stream_options, topics)
-        _say_robot_defaults(args)
     if spec is None:
         _say(f"checking {len(args.bags)} bag(s) agree (image size, action type)")
         surveys = survey_bags(args.bags, topics)
@@ -465,9 +464,13 @@ def _run_streamed(
     return 0
 
 
-def _say_robot_defaults(args: argparse.Namespace) -> None:
-    """Say which robot-bag defaults (``ROBOT_BAG_TPSR_DEFAULTS``) the fit took."""
-    if args.method == "tpsr" and args.normalize_ht_features is None and args.config is None:
+def _say_robot_defaults(args: argparse.Namespace, file_values: Mapping[str, Any] | None) -> None:
+    """Say which robot-bag defaults (``ROBOT_BAG_TPSR_DEFAULTS``) the fit took: those neither
+    the command line nor the ``--config`` file set."""
+    chosen = args.normalize_ht_features is not None or "normalize_ht_features" in (
+        file_values or {}
+    )
+    if args.method == "tpsr" and not chosen:
         _say(
             "history/test features normalised to sum 1 (the robot-bag default; "
             "--no-normalize-ht-features for the guide's unnormalised ones)"

@@ -177,6 +177,23 @@ def test_the_robot_bag_default_yields_to_an_explicit_option(robot, capsys):
     assert not load_model(model).config.normalize_ht_features
 
 
+@pytest.mark.parametrize(("file_sets_it", "said"), [(False, True), (True, False)])
+def test_the_robot_bag_default_is_said_unless_the_config_file_sets_it(
+    robot, capsys, file_sets_it, said
+):
+    tmp, bag = robot["tmp"], robot["bag"]
+    config = tmp / f"config_{file_sets_it}.yaml"
+    values = "rank: 3\n" + ("normalize_ht_features: false\n" if file_sets_it else "")
+    config.write_text("tpsr:\n" + "".join(f"  {line}\n" for line in values.splitlines()))
+    model = tmp / f"from_config_{file_sets_it}.npz"
+    argv = ["fit", str(bag), "--image-topic", CAMERA, *ROBOT, "--image-size", "8",
+            "--actions", "25", "-o", str(model), "--obs-centers", "40", "--ht-centers", "80",
+            "--config", str(config)]  # fmt: skip
+    assert main(argv) == 0
+    assert ("robot-bag default" in capsys.readouterr().err) == said
+    assert load_model(model).config.normalize_ht_features == said
+
+
 def test_a_model_whose_input_entry_is_wrong_is_refused(robot):
     model = robot["tmp"] / "m_input.npz"
     argv = ["fit", str(robot["bag"]), "--image-topic", CAMERA, *ROBOT, "--image-size", "8",
