@@ -301,6 +301,22 @@ def read_bag_streams(
     ]
 
 
+def _check_given(
+    streams: Sequence[BagStreams],
+    bags: Sequence[Path | str],
+    components: Sequence[str],
+    *,
+    exact: bool,
+) -> None:
+    """Refuse streams not read from ``bags`` with ``components`` (``exact``) or more of them."""
+    wanted = tuple(components)
+    fits = (lambda got: got == wanted) if exact else (lambda got: set(wanted) <= set(got))
+    if [s.path for s in streams] != [Path(b) for b in bags] or not all(
+        fits(s.components) for s in streams
+    ):
+        raise ConfigError("the streams given were not read from these bags with these options")
+
+
 def _fast_time(data: bytes, log_time_ns: int) -> int:
     """Header stamp read from the CDR bytes, or the log time where the stamp is zero."""
     stamp = header_stamp_ns(data)
@@ -412,10 +428,8 @@ def fit_stream_spec(
             bags, image_topic=image_topic, action_topic=action_topic,
             components=options.components,
         )  # fmt: skip
-    elif [s.path for s in streams] != [Path(b) for b in bags] or any(
-        s.components != tuple(options.components) for s in streams
-    ):
-        raise ConfigError("the streams given were not read from these bags with these options")
+    else:
+        _check_given(streams, bags, options.components, exact=True)
     types = {(s.image_type, s.action_type) for s in streams}
     if len(types) > 1:
         raise DataError(f"the bags carry different camera or command types: {sorted(types)}")
@@ -503,10 +517,8 @@ def read_stream_trajectory(
             components=codebook.components, pose_topic=pose_topic, reward_topic=reward_topic,
             require_pose=require_ground_truth, pose_frame=pose_frame,
         )  # fmt: skip
-    elif [s.path for s in streams] != [Path(b) for b in bags] or any(
-        not set(codebook.components) <= set(s.components) for s in streams
-    ):
-        raise ConfigError("the streams given were not read from these bags with these options")
+    else:
+        _check_given(streams, bags, codebook.components, exact=False)
     parts: list[dict[str, np.ndarray]] = []
     sources: list[dict[str, Any]] = []
     segment_offset = 0
