@@ -19,9 +19,9 @@ from tpsr_ros.io.cdr_fields import (
     RawImageDecoder,
     RewardDecoder,
     TwistDecoder,
-    peek_stamp,
 )
 from tpsr_ros.io.images import decode_image
+from tpsr_ros.io.messages import peek_stamp
 
 S = 1_000_000_000
 FRAMES = ["", "a", "ab", "abc", "abcd", "abcde", "abcdef", "abcdefg", "camera", "é"]

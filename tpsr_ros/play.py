@@ -38,8 +38,7 @@ from tpsr_ros.cli import ArgumentParser, non_negative_int, positive_float
 from tpsr_ros.core.errors import BagError, TpsrError
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.io.cdr_fields import peek_stamp
-from tpsr_ros.io.messages import CLOCK_TYPE, clock_msg, starts_with_header
+from tpsr_ros.io.messages import CLOCK_TYPE, clock_msg, peek_stamp, starts_with_header
 from tpsr_ros.io.qos import from_bag_qos
 from tpsr_ros.runtime import DEFAULT_QOS, Node, NodeOptions, Publisher, run_node
 from tpsr_ros.runtime.diagnostics import RollingPercentiles

@@ -53,12 +53,12 @@ from tpsr_ros.core.cadence import CadenceGaps
 from tpsr_ros.core.errors import BagError, MessageError, TpsrError
 from tpsr_ros.io.bag import BagWriter, check_bag_path_free
 from tpsr_ros.io.bag_cache import CachedBagWriter
-from tpsr_ros.io.cdr_fields import peek_stamp
 from tpsr_ros.io.messages import (
     IMAGE_TYPE,
     deserialize,
     image_problem,
     jazzy_typestore,
+    peek_stamp,
     starts_with_header,
 )
 from tpsr_ros.io.qos import adapt_to_publishers, compatible, to_bag_qos
@@ -330,32 +330,31 @@ class RecorderNode(Node):
             return self.cadence[topic].missing if topic in self.cadence else 0
         return sum(c.missing for c in self.cadence.values())
 
-    def totals(self) -> tuple[int, int, int, int]:
-        """(recorded, lost, dropped, rejected) messages over all topics."""
+    def totals(self) -> tuple[int, int, int, int, int]:
+        """(recorded, lost, dropped, rejected, missing by stamps) messages over all topics."""
         return (
             sum(self.counts.values()),
             sum(self.lost.values()),
             sum(self.dropped.values()),
             sum(self.rejected.values()),
+            self.missing_by_stamps(),
         )
 
-    def losses(self) -> str:
+    @staticmethod
+    def losses(totals: tuple[int, int, int, int, int]) -> str:
         """``lost L (reported by the middleware), dropped D (write cache full), rejected R;
-        missing M by header stamps``."""
-        _, lost, dropped, rejected = self.totals()
+        missing M by header stamps`` of :meth:`totals`."""
+        _, lost, dropped, rejected, missing = totals
         return (
             f"lost {lost} (reported by the middleware), "
             f"dropped {dropped} (write cache full), rejected {rejected}; "
-            f"missing {self.missing_by_stamps()} by header stamps"
+            f"missing {missing} by header stamps"
         )
-
-    def _anything_missing(self) -> bool:
-        return any(self.totals()[1:]) or self.missing_by_stamps() > 0
 
     def publish_diagnostics(self) -> None:
         """One ``DiagnosticStatus``: WARN once anything was lost or rejected, else OK."""
         self.check_losses()
-        recorded = self.totals()[0]
+        totals = self.totals()
         values: dict[str, Any] = {
             "bag": str(self.writer.path),
             "cache bytes": self.writer.queued_bytes,
@@ -366,8 +365,8 @@ class RecorderNode(Node):
             values[f"{topic} dropped"] = self.dropped[topic]
             values[f"{topic} rejected"] = self.rejected[topic]
             values[f"{topic} missing by stamps"] = self.missing_by_stamps(topic)
-        level = WARN if self._anything_missing() else OK
-        message = f"recorded {recorded}; {self.losses()}"
+        level = WARN if any(totals[1:]) else OK
+        message = f"recorded {totals[0]}; {self.losses(totals)}"
         status = diagnostic_status(level, self._status_name, message, values)
         self.diagnostics.publish(diagnostic_array(time.time_ns(), [status]))
 
@@ -381,7 +380,7 @@ class RecorderNode(Node):
                 if self.transport.spin_once(0.0) == 0:
                     break
             self.check_losses()
-            _, lost, dropped, rejected = self.totals()
+            _, lost, dropped, rejected, missing = self.totals()
             by_topic = {
                 t: {
                     "recorded": self.counts[t],
@@ -396,18 +395,18 @@ class RecorderNode(Node):
                 ("lost_messages", str(lost)),
                 ("dropped_messages", str(dropped)),
                 ("rejected_messages", str(rejected)),
-                ("missing_by_stamps", str(self.missing_by_stamps())),
+                ("missing_by_stamps", str(missing)),
                 ("by_topic", json.dumps(by_topic)),
             ):
                 self.writer.set_custom_data(f"recorder.{key}", value)
         finally:
             self.writer.close()
-        recorded = self.totals()[0]
+        totals = self.totals()
         line = (
-            f"recorded {recorded} messages on {len(self.subscribed)} topics to "
-            f"{self.writer.path}; {self.losses()}"
+            f"recorded {totals[0]} messages on {len(self.subscribed)} topics to "
+            f"{self.writer.path}; {self.losses(totals)}"
         )
-        (self.logger.warning if self._anything_missing() else self.logger.info)(line)
+        (self.logger.warning if any(totals[1:]) else self.logger.info)(line)
 
 
 def _image_cdr_problem(data: bytes) -> str | None:

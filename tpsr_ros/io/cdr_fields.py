@@ -43,7 +43,6 @@ from tpsr_ros.io.messages import (
     POSE_TYPE,
     REWARD_TYPE,
     deserialize,
-    header_stamp_ns,
     image_to_array,
     pose_to_xy,
     reward_to_sample,
@@ -57,22 +56,10 @@ __all__ = [
     "RawImageDecoder",
     "RewardDecoder",
     "TwistDecoder",
-    "peek_stamp",
 ]
 
 _ENCAPSULATION = 4  # bytes before the CDR stream; alignment counts from here
 _STAMP_END = 12  # int32 sec, uint32 nanosec of std_msgs/Header right after the encapsulation
-
-
-def peek_stamp(data: bytes) -> int | None:
-    """Header stamp (ns) of CDR bytes that start with a ``std_msgs/Header``, if readable.
-
-    For error messages about a message that could not be decoded.
-    """
-    try:
-        return header_stamp_ns(data)
-    except MessageError:
-        return None
 
 
 class _Walk:

@@ -41,6 +41,7 @@ __all__ = [
     "image_problem",
     "image_to_array",
     "jazzy_typestore",
+    "peek_stamp",
     "pose_msg",
     "pose_to_xy",
     "reward_msg",
@@ -125,6 +126,15 @@ def header_stamp_ns(data: bytes | memoryview) -> int:
     if sec < 0 or nanosec >= _NS:
         raise MessageError(f"header stamp {sec} s {nanosec} ns is not a valid time")
     return sec * _NS + nanosec
+
+
+def peek_stamp(data: bytes | memoryview) -> int | None:
+    """:func:`header_stamp_ns`, or None where the bytes hold no readable stamp (for
+    error messages and for counting, where an unreadable message is handled elsewhere)."""
+    try:
+        return header_stamp_ns(data)
+    except MessageError:
+        return None
 
 
 # Below this many bytes of trailing byte data the generic path is as fast.

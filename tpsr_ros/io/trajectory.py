@@ -48,9 +48,8 @@ from tpsr_ros.io.cdr_fields import (
     PoseDecoder,
     RewardDecoder,
     TwistDecoder,
-    peek_stamp,
 )
-from tpsr_ros.io.messages import ACTION_TYPE, IMAGE_TYPE, POSE_TYPE, REWARD_TYPE
+from tpsr_ros.io.messages import ACTION_TYPE, IMAGE_TYPE, POSE_TYPE, REWARD_TYPE, peek_stamp
 
 __all__ = [
     "DEFAULT_CHUNK_STEPS",
