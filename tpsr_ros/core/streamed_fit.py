@@ -50,6 +50,7 @@ from tpsr_ros.core.episodes import (
     Trajectory,
     episode_starts,
     episodes_at,
+    no_usable_episodes,
 )
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import select_centers
@@ -690,10 +691,7 @@ def fit_tpsr_streamed(
     watch.stage("pass 1: whitening statistics")
     moments = engine.moments(cfg.history_length, cfg.test_length, max_episodes)
     if moments is None:
-        raise DataError(
-            f"no usable episodes: no run of {cfg.history_length + 1 + cfg.test_length} "
-            "consecutive steps in the data"
-        )
+        raise no_usable_episodes(cfg.history_length, cfg.test_length, "the data")
     n_episodes, n_actions = moments.episodes, moments.n_actions
     check_enough_episodes(n_episodes, cfg)
     watch.stage("whitening")
@@ -769,10 +767,7 @@ def fit_pca_streamed(
         total = part if total is None else total.merge(part)
         n_actions = int(episodes.n_actions)
     if total is None:
-        raise DataError(
-            f"no usable episodes: no run of {history_length + 1 + test_length} consecutive "
-            "steps in the data"
-        )
+        raise no_usable_episodes(history_length, test_length, "the data")
     pca = Whitening.from_moments(total, cfg.dim, what="observations")
     return PCAModel(
         config=cfg,
