@@ -36,7 +36,7 @@ from __future__ import annotations
 import dataclasses
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -317,26 +317,32 @@ class WhitenedRows:
     def __len__(self) -> int:
         return int(self.actions.shape[0])
 
+    @classmethod
+    def concatenate(cls, parts: Sequence[WhitenedRows]) -> WhitenedRows:
+        """The rows of ``parts``, one after the other."""
+        return cls(**{
+            name: None if getattr(parts[0], name) is None
+            else np.concatenate([getattr(part, name) for part in parts])
+            for name in _WHITENED_FIELDS
+        })  # fmt: skip
+
     def rows(self, start: int, stop: int) -> WhitenedRows:
         """Rows ``start:stop`` (views)."""
-        part = slice(start, stop)
-        return WhitenedRows(
-            self.history[part],
-            self.test[part],
-            self.observation[part],
-            None if self.test0 is None else self.test0[part],
-            self.actions[part],
-        )
+        return self._map(lambda array: array[start:stop])
 
     def copy(self) -> WhitenedRows:
         """In-memory copy (e.g. to send a block of a memory map to a worker)."""
-        return WhitenedRows(
-            np.array(self.history),
-            np.array(self.test),
-            np.array(self.observation),
-            None if self.test0 is None else np.array(self.test0),
-            np.array(self.actions),
-        )
+        return self._map(np.array)
+
+    def _map(self, function: Callable[[np.ndarray], np.ndarray]) -> WhitenedRows:
+        """``function`` of every array (a missing ``test0`` stays missing)."""
+        return WhitenedRows(**{
+            name: None if (array := getattr(self, name)) is None else function(array)
+            for name in _WHITENED_FIELDS
+        })  # fmt: skip
+
+
+_WHITENED_FIELDS = tuple(field.name for field in dataclasses.fields(WhitenedRows))
 
 
 def whitened_episodes(
@@ -404,14 +410,10 @@ class WhitenedStore:
     def rows(self, start: int = 0, stop: int | None = None) -> WhitenedRows:
         """Return views of episodes ``start:stop``."""
         end = self.n_episodes if stop is None else stop
-        a = self._arrays
-        return WhitenedRows(
-            a["history"][start:end],
-            a["test"][start:end],
-            a["observation"][start:end],
-            a["test0"][start:end] if "test0" in a else None,
-            a["actions"][start:end],
-        )
+        return WhitenedRows(**{
+            name: self._arrays[name][start:end] if name in self._arrays else None
+            for name in _WHITENED_FIELDS
+        })  # fmt: skip
 
     def close(self) -> None:
         """Drop the memory maps and remove the directory."""
