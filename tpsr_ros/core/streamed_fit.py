@@ -53,7 +53,6 @@ from tpsr_ros.core.episodes import (
     no_usable_episodes,
 )
 from tpsr_ros.core.errors import ConfigError, DataError
-from tpsr_ros.core.features import select_centers
 from tpsr_ros.core.moments import Moments
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel
 from tpsr_ros.core.tpsr import (
@@ -66,6 +65,7 @@ from tpsr_ros.core.tpsr import (
     check_action_counts,
     check_enough_episodes,
     ht_features,
+    kernel_centres,
     obs_features,
     p_th_test_window,
     projected_outer,
@@ -438,18 +438,7 @@ class Centres:
 
 def _select_centres(rows: WhitenedRows, cfg: TPSRConfig) -> Centres:
     """Algorithm 2's centres, as the in-memory fit chooses them (same seeds)."""
-    select, seed = cfg.center_selection, cfg.seed
-
-    def pick(data: np.ndarray, count: int, offset: int, what: str) -> np.ndarray:
-        if select == "first":  # only the first rows: no need to read the whole store
-            return select_centers(np.asarray(data[:count]), count, "first", what=what)
-        return select_centers(np.asarray(data), count, select, seed=seed + offset, what=what)
-
-    return Centres(
-        pick(rows.history, cfg.ht_centers, 0, "history"),
-        pick(rows.test, cfg.ht_centers, 1, "test"),
-        pick(rows.observation, cfg.obs_centers, 2, "observation"),
-    )
+    return Centres(*kernel_centres(rows.history, rows.test, rows.observation, cfg))
 
 
 @dataclass(eq=False)
