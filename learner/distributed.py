@@ -200,16 +200,7 @@ def _bag_whitened(
     reader: BagChunks, bag: str, whitenings: Whitenings, cfg: TPSRConfig, limit: int | None
 ) -> WhitenedRows | None:
     parts = list(whitened_episodes(reader.read(bag), whitenings, cfg, limit))
-    if not parts:
-        return None
-    names = ("history", "test", "observation", "test0", "actions")
-    return WhitenedRows(
-        *(
-            None if getattr(parts[0], name) is None
-            else np.concatenate([getattr(p, name) for p in parts])
-            for name in names
-        )
-    )  # fmt: skip
+    return WhitenedRows.concatenate(parts) if parts else None
 
 
 def _count(moments: EpisodeMoments | None) -> int:

@@ -119,6 +119,21 @@ def test_center_selection():
     np.testing.assert_allclose(np.sort(a[:, 0]), [-5, 0, 5], atol=0.1)
 
 
+def test_first_centres_read_only_the_first_rows():
+    # the streamed fit takes them from a memory-mapped store: the rest is never read
+    x = np.full((50, 3), np.nan)
+    x[:7] = np.arange(21.0).reshape(7, 3)
+    centres = select_centers(x, 7, "first")
+    np.testing.assert_array_equal(centres, x[:7])
+    assert not np.shares_memory(centres, x)
+    with pytest.raises(DataError, match="non-finite values"):
+        select_centers(x, 8, "first")
+    with pytest.raises(DataError, match="non-finite values"):
+        select_centers(x, 7, "kmeans")
+    with pytest.raises(DataError, match="cannot choose 60 history kernel centres from only 50"):
+        select_centers(np.zeros((50, 3)), 60, "first", what="history")
+
+
 def test_kmeans_that_would_not_fit_in_memory_is_refused_before_it_starts(monkeypatch):
     import tpsr_ros.core.features as features
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 import csv
 import json
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from cli_support import run_entry
 
+from learner.cli import main as learner_main
 from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, evaluate, run_protocol
 from learner.experiment import default_config, run_cell, run_experiment, summarise
 from learner.floors import BlindTracker, constant_floor, random_floor
@@ -29,17 +29,17 @@ from tpsr_ros.io.policy import Policy
 SMALL_FIT = ["--ht-centers", "150", "--obs-centers", "100"]
 
 
-def _learner(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "learner", *args], capture_output=True, text=True, timeout=300
-    )
-
-
 @pytest.fixture(scope="module")
 def bags(tmp_path_factory):
+    """Training and RL bags, a small TPSR model, a PCA model and the TPSR model's policy."""
     root = tmp_path_factory.mktemp("planning")
     generate_bag(root / "train", SimConfig(environment="full"), 3000, seed=1)
     generate_bag(root / "rl", SimConfig(environment="full"), 4000, seed=2)
+    model, policy = str(root / "model.npz"), str(root / "policy.npz")
+    assert learner_main(["fit", str(root / "train"), "-o", model, *SMALL_FIT]) == 0
+    assert learner_main(["fit", str(root / "train"), "-o", str(root / "pca.npz"),
+                         "--method", "pca"]) == 0
+    assert learner_main(["policy", model, str(root / "rl"), "-o", policy]) == 0
     return root
 
 
@@ -107,31 +107,29 @@ def test_evaluation_follows_the_documented_protocol():
     assert env.step_count == STEPS
 
 
-def test_policy_and_evaluate_commands(bags, tmp_path):
-    model, policy = tmp_path / "model.npz", tmp_path / "policy.npz"
-    assert _learner("fit", str(bags / "train"), "-o", str(model), *SMALL_FIT).returncode == 0
-    result = _learner("policy", str(model), str(bags / "rl"), "-o", str(policy))
-    assert result.returncode == 0, result.stderr
-    result = _learner("evaluate", str(policy), "--environment", "full")
-    assert result.returncode == 0, result.stderr
-    lines = result.stdout.strip().splitlines()
+def test_policy_and_evaluate_commands(bags, capsys):
+    policy, model = bags / "policy.npz", bags / "model.npz"
+    code, out, err = run_entry(["evaluate", str(policy), "--environment", "full"], capsys)
+    assert code == 0, err
+    lines = out.strip().splitlines()
     assert len(lines) == 11 and all(line.startswith("trial") for line in lines[:10])
     score = float(lines[-1].removeprefix("score: "))
     trials = [float(line.split("reward")[1].split()[0]) for line in lines[:10]]
     assert score == pytest.approx(np.mean(trials), abs=0.05)
     # the recorded model path is used when --model is not given; both agree
-    again = _learner("evaluate", str(policy), "--environment", "full", "--model", str(model))
-    assert again.stdout == result.stdout
+    again = run_entry(
+        ["evaluate", str(policy), "--environment", "full", "--model", str(model)], capsys
+    )
+    assert again == (0, out, err)
 
 
-def test_bad_input_to_policy_and_evaluate(bags, tmp_path):
-    model, other = tmp_path / "model.npz", tmp_path / "other.npz"
-    policy = tmp_path / "policy.npz"
-    _learner("fit", str(bags / "train"), "-o", str(model), *SMALL_FIT)
-    _learner("fit", str(bags / "train"), "-o", str(other), "--method", "pca")
-    assert _learner("policy", str(model), str(bags / "rl"), "-o", str(policy)).returncode == 0
+def test_bad_input_to_policy_and_evaluate(bags, tmp_path, capsys):
+    model, policy = tmp_path / "model.npz", tmp_path / "policy.npz"
+    model.write_bytes((bags / "model.npz").read_bytes())
+    code, _, err = run_entry(["policy", str(model), str(bags / "rl"), "-o", str(policy)], capsys)
+    assert code == 0, err
     cases = [
-        (["evaluate", str(policy), "--environment", "full", "--model", str(other)],
+        (["evaluate", str(policy), "--environment", "full", "--model", str(bags / "pca.npz")],
          "trained for model"),
         (["evaluate", str(policy), "--environment", "partial"],
          "trained in environment 'full', not 'partial'"),
@@ -141,12 +139,12 @@ def test_bad_input_to_policy_and_evaluate(bags, tmp_path):
         (["evaluate", str(tmp_path / "missing.npz"), "--environment", "full"], "does not exist"),
     ]
     for args, message in cases:
-        result = _learner(*args)
-        assert result.returncode != 0, args
-        assert message in result.stderr and result.stderr.count("\n") == 1, result.stderr
+        code, _, err = run_entry(args, capsys)
+        assert code != 0, args
+        assert message in err and err.count("\n") == 1, err
     model.rename(tmp_path / "moved.npz")  # the model the policy records is gone
-    result = _learner("evaluate", str(policy), "--environment", "full")
-    assert result.returncode != 0 and "pass --model MODEL" in result.stderr
+    code, _, err = run_entry(["evaluate", str(policy), "--environment", "full"], capsys)
+    assert code != 0 and "pass --model MODEL" in err
 
 
 def _small_grid(**overrides):
@@ -191,18 +189,19 @@ def test_experiment_grid_rows_seeds_and_rerun_of_one_row(tmp_path):
     assert table[("random", 400)]["floor"] == "" and np.isnan(table[("random", 400)]["margin_sem"])
 
 
-def test_experiment_command_writes_csv_and_plot(tmp_path):
+def test_experiment_command_writes_csv_and_plot(tmp_path, capsys):
     out = tmp_path / "results"
     args = ["experiment", "--environment", "full", "--episodes", "300", "--repetitions", "1",
             "--methods", "pca", "true-position", "--rl-steps", "2000", "--workers", "1",
             "-o", str(out)]
-    result = _learner(*args)
-    assert result.returncode == 0, result.stderr
+    code, _, err = run_entry(args, capsys)
+    assert code == 0, err
     with (out / "experiment_full.csv").open() as handle:
         rows = list(csv.DictReader(handle))
     assert [r["method"] for r in rows] == ["pca", "true-position"]
     assert (out / "experiment_full.png").stat().st_size > 10_000
-    assert "already exists" in _learner(*args).stderr
+    code, _, err = run_entry(args, capsys)
+    assert code != 0 and "already exists" in err
 
 
 def test_set_changes_any_fit_or_fitted_q_parameter_and_refuses_bad_ones():
@@ -233,19 +232,21 @@ def test_set_changes_any_fit_or_fitted_q_parameter_and_refuses_bad_ones():
             apply_overrides(configs, [text])
 
 
-def test_experiment_command_set_and_floors(tmp_path):
+def test_experiment_command_set_and_floors(tmp_path, capsys):
     out = tmp_path / "results"
     args = ["experiment", "--environment", "full", "--episodes", "300", "--repetitions", "1",
             "--methods", "constant", "random", "pca", "--set", "pca.dim=3", "--set",
             "fqi.centers=40", "--rl-steps", "2000", "--workers", "1", "-o", str(out)]
-    result = _learner(*args)
-    assert result.returncode == 0, result.stderr
+    code, out_text, err = run_entry(args, capsys)
+    assert code == 0, err
     with (out / "experiment_full.csv").open() as handle:
         rows = list(csv.DictReader(handle))
     assert [r["method"] for r in rows] == ["constant", "random", "pca"]
     assert json.loads(rows[2]["parameters"])["pca"] == {"dim": 3}
     assert json.loads(rows[2]["parameters"])["fqi"]["centers"] == 40
-    assert "over random" in result.stdout or "over constant" in result.stdout
-    bad = _learner("experiment", "--environment", "full", "--set", "rnak=3", "-o", str(out))
-    assert bad.returncode != 0 and bad.stderr.count("\n") == 1
-    assert "unknown --set name 'rnak'" in bad.stderr and "tpsr.rank" in bad.stderr
+    assert "over random" in out_text or "over constant" in out_text
+    code, _, err = run_entry(
+        ["experiment", "--environment", "full", "--set", "rnak=3", "-o", str(out)], capsys
+    )
+    assert code != 0 and err.count("\n") == 1
+    assert "unknown --set name 'rnak'" in err and "tpsr.rank" in err

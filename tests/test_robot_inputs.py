@@ -164,6 +164,7 @@ def test_the_fast_row_pass_equals_the_weight_matrices(shape, size, dtype):
         area_weights(shape[1], size[0]),
         images.astype(np.float64),
         area_weights(shape[2], size[1]),
+        optimize=True,  # the same sums, contracted one axis at a time (5 s -> 0.1 s at 1080p)
     ).reshape(shape[0], -1) / top
     got = preprocess_images(images, Preprocessing(*size, grey=shape[3] == 1))
     np.testing.assert_allclose(got, literal, rtol=0, atol=1e-13)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from learning_fixtures import example_pomdp, one_hot
@@ -10,7 +12,8 @@ from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import DataError
 from tpsr_ros.core.filtering import observation_weights
 from tpsr_ros.core.moments import Moments
-from tpsr_ros.core.streamed_fit import EpisodeCutter, fit_tpsr_streamed
+from tpsr_ros.core.pca_baseline import PCAConfig
+from tpsr_ros.core.streamed_fit import EpisodeCutter, fit_pca_streamed, fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
 from tpsr_ros.core.whitening import Whitening
 
@@ -157,6 +160,19 @@ def test_too_little_data_is_refused_before_the_second_pass(trajectory):
     with pytest.raises(DataError, match="too few for 1000 kernel centres"):
         fit_tpsr_streamed(source, config=TPSRConfig(ht_centers=1000, rank=2), max_episodes=900)
     assert len(calls) == 1
+
+
+def test_data_without_one_whole_episode_are_refused_like_the_in_memory_fit(trajectory):
+    short = chunks_of(trajectory.rows(0, 2), 1)  # 2 steps: no history + current + test run
+    message = re.escape(
+        "no usable episodes: no run of 3 consecutive steps (history 1 + current + test 1)"
+    )
+    with pytest.raises(DataError, match=message + " in 2 steps"):
+        make_episodes(trajectory.rows(0, 2), 1, 1)
+    with pytest.raises(DataError, match=message + " in the data"):
+        fit_tpsr_streamed(short, config=TPSRConfig(**SMALL))
+    with pytest.raises(DataError, match=message + " in the data"):
+        fit_pca_streamed(short, config=PCAConfig(dim=2))
 
 
 def test_streamed_fit_of_a_known_pomdp_predicts_its_observations():

@@ -287,11 +287,18 @@ def make_episodes(
     if max_episodes is not None:
         first = first[:max_episodes]
     if first.size == 0:
-        raise DataError(
-            f"no usable episodes: no run of {span} consecutive steps (history {m} + current + "
-            f"test {n}) in {len(trajectory)} steps ({len(trajectory.segment_bounds())} segments)"
-        )
+        where = f"{len(trajectory)} steps ({len(trajectory.segment_bounds())} segments)"
+        raise no_usable_episodes(m, n, where)
     return episodes_at(trajectory, first, m, n)
+
+
+def no_usable_episodes(history_length: int, test_length: int, where: str) -> DataError:
+    """The error for data with no run of steps long enough for one episode."""
+    span = history_length + 1 + test_length
+    return DataError(
+        f"no usable episodes: no run of {span} consecutive steps (history {history_length} + "
+        f"current + test {test_length}) in {where}"
+    )
 
 
 def episode_starts(trajectory: Trajectory, span: int) -> np.ndarray:

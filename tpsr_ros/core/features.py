@@ -151,18 +151,20 @@ def select_centers(
     ``"first"`` takes the first ``l`` rows (guide section 3.1); ``"kmeans"`` runs k-means
     (k-means++ start, 20 iterations) seeded by ``seed``.
     """
-    x = check_finite_matrix(x, what)
     n_centers = int(n_centers)
     if n_centers < 1:
         raise ConfigError(
             f"the number of {what} kernel centres must be at least 1, not {n_centers}"
         )
+    if method == "first":  # only these rows are read: a memory-mapped store stays on disk
+        x = np.asarray(x)[:n_centers]
+    x = check_finite_matrix(x, what)
     if n_centers > x.shape[0]:
         raise DataError(
             f"cannot choose {n_centers} {what} kernel centres from only {x.shape[0]} episodes"
         )
     if method == "first":
-        return np.array(x[:n_centers])
+        return np.array(x)
     if method == "kmeans":
         need = 8 * n_centers * x.shape[0]  # k-means++ start: a (l, t) distance matrix
         if need > KMEANS_MAX_BYTES:

@@ -36,7 +36,7 @@ from __future__ import annotations
 import dataclasses
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -50,9 +50,9 @@ from tpsr_ros.core.episodes import (
     Trajectory,
     episode_starts,
     episodes_at,
+    no_usable_episodes,
 )
 from tpsr_ros.core.errors import ConfigError, DataError
-from tpsr_ros.core.features import select_centers
 from tpsr_ros.core.moments import Moments
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel
 from tpsr_ros.core.tpsr import (
@@ -65,6 +65,7 @@ from tpsr_ros.core.tpsr import (
     check_action_counts,
     check_enough_episodes,
     ht_features,
+    kernel_centres,
     obs_features,
     p_th_test_window,
     projected_outer,
@@ -316,26 +317,32 @@ class WhitenedRows:
     def __len__(self) -> int:
         return int(self.actions.shape[0])
 
+    @classmethod
+    def concatenate(cls, parts: Sequence[WhitenedRows]) -> WhitenedRows:
+        """The rows of ``parts``, one after the other."""
+        return cls(**{
+            name: None if getattr(parts[0], name) is None
+            else np.concatenate([getattr(part, name) for part in parts])
+            for name in _WHITENED_FIELDS
+        })  # fmt: skip
+
     def rows(self, start: int, stop: int) -> WhitenedRows:
         """Rows ``start:stop`` (views)."""
-        part = slice(start, stop)
-        return WhitenedRows(
-            self.history[part],
-            self.test[part],
-            self.observation[part],
-            None if self.test0 is None else self.test0[part],
-            self.actions[part],
-        )
+        return self._map(lambda array: array[start:stop])
 
     def copy(self) -> WhitenedRows:
         """In-memory copy (e.g. to send a block of a memory map to a worker)."""
-        return WhitenedRows(
-            np.array(self.history),
-            np.array(self.test),
-            np.array(self.observation),
-            None if self.test0 is None else np.array(self.test0),
-            np.array(self.actions),
-        )
+        return self._map(np.array)
+
+    def _map(self, function: Callable[[np.ndarray], np.ndarray]) -> WhitenedRows:
+        """``function`` of every array (a missing ``test0`` stays missing)."""
+        return WhitenedRows(**{
+            name: None if (array := getattr(self, name)) is None else function(array)
+            for name in _WHITENED_FIELDS
+        })  # fmt: skip
+
+
+_WHITENED_FIELDS = tuple(field.name for field in dataclasses.fields(WhitenedRows))
 
 
 def whitened_episodes(
@@ -403,14 +410,10 @@ class WhitenedStore:
     def rows(self, start: int = 0, stop: int | None = None) -> WhitenedRows:
         """Return views of episodes ``start:stop``."""
         end = self.n_episodes if stop is None else stop
-        a = self._arrays
-        return WhitenedRows(
-            a["history"][start:end],
-            a["test"][start:end],
-            a["observation"][start:end],
-            a["test0"][start:end] if "test0" in a else None,
-            a["actions"][start:end],
-        )
+        return WhitenedRows(**{
+            name: self._arrays[name][start:end] if name in self._arrays else None
+            for name in _WHITENED_FIELDS
+        })  # fmt: skip
 
     def close(self) -> None:
         """Drop the memory maps and remove the directory."""
@@ -435,18 +438,7 @@ class Centres:
 
 def _select_centres(rows: WhitenedRows, cfg: TPSRConfig) -> Centres:
     """Algorithm 2's centres, as the in-memory fit chooses them (same seeds)."""
-    select, seed = cfg.center_selection, cfg.seed
-
-    def pick(data: np.ndarray, count: int, offset: int, what: str) -> np.ndarray:
-        if select == "first":  # only the first rows: no need to read the whole store
-            return select_centers(np.asarray(data[:count]), count, "first", what=what)
-        return select_centers(np.asarray(data), count, select, seed=seed + offset, what=what)
-
-    return Centres(
-        pick(rows.history, cfg.ht_centers, 0, "history"),
-        pick(rows.test, cfg.ht_centers, 1, "test"),
-        pick(rows.observation, cfg.obs_centers, 2, "observation"),
-    )
+    return Centres(*kernel_centres(rows.history, rows.test, rows.observation, cfg))
 
 
 @dataclass(eq=False)
@@ -690,10 +682,7 @@ def fit_tpsr_streamed(
     watch.stage("pass 1: whitening statistics")
     moments = engine.moments(cfg.history_length, cfg.test_length, max_episodes)
     if moments is None:
-        raise DataError(
-            f"no usable episodes: no run of {cfg.history_length + 1 + cfg.test_length} "
-            "consecutive steps in the data"
-        )
+        raise no_usable_episodes(cfg.history_length, cfg.test_length, "the data")
     n_episodes, n_actions = moments.episodes, moments.n_actions
     check_enough_episodes(n_episodes, cfg)
     watch.stage("whitening")
@@ -769,10 +758,7 @@ def fit_pca_streamed(
         total = part if total is None else total.merge(part)
         n_actions = int(episodes.n_actions)
     if total is None:
-        raise DataError(
-            f"no usable episodes: no run of {history_length + 1 + test_length} consecutive "
-            "steps in the data"
-        )
+        raise no_usable_episodes(history_length, test_length, "the data")
     pca = Whitening.from_moments(total, cfg.dim, what="observations")
     return PCAModel(
         config=cfg,

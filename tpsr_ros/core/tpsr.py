@@ -517,22 +517,33 @@ def check_enough_episodes(n_episodes: int, cfg: TPSRConfig) -> None:
         )
 
 
+def kernel_centres(
+    history: np.ndarray, test: np.ndarray, observation: np.ndarray, cfg: TPSRConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Algorithm 2, centres: ``l^H``, ``l^T`` and ``l^O`` of the whitened episodes' rows.
+
+    Shared by the in-memory and the streamed fit, so both choose the same centres (the
+    k-means seeds are ``seed``, ``seed + 1``, ``seed + 2``).
+    """
+    select = cfg.center_selection
+    return (
+        select_centers(history, cfg.ht_centers, select, seed=cfg.seed, what="history"),
+        select_centers(test, cfg.ht_centers, select, seed=cfg.seed + 1, what="test"),
+        select_centers(observation, cfg.obs_centers, select, seed=cfg.seed + 2, what="observation"),
+    )
+
+
 def _kernel_centres(
     white: _Whitened, cfg: TPSRConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, slice]:
-    """Algorithm 2, centres: ``l^H``, ``l^T`` and ``l^O`` of them, and the training rows.
+    """The kernel centres and the training rows.
 
     'first' centres are the first episodes, which then do not train (``t = |E| - max l``).
     """
-    select = cfg.center_selection
-    c_h = select_centers(white.h_white, cfg.ht_centers, select, seed=cfg.seed, what="history")
-    c_t = select_centers(white.t_white, cfg.ht_centers, select, seed=cfg.seed + 1, what="test")
-    c_o = select_centers(
-        white.o_white, cfg.obs_centers, select, seed=cfg.seed + 2, what="observation"
-    )
+    centres = kernel_centres(white.h_white, white.t_white, white.o_white, cfg)
     n_centres = max(cfg.ht_centers, cfg.obs_centers)
-    train = slice(n_centres, None) if select == "first" else slice(None)
-    return c_h, c_t, c_o, train
+    train = slice(n_centres, None) if cfg.center_selection == "first" else slice(None)
+    return (*centres, train)
 
 
 def _features(
