@@ -12,7 +12,7 @@ from test_tpsr import SMALL
 from tpsr_ros.core import filtering
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.online import OnlineTracker
-from tpsr_ros.core.state_box import episode_states
+from tpsr_ros.core.state_box import BOX_EPISODES, box_episodes, episode_states
 from tpsr_ros.core.streamed_fit import fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr
 from tpsr_ros.core.units import STEP_NS
@@ -115,3 +115,11 @@ def test_bad_settings_are_refused(fitted):
         fit_tpsr(h, o, a, t, n_actions=3, config=cfg)
     with pytest.raises(ConfigError, match="streamed fit does not support the state box"):
         fit_tpsr_streamed([], config=cfg)
+
+
+def test_large_training_sets_set_the_box_from_evenly_spread_episodes():
+    np.testing.assert_array_equal(box_episodes(7), np.arange(7))
+    rows = box_episodes(11538)
+    assert len(np.unique(rows)) == BOX_EPISODES and rows[0] == 0 and rows[-1] == 11537
+    gaps = np.diff(rows)
+    assert gaps.min() >= 2 and gaps.max() <= 3  # 11538 / 4000 = 2.9 apart

@@ -5,7 +5,10 @@ over every training episode's history and current pair, from ``b_*`` (``m + 1`` 
 vectorised over the episodes, with the normaliser guard of :mod:`tpsr_ros.core.filtering`),
 and keeps the ``q`` and ``1 - q`` quantiles of each coordinate of the final states: the
 region where the operators were fitted. The filter clips every state into it (see the
-module docstring of :mod:`tpsr_ros.core.filtering` for why and what was measured).
+module docstring of :mod:`tpsr_ros.core.filtering` for why and what was measured). At most
+:data:`BOX_EPISODES` episodes, evenly spread over the training set, are tracked: the
+quantiles of 4000 states are known to one standard error of 0.0035 in probability at
+``q = 0.05``, and all 11538 episodes of the memory setting took 1.3 s of a 10 s fit.
 """
 
 from __future__ import annotations
@@ -20,7 +23,10 @@ from tpsr_ros.core.filtering import (
     update_matrices,
 )
 
-__all__ = ["episode_states", "state_box"]
+__all__ = ["BOX_EPISODES", "box_episodes", "episode_states", "state_box"]
+
+BOX_EPISODES = 4000
+"""Most training episodes whose states set the box."""
 
 
 def _normalised_batch(v: np.ndarray, b_inf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -58,6 +64,13 @@ def episode_states(
         restarted[~valid_restart] = b_star
         states = np.where(valid[:, None], new, restarted)
     return states
+
+
+def box_episodes(n_episodes: int) -> np.ndarray:
+    """Indices of the episodes that set the box: all, or :data:`BOX_EPISODES` evenly spread."""
+    if n_episodes <= BOX_EPISODES:
+        return np.arange(n_episodes)
+    return np.linspace(0, n_episodes - 1, BOX_EPISODES).round().astype(np.int64)
 
 
 def state_box(states: np.ndarray, quantile: float) -> np.ndarray:

@@ -53,7 +53,7 @@ from tpsr_ros.core.action_features import join_actions, standardised_codes
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import CONSTANT_SCALE, rbf_features, select_centers
 from tpsr_ros.core.fields import option as _param
-from tpsr_ros.core.state_box import episode_states, state_box
+from tpsr_ros.core.state_box import box_episodes, episode_states, state_box
 from tpsr_ros.core.state_model import Track, UpdateInfo
 from tpsr_ros.core.whitening import Whitening, check_finite_matrix, flip_signs, single_blas_thread
 
@@ -794,7 +794,10 @@ def fit_tpsr(
         )
     watch = Stopwatch(progress)
     watch.stage("state box")
-    states = episode_states(model, history, history_actions, action, observation)
+    rows = box_episodes(len(action))
+    states = episode_states(
+        model, history[rows], history_actions[rows], action[rows], observation[rows]
+    )
     box = state_box(states, cfg.state_clip_quantile)
     watch.stop()
     model.fit_info["timings"].update({k: round(v, 6) for k, v in watch.timings.items()})
