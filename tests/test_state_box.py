@@ -10,7 +10,7 @@ from test_model_io import rewrite
 from test_tpsr import SMALL
 
 from tpsr_ros.core import filtering
-from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.online import OnlineTracker
 from tpsr_ros.core.state_box import BOX_EPISODES, box_episodes, episode_states
 from tpsr_ros.core.streamed_fit import fit_tpsr_streamed
@@ -113,6 +113,10 @@ def test_bad_settings_are_refused(fitted):
     cfg = dataclasses.replace(SMALL, state_clip_quantile=QUANTILE)
     with pytest.raises(ConfigError, match="needs the history actions"):
         fit_tpsr(h, o, a, t, n_actions=3, config=cfg)
+    with pytest.raises(DataError, match=r"must lie in 0 \.\. 2"):
+        fit_tpsr(h, o, a, t, n_actions=3, config=cfg, history_actions=np.full((400, 1), 3))
+    with pytest.raises(DataError, match="not integer indices of 400 episodes of 1"):
+        fit_tpsr(h, o, a, t, n_actions=3, config=cfg, history_actions=np.zeros((400, 2), int))
     with pytest.raises(ConfigError, match="streamed fit does not support the state box"):
         fit_tpsr_streamed([], config=cfg)
 

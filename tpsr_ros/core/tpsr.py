@@ -749,6 +749,7 @@ def fit_tpsr(
     history, observation, action, test = _check_data(
         history, observation, action, test, n_actions, cfg
     )
+    box_actions = _state_box_actions(history_actions, len(action), n_actions, cfg)
     step_actions = None
     if cfg.uses_actions:
         step_actions = StepActions(
@@ -782,26 +783,37 @@ def fit_tpsr(
         unclipped, (white.history, white.test, white.obs), c_o, (b_star, b_inf, big_b), s_all,
         fit_info,
     )
-    if cfg.state_clip_quantile == 0:
+    if box_actions is None:
         return model
-    if history_actions is None:
-        raise ConfigError("state_clip_quantile > 0 needs the history actions of the episodes")
-    history_actions = np.asarray(history_actions)
-    if history_actions.shape != (len(action), cfg.history_length):
-        raise DataError(
-            f"history actions of shape {history_actions.shape} do not match "
-            f"{len(action)} episodes of {cfg.history_length} history steps"
-        )
     watch = Stopwatch(progress)
     watch.stage("state box")
     rows = box_episodes(len(action))
     states = episode_states(
-        model, history[rows], history_actions[rows], action[rows], observation[rows]
+        model, history[rows], box_actions[rows], action[rows], observation[rows]
     )
     box = state_box(states, cfg.state_clip_quantile)
     watch.stop()
     model.fit_info["timings"].update({k: round(v, 6) for k, v in watch.timings.items()})
     return replace(model, config=cfg, state_box=box)
+
+
+def _state_box_actions(
+    history_actions: np.ndarray | None, n_episodes: int, n_actions: int, cfg: TPSRConfig
+) -> np.ndarray | None:
+    """The history actions the state box is tracked with (checked before the fit), or None."""
+    if cfg.state_clip_quantile == 0:
+        return None
+    if history_actions is None:
+        raise ConfigError("state_clip_quantile > 0 needs the history actions of the episodes")
+    acts = np.asarray(history_actions)
+    if acts.shape != (n_episodes, cfg.history_length) or acts.dtype.kind not in "iu":
+        raise DataError(
+            f"history actions of shape {acts.shape} and dtype {acts.dtype} are not integer "
+            f"indices of {n_episodes} episodes of {cfg.history_length} history steps"
+        )
+    if acts.size and (acts.min() < 0 or acts.max() >= n_actions):
+        raise DataError(f"history action indices must lie in 0 .. {n_actions - 1}")
+    return acts
 
 
 def assemble_model(
