@@ -118,3 +118,10 @@ def test_wide_data_take_the_lanczos_path_with_the_dense_result():
     np.testing.assert_allclose(wide.components_, expected, atol=1e-8)
     white = wide.transform(x)
     np.testing.assert_allclose(np.cov(white, rowvar=False), np.eye(12), atol=1e-8)
+
+
+def test_fit_transform_equals_fit_then_transform_bit_for_bit():
+    x, _, _ = planted(n=500, seed=3)
+    fitted, white = Whitening.fit_transform(x, 4)
+    np.testing.assert_array_equal(white, Whitening.fit(x, 4).transform(x))
+    np.testing.assert_array_equal(white, fitted.transform(x))

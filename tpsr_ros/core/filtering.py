@@ -34,6 +34,18 @@ degenerate prediction, so keeping it would ignore the new observation and fail a
 next step; restarting from the stationary state ``b_*`` and applying the current pair
 re-localises at once when observations are informative, and otherwise forgets a past that
 the guide found TPSRs remember for only a few steps anyway (section 4.4).
+
+The state box (optional)
+------------------------
+A model fitted with ``state_clip_quantile > 0`` carries ``state_box`` (``(2, r)``: low and
+high bounds per state coordinate, quantiles of the states of its training episodes; see
+:mod:`tpsr_ros.core.state_box`). Every new state is then clipped into that box. Measured on
+``partial`` (rank 10, action-aware histories and tests of 4 and 8): every restart had a
+*negative* normaliser (cosine -0.86 to -0.002), and half of the states just before a restart
+lay outside the 1-99 % box of the valid states (8 % of all states), i.e. the filter drifts
+out of the region where its operators were fitted before it fails. The update is invariant
+to the scale of the state, so clipping changes the direction of the next update only where
+the state had left the box. Without ``state_box`` (the default) nothing is clipped.
 """
 
 from __future__ import annotations
@@ -84,6 +96,8 @@ class FilterParameters(Protocol):
     @property
     def B(self) -> np.ndarray: ...
     @property
+    def state_box(self) -> np.ndarray | None: ...
+    @property
     def state_dim(self) -> int: ...
     @property
     def n_actions(self) -> int: ...
@@ -129,13 +143,21 @@ def _normalise(
 
 
 def _step(
-    b_ao: np.ndarray, state: np.ndarray, b_star: np.ndarray, b_inf: np.ndarray
+    b_ao: np.ndarray,
+    state: np.ndarray,
+    b_star: np.ndarray,
+    b_inf: np.ndarray,
+    box: np.ndarray | None,
 ) -> tuple[np.ndarray, float, bool]:
     new, z = _normalise(b_ao, state, b_inf)
-    if new is not None:
-        return new, z, False
-    restarted, _ = _normalise(b_ao, b_star, b_inf)
-    return (restarted if restarted is not None else b_star.copy()), z, True
+    recovered = new is None
+    if new is None:
+        new, _ = _normalise(b_ao, b_star, b_inf)
+        if new is None:
+            new = b_star.copy()
+    if box is not None:
+        new = np.clip(new, box[0], box[1])
+    return new, z, recovered
 
 
 def _check_state(model: FilterParameters, state: np.ndarray) -> np.ndarray:
@@ -158,7 +180,7 @@ def update(
     actions = check_actions(np.asarray([action]), model.n_actions, 1)
     weights = observation_weights(model, np.asarray(observation, dtype=np.float64)[None, :])
     b_ao = update_matrices(model, actions, weights)[0]
-    new, z, recovered = _step(b_ao, state, model.b_star, model.b_inf)
+    new, z, recovered = _step(b_ao, state, model.b_star, model.b_inf, model.state_box)
     return new, UpdateInfo(normalizer=z, recovered=recovered)
 
 
@@ -182,8 +204,8 @@ def track(
     states = np.empty((n_steps, r))
     normalizers = np.empty(n_steps)
     recovered = np.zeros(n_steps, dtype=bool)
-    b_star, b_inf = model.b_star, model.b_inf
+    b_star, b_inf, box = model.b_star, model.b_inf, model.state_box
     for s in range(n_steps):
-        state, normalizers[s], recovered[s] = _step(b_aos[s], state, b_star, b_inf)
+        state, normalizers[s], recovered[s] = _step(b_aos[s], state, b_star, b_inf, box)
         states[s] = state
     return Track(states=states, normalizers=normalizers, recovered=recovered)

@@ -677,6 +677,11 @@ def fit_tpsr_streamed(
             "the streamed fit does not support action-aware features (history_action_weight, "
             "test_action_weight); fit in memory instead"
         )
+    if cfg.state_clip_quantile > 0:
+        raise ConfigError(
+            "the streamed fit does not support the state box (state_clip_quantile > 0); "
+            "fit in memory instead"
+        )
     engine: StreamEngine = source if hasattr(source, "moments") else ChunkEngine(source)  # type: ignore[arg-type,assignment]
     watch = Stopwatch(progress)
     watch.stage("pass 1: whitening statistics")

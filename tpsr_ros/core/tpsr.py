@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
@@ -53,6 +53,7 @@ from tpsr_ros.core.action_features import join_actions, standardised_codes
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import CONSTANT_SCALE, rbf_features, select_centers
 from tpsr_ros.core.fields import option as _param
+from tpsr_ros.core.state_box import box_episodes, episode_states, state_box
 from tpsr_ros.core.state_model import Track, UpdateInfo
 from tpsr_ros.core.whitening import Whitening, check_finite_matrix, flip_signs, single_blas_thread
 
@@ -115,6 +116,11 @@ class TPSRConfig:
     test_action_weight: float = _param(
         0.0, "weight of each test step's action code joined to its observations (0: the guide)"
     )
+    state_clip_quantile: float = _param(
+        0.0,
+        "clip every tracked state into the [q, 1 - q] quantiles of its training episodes' "
+        "states (0: no clipping, the guide; see tpsr_ros.core.state_box)",
+    )
     seed: int = _param(0, "seed of k-means and of the SVD start vector")
 
     def __post_init__(self) -> None:
@@ -156,6 +162,13 @@ class TPSRConfig:
             raise ConfigError(
                 f"normalize_ht_features must be true or false, not {self.normalize_ht_features!r}"
             )
+        q = self.state_clip_quantile
+        if (
+            isinstance(q, bool)
+            or not isinstance(q, (int, float, np.floating))
+            or not (q == 0 or 0 < q < 0.5)
+        ):
+            raise ConfigError(f"state_clip_quantile must be 0 or in (0, 0.5), not {q!r}")
         if (
             isinstance(self.seed, bool)
             or not isinstance(self.seed, (int, np.integer))
@@ -245,6 +258,8 @@ class TPSRModel:
         explained_variance: whitening explained-variance ratios, keys ``obs``, ``history``,
             ``test``, each ``(d,)``.
         fit_info: JSON-serialisable diagnostics (sample counts, timings in seconds).
+        state_box: ``(2, r)`` low and high bound of every state coordinate, or None (no
+            clipping); present exactly when ``config.state_clip_quantile > 0``.
 
     """
 
@@ -260,6 +275,7 @@ class TPSRModel:
     singular_values: np.ndarray
     explained_variance: dict[str, np.ndarray]
     fit_info: dict[str, Any] = field(default_factory=dict)
+    state_box: np.ndarray | None = None
 
     ARRAY_NAMES: ClassVar[tuple[str, ...]] = (
         "obs_mean",
@@ -290,6 +306,19 @@ class TPSRModel:
             arr = getattr(self, name)
             if arr.shape != shape:
                 raise DataError(f"TPSR array {name} has shape {arr.shape}, expected {shape}")
+        clipped = self.config.state_clip_quantile > 0
+        if clipped != (self.state_box is not None):
+            raise DataError(
+                "TPSR state_box must be present exactly when state_clip_quantile > 0 "
+                f"(state_clip_quantile {self.config.state_clip_quantile})"
+            )
+        if self.state_box is not None and (
+            self.state_box.shape != (2, r) or not (self.state_box[0] <= self.state_box[1]).all()
+        ):
+            raise DataError(
+                f"TPSR state_box has shape {self.state_box.shape} or low above high bounds, "
+                f"expected (2, {r}) low <= high"
+            )
         if self.singular_values.ndim != 1 or self.singular_values.shape[0] < r:
             raise DataError(
                 f"TPSR singular_values has shape {self.singular_values.shape}, expected at "
@@ -352,6 +381,8 @@ class TPSRModel:
         }
         for key in ("obs", "history", "test"):
             arrays[f"explained_variance_{key}"] = self.explained_variance[key]
+        if self.state_box is not None:
+            arrays["state_box"] = self.state_box
         return arrays
 
     @classmethod
@@ -376,6 +407,7 @@ class TPSRModel:
                 key: arrays[f"explained_variance_{key}"] for key in ("obs", "history", "test")
             },
             fit_info=info,
+            state_box=arrays.get("state_box"),
         )
 
 
@@ -728,6 +760,7 @@ def fit_tpsr(
     history, observation, action, test = _check_data(
         history, observation, action, test, n_actions, cfg
     )
+    box_actions = _state_box_actions(history_actions, len(action), n_actions, cfg)
     step_actions = None
     if cfg.uses_actions:
         step_actions = StepActions(
@@ -756,9 +789,42 @@ def fit_tpsr(
         "usable_singular_values": usable,
         "timings": {name: round(sec, 6) for name, sec in watch.timings.items()},
     }
-    return assemble_model(
-        cfg, (white.history, white.test, white.obs), c_o, (b_star, b_inf, big_b), s_all, fit_info
+    unclipped = replace(cfg, state_clip_quantile=0.0)
+    model = assemble_model(
+        unclipped, (white.history, white.test, white.obs), c_o, (b_star, b_inf, big_b), s_all,
+        fit_info,
     )
+    if box_actions is None:
+        return model
+    watch = Stopwatch(progress)
+    watch.stage("state box")
+    rows = box_episodes(len(action))
+    states = episode_states(
+        model, history[rows], box_actions[rows], action[rows], observation[rows]
+    )
+    box = state_box(states, cfg.state_clip_quantile)
+    watch.stop()
+    model.fit_info["timings"].update({k: round(v, 6) for k, v in watch.timings.items()})
+    return replace(model, config=cfg, state_box=box)
+
+
+def _state_box_actions(
+    history_actions: np.ndarray | None, n_episodes: int, n_actions: int, cfg: TPSRConfig
+) -> np.ndarray | None:
+    """The history actions the state box is tracked with (checked before the fit), or None."""
+    if cfg.state_clip_quantile == 0:
+        return None
+    if history_actions is None:
+        raise ConfigError("state_clip_quantile > 0 needs the history actions of the episodes")
+    acts = np.asarray(history_actions)
+    if acts.shape != (n_episodes, cfg.history_length) or acts.dtype.kind not in "iu":
+        raise DataError(
+            f"history actions of shape {acts.shape} and dtype {acts.dtype} are not integer "
+            f"indices of {n_episodes} episodes of {cfg.history_length} history steps"
+        )
+    if acts.size and (acts.min() < 0 or acts.max() >= n_actions):
+        raise DataError(f"history action indices must lie in 0 .. {n_actions - 1}")
+    return acts
 
 
 def assemble_model(

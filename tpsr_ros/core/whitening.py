@@ -175,12 +175,20 @@ class Whitening:
 
         ``what`` names the data in error messages (e.g. ``"history observations"``).
         """
+        return cls._fit_centred(x, n_components, what)[0]
+
+    @classmethod
+    def _fit_centred(
+        cls, x: np.ndarray, n_components: int, what: str
+    ) -> tuple[Whitening, np.ndarray]:
+        """:meth:`fit`, also returning the centred rows ``x - mean`` it computed."""
         x = check_finite_matrix(x, what)
         n, b = x.shape
         d = _check_dimensions(n, b, n_components, what)
         mean = x.mean(axis=0)
-        values, vectors, total = top_eigenpairs(x - mean, d)
-        return cls._from_eigenpairs(mean, values, vectors, total, n, what)
+        centred = x - mean
+        values, vectors, total = top_eigenpairs(centred, d)
+        return cls._from_eigenpairs(mean, values, vectors, total, n, what), centred
 
     @classmethod
     def from_moments(cls, moments: Moments, n_components: int, *, what: str = "data") -> Whitening:
@@ -242,6 +250,11 @@ class Whitening:
     def fit_transform(
         cls, x: np.ndarray, n_components: int, *, what: str = "data"
     ) -> tuple[Whitening, np.ndarray]:
-        """Fit on ``x`` and return the transform with the whitened ``x`` (``(r, d)``)."""
-        fitted = cls.fit(x, n_components, what=what)
-        return fitted, fitted.transform(x)
+        """Fit on ``x`` and return the transform with the whitened ``x`` (``(r, d)``).
+
+        Equal, bit for bit, to ``fit`` then ``transform``, without centring ``x`` twice (a
+        copy of the data: 570 MB for the tests of 8 images of the memory setting).
+        """
+        fitted, centred = cls._fit_centred(x, n_components, what)
+        white: np.ndarray = centred @ fitted.matrix_
+        return fitted, white

@@ -175,7 +175,7 @@ def _expected_shapes(path: Path, metadata: dict[str, Any]) -> dict[str, ShapeRul
     r, d_o, d_ht, l_o = (
         metadata_size(path, parameters, key) for key in ("rank", "obs_dim", "ht_dim", "obs_centers")
     )
-    return {
+    shapes: dict[str, ShapeRule] = {
         "obs_mean": (k,),
         "obs_whitening": (k, d_o),
         "obs_centers": (l_o, d_o),
@@ -187,6 +187,10 @@ def _expected_shapes(path: Path, metadata: dict[str, Any]) -> dict[str, ShapeRul
         "explained_variance_history": (d_ht,),
         "explained_variance_test": (d_ht,),
     }
+    clip = parameters.get("state_clip_quantile", 0)
+    if isinstance(clip, (int, float)) and not isinstance(clip, bool) and clip > 0:
+        shapes["state_box"] = (2, r)
+    return shapes
 
 
 def _check_metadata(path: Path, metadata: dict[str, Any]) -> str:
