@@ -38,7 +38,7 @@ from tqdm import tqdm
 from learner.evaluate import Evaluation, evaluate
 from learner.floors import CONSTANT, FLOORS, RANDOM, constant_floor, random_floor
 from learner.overrides import apply_overrides
-from learner.planning import transitions
+from learner.planning import fit_q_on
 from learner.plots import affine_r2
 from learner.representations import ModelTracker, Tracker, TruePositionTracker
 from learner.simulated import random_trajectory
@@ -46,7 +46,7 @@ from sim_node import Environment
 from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError, DataError, TpsrError
-from tpsr_ros.core.fqi import FQIConfig, fit_q
+from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.pca_baseline import PCAConfig, fit_pca
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
 from tpsr_ros.io.model_io import model_fingerprint
@@ -151,11 +151,10 @@ def _plan_and_score(
     config: ExperimentConfig, tracker: Tracker, rl: Trajectory, states: np.ndarray
 ) -> tuple[float, str, float, str]:
     """Fitted Q on the tracked RL states (retrying a divergence), then the standard score."""
-    s, a, r, s_next = transitions(states, rl)
     fqi = config.fqi
     while True:
         try:
-            q = fit_q(s, a, r, s_next, rl.n_actions, fqi)
+            q, _ = fit_q_on(states, rl, fqi)
             break
         except DataError:
             if fqi.ridge * 10 > MAX_RIDGE:

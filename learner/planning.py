@@ -17,19 +17,20 @@ from typing import Any
 
 import numpy as np
 
+from learner.criterion import CriterionConfig, ObservationFeatures, future_targets
 from learner.fit import add_config_options, add_topic_options, config_from_args, topics_from_args
 from learner.representations import Tracker, load_tracker
 from learner.streams import read_for_model
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import DataError
-from tpsr_ros.core.fqi import FQIConfig, fit_q
+from tpsr_ros.core.fqi import FQIConfig, QFunction, fit_q
 from tpsr_ros.io.model_io import read_metadata
 from tpsr_ros.io.npz_archive import check_output_path
 from tpsr_ros.io.policy import TRUE_POSITION, Policy, save_policy
 from tpsr_ros.io.trajectory import read_trajectory
 
-__all__ = ["fit_policy", "register", "run", "transitions"]
+__all__ = ["fit_policy", "fit_q_on", "future_pairs", "register", "run", "transitions"]
 
 
 def transitions(
@@ -48,6 +49,30 @@ def transitions(
     return states[current], trajectory.actions[following], rewards, states[following]
 
 
+def future_pairs(states: np.ndarray, trajectory: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+    """States paired with the principal components of the observations that followed them.
+
+    For ``fqi.state_scaling=predictive``: the targets of ``learner tune``'s criterion
+    (the top 10 components of the trajectory's observations at each of the next 10 steps,
+    within a segment), so the planner weighs state directions by what they predict.
+    """
+    criterion = CriterionConfig()
+    pca = ObservationFeatures.fit(trajectory.observations, criterion.feature_dim)
+    targets, valid = future_targets(
+        pca.transform(trajectory.observations), trajectory.segments, criterion.horizons
+    )
+    return states[valid], targets[valid].reshape(int(valid.sum()), -1)
+
+
+def fit_q_on(
+    states: np.ndarray, trajectory: Trajectory, config: FQIConfig
+) -> tuple[QFunction, int]:
+    """Fitted Q on the transitions of ``states`` tracked over ``trajectory``, and their number."""
+    s, a, r, s_next = transitions(states, trajectory)
+    futures = future_pairs(states, trajectory) if config.state_scaling == "predictive" else None
+    return fit_q(s, a, r, s_next, trajectory.n_actions, config, futures=futures), len(a)
+
+
 def fit_policy(
     tracker: Tracker,
     trajectory: Trajectory,
@@ -60,8 +85,7 @@ def fit_policy(
     start = time.perf_counter()
     states = tracker.track(trajectory)
     tracked = time.perf_counter()
-    s, a, r, s_next = transitions(states, trajectory)
-    q = fit_q(s, a, r, s_next, trajectory.n_actions, config)
+    q, n_transitions = fit_q_on(states, trajectory, config)
     done = time.perf_counter()
     return Policy(
         q=q,
@@ -71,7 +95,7 @@ def fit_policy(
         metadata={
             "model_path": model_path,
             "fqi": config.to_dict(),
-            "data": {**trajectory.summary(), "transitions": len(a)},
+            "data": {**trajectory.summary(), "transitions": n_transitions},
             "timing_s": {"tracking": tracked - start, "fitted_q": done - tracked},
         },
     )

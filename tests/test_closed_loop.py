@@ -147,10 +147,18 @@ def test_a_crashed_node_stops_the_run_and_leaves_no_process(trained, tmp_path):
 
 
 def test_timeouts_and_refusals_leave_no_process(trained, tmp_path):
+    said: list[str] = []
     with pytest.raises(ClosedLoopError, match=r"timed out after 0\.01 s"):
         run_closed_loop(
-            trained / "policy.npz", "full", model_path=trained / "model.npz", timeout_s=0.01
+            trained / "policy.npz",
+            "full",
+            model_path=trained / "model.npz",
+            log_dir=tmp_path / "logs",  # a failed run keeps its logs: here, not in /tmp
+            timeout_s=0.01,
+            say=said.append,
         )
+    assert f"node logs kept in {tmp_path / 'logs'}" in said
+    assert (tmp_path / "logs" / "sim_node.log").is_file()
     deadline = time.monotonic() + 5
     while _children_of_this_process() and time.monotonic() < deadline:
         time.sleep(0.05)

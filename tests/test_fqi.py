@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -118,6 +120,41 @@ def test_whitened_planner_units_are_white_and_invariant_to_a_linear_map():
     assert np.allclose(mixed.values(probe @ mix), plain.values(probe), atol=1e-6)
     standardised = fit_q(s @ mix, a, r, s_next @ mix, 3, FQIConfig(centers=15, ridge=0.1))
     assert not np.allclose(standardised.values(probe @ mix), plain.values(probe), atol=1e-6)
+
+
+def test_predictive_units_shrink_a_direction_that_predicts_nothing():
+    """Distances in predictive units are distances between predicted futures."""
+    s, a, r, s_next = _plane_world()
+    noise = np.random.default_rng(7).normal(0.0, 5.0, size=(len(s), 1))  # widest, predicts nothing
+    noisy, noisy_next = np.hstack([s, noise]), np.hstack([s_next, np.roll(noise, 1)])
+    futures = (noisy, s_next)  # what followed each state: where it moved
+    config = FQIConfig(centers=15, ridge=0.1, state_scaling="predictive")
+    q = fit_q(noisy, a, r, noisy_next, 3, config, futures=futures)
+    probe = np.random.default_rng(6).uniform(-2, 2, size=(40, 2))
+    low, high = (np.hstack([probe, np.full((40, 1), v)]) for v in (-10.0, 10.0))
+    spread = np.linalg.norm(q.planner_units(noisy) - q.planner_units(noisy).mean(axis=0), axis=1)
+    shift = np.linalg.norm(q.planner_units(high) - q.planner_units(low), axis=1)
+    assert shift.max() < 0.05 * np.median(spread)  # four noise SDs apart: the same units
+    assert np.allclose(q.values(high), q.values(low), atol=0.05 * np.abs(q.values(low)).max())
+    whiten = dataclasses.replace(config, state_scaling="whiten")
+    whitened = fit_q(noisy, a, r, noisy_next, 3, whiten)
+    apart = whitened.planner_units(high) - whitened.planner_units(low)
+    assert np.linalg.norm(apart, axis=1).min() > 3  # whitening: as far apart as any two states
+    # like whitening, blind to an invertible linear map of the states
+    mix = np.array([[3.0, 0.2, 0.0], [-1.0, 0.05, 0.0], [0.0, 1.0, 10.0]])
+    mixed = fit_q(noisy @ mix, a, r, noisy_next @ mix, 3, config, futures=(noisy @ mix, s_next))
+    assert np.allclose(mixed.values(low @ mix), q.values(low), atol=1e-6)
+
+
+def test_the_predictive_scaling_needs_what_followed_the_states():
+    s, a, r, s_next = _plane_world()
+    config = FQIConfig(centers=15, state_scaling="predictive")
+    with pytest.raises(ConfigError, match="needs the features of what followed the states"):
+        fit_q(s, a, r, s_next, 3, config)
+    with pytest.raises(DataError, match=r"futures must pair states \(n, 2\)"):
+        fit_q(s, a, r, s_next, 3, config, futures=(s[:, :1], s_next))
+    with pytest.raises(DataError, match="predict nothing"):
+        fit_q(s, a, r, s_next, 3, config, futures=(s, np.ones((len(s), 2))))
 
 
 def test_new_planner_options_are_checked():

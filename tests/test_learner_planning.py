@@ -15,8 +15,8 @@ from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, evaluate, 
 from learner.experiment import default_config, run_cell, run_experiment, summarise
 from learner.floors import BlindTracker, constant_floor, random_floor
 from learner.overrides import apply_overrides
-from learner.planning import fit_policy, transitions
-from learner.representations import TruePositionTracker
+from learner.planning import fit_policy, fit_q_on, future_pairs, transitions
+from learner.representations import TruePositionTracker, load_tracker
 from learner.simulated import random_trajectory
 from sim_node import RobotEnv, SimConfig, action_index
 from sim_node.generate import generate_bag
@@ -24,7 +24,8 @@ from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.pca_baseline import PCAConfig
 from tpsr_ros.core.tpsr import TPSRConfig
-from tpsr_ros.io.policy import Policy
+from tpsr_ros.io.policy import Policy, load_policy
+from tpsr_ros.io.trajectory import read_trajectory
 
 SMALL_FIT = ["--ht-centers", "150", "--obs-centers", "100"]
 
@@ -121,6 +122,25 @@ def test_policy_and_evaluate_commands(bags, capsys):
         ["evaluate", str(policy), "--environment", "full", "--model", str(model)], capsys
     )
     assert again == (0, out, err)
+
+
+def test_a_policy_planned_in_predictive_units(bags, tmp_path, capsys):
+    policy = tmp_path / "policy.npz"
+    args = ["policy", str(bags / "model.npz"), str(bags / "rl"), "-o", str(policy)]
+    code, _, err = run_entry([*args, "--state-scaling", "predictive", "--centers", "40"], capsys)
+    assert code == 0, err
+    loaded = load_policy(policy)
+    assert loaded.metadata["fqi"]["state_scaling"] == "predictive"
+    trajectory = read_trajectory([bags / "rl"])
+    states = load_tracker(str(bags / "model.npz")).track(trajectory)
+    past, future = future_pairs(states, trajectory)
+    assert len(past) == len(future) and future.shape[1] == 10 * 10  # 10 components, 10 steps
+    config = FQIConfig(state_scaling="predictive", centers=40)
+    q, n_transitions = fit_q_on(states, trajectory, config)
+    assert n_transitions == loaded.metadata["data"]["transitions"]
+    np.testing.assert_allclose(q.values(states[:50]), loaded.q.values(states[:50]), atol=1e-9)
+    code, out, err = run_entry(["evaluate", str(policy), "--environment", "full"], capsys)
+    assert code == 0 and out.splitlines()[-1].startswith("score: "), err
 
 
 def test_bad_input_to_policy_and_evaluate(bags, tmp_path, capsys):

@@ -4,7 +4,10 @@ The planner of Jonschkowski & Brock (2015), as the guide uses it, with these cho
 (published details verified where available, the rest ours and documented):
 
 - states are standardised per dimension (zero mean, unit variance on the samples), so
-  one kernel width suits every dimension of any representation;
+  one kernel width suits every dimension of any representation; beyond the guide,
+  ``state_scaling`` can instead whiten them on their principal axes, or weight those axes
+  by how much of the coming observations they predict (``predictive``: a direction that
+  predicts nothing, which whitening would blow up to unit variance, shrinks to zero);
 - ``centers`` (100) RBF centres from k-means (scipy ``kmeans2``, k-means++ init,
   seeded) on the standardised states; the width is the mean distance from each centre
   to its nearest other centre;
@@ -36,6 +39,12 @@ from tpsr_ros.core.fields import option as _param
 
 __all__ = ["FQIConfig", "QFunction", "fit_q"]
 
+SCALINGS = ("standardise", "whiten", "predictive")
+"""Planner units (``FQIConfig.state_scaling``); ``predictive`` needs ``fit_q(futures=...)``."""
+
+PREDICTIVE_RIDGE = 1e-3
+"""Ridge of the predictive scaling's regression, per sample, in whitened state units."""
+
 _DIVERGED = 1e8  # |Q| can never exceed max|r| / (1 - gamma); far beyond it, the fit diverged
 
 
@@ -53,10 +62,11 @@ class FQIConfig:
     width_scale: float = _param(
         1.0, "RBF width as a multiple of the mean nearest-centre distance"
     )
-    state_scaling: Literal["standardise", "whiten"] = _param(
+    state_scaling: Literal["standardise", "whiten", "predictive"] = _param(
         "standardise",
-        "planner units: per-dimension z-scores, or whitened principal axes",
-        choices=("standardise", "whiten"),
+        "planner units: per-dimension z-scores, whitened principal axes, or axes weighted "
+        "by how much of the next observations they predict",
+        choices=SCALINGS,
     )
     ensemble: int = _param(1, "fitted-Q members averaged, each with its own k-means centres")
 
@@ -67,8 +77,10 @@ class FQIConfig:
             raise ConfigError(f"discount {self.discount} must be in [0, 1)")
         if self.ridge < 0 or self.iterations < 1 or self.tolerance <= 0:
             raise ConfigError("ridge >= 0, iterations >= 1 and tolerance > 0 are required")
-        if self.state_scaling not in ("standardise", "whiten"):
-            raise ConfigError(f"state_scaling {self.state_scaling!r}: standardise or whiten")
+        if self.state_scaling not in SCALINGS:
+            raise ConfigError(
+                f"state_scaling {self.state_scaling!r}: one of {', '.join(SCALINGS)}"
+            )
         if self.ensemble < 1:
             raise ConfigError("the fitted-Q ensemble needs at least one member")
         if not self.width_scale > 0:
@@ -86,7 +98,8 @@ class QFunction:
     """A fitted Q-function: the mean of ``M`` members' normalised-RBF regressions.
 
     ``z = ((s - mean) @ rotation) / scale`` maps a state to planner units (``rotation`` is
-    the identity when states are standardised, the principal axes when whitened); member
+    the identity when states are standardised, the principal axes when whitened, the axes
+    of the state-to-future map when predictive); member
     ``m`` owns ``group_sizes[m]`` consecutive rows of ``centers`` with width ``width[m]``,
     and Q(s, a) = mean_m phi_m(z) . w_m[:, a]. One member is the guide's planner.
     """
@@ -198,6 +211,48 @@ def _scaling(
     return mean, scale, rotation
 
 
+def _predictive_scaling(
+    states: np.ndarray, futures: tuple[np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(mean, scale, rotation)`` in which distances are distances between predicted futures.
+
+    ``futures = (past, future)`` pairs states ``(n, r)`` with features of what followed
+    them ``(n, q)`` (e.g. principal components of the next observations). An affine ridge
+    regression on the whitened states gives the linear map ``P (r, q)`` from centred states
+    to predicted futures; with ``P = V diag(g) W^T`` the units ``(s - mean) V diag(g)`` keep
+    every distance between predictions. The map, like whitening, is blind to invertible
+    linear maps of the states, but a direction that predicts nothing (noise, a constant)
+    shrinks to zero instead of being blown up to unit variance. One overall factor gives
+    the units a mean square of 1 per dimension.
+    """
+    past, future = (np.asarray(x, dtype=np.float64) for x in futures)
+    r = states.shape[1]
+    if past.ndim != 2 or past.shape[1] != r or future.ndim != 2 or len(future) != len(past):
+        raise DataError(
+            f"futures must pair states (n, {r}) with features (n, q); got {past.shape} and "
+            f"{future.shape}"
+        )
+    if len(past) <= r or not (np.all(np.isfinite(past)) and np.all(np.isfinite(future))):
+        raise DataError(f"the predictive scaling needs more than {r} finite (state, future) pairs")
+    mean = states.mean(axis=0)
+    variances, axes = np.linalg.eigh(np.cov(past, rowvar=False).reshape(r, r))
+    keep = variances > 1e-10 * max(float(variances.max()), 0.0)
+    if not keep.any():
+        raise DataError("the states do not vary: cannot scale them by what they predict")
+    whitener = axes[:, keep] / np.sqrt(variances[keep])
+    white = (past - past.mean(axis=0)) @ whitener
+    gram = white.T @ white + PREDICTIVE_RIDGE * len(white) * np.eye(white.shape[1])
+    weights = np.linalg.solve(gram, white.T @ (future - future.mean(axis=0)))
+    rotation, gains, _ = np.linalg.svd(whitener @ weights)  # (r, r), (min(r, q),)
+    gains = np.concatenate([gains, np.zeros(r - len(gains))])
+    if not gains[0] > 0:
+        raise DataError("the states predict nothing of the future observations")
+    gains = np.maximum(gains, 1e-9 * gains[0])  # a direction that predicts nothing stays ~0
+    units = (states - mean) @ rotation * gains
+    overall = np.sqrt(np.mean(np.sum(units**2, axis=1)) / r)
+    return mean, overall / gains, rotation
+
+
 def _centres(z: np.ndarray, config: FQIConfig, seed: int) -> tuple[np.ndarray, float]:
     """k-means centres of a seeded sample of ``z`` and their RBF width."""
     rng = np.random.default_rng(seed)
@@ -246,11 +301,15 @@ def fit_q(
     next_states: np.ndarray,
     n_actions: int,
     config: FQIConfig | None = None,
+    *,
+    futures: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> QFunction:
     """Fit Q from ``states (T, r)``, ``actions (T,)``, ``rewards (T,)``, ``next_states (T, r)``.
 
     Each of the ``config.ensemble`` members has its own k-means centres (seed ``seed + m``)
-    and its own Q-iteration; the returned Q-function averages them.
+    and its own Q-iteration; the returned Q-function averages them. ``futures`` (states
+    paired with features of what followed them) is needed by, and only used for,
+    ``state_scaling="predictive"`` (:func:`_predictive_scaling`).
     """
     config = config or FQIConfig()
     states = np.asarray(states, dtype=np.float64)
@@ -272,7 +331,15 @@ def fit_q(
     if missing:
         raise DataError(f"actions {missing} never occur in the transitions")
 
-    mean, scale, rotation = _scaling(np.vstack([states, next_states]), config.state_scaling)
+    if config.state_scaling == "predictive":
+        if futures is None:
+            raise ConfigError(
+                "state_scaling 'predictive' needs the features of what followed the states "
+                "(fit_q(futures=...))"
+            )
+        mean, scale, rotation = _predictive_scaling(np.vstack([states, next_states]), futures)
+    else:
+        mean, scale, rotation = _scaling(np.vstack([states, next_states]), config.state_scaling)
     z, z_next = (_to_units(s, mean, scale, rotation) for s in (states, next_states))
     members = [_centres(z, config, config.seed + m) for m in range(config.ensemble)]
     weights = []
