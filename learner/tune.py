@@ -7,14 +7,14 @@ whitened state). The search tries the guide's defaults, then data-driven kernel 
 (the median pairwise distance of the whitened observations and histories, on a seeded
 sample), then walks a coarse grid one parameter at a time around the best so far
 (widths, normalised features, rank, history/test length, P_TH window, centres, a finer
-width and rank), within ``--budget`` seconds: a candidate is started only if the longest
-one so far would still end within the budget. The choice among the candidates tried
-follows the one-standard-error rule (Hastie, Tibshirani & Friedman, The Elements of
-Statistical Learning, 7.10): the simplest candidate (lowest rank, then fewest centres,
-then shortest histories/tests) whose criterion is within one standard error (of the
-highest criterion, :mod:`learner.criterion`) of the highest. Every candidate, its
-criterion and SE is printed and written into the config's ``tune.tried`` list;
-``learner fit --config`` reads the file.
+width and rank, then the three ranks below the best), within ``--budget`` seconds: a
+candidate is started only if the longest one so far would still end within the budget.
+The choice among the candidates tried follows the one-standard-error rule (Hastie,
+Tibshirani & Friedman, The Elements of Statistical Learning, 7.10): the simplest
+candidate (lowest rank, then fewest centres, then shortest histories/tests) whose
+criterion is within one standard error (:mod:`learner.criterion`) of the highest. Every
+candidate, its criterion and SE is printed and written into the config's ``tune.tried``
+list; ``learner fit --config`` reads the file.
 """
 
 from __future__ import annotations
@@ -64,6 +64,9 @@ WIDTH_FACTORS = (0.25, 0.5, 1.0, 2.0)
 RANKS = (3, 5, 8, 12, 16)
 CENTRES = (500, 1000, 2000)
 REFINE_FACTORS = (0.7, 1.4)
+LOWER_RANKS = 3
+"""The last stage tries this many ranks below the best at its other parameters, so the
+one-standard-error rule compares simpler candidates that differ from the best in rank only."""
 
 Clock = Callable[[], float]
 Report = Callable[[str], None]
@@ -160,6 +163,12 @@ def _stages(
             if 1 <= r <= best.ht_centers + 1
         ]
 
+    def lower_ranks(best: TPSRConfig) -> list[TPSRConfig]:
+        return [
+            dataclasses.replace(best, rank=r)
+            for r in range(best.rank - 1, max(0, best.rank - 1 - LOWER_RANKS), -1)
+        ]
+
     def scaled(name: str) -> list[float]:
         return [f * widths[name] for f in WIDTH_FACTORS]
 
@@ -174,6 +183,7 @@ def _stages(
         ("finer history/test width", refine("sigma_ht")),
         ("finer observation width", refine("sigma_obs")),
         ("finer rank", refine_rank),
+        ("lower ranks", lower_ranks),
     ]
 
 
