@@ -272,6 +272,16 @@ def test_the_rule_orders_by_rank_then_centres_then_lengths():
         one_standard_error_choice([failed])
 
 
+def test_the_last_stage_tries_the_ranks_below_the_best_at_its_widths():
+    from learner.tune import _stages
+
+    name, propose = _stages({"sigma_obs": 1.0, "sigma_ht": 2.0}, episodes=5000)[-1]
+    best = dataclasses.replace(RIGHT, rank=8, sigma_ht=6.3)
+    assert name == "lower ranks"
+    assert propose(best) == [dataclasses.replace(best, rank=r) for r in (7, 6, 5)]
+    assert [c.rank for c in propose(dataclasses.replace(best, rank=2))] == [1]
+
+
 def test_block_jackknife_se_matches_the_iid_formula():
     # one horizon, SST of 1 per block: the criterion is 1 - mean(sse), its jackknife SE
     # is the standard error of the mean of the per-block SSEs
