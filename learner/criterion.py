@@ -21,6 +21,15 @@ past (guide 2.2), and for the planner it matters only up to an invertible linear
    over), so the regression is the right model class rather than a guess.
 5. **Score**: held-out R^2 (``1 - SSE / SST`` pooled over components, so weighted by
    their variance), averaged over horizons. Higher is better; at most 1.
+6. **Standard error** of the score, by a delete-one-block jackknife over contiguous blocks
+   of scored steps (``se_blocks`` per fold, so ``2 * se_blocks`` blocks): the errors of
+   neighbouring steps are correlated (the same robot pose, targets 1..k steps ahead that
+   overlap), so steps are not independent samples, but blocks of a few hundred steps,
+   much longer than the horizons and the pose's correlation time, nearly are; and the
+   jackknife handles the ratio ``SSE / SST`` without a formula for it. The two folds x
+   horizons are not used as replicates: the horizons of one state share its errors
+   (strongly correlated) and two folds give one degree of freedom. ``learner tune`` uses
+   the SE for the one-standard-error rule (:mod:`learner.tune`).
 
 Whitening the state with its own covariance (fitted on the regression's training half)
 makes the score invariant to any invertible linear map of the states, so candidates whose
@@ -47,8 +56,10 @@ from tpsr_ros.core.whitening import Whitening
 
 __all__ = [
     "CriterionConfig",
+    "HeldoutR2",
     "ObservationFeatures",
     "Score",
+    "block_jackknife_se",
     "future_targets",
     "predictive_r2",
     "score_states",
@@ -74,11 +85,14 @@ class CriterionConfig:
     clip: float = option(
         3.0, "whitened states farther than clip * sqrt(dimensions) from the mean are pulled in"
     )
+    se_blocks: int = option(
+        10, "contiguous blocks of scored steps per fold for the jackknife standard error"
+    )
 
     def __post_init__(self) -> None:
         if not 0.05 <= self.holdout <= 0.5:
             raise ConfigError(f"holdout must lie in [0.05, 0.5], not {self.holdout!r}")
-        for name in ("horizons", "feature_dim"):
+        for name in ("horizons", "feature_dim", "se_blocks"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"{name} must be a positive integer, not {value!r}")
@@ -91,11 +105,28 @@ class CriterionConfig:
 
 
 @dataclass(frozen=True)
+class HeldoutR2:
+    """Held-out R^2 per horizon, its mean over horizons, and the mean's standard error."""
+
+    per_horizon: np.ndarray
+    se: float
+
+    @property
+    def value(self) -> float:
+        """The criterion: R^2 averaged over horizons."""
+        return float(np.mean(self.per_horizon))
+
+
+@dataclass(frozen=True)
 class Score:
-    """A candidate's criterion: ``value`` (mean held-out R^2, -inf when the fit failed)."""
+    """A candidate's criterion: ``value`` (mean held-out R^2, -inf when the fit failed).
+
+    ``se`` is its jackknife standard error over blocks of held-out steps (inf when failed).
+    """
 
     value: float
     per_horizon: tuple[float, ...] = ()
+    se: float = np.inf
     seconds: float = 0.0
     error: str = ""
     details: dict[str, float] = field(default_factory=dict)
@@ -196,6 +227,25 @@ def _ridge_by_action(
     return weights
 
 
+def block_jackknife_se(sse: np.ndarray, sst: np.ndarray) -> float:
+    """Standard error of ``mean_k (1 - SSE_k / SST_k)`` from per-block sums ``(B, k)``.
+
+    Delete-one-block jackknife: ``sqrt((B - 1) / B * sum_b (theta_-b - mean theta_-)^2)``,
+    where ``theta_-b`` is the criterion recomputed without block ``b`` (Efron & Tibshirani,
+    An Introduction to the Bootstrap, 11.5; blocks for dependent data: Kuensch 1989).
+    """
+    blocks = sse.shape[0]
+    if blocks < 2:
+        return float("inf")
+    left_sse = sse.sum(axis=0) - sse
+    left_sst = sst.sum(axis=0) - sst
+    with np.errstate(divide="ignore", invalid="ignore"):
+        theta = np.mean(1.0 - left_sse / left_sst, axis=1)
+    if not np.isfinite(theta).all():
+        return float("inf")
+    return float(np.sqrt((blocks - 1) / blocks * np.sum((theta - theta.mean()) ** 2)))
+
+
 def predictive_r2(
     states: np.ndarray,
     next_actions: np.ndarray,
@@ -204,22 +254,24 @@ def predictive_r2(
     n_actions: int,
     ridge: float,
     clip: float = 3.0,
-) -> np.ndarray:
+    se_blocks: int = 10,
+) -> HeldoutR2:
     """Two-fold held-out R^2 per horizon of predicting ``targets (T, k, d)`` from ``states``.
 
     Rows with ``scored`` False are neither fitted nor scored; the scored rows are split
     into their first and second halves in time, each fitted on one and scored on the other.
+    The errors are summed per contiguous block (``se_blocks`` per half) for the standard
+    error of the mean over horizons (:func:`block_jackknife_se`).
     """
     rows = np.flatnonzero(scored)
     if rows.size < 4:
         raise DataError(f"only {rows.size} held-out steps can be scored; hold out more steps")
     horizons, d = targets.shape[1], targets.shape[2]
     halves = np.array_split(rows, 2)
-    sse = np.zeros(horizons)
-    sst = np.zeros(horizons)
+    block_sse, block_sst = [], []
+    flat = targets.reshape(len(targets), horizons * d)
     for fit_rows, test_rows in ((halves[0], halves[1]), (halves[1], halves[0])):
         whiten = _state_whitener(states[fit_rows], clip)
-        flat = targets.reshape(len(targets), horizons * d)
         weights = _ridge_by_action(
             whiten(states[fit_rows]), next_actions[fit_rows], flat[fit_rows], n_actions, ridge
         )
@@ -227,10 +279,16 @@ def predictive_r2(
         predicted = np.einsum("np,npq->nq", design, weights[next_actions[test_rows]])
         error = (flat[test_rows] - predicted).reshape(-1, horizons, d)
         spread = targets[test_rows] - targets[test_rows].mean(axis=0)
-        sse += np.einsum("nkd,nkd->k", error, error)
-        sst += np.einsum("nkd,nkd->k", spread, spread)
-    r2: np.ndarray = 1.0 - sse / sst
-    return r2
+        # per-step sums over components, then per contiguous block of steps
+        step_sse = np.einsum("nkd,nkd->nk", error, error)
+        step_sst = np.einsum("nkd,nkd->nk", spread, spread)
+        blocks = min(se_blocks, test_rows.size)
+        starts = np.arange(blocks) * test_rows.size // blocks
+        block_sse.append(np.add.reduceat(step_sse, starts, axis=0))
+        block_sst.append(np.add.reduceat(step_sst, starts, axis=0))
+    sse, sst = np.concatenate(block_sse), np.concatenate(block_sst)
+    r2: np.ndarray = 1.0 - sse.sum(axis=0) / sst.sum(axis=0)
+    return HeldoutR2(r2, block_jackknife_se(sse, sst))
 
 
 def score_states(
@@ -238,8 +296,8 @@ def score_states(
     heldout: Trajectory,
     features: ObservationFeatures,
     config: CriterionConfig,
-) -> np.ndarray:
-    """Held-out R^2 per horizon of states ``(T, r)`` tracked over ``heldout``."""
+) -> HeldoutR2:
+    """Held-out R^2 per horizon (and its SE) of states ``(T, r)`` tracked over ``heldout``."""
     if not np.isfinite(states).all():
         raise DataError("the tracked states hold non-finite values")
     targets, valid = future_targets(
@@ -252,7 +310,8 @@ def score_states(
     next_actions = np.zeros(len(heldout), dtype=np.int64)
     next_actions[:-1] = heldout.actions[1:]
     return predictive_r2(
-        states, next_actions, targets, scored, heldout.n_actions, config.ridge, config.clip
+        states, next_actions, targets, scored, heldout.n_actions, config.ridge, config.clip,
+        config.se_blocks,
     )
 
 
@@ -273,8 +332,10 @@ def score_tpsr(
     except TpsrError as exc:
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         return Score(-np.inf, seconds=time.perf_counter() - start, error=message), None
-    per_horizon = tuple(float(v) for v in r2)
     score = Score(
-        float(np.mean(r2)), per_horizon=per_horizon, seconds=time.perf_counter() - start
+        r2.value,
+        per_horizon=tuple(float(v) for v in r2.per_horizon),
+        se=r2.se,
+        seconds=time.perf_counter() - start,
     )
     return score, model

@@ -246,6 +246,8 @@ def _tuned(config: ExperimentConfig, train: Trajectory) -> tuple[TPSRConfig, dic
     return result.best.config, {
         "tune": {
             "criterion": round(result.best.score.value, 6),
+            "se": round(result.best.score.se, 6),
+            "highest": round(result.top.score.value, 6),
             "candidates": len(result.trials),
             "seconds": round(result.seconds, 1),
             "budget": config.tune_budget,

@@ -7,10 +7,14 @@ whitened state). The search tries the guide's defaults, then data-driven kernel 
 (the median pairwise distance of the whitened observations and histories, on a seeded
 sample), then walks a coarse grid one parameter at a time around the best so far
 (widths, normalised features, rank, history/test length, P_TH window, centres, a finer
-width and rank), within ``--budget`` seconds: a candidate is started only if the longest
-one so far would still end within the budget. Every candidate and its criterion is
-printed and written into the config's ``tune.tried`` list; ``learner fit --config`` reads
-the file.
+width and rank, then the three ranks below the best), within ``--budget`` seconds: a
+candidate is started only if the longest one so far would still end within the budget.
+The choice among the candidates tried follows the one-standard-error rule (Hastie,
+Tibshirani & Friedman, The Elements of Statistical Learning, 7.10): the simplest
+candidate (lowest rank, then fewest centres, then shortest histories/tests) whose
+criterion is within one standard error (:mod:`learner.criterion`) of the highest. Every
+candidate, its criterion and SE is printed and written into the config's ``tune.tried``
+list; ``learner fit --config`` reads the file.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from tqdm import tqdm
 
 from learner.config_file import changed_parameters, describe, write_fit_config
@@ -46,7 +51,9 @@ __all__ = [
     "DEFAULT_BUDGET",
     "Trial",
     "TuneResult",
+    "complexity",
     "median_widths",
+    "one_standard_error_choice",
     "register",
     "run",
     "tune",
@@ -57,6 +64,9 @@ WIDTH_FACTORS = (0.25, 0.5, 1.0, 2.0)
 RANKS = (3, 5, 8, 12, 16)
 CENTRES = (500, 1000, 2000)
 REFINE_FACTORS = (0.7, 1.4)
+LOWER_RANKS = 3
+"""The last stage tries this many ranks below the best at its other parameters, so the
+one-standard-error rule compares simpler candidates that differ from the best in rank only."""
 
 Clock = Callable[[], float]
 Report = Callable[[str], None]
@@ -71,11 +81,38 @@ class Trial:
     score: Score
 
 
+def complexity(config: TPSRConfig) -> tuple[int, int, int, int]:
+    """How complex a candidate is, for parsimony: rank, centres, then history + test length."""
+    return (
+        config.rank,
+        config.ht_centers,
+        config.obs_centers,
+        config.history_length + config.test_length,
+    )
+
+
+def one_standard_error_choice(trials: Sequence[Trial]) -> Trial:
+    """The simplest trial whose criterion is within one SE of the highest (ESL 7.10).
+
+    The SE is the highest-scoring trial's own (its criterion's estimated noise); among
+    equally simple trials within reach, the higher criterion wins. Failed trials never do.
+    """
+    fitted = [t for t in trials if t.score.ok]
+    if not fitted:
+        raise DataError("no candidate could be fitted")
+    top = max(fitted, key=lambda t: t.score.value)
+    floor = top.score.value - top.score.se if np.isfinite(top.score.se) else top.score.value
+    within = [t for t in fitted if t.score.value >= floor]
+    return min(within, key=lambda t: (complexity(t.config), -t.score.value))
+
+
 @dataclass(frozen=True)
 class TuneResult:
-    """The best candidate, everything tried (in order), the median widths and why it stopped."""
+    """The chosen candidate (one-SE rule), the highest-scoring one, everything tried (in
+    order), the median widths and why it stopped."""
 
     best: Trial
+    top: Trial
     trials: tuple[Trial, ...]
     widths: dict[str, float]
     stopped: str
@@ -126,6 +163,12 @@ def _stages(
             if 1 <= r <= best.ht_centers + 1
         ]
 
+    def lower_ranks(best: TPSRConfig) -> list[TPSRConfig]:
+        return [
+            dataclasses.replace(best, rank=r)
+            for r in range(best.rank - 1, max(0, best.rank - 1 - LOWER_RANKS), -1)
+        ]
+
     def scaled(name: str) -> list[float]:
         return [f * widths[name] for f in WIDTH_FACTORS]
 
@@ -140,6 +183,7 @@ def _stages(
         ("finer history/test width", refine("sigma_ht")),
         ("finer observation width", refine("sigma_obs")),
         ("finer rank", refine_rank),
+        ("lower ranks", lower_ranks),
     ]
 
 
@@ -234,7 +278,7 @@ def tune(
         score, _ = score_tpsr(candidate, train, heldout, features, crit)
         trials.append(Trial(candidate, stage, score))
         top = best()
-        result = f"{score.value:.4f}" if score.ok else f"failed ({score.error})"
+        result = f"{score.value:.4f} ± {score.se:.4f}" if score.ok else f"failed ({score.error})"
         say(
             f"[{len(trials)}] {stage}: {describe(candidate)} -> criterion {result} "
             f"({score.seconds:.1f} s); best {top.score.value:.4f}: {describe(top.config)}"
@@ -245,7 +289,14 @@ def tune(
     if not best().score.ok:
         raise DataError(f"no candidate could be fitted: {best().score.error}")
     say(stopped)
-    return TuneResult(best(), tuple(trials), widths, stopped, clock() - start, crit)
+    top, chosen = best(), one_standard_error_choice(trials)
+    if chosen is not top:
+        say(
+            f"one-standard-error rule: {describe(chosen.config)} (criterion "
+            f"{chosen.score.value:.4f}) is the simplest within {top.score.se:.4f} of the "
+            f"highest, {top.score.value:.4f} ({describe(top.config)})"
+        )
+    return TuneResult(chosen, top, tuple(trials), widths, stopped, clock() - start, crit)
 
 
 def tune_record(result: TuneResult) -> dict[str, Any]:
@@ -255,6 +306,7 @@ def tune_record(result: TuneResult) -> dict[str, Any]:
         entry: dict[str, Any] = {"stage": t.stage, **_rounded(changed_parameters(t.config))}
         if t.score.ok:
             entry["criterion"] = round(t.score.value, 6)
+            entry["se"] = round(t.score.se, 6)
         else:
             entry["error"] = t.score.error
         entry["seconds"] = round(t.score.seconds, 2)
@@ -262,7 +314,11 @@ def tune_record(result: TuneResult) -> dict[str, Any]:
 
     return {
         "criterion": round(result.best.score.value, 6),
+        "criterion_se": round(result.best.score.se, 6),
         "criterion_per_horizon": [round(v, 6) for v in result.best.score.per_horizon],
+        "rule": "one standard error: the simplest candidate within one SE of the highest",
+        "highest_criterion": round(result.top.score.value, 6),
+        "highest_criterion_se": round(result.top.score.se, 6),
         "criterion_settings": dataclasses.asdict(result.criterion),
         "median_widths": _rounded(result.widths),
         "seconds": round(result.seconds, 1),
@@ -344,7 +400,10 @@ def run(args: argparse.Namespace) -> int:
         args.output, result.best.config, tune_record(result), header=header, force=args.force
     )
     best = result.best
-    print(f"best: {describe(best.config)} (criterion {best.score.value:.4f})")
+    print(
+        f"chosen: {describe(best.config)} (criterion {best.score.value:.4f} ± "
+        f"{best.score.se:.4f}; highest {result.top.score.value:.4f})"
+    )
     print(
         f"{len(result.trials)} candidate(s) in {time.perf_counter() - start:.1f} s; "
         f"wrote {args.output}"
