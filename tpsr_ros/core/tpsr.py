@@ -76,6 +76,18 @@ EXTRA_SINGULAR_VALUES = 5
 Progress = Callable[[str], None]
 
 
+_NUMBER_RULES: tuple[tuple[tuple[str, ...], Callable[[float], bool], str], ...] = (
+    (("sigma_obs", "sigma_ht"), lambda v: np.isfinite(v) and v > 0, "a positive finite number"),
+    (
+        ("history_action_weight", "test_action_weight"),
+        lambda v: np.isfinite(v) and v >= 0,
+        "a non-negative finite number",
+    ),
+    (("state_clip_quantile",), lambda v: v == 0 or 0 < v < 0.5, "0 or in (0, 0.5)"),
+)
+"""The real-valued parameters of :class:`TPSRConfig`: names, the rule, and how it reads."""
+
+
 @dataclass(frozen=True)
 class TPSRConfig:
     """Parameters of a TPSR fit (guide table 3.5); defaults: figure 4.5, rank 5 (section 4.3).
@@ -136,22 +148,12 @@ class TPSRConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise ConfigError(f"{name} must be a positive integer, not {value!r}")
-        for name in ("sigma_obs", "sigma_ht"):
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float, np.floating))
-                or not (np.isfinite(value) and value > 0)
-            ):
-                raise ConfigError(f"{name} must be a positive finite number, not {value!r}")
-        for name in ("history_action_weight", "test_action_weight"):
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float, np.floating))
-                or not (np.isfinite(value) and value >= 0)
-            ):
-                raise ConfigError(f"{name} must be a non-negative finite number, not {value!r}")
+        for names, valid, rule in _NUMBER_RULES:
+            for name in names:
+                value = getattr(self, name)
+                real = not isinstance(value, bool) and isinstance(value, (int, float, np.floating))
+                if not (real and valid(value)):
+                    raise ConfigError(f"{name} must be {rule}, not {value!r}")
         for f in fields(self):
             allowed = f.metadata.get("choices")
             if allowed is not None and getattr(self, f.name) not in allowed:
@@ -162,13 +164,6 @@ class TPSRConfig:
             raise ConfigError(
                 f"normalize_ht_features must be true or false, not {self.normalize_ht_features!r}"
             )
-        q = self.state_clip_quantile
-        if (
-            isinstance(q, bool)
-            or not isinstance(q, (int, float, np.floating))
-            or not (q == 0 or 0 < q < 0.5)
-        ):
-            raise ConfigError(f"state_clip_quantile must be 0 or in (0, 0.5), not {q!r}")
         if (
             isinstance(self.seed, bool)
             or not isinstance(self.seed, (int, np.integer))
