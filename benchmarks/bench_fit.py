@@ -13,6 +13,7 @@ subsample is checked against the fast path's formula on the same samples.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import resource
@@ -184,6 +185,12 @@ def main() -> None:
     print(
         f"    {'whole fit, 1 BLAS thread':16s} {statistics.median(one_thread):7.3f} s   "
         f"(median of {REPEATS} in a child process with OPENBLAS_NUM_THREADS=1)"
+    )
+    kmeans = dataclasses.replace(config, center_selection="kmeans")
+    kmeans_seconds = statistics.median(_fast(episodes, kmeans)[1] for _ in range(REPEATS))
+    print(
+        f"    {'whole fit, k-means centres':16s} {kmeans_seconds:7.3f} s   (median of {REPEATS}; "
+        "center_selection=kmeans: 1000, 1000 and 500 centres)"
     )
     print(
         f"  peak memory of one fit (tracemalloc): {_peak_memory(episodes, config):.0f} MiB; "

@@ -13,6 +13,7 @@ from tpsr_ros.core.features import (
     CONSTANT_FEATURE,
     RBFFeatures,
     constant_vector,
+    kmeans_plus_plus,
     rbf_features,
     select_centers,
 )
@@ -119,6 +120,19 @@ def test_center_selection():
     np.testing.assert_allclose(np.sort(a[:, 0]), [-5, 0, 5], atol=0.1)
 
 
+def test_kmeans_plus_plus_spreads_its_start_over_the_clusters():
+    rng = np.random.default_rng(7)
+    means = np.array([[-5.0, 0.0], [0.0, 5.0], [5.0, 0.0], [0.0, -5.0]])
+    x = np.concatenate([rng.normal(m, 0.1, (50, 2)) for m in means])
+    for seed in range(20):  # far clusters are ~2500 times likelier than the same one
+        start = kmeans_plus_plus(x, 4, np.random.default_rng(seed))
+        assert all(any(np.all(row == x, axis=1)) for row in start)  # rows of the data
+        cluster = np.argmin(((start[:, None, :] - means) ** 2).sum(axis=2), axis=1)
+        assert sorted(cluster) == [0, 1, 2, 3], seed
+    same = kmeans_plus_plus(np.ones((5, 2)), 3, np.random.default_rng(0))  # all rows alike
+    np.testing.assert_array_equal(same, np.ones((3, 2)))
+
+
 def test_first_centres_read_only_the_first_rows():
     # the streamed fit takes them from a memory-mapped store: the rest is never read
     x = np.full((50, 3), np.nan)
@@ -132,16 +146,6 @@ def test_first_centres_read_only_the_first_rows():
         select_centers(x, 7, "kmeans")
     with pytest.raises(DataError, match="cannot choose 60 history kernel centres from only 50"):
         select_centers(np.zeros((50, 3)), 60, "first", what="history")
-
-
-def test_kmeans_that_would_not_fit_in_memory_is_refused_before_it_starts(monkeypatch):
-    import tpsr_ros.core.features as features
-
-    x = np.random.default_rng(0).normal(size=(300, 2))
-    monkeypatch.setattr(features, "KMEANS_MAX_BYTES", 8 * 10 * 300 - 1)  # 10 x 300 distances
-    with pytest.raises(DataError, match="k-means of 10 history centres over 300 episodes"):
-        select_centers(x, 10, "kmeans", what="history")
-    assert select_centers(x, 9, "kmeans").shape == (9, 2)  # just within
 
 
 def test_bad_input():
