@@ -28,8 +28,12 @@ past (guide 2.2), and for the planner it matters only up to an invertible linear
    much longer than the horizons and the pose's correlation time, nearly are; and the
    jackknife handles the ratio ``SSE / SST`` without a formula for it. The two folds x
    horizons are not used as replicates: the horizons of one state share its errors
-   (strongly correlated) and two folds give one degree of freedom. ``learner tune`` uses
-   the SE for the one-standard-error rule (:mod:`learner.tune`).
+   (strongly correlated) and two folds give one degree of freedom. Every candidate is
+   scored on the same held-out steps and blocks, so the SE of the *difference* between
+   two candidates comes from the same jackknife over their paired block replicates
+   (:func:`paired_jackknife_se`): a hard stretch of held-out data lowers every candidate's
+   score and cancels out of the difference. ``learner tune`` uses it for the
+   one-standard-error rule (:mod:`learner.tune`).
 
 Whitening the state with its own covariance (fitted on the regression's training half)
 makes the score invariant to any invertible linear map of the states, so candidates whose
@@ -61,6 +65,8 @@ __all__ = [
     "Score",
     "block_jackknife_se",
     "future_targets",
+    "jackknife_replicates",
+    "paired_jackknife_se",
     "predictive_r2",
     "score_states",
     "score_tpsr",
@@ -106,10 +112,15 @@ class CriterionConfig:
 
 @dataclass(frozen=True)
 class HeldoutR2:
-    """Held-out R^2 per horizon, its mean over horizons, and the mean's standard error."""
+    """Held-out R^2 per horizon, its mean over horizons, and the mean's standard error.
+
+    ``blocks`` ``(2, B, k)`` holds the summed squared errors and the summed squared
+    deviations per block of scored steps and horizon (:func:`paired_jackknife_se`).
+    """
 
     per_horizon: np.ndarray
     se: float
+    blocks: np.ndarray | None = None
 
     @property
     def value(self) -> float:
@@ -130,6 +141,7 @@ class Score:
     seconds: float = 0.0
     error: str = ""
     details: dict[str, float] = field(default_factory=dict)
+    blocks: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def ok(self) -> bool:
@@ -227,6 +239,26 @@ def _ridge_by_action(
     return weights
 
 
+def jackknife_replicates(sse: np.ndarray, sst: np.ndarray) -> np.ndarray:
+    """``theta_-b`` ``(B,)``: ``mean_k (1 - SSE_k / SST_k)`` recomputed without block ``b``.
+
+    ``sse`` and ``sst`` are per-block sums ``(B, k)``; NaN where a replicate is undefined.
+    """
+    left_sse = sse.sum(axis=0) - sse
+    left_sst = sst.sum(axis=0) - sst
+    with np.errstate(divide="ignore", invalid="ignore"):
+        theta: np.ndarray = np.mean(1.0 - left_sse / left_sst, axis=1)
+    return theta
+
+
+def _jackknife_se(theta: np.ndarray) -> float:
+    """``sqrt((B - 1) / B * sum_b (theta_-b - mean theta_-)^2)``; inf when undefined."""
+    blocks = theta.shape[0]
+    if blocks < 2 or not np.isfinite(theta).all():
+        return float("inf")
+    return float(np.sqrt((blocks - 1) / blocks * np.sum((theta - theta.mean()) ** 2)))
+
+
 def block_jackknife_se(sse: np.ndarray, sst: np.ndarray) -> float:
     """Standard error of ``mean_k (1 - SSE_k / SST_k)`` from per-block sums ``(B, k)``.
 
@@ -234,16 +266,19 @@ def block_jackknife_se(sse: np.ndarray, sst: np.ndarray) -> float:
     where ``theta_-b`` is the criterion recomputed without block ``b`` (Efron & Tibshirani,
     An Introduction to the Bootstrap, 11.5; blocks for dependent data: Kuensch 1989).
     """
-    blocks = sse.shape[0]
-    if blocks < 2:
+    return _jackknife_se(jackknife_replicates(sse, sst))
+
+
+def paired_jackknife_se(a: np.ndarray, b: np.ndarray) -> float:
+    """Standard error of the difference of two criteria scored on the same blocks.
+
+    ``a`` and ``b`` are :attr:`HeldoutR2.blocks` ``(2, B, k)`` of two candidates; the
+    jackknife runs over the differences of their paired replicates ``theta_-b``. Blocks
+    of unequal shape cannot be paired: inf.
+    """
+    if a.shape != b.shape:
         return float("inf")
-    left_sse = sse.sum(axis=0) - sse
-    left_sst = sst.sum(axis=0) - sst
-    with np.errstate(divide="ignore", invalid="ignore"):
-        theta = np.mean(1.0 - left_sse / left_sst, axis=1)
-    if not np.isfinite(theta).all():
-        return float("inf")
-    return float(np.sqrt((blocks - 1) / blocks * np.sum((theta - theta.mean()) ** 2)))
+    return _jackknife_se(jackknife_replicates(*a) - jackknife_replicates(*b))
 
 
 def predictive_r2(
@@ -288,7 +323,7 @@ def predictive_r2(
         block_sst.append(np.add.reduceat(step_sst, starts, axis=0))
     sse, sst = np.concatenate(block_sse), np.concatenate(block_sst)
     r2: np.ndarray = 1.0 - sse.sum(axis=0) / sst.sum(axis=0)
-    return HeldoutR2(r2, block_jackknife_se(sse, sst))
+    return HeldoutR2(r2, block_jackknife_se(sse, sst), np.stack([sse, sst]))
 
 
 def score_states(
@@ -337,5 +372,6 @@ def score_tpsr(
         per_horizon=tuple(float(v) for v in r2.per_horizon),
         se=r2.se,
         seconds=time.perf_counter() - start,
+        blocks=r2.blocks,
     )
     return score, model

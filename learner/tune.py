@@ -12,7 +12,11 @@ candidate is started only if the longest one so far would still end within the b
 The choice among the candidates tried follows the one-standard-error rule (Hastie,
 Tibshirani & Friedman, The Elements of Statistical Learning, 7.10): the simplest
 candidate (lowest rank, then fewest centres, then shortest histories/tests) whose
-criterion is within one standard error (:mod:`learner.criterion`) of the highest. Every
+criterion lies within one standard error of the highest. The standard error is that of
+the difference between the two, paired over the held-out blocks every candidate is
+scored on (:func:`learner.criterion.paired_jackknife_se`), not the highest one's own:
+noise that every candidate shares (a hard stretch of held-out data) does not make two
+candidates indistinguishable. Every
 candidate, its criterion and SE is printed and written into the config's ``tune.tried``
 list; ``learner fit --config`` reads the file.
 """
@@ -36,6 +40,7 @@ from learner.criterion import (
     CriterionConfig,
     ObservationFeatures,
     Score,
+    paired_jackknife_se,
     score_tpsr,
     split_trajectory,
 )
@@ -52,6 +57,7 @@ __all__ = [
     "Trial",
     "TuneResult",
     "complexity",
+    "difference_se",
     "median_widths",
     "one_standard_error_choice",
     "register",
@@ -91,18 +97,36 @@ def complexity(config: TPSRConfig) -> tuple[int, int, int, int]:
     )
 
 
+def difference_se(trial: Trial, top: Trial) -> float:
+    """Standard error of ``top``'s criterion minus ``trial``'s.
+
+    Paired over their held-out blocks when both have them (:mod:`learner.criterion`);
+    otherwise ``top``'s own standard error (the textbook rule's).
+    """
+    if trial is top:
+        return 0.0
+    a, b = trial.score.blocks, top.score.blocks
+    if a is not None and b is not None and a.shape == b.shape:
+        return paired_jackknife_se(b, a)
+    return top.score.se
+
+
 def one_standard_error_choice(trials: Sequence[Trial]) -> Trial:
     """The simplest trial whose criterion is within one SE of the highest (ESL 7.10).
 
-    The SE is the highest-scoring trial's own (its criterion's estimated noise); among
+    The SE is that of the difference to the highest (:func:`difference_se`); among
     equally simple trials within reach, the higher criterion wins. Failed trials never do.
     """
     fitted = [t for t in trials if t.score.ok]
     if not fitted:
         raise DataError("no candidate could be fitted")
     top = max(fitted, key=lambda t: t.score.value)
-    floor = top.score.value - top.score.se if np.isfinite(top.score.se) else top.score.value
-    within = [t for t in fitted if t.score.value >= floor]
+
+    def within_reach(trial: Trial) -> bool:
+        se = difference_se(trial, top)
+        return bool(np.isfinite(se) and trial.score.value >= top.score.value - se)
+
+    within = [t for t in fitted if within_reach(t)]
     return min(within, key=lambda t: (complexity(t.config), -t.score.value))
 
 
@@ -293,8 +317,9 @@ def tune(
     if chosen is not top:
         say(
             f"one-standard-error rule: {describe(chosen.config)} (criterion "
-            f"{chosen.score.value:.4f}) is the simplest within {top.score.se:.4f} of the "
-            f"highest, {top.score.value:.4f} ({describe(top.config)})"
+            f"{chosen.score.value:.4f}) is the simplest within one standard error "
+            f"({difference_se(chosen, top):.4f}, of the difference) of the highest, "
+            f"{top.score.value:.4f} ({describe(top.config)})"
         )
     return TuneResult(chosen, top, tuple(trials), widths, stopped, clock() - start, crit)
 
@@ -316,7 +341,11 @@ def tune_record(result: TuneResult) -> dict[str, Any]:
         "criterion": round(result.best.score.value, 6),
         "criterion_se": round(result.best.score.se, 6),
         "criterion_per_horizon": [round(v, 6) for v in result.best.score.per_horizon],
-        "rule": "one standard error: the simplest candidate within one SE of the highest",
+        "rule": (
+            "one standard error: the simplest candidate within one SE of the difference "
+            "to the highest"
+        ),
+        "criterion_difference_se": round(difference_se(result.best, result.top), 6),
         "highest_criterion": round(result.top.score.value, 6),
         "highest_criterion_se": round(result.top.score.se, 6),
         "criterion_settings": dataclasses.asdict(result.criterion),

@@ -27,11 +27,12 @@ from learner.criterion import (
     Score,
     block_jackknife_se,
     future_targets,
+    paired_jackknife_se,
     score_states,
     score_tpsr,
     split_trajectory,
 )
-from learner.tune import Trial, one_standard_error_choice, tune
+from learner.tune import Trial, difference_se, one_standard_error_choice, tune
 from sim_node import SimConfig
 from sim_node.generate import generate_bag
 from tpsr_ros.core.episodes import Trajectory
@@ -248,8 +249,9 @@ def test_the_one_standard_error_rule_picks_the_true_rank():
     top = max(trials, key=lambda t: t.score.value)
     assert top.config.rank == 4  # the precondition: the highest criterion is not the truth
     assert 0 < top.score.se < 0.02
-    assert trials[1].score.value >= top.score.value - top.score.se  # rank 3 within noise
-    assert trials[2].score.value < top.score.value - 3 * top.score.se  # rank 2 is not
+    # rank 3 lies within the noise of its difference to rank 4, rank 2 far outside it
+    assert trials[1].score.value >= top.score.value - difference_se(trials[1], top)
+    assert trials[2].score.value < top.score.value - 3 * difference_se(trials[2], top)
     assert one_standard_error_choice(trials).config.rank == 3
 
 
@@ -290,6 +292,49 @@ def test_block_jackknife_se_matches_the_iid_formula():
     se = block_jackknife_se(sse, np.ones((40, 1)))
     assert se == pytest.approx(sse.std(ddof=1) / np.sqrt(40), rel=1e-12)
     assert block_jackknife_se(sse[:1], np.ones((1, 1))) == np.inf
+
+
+def test_paired_jackknife_se_is_the_iid_se_of_the_block_differences():
+    # one horizon, SST of 1 per block: each replicate is 1 - mean of the other blocks' SSE,
+    # so the paired jackknife is the standard error of the mean per-block difference; a
+    # block effect both candidates share cancels out of it
+    rng = np.random.default_rng(5)
+    shared = rng.uniform(0.0, 0.5, size=(2, 20, 1))  # hard and easy stretches
+    a = shared + rng.uniform(0.0, 0.01, size=shared.shape)
+    b = shared + 0.02 + rng.uniform(0.0, 0.01, size=shared.shape)
+    ones = np.ones((40, 1))
+    blocks_a = np.stack([a.reshape(40, 1), ones])
+    blocks_b = np.stack([b.reshape(40, 1), ones])
+    d = (b - a).reshape(40)
+    se = paired_jackknife_se(blocks_a, blocks_b)
+    assert se == pytest.approx(d.std(ddof=1) / np.sqrt(40), rel=1e-12)
+    assert se < block_jackknife_se(*blocks_a) / 10  # the shared effect is gone
+    assert paired_jackknife_se(blocks_a, blocks_a) == 0.0
+    assert paired_jackknife_se(blocks_a, blocks_b[:, :20]) == np.inf  # not the same blocks
+
+
+def test_the_rule_reads_the_paired_se_of_the_difference():
+    """A candidate below the highest on every block is distinguishable from it, even when
+    the gap is far inside the highest's own SE; one that differs by noise is not."""
+    rng = np.random.default_rng(6)
+    shared = rng.uniform(0.0, 0.5, size=(40, 1))
+    ones = np.ones((40, 1))
+
+    def trial(sse: np.ndarray, rank: int) -> Trial:
+        blocks = np.stack([sse, ones])
+        r2 = 1.0 - sse.sum() / ones.sum()
+        score = Score(r2, se=block_jackknife_se(*blocks), blocks=blocks)
+        return Trial(dataclasses.replace(RIGHT, rank=rank), "rank", score)
+
+    top = trial(shared, rank=8)
+    always_worse = trial(shared + 0.01, rank=3)  # 0.01 below on every block
+    noise = rng.normal(0.0, 0.1, size=(40, 1))
+    noisy = trial(shared + 0.005 + noise - noise.mean(), rank=5)  # 0.005 below on average
+    assert top.score.value - always_worse.score.value < top.score.se  # the textbook rule: within
+    assert difference_se(always_worse, top) < 1e-9  # paired: certainly worse
+    assert noisy.score.value >= top.score.value - difference_se(noisy, top)
+    assert one_standard_error_choice([top, always_worse, noisy]) is noisy
+    assert one_standard_error_choice([top, always_worse]) is top
 
 
 @pytest.mark.parametrize(
