@@ -39,7 +39,7 @@ from learner.evaluate import Evaluation, evaluate
 from learner.floors import CONSTANT, FLOORS, RANDOM, constant_floor, random_floor
 from learner.overrides import apply_overrides
 from learner.planning import fit_q_on
-from learner.plots import affine_r2
+from learner.plots import affine_r2, neighbour_position_error
 from learner.representations import ModelTracker, Tracker, TruePositionTracker
 from learner.simulated import random_trajectory
 from sim_node import Environment
@@ -145,6 +145,7 @@ class Row:
     r2_y: float
     status: str
     parameters: str = "{}"
+    position_error: float = float("nan")  # median 10-NN error, m (nan in CSVs written before)
 
 
 def _plan_and_score(
@@ -291,9 +292,11 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             tracker, states, recoveries = _learn_states(run_config, method, train, rl)
             fit_seconds = time.perf_counter() - start
             r2 = affine_r2(states, rl.positions)
+            position_error = neighbour_position_error(states, rl.positions)
             score, trials, ridge, status = _plan_and_score(config, tracker, rl, states)
         except TpsrError as exc:  # a failed fit is a result, not a crash
             fit_seconds, recoveries, r2 = time.perf_counter() - start, 0, np.full(2, np.nan)
+            position_error = float("nan")
             score, trials, ridge, status = float("nan"), "", config.fqi.ridge, f"error: {exc}"
         rows.append(
             _row(
@@ -309,6 +312,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 recoveries=recoveries,
                 r2_x=round(float(r2[0]), 4),
                 r2_y=round(float(r2[1]), 4),
+                position_error=round(position_error, 3),
                 status=status,
             )
         )

@@ -219,6 +219,9 @@ def test_experiment_command_writes_csv_and_plot(tmp_path, capsys):
     with (out / "experiment_full.csv").open() as handle:
         rows = list(csv.DictReader(handle))
     assert [r["method"] for r in rows] == ["pca", "true-position"]
+    # how precisely the states locate the robot: the true position to within its steps
+    error = {r["method"]: float(r["position_error"]) for r in rows}
+    assert 0 < error["true-position"] < 1.0 and error["pca"] > error["true-position"]
     assert (out / "experiment_full.png").stat().st_size > 10_000
     code, _, err = run_entry(args, capsys)
     assert code != 0 and "already exists" in err

@@ -96,3 +96,18 @@ def test_report_reuse_writes_floors_margins_and_findings(tmp_path):
          "--docs", str(docs)], capture_output=True, text=True, timeout=120,
     )
     assert missing.returncode != 0 and "run without --reuse" in missing.stderr
+
+
+def test_csvs_written_before_the_position_error_column_still_read(tmp_path):
+    from learner.report import _read_rows
+
+    path = tmp_path / "experiment_full.csv"
+    write_csv(_rows("full", {"tpsr": [400, 410]}, episodes=(2000,)), path)
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    column = header.index("position_error")
+    old = [",".join(v for i, v in enumerate(line.split(",")) if i != column) for line in lines]
+    path.write_text("\n".join(old) + "\n")
+    rows = _read_rows(path)
+    assert [r.score for r in rows] == [400.0, 410.0]
+    assert all(np.isnan(r.position_error) for r in rows)

@@ -1,0 +1,59 @@
+"""learner.plots.neighbour_position_error: how precisely states locate the robot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from learner.plots import affine_r2, neighbour_position_error
+from tpsr_ros.core.errors import DataError
+
+
+def _walk(steps: int = 8000, seed: int = 0) -> np.ndarray:
+    """Positions of a reflected random walk in a 45 m square room."""
+    rng = np.random.default_rng(seed)
+    position = np.cumsum(rng.normal(0.0, 2.0, size=(steps, 2)), axis=0) + 22.5
+    position = np.mod(position, 90.0)
+    return np.where(position > 45.0, 90.0 - position, position)
+
+
+def test_a_nonlinear_state_locates_as_well_as_the_position_itself():
+    positions = _walk()
+    bent = np.column_stack([np.exp(positions[:, 0] / 8.0), positions[:, 1] ** 3])
+    assert affine_r2(bent, positions).min() < 0.85  # the affine fit misses it
+    exact = neighbour_position_error(positions, positions)
+    assert exact < 1.0
+    assert neighbour_position_error(bent, positions) < 1.5 * exact + 0.2
+
+
+def test_blind_to_invertible_linear_maps_of_the_states():
+    positions = _walk(seed=1)
+    rng = np.random.default_rng(2)
+    states = np.column_stack([positions, np.sin(positions[:, 0] / 5.0)])
+    mixed = states @ rng.normal(size=(3, 3)) * np.array([1e-3, 1.0, 1e4]) + 7.0
+    assert neighbour_position_error(mixed, positions) == pytest.approx(
+        neighbour_position_error(states, positions), rel=1e-6
+    )
+
+
+def test_a_state_that_has_lost_a_coordinate_locates_badly():
+    positions = _walk(seed=3)
+    noise = np.random.default_rng(4).normal(size=(len(positions), 1))
+    only_x = np.column_stack([positions[:, :1], noise])  # y is gone: aliasing
+    # about the median distance between two random places of one column: ~ 45 / 4 m
+    assert neighbour_position_error(only_x, positions) > 8.0
+    assert neighbour_position_error(positions, positions) < 1.0
+
+
+def test_bad_input_is_refused():
+    positions = _walk(steps=100)
+    with pytest.raises(DataError, match="need 20 states"):
+        neighbour_position_error(positions[:15], positions[:15])
+    with pytest.raises(DataError, match="need 20 states"):
+        neighbour_position_error(positions, positions[:50])
+    broken = positions.copy()
+    broken[3, 0] = np.nan
+    with pytest.raises(DataError, match="non-finite"):
+        neighbour_position_error(broken, positions)
+    with pytest.raises(DataError, match="do not vary"):
+        neighbour_position_error(np.ones((100, 2)), positions)
