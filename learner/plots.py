@@ -70,7 +70,7 @@ def neighbour_position_error(
     # an eigendecomposition of the covariance, which squares the spread of scales
     left, singular, _ = np.linalg.svd(centred, full_matrices=False)
     # numpy's matrix-rank tolerance: directions below it are rounding, not data
-    keep = singular > max(float(singular.max()), 0.0) * max(centred.shape) * np.finfo(float).eps
+    keep = singular > singular.max() * max(centred.shape) * np.finfo(float).eps
     if not keep.any():
         raise DataError("the states do not vary: they cannot locate anything")
     white = left[:, keep]

@@ -20,7 +20,7 @@ centroids (section 4.3): a k-means++ start (Arthur & Vassilvitskii 2007, seeded)
 scipy's ``kmeans2`` Lloyd iterations. The start is ours because scipy's own recomputes the
 distances to every chosen centre for each new one, in a Python loop: 11 s for 1000 centres
 over 5000 episodes (and an ``l x t`` distance matrix), where keeping each row's distance to
-its nearest centre so far takes 0.1 s and ``t`` numbers.
+its nearest centre so far takes 0.2 s and ``t`` numbers.
 """
 
 from __future__ import annotations
