@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import stat
+
 import pytest
 
 from tpsr_ros.io.atomic import atomic_file
@@ -32,3 +35,20 @@ def test_a_link_at_the_target_is_replaced_not_followed(tmp_path):
         handle.write("ours")
     assert not link.is_symlink() and link.read_text() == "ours"
     assert kept.read_text() == "theirs" and list(elsewhere.iterdir()) == [kept]
+
+
+def test_the_new_file_gets_the_permissions_a_plain_open_would_give(tmp_path):
+    fresh = tmp_path / "model.npz"
+    old_mask = os.umask(0o027)
+    try:
+        with atomic_file(fresh) as handle:
+            handle.write(b"x")
+        assert stat.S_IMODE(fresh.stat().st_mode) == 0o640  # not mkstemp's 0o600
+    finally:
+        os.umask(old_mask)
+    shared = tmp_path / "metadata.yaml"
+    shared.write_text("old")
+    shared.chmod(0o664)
+    with atomic_file(shared, "w") as text:
+        text.write("new")
+    assert stat.S_IMODE(shared.stat().st_mode) == 0o664  # the replaced file's kept
