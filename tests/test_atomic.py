@@ -52,3 +52,12 @@ def test_the_new_file_gets_the_permissions_a_plain_open_would_give(tmp_path):
     with atomic_file(shared, "w") as text:
         text.write("new")
     assert stat.S_IMODE(shared.stat().st_mode) == 0o664  # the replaced file's kept
+
+
+def test_given_permissions_replace_those_of_the_old_file(tmp_path):
+    planted = tmp_path / "profile.xml"
+    planted.write_text("theirs")
+    planted.chmod(0o666)  # writable by anyone: its mode must not carry over
+    with atomic_file(planted, "w", sync=False, permissions=0o644) as handle:
+        handle.write("ours")
+    assert stat.S_IMODE(planted.stat().st_mode) == 0o644 and planted.read_text() == "ours"

@@ -23,15 +23,19 @@ __all__ = ["atomic_file"]
 
 
 @contextmanager
-def atomic_file(path: Path | str, mode: str = "wb", *, sync: bool = True) -> Iterator[IO[Any]]:
+def atomic_file(
+    path: Path | str, mode: str = "wb", *, sync: bool = True, permissions: int | None = None
+) -> Iterator[IO[Any]]:
     """A file opened with ``mode`` that replaces ``path`` when the block ends without error.
 
     On an error in the block (the caller may raise one to give up) the temporary file is
     removed and ``path`` is left as it was. ``sync`` flushes the data to disk before the
-    rename (off for files that are cheap to rewrite).
+    rename (off for files that are cheap to rewrite). ``permissions`` sets the new file's
+    mode where the replaced file's must not carry over (a file others could write).
     """
     target = Path(path)
-    permissions = _permissions_for(target)
+    if permissions is None:
+        permissions = _permissions_for(target)
     # in the directory that holds the name (not where a link at it points): same file system
     fd, name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     temporary = Path(name)

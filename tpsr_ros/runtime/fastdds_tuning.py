@@ -110,8 +110,8 @@ def tune_fastdds(
     try:
         if not _ours(path) or path.read_text(encoding="utf-8") != text:
             # a new file of ours (exclusive, never through a link), renamed over the old:
-            # a concurrent reader sees the old profile or the new one
-            with atomic_file(path, "w", sync=False) as handle:
+            # a concurrent reader sees the old profile or the new one; only we may write it
+            with atomic_file(path, "w", sync=False, permissions=0o644) as handle:
                 handle.write(text)
     except OSError:
         return None
