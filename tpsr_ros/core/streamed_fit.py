@@ -68,6 +68,7 @@ from tpsr_ros.core.tpsr import (
     kernel_centres,
     obs_features,
     p_th_test_window,
+    pool_actions,
     projected_outer,
     start_and_normaliser,
     truncated_svd,
@@ -718,6 +719,7 @@ def fit_tpsr_streamed(
     watch.stop()
     big_b = b_sums.sums
     big_b /= b_sums.counts[:, None, None]
+    big_b = pool_actions(big_b, b_sums.counts, cfg.action_pooling)
     fit_info = {
         "episodes": int(n_episodes),
         "steps": int(moments.steps),
