@@ -167,8 +167,9 @@ class ObservationFeatures:
 
     @classmethod
     def fit(cls, observations: np.ndarray, dim: int) -> ObservationFeatures:
-        """PCA of ``observations (T, k)`` keeping ``dim`` components."""
-        return cls(Whitening.fit(observations, dim, what="observations for tuning targets"))
+        """PCA of ``observations (T, k)`` keeping ``dim`` components (all ``k`` if fewer)."""
+        kept = min(dim, observations.shape[1])
+        return cls(Whitening.fit(observations, kept, what="observations for tuning targets"))
 
     def transform(self, observations: np.ndarray) -> np.ndarray:
         """Component scores ``(T, dim)`` (not whitened: each component keeps its variance)."""

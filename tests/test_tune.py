@@ -119,6 +119,13 @@ def test_criterion_is_invariant_to_invertible_linear_maps():
     assert plain.min() > 0.5  # the position predicts the observations
 
 
+def test_observations_with_fewer_values_than_targets_keep_them_all():
+    rng = np.random.default_rng(3)
+    observations = rng.normal(size=(500, 6))  # a small sensor: fewer values than the 10 targets
+    features = ObservationFeatures.fit(observations, 10)
+    assert features.transform(observations).shape == (500, 6)
+
+
 def test_future_targets_stay_inside_segments():
     features = np.arange(10.0)[:, None]
     segments = np.array([0, 0, 0, 0, 1, 1, 1, 1, 1, 1])
