@@ -75,3 +75,4 @@ def test_pooling_recovers_a_fully_observable_state_from_few_samples_per_action()
             for s in range(pomdp.n_states)
         )
     assert errors[1.0] < 0.05 < errors[0.0]
+
