@@ -60,6 +60,7 @@ from tpsr_ros.core.tpsr import (
     Stopwatch,
     TPSRConfig,
     TPSRModel,
+    action_operators,
     action_sums,
     assemble_model,
     check_action_counts,
@@ -68,7 +69,6 @@ from tpsr_ros.core.tpsr import (
     kernel_centres,
     obs_features,
     p_th_test_window,
-    pool_actions,
     projected_outer,
     start_and_normaliser,
     truncated_svd,
@@ -717,9 +717,7 @@ def fit_tpsr_streamed(
         b_sums = engine.parameter_sums(store, start, centres, (u, s, v), cfg, n_actions)
         scratch = store.nbytes
     watch.stop()
-    big_b = b_sums.sums
-    big_b /= b_sums.counts[:, None, None]
-    big_b = pool_actions(big_b, b_sums.counts, cfg.action_pooling)
+    big_b = action_operators(b_sums.sums, b_sums.counts, cfg.action_pooling)
     fit_info = {
         "episodes": int(n_episodes),
         "steps": int(moments.steps),

@@ -652,7 +652,7 @@ def _parameters(
     actions: np.ndarray,
     svd: tuple[np.ndarray, np.ndarray, np.ndarray],
     n_actions: int,
-    pooling: float = 0.0,
+    pooling: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Eqs. 3.5-3.7 (with 3.3): ``b_*``, ``b_inf`` and every ``B_ao'``; samples per action.
 
@@ -668,10 +668,17 @@ def _parameters(
     outer = projected_outer(phi_h, phi_t, svd)
     counts = np.bincount(actions, minlength=n_actions)
     check_action_counts(counts)
-    sums = action_sums(phi_o, outer, actions, counts)
-    sums /= counts[:, None, None]
-    big_b = pool_actions(sums, counts, pooling)
+    big_b = action_operators(action_sums(phi_o, outer, actions, counts), counts, pooling)
     return b_star, b_inf, big_b.reshape(n_actions, phi_o.shape[1], r, r), counts
+
+
+def action_operators(sums: np.ndarray, counts: np.ndarray, pooling: float) -> np.ndarray:
+    """Eq. 3.7: the per-action sums ``(n_actions, ...)`` over their counts, then pooled.
+
+    Shared by the in-memory and the streamed fit; ``sums`` is divided in place.
+    """
+    sums /= counts.reshape(-1, *([1] * (sums.ndim - 1)))
+    return pool_actions(sums, counts, pooling)
 
 
 def pool_actions(operators: np.ndarray, counts: np.ndarray, weight: float) -> np.ndarray:
