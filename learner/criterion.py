@@ -172,7 +172,7 @@ class ObservationFeatures:
         return cls(Whitening.fit(observations, kept, what="observations for tuning targets"))
 
     def transform(self, observations: np.ndarray) -> np.ndarray:
-        """Component scores ``(T, dim)`` (not whitened: each component keeps its variance)."""
+        """Component scores ``(T, d)`` of the ``d`` components kept (not whitened)."""
         scores: np.ndarray = (observations - self.pca.mean_) @ self.pca.components_
         return scores
 
