@@ -39,8 +39,15 @@ BACKENDS = [
 ]
 
 
+# ROS 2 asks for domain ids 0..101 on Linux: a domain's discovery port is 7400 + 250 * id,
+# and above id 101 it falls in the kernel's ephemeral port range (32768..60999), where any
+# other socket of the machine may already hold it ("failed to bind ... address in use").
+# Domain 0 is left to whatever ROS 2 system runs on the machine.
+FIRST_TEST_DOMAIN, LAST_TEST_DOMAIN = 1, 101
+
+
 def fresh_domain(salt: int = 0) -> int:
-    """A DDS domain id in 20..219 that no participant of this process has configured yet.
+    """A DDS domain id in 1..101 that no participant of this process has configured yet.
 
     Cyclone keeps one configuration per domain and process: in a domain an earlier test
     opened (say without the loopback URI, or with other discovery variables), a probe
@@ -50,5 +57,10 @@ def fresh_domain(salt: int = 0) -> int:
     """
     from tpsr_ros.runtime import dds
 
+    span = LAST_TEST_DOMAIN - FIRST_TEST_DOMAIN + 1
     seed = os.getpid() * 7 + 31 * salt + 3 * next(_COUNTER)
-    return next(d for k in range(200) if (d := (seed + k) % 200 + 20) not in dds._DOMAINS)
+    for k in range(span):
+        candidate = (seed + k) % span + FIRST_TEST_DOMAIN
+        if candidate not in dds._DOMAINS:
+            return candidate
+    raise RuntimeError(f"this test process has configured all {span} test domains")

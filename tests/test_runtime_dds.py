@@ -5,8 +5,7 @@ The cross-process behaviour is covered by tests/test_record_play.py.
 
 from __future__ import annotations
 
-import itertools
-import os
+import socket
 import time
 
 import numpy as np
@@ -22,21 +21,21 @@ from cyclonedds.builtin import (
 )
 from cyclonedds.core import Policy
 from cyclonedds.domain import DomainParticipant
+from graph_support import fresh_domain
 
-from tpsr_ros.core.errors import ConfigError, MessageError
+from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import LATCHED_QOS, SENSOR_DATA_QOS, Node, NodeOptions
 from tpsr_ros.runtime.dds import DdsTransport, domain_id_from_env
 from tpsr_ros.runtime.dds_types import dds_type_name, idl_struct, ros_type_name
 
 pytestmark = pytest.mark.dds
-_COUNTER = itertools.count()
 
 
 @pytest.fixture
 def domain(monkeypatch):
-    """A domain id of its own for each test (pid-derived, within 0..232)."""
-    value = (os.getpid() * 7 + next(_COUNTER)) % 200 + 20
+    """A domain id of its own for each test (:func:`graph_support.fresh_domain`)."""
+    value = fresh_domain(5)
     monkeypatch.setenv("ROS_DOMAIN_ID", str(value))
     return value
 
@@ -84,6 +83,29 @@ def test_domain_id_from_env(monkeypatch):
         monkeypatch.setenv("ROS_DOMAIN_ID", bad)
         with pytest.raises(ConfigError):
             domain_id_from_env()
+
+
+def test_a_taken_discovery_port_is_explained(monkeypatch):
+    """Above domain 101 the discovery port lies among Linux's ephemeral ports; when another
+    socket holds it, the error says so (the CI failure of a test that drew domain 126)."""
+    from tpsr_ros.runtime import dds
+
+    for domain_id in range(232, 101, -1):
+        if domain_id in dds._DOMAINS:
+            continue
+        holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            holder.bind(("0.0.0.0", 7400 + 250 * domain_id))
+            break
+        except OSError:
+            holder.close()
+    else:
+        pytest.skip("no free discovery port above domain 101")
+    with holder:
+        with pytest.raises(TpsrError) as caught:
+            DdsTransport("blocked", "/", domain_id=domain_id)
+    assert f"UDP port {7400 + 250 * domain_id}" in str(caught.value)
+    assert "ROS_DOMAIN_ID 0..101" in str(caught.value)
 
 
 def test_round_trip_between_two_participants(domain):

@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+from graph_support import LOOPBACK, fresh_domain
 
 from sim_node.node import SimNode
 from tpsr_ros.core.actions import ACTIONS
@@ -243,17 +244,9 @@ def test_sigterm_stops_the_node_gracefully_and_logs_the_count(tmp_path, monkeypa
     from tpsr_ros.runtime.dds import DdsTransport
     from tpsr_ros.runtime.launcher import Launch
 
-    loopback = (
-        "<CycloneDDS><Domain id='any'><General><Interfaces>"
-        "<NetworkInterface address='127.0.0.1' multicast='true'/>"
-        "</Interfaces></General></Domain></CycloneDDS>"
-    )
-    from tpsr_ros.runtime import dds
-
-    # a domain this process has not configured yet (Cyclone keeps one config per domain)
-    domain = next(d for k in range(90) if (d := (os.getpid() + k) % 90 + 140) not in dds._DOMAINS)
+    domain = fresh_domain(37)  # one this process has not configured (one config per domain)
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
-    monkeypatch.setenv("CYCLONEDDS_URI", loopback)
+    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
     probe = Node(NodeOptions(name="probe"), transport=DdsTransport("probe"))
     clocks: list = []
     probe.create_subscription("/clock", m.CLOCK_TYPE, clocks.append)

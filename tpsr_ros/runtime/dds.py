@@ -98,6 +98,23 @@ def domain_id_from_env() -> int:
     return value
 
 
+# ROS 2 recommends domain ids up to 101 on Linux: a domain's discovery port is
+# 7400 + 250 * id, and above 101 it lies in the kernel's ephemeral port range, where
+# any socket of the machine may already hold it.
+_LAST_SAFE_DOMAIN = 101
+
+
+def _port_hint(domain_id: int) -> str:
+    """Why joining ``domain_id`` may fail for reasons outside this process, if it may."""
+    if domain_id <= _LAST_SAFE_DOMAIN:
+        return ""
+    port = 7400 + 250 * domain_id
+    return (
+        f" (domain {domain_id} listens on UDP port {port}, inside Linux's ephemeral port "
+        f"range, where another socket may hold it; ROS 2 recommends ROS_DOMAIN_ID 0..101)"
+    )
+
+
 def discovery_range_from_env() -> str:
     """``ROS_AUTOMATIC_DISCOVERY_RANGE`` (SUBNET, LOCALHOST, OFF, SYSTEM_DEFAULT).
 
@@ -400,7 +417,9 @@ class DdsTransport(Transport):
         try:
             self._dp = DomainParticipant(self.domain_id, qos=Qos(Policy.Userdata(data=userdata)))
         except Exception as exc:
-            raise TpsrError(f"cannot join DDS domain {self.domain_id}: {exc}") from None
+            raise TpsrError(
+                f"cannot join DDS domain {self.domain_id}: {exc}{_port_hint(self.domain_id)}"
+            ) from None
         self._waitset = WaitSet(self._dp)
         self._guard = GuardCondition(self._dp)
         self._waitset.attach(self._guard)
