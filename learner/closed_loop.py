@@ -67,6 +67,7 @@ from tpsr_ros.runtime import (
     Reliability,
 )
 from tpsr_ros.runtime.backend import choose_backend, open_transport
+from tpsr_ros.runtime.dds import LAST_SAFE_DOMAIN_ID
 from tpsr_ros.runtime.launcher import Launch, LaunchError
 
 __all__ = [
@@ -138,7 +139,8 @@ def format_trial(index: int, trial: Trial) -> str:
 
 
 def _pick_domain() -> int:
-    return random.SystemRandom().randrange(1, 233)
+    """A random domain id in 1..101 (0 is every ROS 2 system's default)."""
+    return random.SystemRandom().randrange(1, LAST_SAFE_DOMAIN_ID + 1)
 
 
 @contextlib.contextmanager
@@ -299,8 +301,14 @@ def _join_free_domain(
     """Start the driver node in a ROS domain nobody else uses right now (runs, tests, robots)."""
     for _ in range(8):
         domain = domain_id if domain_id is not None else _pick_domain()
-        with _environment({**network, "ROS_DOMAIN_ID": str(domain)}):
-            driver = _Driver(backend, watch_all=watch_all)
+        try:
+            with _environment({**network, "ROS_DOMAIN_ID": str(domain)}):
+                driver = _Driver(backend, watch_all=watch_all)
+        except TpsrError as exc:
+            if domain_id is not None:
+                raise
+            say(f"cannot join ROS_DOMAIN_ID {domain} ({exc}); trying another")
+            continue
         driver.node.spin(timeout_s=0.5)
         if driver.graph_is_empty() or domain_id is not None:
             return driver, domain
@@ -532,7 +540,7 @@ def register(subparsers: Any) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="ROS_DOMAIN_ID to use (default: a free one at random)",
+        help="ROS_DOMAIN_ID to use (default: a free one in 1..101 at random)",
     )
     parser.add_argument(
         "--transport",

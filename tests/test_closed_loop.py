@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from graph_support import BACKENDS, LOOPBACK
+from graph_support import BACKENDS, LOOPBACK, fresh_domain
 
 from learner.cli import main as learner_main
 from learner.closed_loop import ClosedLoopError, run_closed_loop
@@ -33,6 +34,33 @@ from tpsr_ros.io.trajectory import read_trajectory
 pytestmark = pytest.mark.dds
 
 
+
+
+def test_the_driver_skips_a_domain_it_cannot_join(monkeypatch):
+    """A random domain whose discovery port another socket holds is skipped, not fatal; a
+    domain the user named is not replaced."""
+    pytest.importorskip("cyclonedds")
+    from learner import closed_loop
+
+    for name in ("CYCLONEDDS_URI", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):
+        monkeypatch.delenv(name, raising=False)
+    blocked, free = fresh_domain(43), fresh_domain(47)
+    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        holder.bind(("0.0.0.0", 7400 + 250 * blocked))
+    except OSError:
+        holder.close()
+        pytest.skip(f"domain {blocked}'s discovery port is taken already")
+    picks = iter([blocked, free])
+    monkeypatch.setattr(closed_loop, "_pick_domain", lambda: next(picks))
+    said: list[str] = []
+    with holder:
+        driver, domain = closed_loop._join_free_domain(None, {}, "dds", False, said.append)
+        driver.close()
+        assert domain == free
+        assert said[0].startswith(f"cannot join ROS_DOMAIN_ID {blocked} (")
+        with pytest.raises(TpsrError, match=f"cannot join DDS domain {blocked}"):
+            closed_loop._join_free_domain(blocked, {}, "dds", False, said.append)
 
 
 @pytest.fixture(scope="module")

@@ -57,6 +57,7 @@ from tpsr_ros.runtime.transport import (
 )
 
 __all__ = [
+    "LAST_SAFE_DOMAIN_ID",
     "DdsTransport",
     "discovery_config",
     "discovery_range_from_env",
@@ -98,15 +99,15 @@ def domain_id_from_env() -> int:
     return value
 
 
-# ROS 2 recommends domain ids up to 101 on Linux: a domain's discovery port is
-# 7400 + 250 * id, and above 101 it lies in the kernel's ephemeral port range, where
-# any socket of the machine may already hold it.
-_LAST_SAFE_DOMAIN = 101
+LAST_SAFE_DOMAIN_ID = 101
+"""The highest domain id ROS 2 recommends on Linux: a domain's discovery port is
+7400 + 250 * id, and above 101 it lies in the kernel's ephemeral port range (32768 and up),
+where any socket of the machine may already hold it."""
 
 
 def _port_hint(domain_id: int) -> str:
     """Why joining ``domain_id`` may fail for reasons outside this process, if it may."""
-    if domain_id <= _LAST_SAFE_DOMAIN:
+    if domain_id <= LAST_SAFE_DOMAIN_ID:
         return ""
     port = 7400 + 250 * domain_id
     return (
