@@ -121,10 +121,10 @@ def dds_latency(model: Path, policy: Path, images: list, tmp: Path) -> list[np.n
     """Latencies (ms) of each run, image publish -> /cmd_vel received."""
     from tpsr_ros.io import messages as m
     from tpsr_ros.runtime import Node, NodeOptions
-    from tpsr_ros.runtime.dds import DdsTransport
+    from tpsr_ros.runtime.dds import LAST_SAFE_DOMAIN_ID, DdsTransport
     from tpsr_ros.runtime.launcher import NodeProcess
 
-    domain = random.SystemRandom().randrange(1, 233)
+    domain = random.SystemRandom().randrange(1, LAST_SAFE_DOMAIN_ID + 1)
     env = {
         **os.environ,
         "ROS_DOMAIN_ID": str(domain),
