@@ -90,6 +90,8 @@ def test_a_taken_discovery_port_is_explained(monkeypatch):
     socket holds it, the error says so (the CI failure of a test that drew domain 126)."""
     from tpsr_ros.runtime import dds
 
+    for name in ("CYCLONEDDS_URI", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):
+        monkeypatch.delenv(name, raising=False)  # the default: multicast discovery on ANY
     for domain_id in range(232, 101, -1):
         if domain_id in dds._DOMAINS:
             continue
