@@ -34,8 +34,6 @@ from tpsr_ros.io.trajectory import read_trajectory
 pytestmark = pytest.mark.dds
 
 
-
-
 def test_the_driver_skips_a_domain_it_cannot_join(monkeypatch):
     """A random domain whose discovery port another socket holds is skipped, not fatal; a
     domain the user named is not replaced."""
@@ -45,6 +43,8 @@ def test_the_driver_skips_a_domain_it_cannot_join(monkeypatch):
     for name in ("CYCLONEDDS_URI", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):
         monkeypatch.delenv(name, raising=False)
     blocked, free = fresh_domain(43), fresh_domain(47)
+    while free == blocked:  # neither is configured yet, so both may be drawn
+        free = fresh_domain(47)
     holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
         holder.bind(("0.0.0.0", 7400 + 250 * blocked))
