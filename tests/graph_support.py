@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import itertools
 import os
+import socket
 
 import pytest
 
-__all__ = ["BACKENDS", "LOOPBACK", "fresh_domain", "rclpy_available"]
+__all__ = ["BACKENDS", "LOOPBACK", "fresh_domain", "hold_discovery_port", "rclpy_available"]
 
 LOOPBACK = (
     "<CycloneDDS><Domain id='any'><General><Interfaces>"
@@ -39,15 +40,11 @@ BACKENDS = [
 ]
 
 
-# ROS 2 asks for domain ids 0..101 on Linux: a domain's discovery port is 7400 + 250 * id,
-# and above id 101 it falls in the kernel's ephemeral port range (32768..60999), where any
-# other socket of the machine may already hold it ("failed to bind ... address in use").
-# Domain 0 is left to whatever ROS 2 system runs on the machine.
-FIRST_TEST_DOMAIN, LAST_TEST_DOMAIN = 1, 101
-
-
 def fresh_domain(salt: int = 0) -> int:
     """A DDS domain id in 1..101 that no participant of this process has configured yet.
+
+    Above 101 (``dds.LAST_SAFE_DOMAIN_ID``) another socket of the machine may hold the
+    discovery port; domain 0 is left to whatever ROS 2 system runs on the machine.
 
     Cyclone keeps one configuration per domain and process: in a domain an earlier test
     opened (say without the loopback URI, or with other discovery variables), a probe
@@ -57,10 +54,29 @@ def fresh_domain(salt: int = 0) -> int:
     """
     from tpsr_ros.runtime import dds
 
-    span = LAST_TEST_DOMAIN - FIRST_TEST_DOMAIN + 1
+    span = dds.LAST_SAFE_DOMAIN_ID
     seed = os.getpid() * 7 + 31 * salt + 3 * next(_COUNTER)
     for k in range(span):
-        candidate = (seed + k) % span + FIRST_TEST_DOMAIN
+        candidate = (seed + k) % span + 1
         if candidate not in dds._DOMAINS:
             return candidate
     raise RuntimeError(f"this test process has configured all {span} test domains")
+
+
+def hold_discovery_port(monkeypatch: pytest.MonkeyPatch, domain_id: int) -> socket.socket | None:
+    """Bind ``domain_id``'s discovery port as another program would (None if already taken).
+
+    Clears the discovery variables first, so that the domain gets Cyclone's default
+    multicast discovery on every interface, which needs that port.
+    """
+    from tpsr_ros.runtime.dds import discovery_port
+
+    for name in ("CYCLONEDDS_URI", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):
+        monkeypatch.delenv(name, raising=False)
+    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        holder.bind(("0.0.0.0", discovery_port(domain_id)))
+    except OSError:
+        holder.close()
+        return None
+    return holder

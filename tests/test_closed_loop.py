@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -18,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from graph_support import BACKENDS, LOOPBACK, fresh_domain
+from graph_support import BACKENDS, LOOPBACK, fresh_domain, hold_discovery_port
 
 from learner.cli import main as learner_main
 from learner.closed_loop import ClosedLoopError, run_closed_loop
@@ -40,16 +39,11 @@ def test_the_driver_skips_a_domain_it_cannot_join(monkeypatch):
     pytest.importorskip("cyclonedds")
     from learner import closed_loop
 
-    for name in ("CYCLONEDDS_URI", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):
-        monkeypatch.delenv(name, raising=False)
     blocked, free = fresh_domain(43), fresh_domain(47)
     while free == blocked:  # neither is configured yet, so both may be drawn
         free = fresh_domain(47)
-    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        holder.bind(("0.0.0.0", 7400 + 250 * blocked))
-    except OSError:
-        holder.close()
+    holder = hold_discovery_port(monkeypatch, blocked)
+    if holder is None:
         pytest.skip(f"domain {blocked}'s discovery port is taken already")
     picks = iter([blocked, free])
     monkeypatch.setattr(closed_loop, "_pick_domain", lambda: next(picks))

@@ -5,7 +5,6 @@ The cross-process behaviour is covered by tests/test_record_play.py.
 
 from __future__ import annotations
 
-import socket
 import time
 
 import numpy as np
@@ -21,12 +20,12 @@ from cyclonedds.builtin import (
 )
 from cyclonedds.core import Policy
 from cyclonedds.domain import DomainParticipant
-from graph_support import fresh_domain
+from graph_support import fresh_domain, hold_discovery_port
 
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import LATCHED_QOS, SENSOR_DATA_QOS, Node, NodeOptions
-from tpsr_ros.runtime.dds import DdsTransport, domain_id_from_env
+from tpsr_ros.runtime.dds import DdsTransport, discovery_port, domain_id_from_env
 from tpsr_ros.runtime.dds_types import dds_type_name, idl_struct, ros_type_name
 
 pytestmark = pytest.mark.dds
@@ -90,23 +89,16 @@ def test_a_taken_discovery_port_is_explained(monkeypatch):
     socket holds it, the error says so (the CI failure of a test that drew domain 126)."""
     from tpsr_ros.runtime import dds
 
-    for name in ("CYCLONEDDS_URI", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_LOCALHOST_ONLY"):
-        monkeypatch.delenv(name, raising=False)  # the default: multicast discovery on ANY
-    for domain_id in range(232, 101, -1):
-        if domain_id in dds._DOMAINS:
-            continue
-        holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            holder.bind(("0.0.0.0", 7400 + 250 * domain_id))
+    unconfigured = (d for d in range(232, dds.LAST_SAFE_DOMAIN_ID, -1) if d not in dds._DOMAINS)
+    for domain_id in unconfigured:
+        if (holder := hold_discovery_port(monkeypatch, domain_id)) is not None:
             break
-        except OSError:
-            holder.close()
     else:
         pytest.skip("no free discovery port above domain 101")
     with holder:
         with pytest.raises(TpsrError) as caught:
             DdsTransport("blocked", "/", domain_id=domain_id)
-    assert f"UDP port {7400 + 250 * domain_id}" in str(caught.value)
+    assert f"UDP port {discovery_port(domain_id)}" in str(caught.value)
     assert "ROS_DOMAIN_ID 0..101" in str(caught.value)
 
 

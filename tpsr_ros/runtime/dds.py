@@ -60,6 +60,7 @@ __all__ = [
     "LAST_SAFE_DOMAIN_ID",
     "DdsTransport",
     "discovery_config",
+    "discovery_port",
     "discovery_range_from_env",
     "domain_config",
     "domain_id_from_env",
@@ -100,19 +101,24 @@ def domain_id_from_env() -> int:
 
 
 LAST_SAFE_DOMAIN_ID = 101
-"""The highest domain id ROS 2 recommends on Linux: a domain's discovery port is
-7400 + 250 * id, and above 101 it lies in the kernel's ephemeral port range (32768 and up),
-where any socket of the machine may already hold it."""
+"""The highest domain id ROS 2 recommends on Linux: above it the discovery port
+(:func:`discovery_port`) lies in the kernel's ephemeral port range (32768 and up), where
+any socket of the machine may already hold it."""
+
+
+def discovery_port(domain_id: int) -> int:
+    """The domain's multicast discovery port (DDSI-RTPS defaults: ``PB + DG * id``)."""
+    return 7400 + 250 * domain_id
 
 
 def _port_hint(domain_id: int) -> str:
     """Why joining ``domain_id`` may fail for reasons outside this process, if it may."""
     if domain_id <= LAST_SAFE_DOMAIN_ID:
         return ""
-    port = 7400 + 250 * domain_id
     return (
-        f" (domain {domain_id} listens on UDP port {port}, inside Linux's ephemeral port "
-        f"range, where another socket may hold it; ROS 2 recommends ROS_DOMAIN_ID 0..101)"
+        f" (domain {domain_id} listens on UDP port {discovery_port(domain_id)}, inside "
+        "Linux's ephemeral port range, where another socket may hold it; ROS 2 recommends "
+        "ROS_DOMAIN_ID 0..101)"
     )
 
 
