@@ -154,7 +154,12 @@ def median_widths(train: Trajectory, base: TPSRConfig, *, seed: int = 0) -> dict
     dimensions), on a seeded sample of at most 1000 episodes.
     """
     episodes = make_episodes(train, base.history_length, base.test_length)
-    obs = Whitening.fit(episodes.observation, base.obs_dim, what="current observations")
+    obs = Whitening.fit(
+        episodes.observation,
+        base.obs_dim,
+        what="current observations",
+        variance=base.obs_variance,
+    )
     hist = Whitening.fit(episodes.history, base.ht_dim, what="histories")
     return {
         "sigma_obs": median_distance(obs.transform(episodes.observation), seed=seed),

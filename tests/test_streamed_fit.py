@@ -91,6 +91,7 @@ def test_cutter_cuts_the_episodes_of_the_whole(trajectory, size, lengths, max_ep
         ({"history_length": 2, "test_length": 2, "p_th_tests": "from-current"}, 55, None),
         ({"normalize_ht_features": True, "p_th_tests": "from-current"}, 1000, 650),
         ({"action_pooling": 0.6}, 301, None),
+        ({"obs_variance": 0.9}, 301, None),
     ],
 )
 def test_streamed_fit_equals_the_in_memory_fit(trajectory, changes, size, max_episodes):

@@ -204,6 +204,8 @@ def test_non_finite_data():
         {"seed": -1},
         {"rank": 2000},
         {"normalize_ht_features": 1},
+        {"obs_variance": 1.0},
+        {"obs_variance": -0.5},
     ],
 )
 def test_config_validation(changes):
@@ -225,3 +227,29 @@ def test_config_defaults_are_the_guides():
     assert TPSRConfig.from_dict(cfg.to_dict()) == cfg
     with pytest.raises(ConfigError, match="unknown"):
         TPSRConfig.from_dict({"bogus": 1})
+
+
+def test_a_variance_fraction_chooses_the_observation_dimensions_and_the_model_records_them(
+    tmp_path,
+):
+    from tpsr_ros.io.model_io import load_model, save_model
+
+    h, o, a, t = structured_episodes(200, seed=5)
+    centred = o - o.mean(axis=0)
+    values = np.linalg.eigvalsh(centred.T @ centred)[::-1]
+    kept = int(np.searchsorted(np.cumsum(values) / values.sum(), 0.9)) + 1
+    assert 1 < kept < o.shape[1]
+    by_variance = dataclasses.replace(SMALL, obs_variance=0.9, state_clip_quantile=0.1)
+    model = fit_tpsr(
+        h, o, a, t, n_actions=3, config=by_variance, history_actions=np.zeros((200, 1), int)
+    )
+    assert model.config.obs_dim == kept and model.obs_whitening.shape == (12, kept)
+    assert model.config.obs_variance == 0.9 and model.state_box is not None
+    same_dims = dataclasses.replace(by_variance, obs_variance=0.0, obs_dim=kept)
+    fixed = fit_tpsr(
+        h, o, a, t, n_actions=3, config=same_dims, history_actions=np.zeros((200, 1), int)
+    )
+    np.testing.assert_array_equal(model.B, fixed.B)
+    again = load_model(save_model(model, tmp_path / "m.npz"))
+    assert again.config == model.config
+    np.testing.assert_array_equal(again.obs_whitening, model.obs_whitening)

@@ -125,3 +125,47 @@ def test_fit_transform_equals_fit_then_transform_bit_for_bit():
     fitted, white = Whitening.fit_transform(x, 4)
     np.testing.assert_array_equal(white, Whitening.fit(x, 4).transform(x))
     np.testing.assert_array_equal(white, fitted.transform(x))
+
+
+@pytest.mark.parametrize(("fraction", "kept"), [(0.5, 1), (0.6, 2), (0.9, 3), (0.95, 4), (0.99, 5)])
+def test_a_variance_fraction_keeps_the_fewest_directions_that_explain_it(fraction, kept):
+    # the planted spectrum 100, 50, 20, 10, 5 and 25 x 0.01 (total 185.25): the leading
+    # directions explain 54.0, 80.9, 91.7, 97.1 and 99.9 % of it
+    x, _, _ = planted()
+    by_variance = Whitening.fit(x, 1, variance=fraction)
+    assert by_variance.n_components == kept
+    np.testing.assert_array_equal(by_variance.matrix_, Whitening.fit(x, kept).matrix_)
+    fitted, white = Whitening.fit_transform(x, 1, variance=fraction)
+    np.testing.assert_array_equal(white, by_variance.transform(x))
+    assert fitted.n_components == kept
+
+
+def test_the_variance_rule_from_moments_and_on_wide_data_agrees_with_the_dense_one():
+    from tpsr_ros.core import whitening
+    from tpsr_ros.core.moments import Moments
+
+    x, _, _ = planted(n=600, seed=5)
+    moments = Moments.of(x)
+    assert Whitening.from_moments(moments, 1, variance=0.95).n_components == 4
+    rng = np.random.default_rng(6)
+    b = whitening.DENSE_MAX_DIM + 100
+    latent = rng.standard_normal((1200, 60)) * np.linspace(6.0, 0.5, 60)
+    wide = latent @ np.linalg.qr(rng.standard_normal((b, 60)))[0].T
+    centred = wide - wide.mean(axis=0)
+    values = np.linalg.eigvalsh(centred.T @ centred)[::-1]
+    for fraction in (0.3, 0.8, 0.99):
+        expected = int(np.searchsorted(np.cumsum(values) / values.sum(), fraction)) + 1
+        assert expected > 1
+        assert whitening.variance_dimensions(centred, fraction) == expected
+
+
+@pytest.mark.parametrize("fraction", [1.0, 1.5, -0.1])
+def test_a_variance_fraction_outside_zero_one_is_refused(fraction):
+    x, _, _ = planted(n=100)
+    with pytest.raises(ConfigError, match=r"must lie in \(0, 1\)"):
+        Whitening.fit(x, 1, variance=fraction)
+
+
+def test_constant_data_keep_no_variance():
+    with pytest.raises(DataError, match="do not vary"):
+        Whitening.fit(np.ones((50, 4)), 1, variance=0.9)

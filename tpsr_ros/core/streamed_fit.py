@@ -286,7 +286,12 @@ class Whitenings:
         return cls(
             Whitening.from_moments(moments.history, cfg.ht_dim, what="histories"),
             Whitening.from_moments(moments.test, cfg.ht_dim, what="tests"),
-            Whitening.from_moments(moments.observation, cfg.obs_dim, what="current observations"),
+            Whitening.from_moments(
+                moments.observation,
+                cfg.obs_dim,
+                what="current observations",
+                variance=cfg.obs_variance,
+            ),
         )
 
     def apply(self, episodes: Episodes, cfg: TPSRConfig) -> WhitenedRows:

@@ -85,6 +85,7 @@ _NUMBER_RULES: tuple[tuple[tuple[str, ...], Callable[[float], bool], str], ...] 
     ),
     (("state_clip_quantile",), lambda v: v == 0 or 0 < v < 0.5, "0 or in (0, 0.5)"),
     (("action_pooling",), lambda v: np.isfinite(v) and 0 <= v <= 1, "a number in [0, 1]"),
+    (("obs_variance",), lambda v: v == 0 or 0 < v < 1, "0 or in (0, 1)"),
 )
 """The real-valued parameters of :class:`TPSRConfig`: names, the rule, and how it reads."""
 
@@ -100,6 +101,11 @@ class TPSRConfig:
     history_length: int = _param(1, "m: observations per history (guide h/t-length)")
     test_length: int = _param(1, "n: observations per test (guide h/t-length)")
     obs_dim: int = _param(10, "d^O: dimensions kept when whitening current observations")
+    obs_variance: float = _param(
+        0.0,
+        "keep instead the fewest d^O that explain this fraction of the current observations' "
+        "variance (0: obs_dim, the guide; the fitted model's obs_dim records the d^O chosen)",
+    )
     ht_dim: int = _param(10, "d^H = d^T: dimensions kept when whitening histories and tests")
     obs_centers: int = _param(500, "l^O: number of observation kernel centres")
     ht_centers: int = _param(1000, "l^H = l^T: number of history and test kernel centres")
@@ -514,7 +520,9 @@ def _whiten(
     """
     wh_h, h_white = Whitening.fit_transform(history, cfg.ht_dim, what="histories")
     wh_t, t_white = Whitening.fit_transform(test, cfg.ht_dim, what="tests")
-    wh_o, o_white = Whitening.fit_transform(observation, cfg.obs_dim, what="current observations")
+    wh_o, o_white = Whitening.fit_transform(
+        observation, cfg.obs_dim, what="current observations", variance=cfg.obs_variance
+    )
     if cfg.p_th_tests == "from-current":
         t0_white = wh_t.transform(p_th_test_window(observation, test, cfg.test_length))
     else:
@@ -837,7 +845,8 @@ def fit_tpsr(
     box = state_box(states, cfg.state_clip_quantile)
     watch.stop()
     model.fit_info["timings"].update({k: round(v, 6) for k, v in watch.timings.items()})
-    return replace(model, config=cfg, state_box=box)
+    clipped = replace(model.config, state_clip_quantile=cfg.state_clip_quantile)
+    return replace(model, config=clipped, state_box=box)
 
 
 def _state_box_actions(
@@ -869,11 +878,11 @@ def assemble_model(
 ) -> TPSRModel:
     """The model of a fit (in memory or streamed): the observation whitening and centres,
     ``(b_*, b_inf, B)``, and the explained variance of the history, test and observation
-    whitenings."""
+    whitenings. Its config records the ``d^O`` the observation whitening kept."""
     history, test, obs = whitenings
     b_star, b_inf, big_b = parameters
     return TPSRModel(
-        config=cfg,
+        config=replace(cfg, obs_dim=obs.n_components),
         obs_mean=obs.mean_,
         obs_whitening=np.ascontiguousarray(obs.matrix_),
         obs_centers=obs_centers,

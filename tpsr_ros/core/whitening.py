@@ -21,6 +21,11 @@ for more dimensions than the data's numerical rank is therefore refused with a `
 :class:`~tpsr_ros.core.moments.Moments` (mean and centred scatter gathered chunk by chunk,
 the streamed fit's path), always through the dense covariance.
 
+``variance`` in ``(0, 1)`` lets the data choose ``d``: the fewest leading directions whose
+eigenvalues sum to that fraction of the total variance (scikit-learn's
+``PCA(n_components=0.95)``), found from the eigenvalues of the dense covariance, or for wide
+data from Lanczos runs of 16, 32, 64, ... directions until the fraction is reached.
+
 Threads: LAPACK's symmetric eigensolver (and ARPACK, used by the TPSR fit) make thousands of
 small level-2 BLAS calls; with a multithreaded OpenBLAS on a busy machine every call waits
 for preempted threads, and a 0.03 s eigendecomposition was measured taking 5-15 s.
@@ -49,6 +54,7 @@ __all__ = [
     "flip_signs",
     "single_blas_thread",
     "top_eigenpairs",
+    "variance_dimensions",
 ]
 
 DENSE_MAX_DIM = 1024
@@ -124,6 +130,51 @@ def top_eigenpairs(centred: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray,
     return values[order], vectors[:, order], total
 
 
+def leading_dimensions(values: np.ndarray, total: float, fraction: float) -> int | None:
+    """The fewest of the descending eigenvalues ``values`` that sum to ``fraction * total``,
+    or None when all of them fall short."""
+    reached = np.flatnonzero(np.cumsum(values) >= fraction * total)
+    return int(reached[0]) + 1 if reached.size else None
+
+
+def _check_fraction(fraction: float, what: str) -> None:
+    if not 0 < fraction < 1:
+        raise ConfigError(
+            f"the variance kept when whitening {what} must lie in (0, 1), not {fraction}"
+        )
+
+
+def variance_dimensions(centred: np.ndarray, fraction: float, what: str = "data") -> int:
+    """The fewest principal directions of ``centred`` rows (at least 2) keeping ``fraction``
+    of their variance."""
+    _check_fraction(fraction, what)
+    n, b = centred.shape
+    if b <= DENSE_MAX_DIM:
+        cov = centred.T @ centred
+        cov *= 1.0 / (n - 1)
+        return covariance_dimensions(cov, fraction, what)
+    k = 16
+    while True:
+        k = min(k, b - 1)
+        values, _, total = top_eigenpairs(centred, k)
+        found = leading_dimensions(values[::-1], total, fraction)
+        if found is not None or k == b - 1:
+            return found if found is not None else b
+        k *= 2
+
+
+def covariance_dimensions(cov: np.ndarray, fraction: float, what: str = "data") -> int:
+    """:func:`variance_dimensions` from a covariance ``(b, b)``."""
+    _check_fraction(fraction, what)
+    with single_blas_thread():
+        values = scipy.linalg.eigvalsh(cov)[::-1]
+    total = float(np.trace(cov))
+    if not total > 0:
+        raise DataError(f"the {what} do not vary: no whitening dimension keeps any variance")
+    found = leading_dimensions(values, total, fraction)
+    return found if found is not None else int(cov.shape[0])
+
+
 def _check_dimensions(n: int, b: int, n_components: int, what: str) -> int:
     d = int(n_components)
     if d < 1:
@@ -170,38 +221,50 @@ class Whitening:
         return int(self.eigenvalues_.shape[0])
 
     @classmethod
-    def fit(cls, x: np.ndarray, n_components: int, *, what: str = "data") -> Whitening:
+    def fit(
+        cls, x: np.ndarray, n_components: int, *, what: str = "data", variance: float = 0.0
+    ) -> Whitening:
         """Fit on ``x`` (``(r, b)``, one data point per row), keeping ``n_components`` dims.
 
-        ``what`` names the data in error messages (e.g. ``"history observations"``).
+        ``what`` names the data in error messages (e.g. ``"history observations"``). With
+        ``variance`` in ``(0, 1)`` the dims kept are instead the fewest that keep that
+        fraction of the variance (:func:`variance_dimensions`).
         """
-        return cls._fit_centred(x, n_components, what)[0]
+        return cls._fit_centred(x, n_components, what, variance)[0]
 
     @classmethod
     def _fit_centred(
-        cls, x: np.ndarray, n_components: int, what: str
+        cls, x: np.ndarray, n_components: int, what: str, variance: float = 0.0
     ) -> tuple[Whitening, np.ndarray]:
         """:meth:`fit`, also returning the centred rows ``x - mean`` it computed."""
         x = check_finite_matrix(x, what)
         n, b = x.shape
-        d = _check_dimensions(n, b, n_components, what)
+        _check_dimensions(n, b, 1, what)
         mean = x.mean(axis=0)
         centred = x - mean
+        if variance:
+            n_components = variance_dimensions(centred, variance, what)
+        d = _check_dimensions(n, b, n_components, what)
         values, vectors, total = top_eigenpairs(centred, d)
         return cls._from_eigenpairs(mean, values, vectors, total, n, what), centred
 
     @classmethod
-    def from_moments(cls, moments: Moments, n_components: int, *, what: str = "data") -> Whitening:
+    def from_moments(
+        cls, moments: Moments, n_components: int, *, what: str = "data", variance: float = 0.0
+    ) -> Whitening:
         """Fit from merged :class:`~tpsr_ros.core.moments.Moments` (the streamed fit's path).
 
         Equal to :meth:`fit` on the rows up to rounding: the same covariance (``1 / (r - 1)``)
-        and the same eigenpair, tolerance and sign rules.
+        and the same eigenpair, tolerance, sign and ``variance`` rules.
         """
         n, b = moments.count, moments.dim
-        d = _check_dimensions(n, b, n_components, what)
+        _check_dimensions(n, b, 1, what)
         if not (np.isfinite(moments.mean).all() and np.isfinite(moments.scatter).all()):
             raise DataError(f"non-finite values (NaN or infinity) in the {what}")
         cov = moments.scatter * (1.0 / (n - 1))
+        if variance:
+            n_components = covariance_dimensions(cov, variance, what)
+        d = _check_dimensions(n, b, n_components, what)
         values, vectors, total = covariance_eigenpairs(cov, d)
         return cls._from_eigenpairs(moments.mean.copy(), values, vectors, total, n, what)
 
@@ -248,13 +311,13 @@ class Whitening:
 
     @classmethod
     def fit_transform(
-        cls, x: np.ndarray, n_components: int, *, what: str = "data"
+        cls, x: np.ndarray, n_components: int, *, what: str = "data", variance: float = 0.0
     ) -> tuple[Whitening, np.ndarray]:
         """Fit on ``x`` and return the transform with the whitened ``x`` (``(r, d)``).
 
         Equal, bit for bit, to ``fit`` then ``transform``, without centring ``x`` twice (a
         copy of the data: 570 MB for the tests of 8 images of the memory setting).
         """
-        fitted, centred = cls._fit_centred(x, n_components, what)
+        fitted, centred = cls._fit_centred(x, n_components, what, variance)
         white: np.ndarray = centred @ fitted.matrix_
         return fitted, white
