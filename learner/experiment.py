@@ -291,6 +291,8 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 start = time.perf_counter()  # the fit alone: the tuning's time is in ``extra``
             tracker, states, recoveries = _learn_states(run_config, method, train, rl)
             fit_seconds = time.perf_counter() - start
+            if method == "tpsr":  # the fit's own record, e.g. the d^O that obs_variance chose
+                run_config = dataclasses.replace(run_config, tpsr=tracker.model.config)
             r2 = affine_r2(states, rl.positions)
             position_error = neighbour_position_error(states, rl.positions)
             score, trials, ridge, status = _plan_and_score(config, tracker, rl, states)

@@ -209,6 +209,21 @@ def test_experiment_grid_rows_seeds_and_rerun_of_one_row(tmp_path):
     assert table[("random", 400)]["floor"] == "" and np.isnan(table[("random", 400)]["margin_sem"])
 
 
+def test_a_run_records_the_observation_dimensions_its_fit_chose():
+    from tpsr_ros.core.episodes import make_episodes
+    from tpsr_ros.core.whitening import Whitening
+
+    tpsr = TPSRConfig(ht_centers=150, obs_centers=100, obs_variance=0.9)
+    config = _small_grid(repetitions=1, methods=("tpsr",), tpsr=tpsr)
+    (row,) = run_cell(config, 400, 0)
+    recorded = json.loads(row.parameters)["tpsr"]
+    train = random_trajectory("full", config.steps_for(400), row.train_seed)
+    observations = make_episodes(train, 1, 1).observation
+    chosen = Whitening.fit(observations, 1, variance=0.9).n_components
+    assert row.status == "ok" and recorded["obs_variance"] == 0.9
+    assert recorded["obs_dim"] == chosen != tpsr.obs_dim
+
+
 def test_experiment_command_writes_csv_and_plot(tmp_path, capsys):
     out = tmp_path / "results"
     args = ["experiment", "--environment", "full", "--episodes", "300", "--repetitions", "1",
