@@ -6,10 +6,10 @@ held-out R^2 of predicting the next 1..10 observations' principal components fro
 whitened state). The search tries the guide's defaults, then data-driven kernel widths
 (the median pairwise distance of the whitened observations and histories, on a seeded
 sample), then walks a coarse grid one parameter at a time around the best so far
-(widths, normalised features, action pooling, rank, history/test length, P_TH window,
-centres, a finer width and rank, then the three ranks below the best), within
-``--budget`` seconds: a candidate is started only if the longest one so far would still
-end within the budget.
+(observation whitening dimensions, widths, normalised features, action pooling, rank,
+history/test length, P_TH window, centres, a finer width and rank, then the three ranks
+below the best), within ``--budget`` seconds: a candidate is started only if the longest
+one so far would still end within the budget.
 The choice among the candidates tried follows the one-standard-error rule (Hastie,
 Tibshirani & Friedman, The Elements of Statistical Learning, 7.10): the simplest
 candidate (lowest rank, then fewest centres, then shortest histories/tests) whose
@@ -73,6 +73,9 @@ CENTRES = (500, 1000, 2000)
 REFINE_FACTORS = (0.7, 1.4)
 POOLING = (0.0, 0.5, 1.0)
 """Shrinkage of the per-action operators toward their pooled mean (``action_pooling``)."""
+OBS_VARIANCE = (0.0, 0.95)
+"""Observation whitening: the base's ``d^O``, or the dimensions keeping 95 % of the variance
+(``obs_variance``; docs/results.md, "Observation whitening dimensions")."""
 LOWER_RANKS = 3
 """The last stage tries this many ranks below the best at its other parameters, so the
 one-standard-error rule compares simpler candidates that differ from the best in rank only."""
@@ -205,6 +208,7 @@ def _stages(
         return [f * widths[name] for f in WIDTH_FACTORS]
 
     return [
+        ("observation dimensions", replace_each("obs_variance", OBS_VARIANCE)),
         ("history/test width", replace_each("sigma_ht", scaled("sigma_ht"))),
         ("observation width", replace_each("sigma_obs", scaled("sigma_obs"))),
         ("normalised features", replace_each("normalize_ht_features", (False, True))),

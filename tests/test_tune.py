@@ -169,14 +169,21 @@ def test_tune_then_fit_with_its_config(bag, tmp_path, capsys):
         ["fit", str(bag), "--config", str(config), "-o", str(model_path)], capsys
     )
     assert code == 0, err
-    assert load_model(model_path).config == TPSRConfig(**content["tpsr"])
+    assert_fitted_with(load_model(model_path).config, TPSRConfig(**content["tpsr"]))
     code, _, err = run_entry(
         ["fit", str(bag), "--config", str(config), "--rank", "2", "-o", str(tmp_path / "r2.npz")],
         capsys,
     )
     assert code == 0, err
     explicit = load_model(tmp_path / "r2.npz").config
-    assert explicit == TPSRConfig(**{**content["tpsr"], "rank": 2})
+    assert_fitted_with(explicit, TPSRConfig(**{**content["tpsr"], "rank": 2}))
+
+
+def assert_fitted_with(fitted: TPSRConfig, requested: TPSRConfig) -> None:
+    """``fitted`` is ``requested``, but for the d^O an ``obs_variance`` rule chose."""
+    assert fitted == dataclasses.replace(requested, obs_dim=fitted.obs_dim)
+    if requested.obs_variance == 0:
+        assert fitted.obs_dim == requested.obs_dim
 
 
 def test_a_robot_bag_is_tuned_from_its_resampled_steps(tmp_path, capsys):
@@ -391,3 +398,11 @@ def test_experiment_tunes_each_run_on_its_own_training_data(tmp_path):
     # 300 episodes, 75 % fitted: 225 episodes, so the tuner capped the centres at 112
     assert parameters["tpsr"]["ht_centers"] == parameters["tpsr"]["obs_centers"] == 112
     assert row["status"] == "ok"
+
+
+def test_the_first_stage_tries_the_observation_dimensions_by_variance():
+    from learner.tune import OBS_VARIANCE, _stages
+
+    name, propose = _stages({"sigma_obs": 1.0, "sigma_ht": 2.0}, episodes=5000)[0]
+    assert name == "observation dimensions" and 0.0 in OBS_VARIANCE
+    assert propose(RIGHT) == [dataclasses.replace(RIGHT, obs_variance=v) for v in OBS_VARIANCE]
