@@ -130,7 +130,7 @@ def top_eigenpairs(centred: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray,
     return values[order], vectors[:, order], total
 
 
-def leading_dimensions(values: np.ndarray, total: float, fraction: float) -> int | None:
+def _leading_dimensions(values: np.ndarray, total: float, fraction: float) -> int | None:
     """The fewest of the descending eigenvalues ``values`` that sum to ``fraction * total``,
     or None when all of them fall short."""
     reached = np.flatnonzero(np.cumsum(values) >= fraction * total)
@@ -152,18 +152,18 @@ def variance_dimensions(centred: np.ndarray, fraction: float, what: str = "data"
     if b <= DENSE_MAX_DIM:
         cov = centred.T @ centred
         cov *= 1.0 / (n - 1)
-        return covariance_dimensions(cov, fraction, what)
+        return _covariance_dimensions(cov, fraction, what)
     k = 16
     while True:
         k = min(k, b - 1)
         values, _, total = top_eigenpairs(centred, k)
-        found = leading_dimensions(values[::-1], total, fraction)
+        found = _leading_dimensions(values[::-1], total, fraction)
         if found is not None or k == b - 1:
             return found if found is not None else b
         k *= 2
 
 
-def covariance_dimensions(cov: np.ndarray, fraction: float, what: str = "data") -> int:
+def _covariance_dimensions(cov: np.ndarray, fraction: float, what: str = "data") -> int:
     """:func:`variance_dimensions` from a covariance ``(b, b)``."""
     _check_fraction(fraction, what)
     with single_blas_thread():
@@ -171,7 +171,7 @@ def covariance_dimensions(cov: np.ndarray, fraction: float, what: str = "data") 
     total = float(np.trace(cov))
     if not total > 0:
         raise DataError(f"the {what} do not vary: no whitening dimension keeps any variance")
-    found = leading_dimensions(values, total, fraction)
+    found = _leading_dimensions(values, total, fraction)
     return found if found is not None else int(cov.shape[0])
 
 
@@ -263,7 +263,7 @@ class Whitening:
             raise DataError(f"non-finite values (NaN or infinity) in the {what}")
         cov = moments.scatter * (1.0 / (n - 1))
         if variance:
-            n_components = covariance_dimensions(cov, variance, what)
+            n_components = _covariance_dimensions(cov, variance, what)
         d = _check_dimensions(n, b, n_components, what)
         values, vectors, total = covariance_eigenpairs(cov, d)
         return cls._from_eigenpairs(moments.mean.copy(), values, vectors, total, n, what)
