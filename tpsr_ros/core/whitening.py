@@ -55,6 +55,7 @@ __all__ = [
     "single_blas_thread",
     "top_eigenpairs",
     "variance_dimensions",
+    "variance_eigenpairs",
 ]
 
 DENSE_MAX_DIM = 1024
@@ -117,9 +118,7 @@ def top_eigenpairs(centred: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray,
     n, b = centred.shape
     scale = 1.0 / (n - 1)
     if b <= DENSE_MAX_DIM or d >= b - 1:
-        cov = centred.T @ centred
-        cov *= scale
-        return covariance_eigenpairs(cov, d)
+        return covariance_eigenpairs(_covariance(centred), d)
     operator = scipy.sparse.linalg.LinearOperator(
         (b, b), matvec=lambda v: centred.T @ (centred @ v) * scale, dtype=np.float64
     )
@@ -144,23 +143,40 @@ def _check_fraction(fraction: float, what: str) -> None:
         )
 
 
-def variance_dimensions(centred: np.ndarray, fraction: float, what: str = "data") -> int:
-    """The fewest principal directions of ``centred`` rows (at least 2) keeping ``fraction``
-    of their variance."""
+def _covariance(centred: np.ndarray) -> np.ndarray:
+    """The sample covariance ``(b, b)`` of ``centred`` rows (``1 / (r - 1)``), one BLAS product."""
+    cov = centred.T @ centred
+    cov *= 1.0 / (centred.shape[0] - 1)
+    return cov
+
+
+def variance_eigenpairs(
+    centred: np.ndarray, fraction: float, what: str = "data"
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`top_eigenpairs` for the fewest directions of ``centred`` rows (at least 2)
+    that keep ``fraction`` of their variance, computed once: the dense covariance is formed
+    one time, and the last Lanczos run's pairs are kept."""
     _check_fraction(fraction, what)
-    n, b = centred.shape
+    b = centred.shape[1]
     if b <= DENSE_MAX_DIM:
-        cov = centred.T @ centred
-        cov *= 1.0 / (n - 1)
-        return _covariance_dimensions(cov, fraction, what)
+        cov = _covariance(centred)
+        return covariance_eigenpairs(cov, _covariance_dimensions(cov, fraction, what))
     k = 16
     while True:
         k = min(k, b - 1)
-        values, _, total = top_eigenpairs(centred, k)
+        values, vectors, total = top_eigenpairs(centred, k)
         found = _leading_dimensions(values[::-1], total, fraction)
-        if found is not None or k == b - 1:
-            return found if found is not None else b
+        if found is not None:
+            return values[-found:], vectors[:, -found:], total
+        if k == b - 1:
+            return top_eigenpairs(centred, b)
         k *= 2
+
+
+def variance_dimensions(centred: np.ndarray, fraction: float, what: str = "data") -> int:
+    """The fewest principal directions of ``centred`` rows (at least 2) keeping ``fraction``
+    of their variance."""
+    return int(variance_eigenpairs(centred, fraction, what)[0].shape[0])
 
 
 def _covariance_dimensions(cov: np.ndarray, fraction: float, what: str = "data") -> int:
@@ -239,13 +255,13 @@ class Whitening:
         """:meth:`fit`, also returning the centred rows ``x - mean`` it computed."""
         x = check_finite_matrix(x, what)
         n, b = x.shape
-        _check_dimensions(n, b, 1, what)
+        d = _check_dimensions(n, b, 1 if variance else n_components, what)
         mean = x.mean(axis=0)
         centred = x - mean
         if variance:
-            n_components = variance_dimensions(centred, variance, what)
-        d = _check_dimensions(n, b, n_components, what)
-        values, vectors, total = top_eigenpairs(centred, d)
+            values, vectors, total = variance_eigenpairs(centred, variance, what)
+        else:
+            values, vectors, total = top_eigenpairs(centred, d)
         return cls._from_eigenpairs(mean, values, vectors, total, n, what), centred
 
     @classmethod
@@ -258,13 +274,12 @@ class Whitening:
         and the same eigenpair, tolerance, sign and ``variance`` rules.
         """
         n, b = moments.count, moments.dim
-        _check_dimensions(n, b, 1, what)
+        d = _check_dimensions(n, b, 1 if variance else n_components, what)
         if not (np.isfinite(moments.mean).all() and np.isfinite(moments.scatter).all()):
             raise DataError(f"non-finite values (NaN or infinity) in the {what}")
         cov = moments.scatter * (1.0 / (n - 1))
         if variance:
-            n_components = _covariance_dimensions(cov, variance, what)
-        d = _check_dimensions(n, b, n_components, what)
+            d = _covariance_dimensions(cov, variance, what)
         values, vectors, total = covariance_eigenpairs(cov, d)
         return cls._from_eigenpairs(moments.mean.copy(), values, vectors, total, n, what)
 
