@@ -13,7 +13,8 @@ parameter (:mod:`learner.overrides`); the CSV records every parameter of every r
 Every seed is derived from ``--seed``, the data size and the repetition and written to
 the CSV, so any row reruns alone (``--episodes N --first-repetition K --repetitions 1``).
 Repetitions run in parallel processes (one BLAS thread each). A fitted-Q fit that
-diverges is retried with ten times the ridge (up to 1.0); the ridge used is recorded.
+diverges or does not converge is refitted with ten times the ridge (up to 1.0,
+:func:`learner.planning.fit_q_on`); the ridge used is recorded.
 """
 
 from __future__ import annotations
@@ -38,14 +39,14 @@ from tqdm import tqdm
 from learner.evaluate import Evaluation, evaluate
 from learner.floors import CONSTANT, FLOORS, RANDOM, constant_floor, random_floor
 from learner.overrides import apply_overrides
-from learner.planning import fit_q_on
+from learner.planning import fit_q_on, ridge_ladder
 from learner.plots import affine_r2, neighbour_position_error
 from learner.representations import ModelTracker, Tracker, TruePositionTracker
 from learner.simulated import random_trajectory
 from sim_node import Environment
 from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory, make_episodes
-from tpsr_ros.core.errors import ConfigError, DataError, TpsrError
+from tpsr_ros.core.errors import ConfigError, DivergenceError, TpsrError
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.pca_baseline import PCAConfig, fit_pca
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
@@ -71,7 +72,6 @@ __all__ = [
 METHODS = (CONSTANT, RANDOM, "tpsr", "pca", TRUE_POSITION)
 RL_STEPS = {"full": 15000, "partial": 20000, "distractors": 20000}
 PCA_DIM = {"full": 2, "partial": 3, "distractors": 3}  # guide figure 4.5 / appendix A.2-A.3
-MAX_RIDGE = 1.0
 
 
 @dataclass(frozen=True)
@@ -151,16 +151,11 @@ class Row:
 def _plan_and_score(
     config: ExperimentConfig, tracker: Tracker, rl: Trajectory, states: np.ndarray
 ) -> tuple[float, str, float, str]:
-    """Fitted Q on the tracked RL states (retrying a divergence), then the standard score."""
-    fqi = config.fqi
-    while True:
-        try:
-            q, _ = fit_q_on(states, rl, fqi)
-            break
-        except DataError:
-            if fqi.ridge * 10 > MAX_RIDGE:
-                return float("nan"), "", fqi.ridge, "fitted-q-diverged"
-            fqi = dataclasses.replace(fqi, ridge=fqi.ridge * 10)
+    """Fitted Q on the tracked RL states (larger ridges if it diverges), then the standard score."""
+    try:
+        q, fqi, _ = fit_q_on(states, rl, config.fqi)
+    except DivergenceError:
+        return float("nan"), "", ridge_ladder(config.fqi.ridge)[-1], "fitted-q-diverged"
     policy = Policy(q, tracker.representation, tracker.fingerprint, config.environment)
     result = evaluate(policy, tracker, config.environment)
     return result.score, _trials(result), fqi.ridge, "ok"

@@ -23,14 +23,23 @@ from learner.representations import Tracker, load_tracker
 from learner.streams import read_for_model
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.episodes import Trajectory
-from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.errors import DataError, DivergenceError
 from tpsr_ros.core.fqi import FQIConfig, QFunction, fit_q
 from tpsr_ros.io.model_io import read_metadata
 from tpsr_ros.io.npz_archive import check_output_path
 from tpsr_ros.io.policy import TRUE_POSITION, Policy, save_policy
 from tpsr_ros.io.trajectory import read_trajectory
 
-__all__ = ["fit_policy", "fit_q_on", "future_pairs", "register", "run", "transitions"]
+__all__ = [
+    "MAX_RIDGE",
+    "fit_policy",
+    "fit_q_on",
+    "future_pairs",
+    "register",
+    "ridge_ladder",
+    "run",
+    "transitions",
+]
 
 
 def transitions(
@@ -64,13 +73,39 @@ def future_pairs(states: np.ndarray, trajectory: Trajectory) -> tuple[np.ndarray
     return states[valid], targets[valid].reshape(int(valid.sum()), -1)
 
 
+MAX_RIDGE = 1.0
+"""Largest ridge :func:`fit_q_on` tries before it gives up on a diverging fitted Q."""
+
+
+def ridge_ladder(ridge: float) -> list[float]:
+    """Ridges :func:`fit_q_on` tries in turn: ``ridge``, ten times it, ... up to ``MAX_RIDGE``."""
+    ladder = [ridge]
+    while ridge * 10.0 ** len(ladder) <= MAX_RIDGE:
+        ladder.append(ridge * 10.0 ** len(ladder))
+    return ladder
+
+
 def fit_q_on(
     states: np.ndarray, trajectory: Trajectory, config: FQIConfig
-) -> tuple[QFunction, int]:
-    """Fitted Q on the transitions of ``states`` tracked over ``trajectory``, and their number."""
+) -> tuple[QFunction, FQIConfig, int]:
+    """Fitted Q on the transitions of ``states`` tracked over ``trajectory``.
+
+    A fit that diverges is refitted at the next ridge of :func:`ridge_ladder`. Returns
+    the Q-function, the configuration that fitted it (its ridge) and the number of
+    transitions; raises ``DivergenceError`` when every ridge diverges.
+    """
     s, a, r, s_next = transitions(states, trajectory)
     futures = future_pairs(states, trajectory) if config.state_scaling == "predictive" else None
-    return fit_q(s, a, r, s_next, trajectory.n_actions, config, futures=futures), len(a)
+    ladder = ridge_ladder(config.ridge)
+    for ridge in ladder:
+        attempt = dataclasses.replace(config, ridge=ridge)
+        try:
+            q = fit_q(s, a, r, s_next, trajectory.n_actions, attempt, futures=futures)
+        except DivergenceError as exc:
+            failure = exc
+            continue
+        return q, attempt, len(a)
+    raise DivergenceError(f"{failure} (ridges {ladder[0]:g} to {ladder[-1]:g} tried)") from failure
 
 
 def fit_policy(
@@ -81,11 +116,15 @@ def fit_policy(
     environment: str | None,
     model_path: str | None = None,
 ) -> Policy:
-    """Track states over ``trajectory``, fit Q on its transitions, return the greedy policy."""
+    """Track states over ``trajectory``, fit Q on its transitions, return the greedy policy.
+
+    The metadata record the fitted-Q configuration used: a larger ridge than ``config``'s
+    if the fit diverged (:func:`fit_q_on`).
+    """
     start = time.perf_counter()
     states = tracker.track(trajectory)
     tracked = time.perf_counter()
-    q, n_transitions = fit_q_on(states, trajectory, config)
+    q, config, n_transitions = fit_q_on(states, trajectory, config)
     done = time.perf_counter()
     return Policy(
         q=q,
@@ -153,6 +192,12 @@ def run(args: argparse.Namespace) -> int:
     )
     save_policy(policy, output, force=args.force)
     timing = policy.metadata["timing_s"]
+    ridge = policy.metadata["fqi"]["ridge"]
+    if ridge != config.ridge:
+        print(
+            f"fitted Q diverged at ridge {config.ridge:g}; refitted at ridge {ridge:g}",
+            file=sys.stderr,
+        )
     print(
         f"wrote {output}: {policy.representation} policy over {policy.state_dim}-d states, "
         f"{policy.metadata['data']['transitions']} transitions "

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.errors import ConfigError, DataError, DivergenceError
 from tpsr_ros.core.fqi import FQIConfig, fit_q
 
 LEFT, STAY, RIGHT = 0, 1, 2
@@ -68,12 +68,21 @@ def test_bad_inputs_are_refused():
         q.greedy(np.array([[np.inf]]))
 
 
-def test_divergence_is_detected_not_returned(monkeypatch):
-    import tpsr_ros.core.fqi as fqi
+def test_divergence_is_detected_not_returned():
+    # 200 samples on 40 centres with almost no ridge: the regression extrapolates and the
+    # iteration grows without bound; a little ridge settles the same data
+    data = _line_world(200)
+    with pytest.raises(DivergenceError, match="diverged at ridge 1e-08"):
+        fit_q(*data, n_actions=3, config=FQIConfig(centers=40, ridge=1e-8))
+    q = fit_q(*data, n_actions=3, config=FQIConfig(centers=40, ridge=1e-4))
+    assert np.abs(q.values(data[0])).max() <= 1.0 / (1 - 0.9) * 1.5
 
-    monkeypatch.setattr(fqi, "_DIVERGED", 1e-3)  # any real fit now counts as diverged
-    with pytest.raises(DataError, match="diverged"):
-        fit_q(*_line_world(500), n_actions=3, config=FQIConfig(centers=20))
+
+def test_a_fit_that_has_not_converged_is_refused():
+    # the values need ~130 iterations to settle to 1e-6 at gamma 0.9; five leave them moving
+    with pytest.raises(DivergenceError, match="did not converge in 5 iterations"):
+        fit_q(*_line_world(500), n_actions=3, config=FQIConfig(centers=20, iterations=5))
+    assert issubclass(DivergenceError, DataError)  # callers that catch DataError still do
 
 
 def test_fit_is_deterministic_for_a_seed():

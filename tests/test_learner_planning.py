@@ -15,13 +15,21 @@ from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, evaluate, 
 from learner.experiment import default_config, run_cell, run_experiment, summarise
 from learner.floors import BlindTracker, constant_floor, random_floor
 from learner.overrides import apply_overrides
-from learner.planning import fit_policy, fit_q_on, future_pairs, transitions
+from learner.planning import (
+    MAX_RIDGE,
+    fit_policy,
+    fit_q_on,
+    future_pairs,
+    ridge_ladder,
+    transitions,
+)
 from learner.representations import TruePositionTracker, load_tracker
 from learner.simulated import random_trajectory
 from sim_node import RobotEnv, SimConfig, action_index
 from sim_node.generate import generate_bag
-from tpsr_ros.core.errors import ConfigError
-from tpsr_ros.core.fqi import FQIConfig
+from tpsr_ros.core.errors import ConfigError, DivergenceError
+from tpsr_ros.core.episodes import Trajectory
+from tpsr_ros.core.fqi import FQIConfig, fit_q
 from tpsr_ros.core.pca_baseline import PCAConfig
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.io.policy import Policy, load_policy
@@ -108,6 +116,35 @@ def test_evaluation_follows_the_documented_protocol():
     assert env.step_count == STEPS
 
 
+def _noisy_walk(steps: int, seed: int) -> tuple[np.ndarray, Trajectory]:
+    """A walk on [0, 10] (actions -1, 0, +1; reward 1 beyond 8), seen with noise 0.3."""
+    rng = np.random.default_rng(seed)
+    actions = rng.integers(0, 3, size=steps)
+    positions = np.full(steps, 5.0)
+    for k in range(1, steps):  # clipped at each step, as a wall does
+        positions[k] = np.clip(positions[k - 1] + actions[k] - 1.0, 0, 10)
+    states = positions[:, None] + rng.normal(0, 0.3, (steps, 1))
+    rewards = (positions > 8).astype(float)
+    return states, Trajectory.from_arrays(actions, states, rewards=rewards, n_actions=3)
+
+
+def test_a_diverging_fitted_q_is_refitted_at_larger_ridges():
+    assert ridge_ladder(0.01) == [0.01, 0.1, 1.0] and ridge_ladder(2.0) == [2.0]
+    assert ridge_ladder(1e-8)[-1] <= MAX_RIDGE < ridge_ladder(1e-8)[-1] * 10
+    states, trajectory = _noisy_walk(150, seed=1)  # 40 centres on 150 steps: unstable
+    asked = FQIConfig(centers=40, ridge=1e-8)
+    s, a, r, s_next = transitions(states, trajectory)
+    with pytest.raises(DivergenceError):
+        fit_q(s, a, r, s_next, 3, asked)
+    q, used, _ = fit_q_on(states, trajectory, asked)
+    assert used.ridge > asked.ridge and used == FQIConfig(centers=40, ridge=used.ridge)
+    with pytest.raises(DivergenceError):  # the ridge below the one used diverged too
+        fit_q(s, a, r, s_next, 3, FQIConfig(centers=40, ridge=used.ridge / 10))
+    np.testing.assert_array_equal(q.weights, fit_q(s, a, r, s_next, 3, used).weights)
+    with pytest.raises(DivergenceError, match=r"in 2 iterations.*ridges 1e-08 to 1 tried"):
+        fit_q_on(states, trajectory, FQIConfig(centers=40, ridge=1e-8, iterations=2))
+
+
 def test_policy_and_evaluate_commands(bags, capsys):
     policy, model = bags / "policy.npz", bags / "model.npz"
     code, out, err = run_entry(["evaluate", str(policy), "--environment", "full"], capsys)
@@ -136,11 +173,21 @@ def test_a_policy_planned_in_predictive_units(bags, tmp_path, capsys):
     past, future = future_pairs(states, trajectory)
     assert len(past) == len(future) and future.shape[1] == 10 * 10  # 10 components, 10 steps
     config = FQIConfig(state_scaling="predictive", centers=40)
-    q, n_transitions = fit_q_on(states, trajectory, config)
+    q, used, n_transitions = fit_q_on(states, trajectory, config)
+    assert used == config  # nothing diverged: the ridge asked for
     assert n_transitions == loaded.metadata["data"]["transitions"]
     np.testing.assert_allclose(q.values(states[:50]), loaded.q.values(states[:50]), atol=1e-9)
     code, out, err = run_entry(["evaluate", str(policy), "--environment", "full"], capsys)
     assert code == 0 and out.splitlines()[-1].startswith("score: "), err
+
+
+def test_policy_command_says_when_it_raised_the_ridge(bags, tmp_path, capsys):
+    policy = tmp_path / "policy.npz"
+    args = ["policy", str(bags / "model.npz"), str(bags / "rl"), "-o", str(policy)]
+    code, _, err = run_entry([*args, "--ridge", "1e-8", "--centers", "100"], capsys)
+    assert code == 0, err
+    used = load_policy(policy).metadata["fqi"]["ridge"]
+    assert used > 1e-8 and f"diverged at ridge 1e-08; refitted at ridge {used:g}" in err
 
 
 def test_bad_input_to_policy_and_evaluate(bags, tmp_path, capsys):

@@ -11,6 +11,7 @@ __all__ = [
     "BagError",
     "ConfigError",
     "DataError",
+    "DivergenceError",
     "EncodingError",
     "MessageError",
     "ModelFormatError",
@@ -51,6 +52,10 @@ class EncodingError(MessageError):
 
 class DataError(TpsrError, ValueError):
     """Training or evaluation data are unusable (too few episodes, non-finite values...)."""
+
+
+class DivergenceError(DataError):
+    """Fitted Q-iteration diverged or did not converge (a larger ridge may settle it)."""
 
 
 class ModelFormatError(TpsrError):
