@@ -63,7 +63,9 @@ class FQIConfig:
     centers: int = _param(100, "RBF centres (k-means on the standardised states)")
     discount: float = _param(0.9, "discount factor gamma")
     ridge: float = _param(1e-2, "ridge penalty of each action's regression")
-    iterations: int = _param(300, "maximum number of Q-iterations")
+    iterations: int = _param(
+        300, "Q-iterations allowed; a fit still changing after them is refused as diverged"
+    )
     tolerance: float = _param(1e-6, "stop when the weights change less than this (relative)")
     kmeans_samples: int = _param(5000, "states sampled for k-means")
     seed: int = _param(0, "seed of the k-means sample and initialisation")
