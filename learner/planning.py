@@ -105,7 +105,8 @@ def fit_q_on(
             failure = exc
             continue
         return q, attempt, len(a)
-    raise DivergenceError(f"{failure} (ridges {ladder[0]:g} to {ladder[-1]:g} tried)") from failure
+    tried = f"ridges {ladder[0]:g} to {ladder[-1]:g}" if len(ladder) > 1 else f"ridge {ladder[0]:g}"
+    raise DivergenceError(f"{failure} ({tried} tried)") from failure
 
 
 def fit_policy(

@@ -143,6 +143,8 @@ def test_a_diverging_fitted_q_is_refitted_at_larger_ridges():
     np.testing.assert_array_equal(q.weights, fit_q(s, a, r, s_next, 3, used).weights)
     with pytest.raises(DivergenceError, match=r"in 2 iterations.*ridges 1e-08 to 1 tried"):
         fit_q_on(states, trajectory, FQIConfig(centers=40, ridge=1e-8, iterations=2))
+    with pytest.raises(DivergenceError, match=r"\(ridge 2 tried\)"):  # above MAX_RIDGE: once
+        fit_q_on(states, trajectory, FQIConfig(centers=40, ridge=2.0, iterations=2))
 
 
 def test_policy_and_evaluate_commands(bags, capsys):

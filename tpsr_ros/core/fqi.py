@@ -20,8 +20,8 @@ The planner of Jonschkowski & Brock (2015), as the guide uses it, with these cho
   in the goal corner blur, and the true-position baseline scores 425-448 instead of
   ~470 (measured over RL seeds);
 - a fit that does not converge is refused, never returned: ridge regression on RBF
-  features is not a contraction, and some fits oscillate or grow. Converging fits take
-  about 100 iterations here (gamma^100 ~ 3e-5); one that still moves after
+  features is not a contraction, and some fits oscillate or grow. Converging fits took
+  93-122 iterations on the experiments' states (one 262); one that still moves after
   ``iterations``, or whose values pass ten times the largest |Q| any policy can have
   (max|r| / (1 - gamma)), diverged. One diverging member of an ensemble, left in, decided
   the average and scored 40-70 instead of ~450.
