@@ -54,7 +54,6 @@ __all__ = [
     "flip_signs",
     "single_blas_thread",
     "top_eigenpairs",
-    "variance_dimensions",
     "variance_eigenpairs",
 ]
 
@@ -153,7 +152,7 @@ def _covariance(centred: np.ndarray) -> np.ndarray:
 def variance_eigenpairs(
     centred: np.ndarray, fraction: float, what: str = "data"
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """:func:`top_eigenpairs` for the fewest directions of ``centred`` rows (at least 2)
+    """:func:`top_eigenpairs` for the fewest directions of ``centred`` rows
     that keep ``fraction`` of their variance, computed once: the dense covariance is formed
     one time, and the last Lanczos run's pairs are kept."""
     _check_fraction(fraction, what)
@@ -173,14 +172,9 @@ def variance_eigenpairs(
         k *= 2
 
 
-def variance_dimensions(centred: np.ndarray, fraction: float, what: str = "data") -> int:
-    """The fewest principal directions of ``centred`` rows (at least 2) keeping ``fraction``
-    of their variance."""
-    return int(variance_eigenpairs(centred, fraction, what)[0].shape[0])
-
-
 def _covariance_dimensions(cov: np.ndarray, fraction: float, what: str = "data") -> int:
-    """:func:`variance_dimensions` from a covariance ``(b, b)``."""
+    """The fewest leading directions of a covariance ``(b, b)`` keeping ``fraction`` of its
+    variance."""
     _check_fraction(fraction, what)
     with single_blas_thread():
         values = scipy.linalg.eigvalsh(cov)[::-1]
@@ -244,7 +238,7 @@ class Whitening:
 
         ``what`` names the data in error messages (e.g. ``"history observations"``). With
         ``variance`` in ``(0, 1)`` the dims kept are instead the fewest that keep that
-        fraction of the variance (:func:`variance_dimensions`).
+        fraction of the variance (:func:`variance_eigenpairs`).
         """
         return cls._fit_centred(x, n_components, what, variance)[0]
 
