@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from learning_fixtures import literal_algorithm3
 
+from tpsr_ros.core import tpsr as tpsr_module
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import constant_vector, rbf_features
-from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr, top_singular_triplets
+from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr, p_th_test_window, top_singular_triplets
 from tpsr_ros.core.whitening import Whitening
 
 
@@ -74,6 +75,20 @@ def test_fast_path_equals_literal_algorithm3(variant):
     assert model.B.shape == literal_b.shape == (3, 15, 3, 3)
     scale = np.abs(literal_b).max()
     np.testing.assert_allclose(model.B, literal_b, rtol=0, atol=1e-10 * scale)
+
+
+@pytest.mark.parametrize("block_bytes", [8 * 4 * 3, 8 * 4 * 40, 1 << 25])
+def test_test_window_is_whitened_block_by_block_as_in_one_shot(monkeypatch, block_bytes):
+    """The P_TH window, whitened in blocks of rows, equals the whole window whitened at once."""
+    rng = np.random.default_rng(3)
+    observation, test = rng.normal(size=(101, 4)), rng.normal(size=(101, 12))
+    whitening = Whitening.fit(test, 5)
+    one_shot = whitening.transform(p_th_test_window(observation, test, 3))
+    # blocks of 1, 13 or all 101 rows
+    monkeypatch.setattr(tpsr_module, "WINDOW_BLOCK_BYTES", block_bytes)
+    blocks = tpsr_module.whiten_test_window(whitening, observation, test, 3)
+    np.testing.assert_allclose(blocks, one_shot, rtol=1e-13, atol=1e-13)
+    assert blocks.shape == (101, 5)
 
 
 def test_fast_path_equals_literal_algorithm3_through_arpack():
