@@ -554,9 +554,9 @@ def whiten_test_window(
 ) -> np.ndarray:
     """``whitening.transform(p_th_test_window(...))``, a block of rows at a time.
 
-    The same values (each row's product is the same), without the two full-size temporaries
-    the one-shot version allocates (the window and its centred copy: 2 x 570 MB for tests of
-    8 images, whose first touch took 1.4 of the fit's 6-9 s).
+    The same values to rounding (bit-equal with OpenBLAS on the memory setting), without the
+    two full-size temporaries of the one-shot version (the window and its centred copy:
+    2 x 570 MB for tests of 8 images, whose first touch took 1.4 s of a 6-9 s fit).
     """
     n_rows = observation.shape[0]
     width = observation.shape[1] * test_length
