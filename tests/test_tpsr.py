@@ -8,10 +8,15 @@ import numpy as np
 import pytest
 from learning_fixtures import literal_algorithm3
 
-from tpsr_ros.core import tpsr as tpsr_module
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import constant_vector, rbf_features
-from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr, p_th_test_window, top_singular_triplets
+from tpsr_ros.core.tpsr import (
+    TPSRConfig,
+    fit_tpsr,
+    p_th_test_window,
+    top_singular_triplets,
+    whiten_test_window,
+)
 from tpsr_ros.core.whitening import Whitening
 
 
@@ -85,8 +90,8 @@ def test_test_window_is_whitened_block_by_block_as_in_one_shot(monkeypatch, bloc
     whitening = Whitening.fit(test, 5)
     one_shot = whitening.transform(p_th_test_window(observation, test, 3))
     # blocks of 1, 13 or all 101 rows
-    monkeypatch.setattr(tpsr_module, "WINDOW_BLOCK_BYTES", block_bytes)
-    blocks = tpsr_module.whiten_test_window(whitening, observation, test, 3)
+    monkeypatch.setattr("tpsr_ros.core.tpsr.WINDOW_BLOCK_BYTES", block_bytes)
+    blocks = whiten_test_window(whitening, observation, test, 3)
     np.testing.assert_allclose(blocks, one_shot, rtol=1e-13, atol=1e-13)
     assert blocks.shape == (101, 5)
 
