@@ -1,19 +1,23 @@
 """How far apart the memory experiment's two runs are in the *true* predictive state.
 
-``python -m benchmarks.memory_oracle --test-length 8 [--steps 150000] [--set NAME=VALUE]``
+``python -m benchmarks.memory_oracle --test-length 8 [--steps 150000] [--rollouts 200]
+[--experiment paths|stand-still] [--set NAME=VALUE]``
 
 A TPSR's state is ``U^T E[phi_T | history]``. In ``partial`` its best possible value is
 ``U^T E[phi_T | position]``: the position is the whole hidden state. This script fits the
 parts of a TPSR that define the state space (test whitening, centres, ``U``) on a random
 run, then estimates ``E[U^T phi_T | position]`` by Monte Carlo (``--rollouts`` random
 continuations of ``n`` steps from the exact position, the test window of ``P_TH``) at every
-position of the ``paths`` experiment from its first identical step until both runs stand
-still, and prints their distance relative to the spread of such states over the room (the
-same positions' states smoothed from the training data, 400 random training positions).
-The noise of the estimate is printed beside it: two independent sets of rollouts from one
-position. It is an upper bound of what ``learner memory`` can measure for any TPSR with
-these tests: a distance under the threshold (0.1) there means the tests cannot tell the two
-positions apart, however good the fit. Not a timed benchmark (not run by ``make bench``).
+position of one of ``learner memory``'s experiments from its first identical step until both
+runs stand still, and prints their distance relative to the spread of such states over the
+room (the same positions' states smoothed from the training data, 400 random training
+positions). The noise of the estimate is printed beside it: two independent sets of
+rollouts from one position; it inflates the distance (squared, the two add). It is a rough
+bound of what ``learner memory`` can measure for a TPSR with these tests whose filter
+tracks the true predictive state: a distance under the threshold (0.1) here means the tests
+cannot tell the two positions apart, however good the fit. (The spread here is over exact
+positions' states, ``learner memory``'s over a filter's states: comparable, not equal.)
+Not a timed benchmark (not run by ``make bench``).
 """
 
 from __future__ import annotations
@@ -72,6 +76,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--test-length", type=int, default=1)
     parser.add_argument("--steps", type=int, default=60000)
     parser.add_argument("--rollouts", type=int, default=200)
+    parser.add_argument("--experiment", choices=[e.name for e in memory.EXPERIMENTS],
+                        default=memory.EXPERIMENTS[0].name)
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
     args = parser.parse_args(argv)
     base = tpsr.TPSRConfig(rank=10, test_length=args.test_length)
@@ -82,7 +88,8 @@ def main(argv: list[str] | None = None) -> None:
     weights = np.exp(-np.sum((positions[None] - grid[:, None]) ** 2, axis=2) / (2 * 1.5**2))
     smoothed = (weights @ projected) / weights.sum(axis=1, keepdims=True)
     spread = np.sqrt(np.mean(np.sum((smoothed - smoothed.mean(axis=0)) ** 2, axis=1)))
-    runs = memory.simulate(memory.EXPERIMENTS[0], ENVIRONMENT)
+    experiment = next(e for e in memory.EXPERIMENTS if e.name == args.experiment)
+    runs = memory.simulate(experiment, ENVIRONMENT)
     start = memory.identical_from(*runs)
     print(f"tests of {cfg.test_length}, {cfg.p_th_tests}, test action weight "
           f"{cfg.test_action_weight}; relative distance (noise) by position:")
@@ -92,7 +99,8 @@ def main(argv: list[str] | None = None) -> None:
             break
         state = [monte_carlo_state(p, cfg, whitening, centres, u, args.rollouts, s)
                  for p, s in ((a, 1), (b, 2), (a, 3))]
-        print(f"  y = {a[1]:.1f}: {np.linalg.norm(state[0] - state[1]) / spread:.3f} "
+        print(f"  ({a[0]:.1f}, {a[1]:.1f}) vs ({b[0]:.1f}, {b[1]:.1f}): "
+              f"{np.linalg.norm(state[0] - state[1]) / spread:.3f} "
               f"({np.linalg.norm(state[0] - state[2]) / spread:.3f})", flush=True)
 
 
