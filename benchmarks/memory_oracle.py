@@ -30,6 +30,7 @@ from learner import memory
 from learner.overrides import apply_overrides
 from learner.simulated import random_trajectory
 from sim_node import RobotEnv, SimConfig
+from tpsr_ros.cli import positive_int
 from tpsr_ros.core import tpsr
 from tpsr_ros.core.action_features import join_actions, standardised_codes
 from tpsr_ros.core.actions import NUM_ACTIONS
@@ -73,9 +74,9 @@ def monte_carlo_state(position, cfg, whitening, centres, u, rollouts: int, seed:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.memory_oracle")
-    parser.add_argument("--test-length", type=int, default=1)
-    parser.add_argument("--steps", type=int, default=60000)
-    parser.add_argument("--rollouts", type=int, default=200)
+    parser.add_argument("--test-length", type=positive_int, default=1)
+    parser.add_argument("--steps", type=positive_int, default=60000)
+    parser.add_argument("--rollouts", type=positive_int, default=200)
     parser.add_argument("--experiment", choices=[e.name for e in memory.EXPERIMENTS],
                         default=memory.EXPERIMENTS[0].name)
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
