@@ -68,10 +68,10 @@ from tpsr_ros.core.tpsr import (
     ht_features,
     kernel_centres,
     obs_features,
-    p_th_test_window,
     projected_outer,
     start_and_normaliser,
     truncated_svd,
+    whiten_test_window,
 )
 from tpsr_ros.core.whitening import Whitening, check_finite_matrix
 
@@ -298,8 +298,9 @@ class Whitenings:
         """Whitened rows of ``episodes`` (with the ``from-current`` test window if asked)."""
         test0 = None
         if cfg.p_th_tests == "from-current":
-            window = p_th_test_window(episodes.observation, episodes.test, cfg.test_length)
-            test0 = self.test.transform(window)
+            test0 = whiten_test_window(
+                self.test, episodes.observation, episodes.test, cfg.test_length
+            )
         return WhitenedRows(
             self.history.transform(episodes.history),
             self.test.transform(episodes.test),
