@@ -35,6 +35,8 @@ from tpsr_ros.core import tpsr
 from tpsr_ros.core.action_features import join_actions, standardised_codes
 from tpsr_ros.core.actions import NUM_ACTIONS
 from tpsr_ros.core.episodes import images_to_observations, make_episodes
+from tpsr_ros.core.tpsr_stages import ht_features, kernel_centres, truncated_svd
+from tpsr_ros.core.whitened import Whitenings
 
 ENVIRONMENT = "partial"
 
@@ -43,14 +45,17 @@ def fitted_state_space(cfg: tpsr.TPSRConfig, steps: int, seed: int):
     """The test whitening, test centres and ``U`` of a fit, and per-sample projected tests."""
     episodes = make_episodes(random_trajectory(ENVIRONMENT, steps, seed), cfg.history_length,
                              cfg.test_length)
-    actions = tpsr.StepActions(episodes.history_actions, episodes.test_actions,
-                               episodes.action, standardised_codes(None, NUM_ACTIONS))
-    white = tpsr._whiten(episodes.history, episodes.observation, episodes.test, cfg, actions)
-    c_h, c_t, c_o, train = tpsr._kernel_centres(white, cfg)
-    phi_h, _, phi_t0, _ = tpsr._features(white, (c_h, c_t, c_o), train, cfg)
-    _, p_th = tpsr._p_statistics(phi_h, phi_t0)
-    u = tpsr.truncated_svd(p_th, cfg)[0]
-    return white.test, c_t, u, phi_t0 @ u, episodes.positions[train]
+    codes = standardised_codes(None, NUM_ACTIONS) if cfg.uses_actions else None
+    whitenings, rows = Whitenings.fit(episodes, cfg, codes)
+    c_h, c_t, _ = kernel_centres(rows.history, rows.test, rows.observation, cfg)
+    train = slice(max(cfg.ht_centers, cfg.obs_centers) if cfg.center_selection == "first" else 0,
+                  None)
+    phi_h = ht_features(rows.history[train], c_h, cfg)
+    tests = rows.test if rows.test0 is None else rows.test0
+    phi_t0 = ht_features(tests[train], c_t, cfg)
+    p_th = phi_t0.T @ phi_h / len(phi_h)
+    u = truncated_svd(p_th, cfg)[0]
+    return whitenings.test, c_t, u, phi_t0 @ u, episodes.positions[train]
 
 
 def monte_carlo_state(position, cfg, whitening, centres, u, rollouts: int, seed: int):
@@ -69,7 +74,7 @@ def monte_carlo_state(position, cfg, whitening, centres, u, rollouts: int, seed:
                                  axis=1)
     white = join_actions(whitening.transform(np.array(tests)), actions,
                          standardised_codes(None, NUM_ACTIONS), cfg.test_action_weight, "test")
-    return (tpsr.ht_features(white, centres, cfg) @ u).mean(axis=0)
+    return (ht_features(white, centres, cfg) @ u).mean(axis=0)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -35,23 +35,26 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from tpsr_ros.core.errors import ConfigError, DataError
-from tpsr_ros.core.streamed_fit import (
-    ActionSums,
-    Centres,
+from tpsr_ros.core.episode_stream import (
+    EpisodeCutter,
     EpisodeMoments,
-    PSums,
-    WhitenedRows,
-    WhitenedStore,
-    Whitenings,
-    block_rows,
+    box_rows,
     episode_moments,
+    episodes_of,
     merge_moments,
-    p_sums,
-    parameter_sums,
     whitened_episodes,
 )
-from tpsr_ros.core.tpsr import TPSRConfig
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.streamed_fit import (
+    PSums,
+    WhitenedStore,
+    block_rows,
+    p_sums,
+    parameter_sums,
+)
+from tpsr_ros.core.tpsr import BoxData
+from tpsr_ros.core.tpsr_config import TPSRConfig
+from tpsr_ros.core.whitened import ActionSums, Centres, WhitenedRows, Whitenings
 from tpsr_ros.io.bag_chunks import BagChunks
 
 __all__ = [
@@ -201,6 +204,13 @@ def _bag_whitened(
 ) -> WhitenedRows | None:
     parts = list(whitened_episodes(reader.read(bag), whitenings, cfg, limit))
     return WhitenedRows.concatenate(parts) if parts else None
+
+
+def _bag_box(
+    reader: BagChunks, bag: str, cfg: TPSRConfig, limit: int | None, indices: np.ndarray
+) -> BoxData:
+    cutter = EpisodeCutter(cfg.history_length, cfg.test_length, limit)
+    return box_rows(episodes_of(reader.read(bag), cutter), indices)
 
 
 def _count(moments: EpisodeMoments | None) -> int:
@@ -392,3 +402,19 @@ class DaskEngine:
             for future, a, b in self._ranges(start, widest)
         ]
         return tree_reduce(self.client, futures, _merged, self.poll)
+
+    def box_data(self, indices: np.ndarray, cfg: TPSRConfig, max_episodes: int | None) -> BoxData:
+        """The state box's episodes: each bag's own read by a task, gathered in bag order."""
+        offsets = np.concatenate([[0], np.cumsum(self._counts)]).astype(int)
+        futures = []
+        for i, bag in enumerate(self.bags):
+            local = indices[(indices >= offsets[i]) & (indices < offsets[i + 1])] - offsets[i]
+            if local.size:
+                futures.append(
+                    self.client.submit(
+                        _bag_box, self.reader, bag, cfg, self._limits[i], local, pure=False
+                    )
+                )
+        parts = gather(self.client, futures, self.poll)
+        joined = [np.concatenate(column) for column in zip(*parts, strict=True)]
+        return joined[0], joined[1], joined[2], joined[3]

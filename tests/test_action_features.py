@@ -1,4 +1,4 @@
-"""Action-aware history and test features (issue 15): checked on a planted bit of memory."""
+"""Action-aware history and test features: checked on a planted bit of memory."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ from learner.memory import memory_steps
 from tpsr_ros.core.action_features import join_actions, standardised_codes
 from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError, DataError
-from tpsr_ros.core.streamed_fit import fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr, fit_tpsr_episodes
 from tpsr_ros.io.model_io import load_model, save_model
 
@@ -164,5 +163,3 @@ def test_bad_action_settings_are_refused():
         standardised_codes(np.ones((4, 2)), 4)
     with pytest.raises(DataError, match="history action indices"):
         join_actions(np.zeros((2, 1)), np.array([[0], [9]]), np.eye(4), 1.0, "history")
-    with pytest.raises(ConfigError, match="streamed fit does not support action-aware"):
-        fit_tpsr_streamed([], config=cfg)

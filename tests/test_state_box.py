@@ -13,7 +13,6 @@ from tpsr_ros.core import filtering
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.online import OnlineTracker
 from tpsr_ros.core.state_box import BOX_EPISODES, box_episodes, episode_states
-from tpsr_ros.core.streamed_fit import fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr
 from tpsr_ros.core.units import STEP_NS
 from tpsr_ros.io.model_io import ModelFormatError, load_model, save_model
@@ -117,8 +116,6 @@ def test_bad_settings_are_refused(fitted):
         fit_tpsr(h, o, a, t, n_actions=3, config=cfg, history_actions=np.full((400, 1), 3))
     with pytest.raises(DataError, match="not integer indices of 400 episodes of 1"):
         fit_tpsr(h, o, a, t, n_actions=3, config=cfg, history_actions=np.zeros((400, 2), int))
-    with pytest.raises(ConfigError, match="streamed fit does not support the state box"):
-        fit_tpsr_streamed([], config=cfg)
 
 
 def test_large_training_sets_set_the_box_from_evenly_spread_episodes():

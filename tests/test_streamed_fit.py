@@ -196,3 +196,28 @@ def test_streamed_fit_of_a_known_pomdp_predicts_its_observations():
         predicted = members @ per_centre / (model.b_inf @ state)
         exact = pomdp.predict(pomdp.stationary(), action)
         assert np.abs(predicted - exact).max() < 0.02
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"center_selection": "kmeans", "normalize_ht_features": True, "rank": 4,
+         "action_pooling": 1.0, "obs_variance": 0.95},  # the default preset's switches
+        {"history_length": 2, "test_length": 2, "history_action_weight": 1.0,
+         "test_action_weight": 0.5, "p_th_tests": "from-current", "state_clip_quantile": 0.05},
+        {"state_clip_quantile": 0.1, "action_pooling": 0.5, "test_action_weight": 1.0},
+    ],
+    ids=["preset-best", "actions-window-box", "box-pooling"],
+)
+def test_every_option_streams_to_the_in_memory_model(trajectory, options):
+    """One driver: the options the in-memory fit has, streamed in chunks, give its model."""
+    codes = np.array([[-1.0, 0.0], [1.0, 0.5], [0.0, -1.0]])
+    config = TPSRConfig(**{**SMALL, **options})
+    episodes = make_episodes(trajectory, config.history_length, config.test_length)
+    reference = fit_tpsr_episodes(episodes, config=config, action_codes=codes)
+    streamed = fit_tpsr_streamed(chunks_of(trajectory, 97), config=config, action_codes=codes)
+    assert_same_model(streamed, reference)
+    assert streamed.config == reference.config
+    if config.state_clip_quantile > 0:
+        assert relative(streamed.state_box, reference.state_box) <= 1e-9
+        assert "state box" in streamed.fit_info["timings"]

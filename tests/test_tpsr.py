@@ -10,9 +10,8 @@ from learning_fixtures import literal_algorithm3
 
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import constant_vector, rbf_features
-from tpsr_ros.core.tpsr import (
-    TPSRConfig,
-    fit_tpsr,
+from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr
+from tpsr_ros.core.tpsr_stages import (
     p_th_test_window,
     top_singular_triplets,
     whiten_test_window,
@@ -90,12 +89,13 @@ def test_test_window_is_whitened_block_by_block_as_in_one_shot(monkeypatch, bloc
     whitening = Whitening.fit(test, 5)
     one_shot = whitening.transform(p_th_test_window(observation, test, 3))
     # blocks of 1, 13 or all 101 rows
-    monkeypatch.setattr("tpsr_ros.core.tpsr.WINDOW_BLOCK_BYTES", block_bytes)
+    monkeypatch.setattr("tpsr_ros.core.tpsr_stages.WINDOW_BLOCK_BYTES", block_bytes)
     blocks = whiten_test_window(whitening, observation, test, 3)
     np.testing.assert_allclose(blocks, one_shot, rtol=1e-13, atol=1e-13)
     assert blocks.shape == (101, 5)
 
 
+@pytest.mark.slow
 def test_fast_path_equals_literal_algorithm3_through_arpack():
     h, o, a, t = structured_episodes(330, seed=1)
     cfg = dataclasses.replace(SMALL, ht_centers=210, obs_centers=4, rank=4)
@@ -108,6 +108,7 @@ def test_fast_path_equals_literal_algorithm3_through_arpack():
     np.testing.assert_allclose(model.B, literal_b, rtol=0, atol=1e-10 * np.abs(literal_b).max())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", [(60, 40), (420, 380)])
 def test_truncated_svd_is_exact(shape):
     rng = np.random.default_rng(2)

@@ -3,32 +3,33 @@
 :func:`fit_tpsr_streamed` learns the model of ``fit_tpsr_episodes(make_episodes(whole))``
 (equal to rounding, ~1e-12 relative) from a *chunk source*: a callable returning a fresh
 iterator of :class:`~tpsr_ros.core.episodes.Trajectory` chunks whose concatenation is the
-whole trajectory (e.g. :func:`tpsr_ros.io.trajectory.iter_trajectory_chunks`). It reads the
-data twice:
+whole trajectory (e.g. :func:`tpsr_ros.io.trajectory.iter_trajectory_chunks`). It runs the
+fit's one driver (:func:`tpsr_ros.core.tpsr.run_fit`) on :class:`StreamedFit`, which reads
+the data twice:
 
 1. **pass 1**: chunks are cut into episodes exactly as :func:`make_episodes` cuts the whole
    (:class:`EpisodeCutter` carries the unfinished tail of a segment into the next chunk and
    honours ``max_episodes``); each chunk's histories, tests and current observations give
    :class:`~tpsr_ros.core.moments.Moments` (mean, centred scatter), merged pairwise. The
    whitenings (Algorithm 1) come from the merged covariances.
-2. **pass 2**: every episode is whitened and only its whitened rows (``d_H + d_T + d_O``
-   floats, ~30, plus ``d_T`` for ``from-current``) and current action are kept, in ``.npy``
-   memory maps in a temporary directory (:class:`WhitenedStore`; on Dask, on the workers).
+2. **pass 2**: every episode is whitened (action codes joined, as the in-memory fit does)
+   and only its whitened rows (``d_H + d_T + d_O`` floats, ~30) and current action are
+   kept, in ``.npy`` memory maps in a temporary directory (:class:`WhitenedStore`; on
+   Dask, on the workers).
 
-Then, from the store and without reading the data again: kernel centres (the first rows, or
-k-means on the whitened rows exactly as :func:`~tpsr_ros.core.features.select_centers`), the
-sums of ``phi_H`` and ``phi_T0^T phi_H`` over blocks of rows (:class:`PSums`; ``P_TH`` is
+Then, from the store and without reading the data again: kernel centres, the sums of
+``phi_H`` and ``phi_T0^T phi_H`` over blocks of rows (:class:`PSums`; ``P_TH`` is
 accumulated in place by BLAS ``dgemm``, so a 20 001 x 20 001 ``P_TH`` exists once), the
-top-``r`` SVD, and a second blocked pass over the rows for the per-action sums of ``B_ao'``
-(:class:`ActionSums`). No ``(t, l)`` feature matrix for all of ``t`` and no ``O(t l^2)`` tensor
-is ever formed: memory is bounded by the chunk size, the block size (:data:`BLOCK_BYTES`) and
+top-``r`` SVD, and a second blocked pass over the rows for the per-action sums of
+``B_ao'``. A state box (``state_clip_quantile > 0``) reads its at most 4000 episodes a third
+time. No ``(t, l)`` feature matrix for all of ``t`` and no ``O(t l^2)`` tensor is ever
+formed: memory is bounded by the chunk size, the block size (:data:`BLOCK_BYTES`) and
 ``P_TH``, not by the data length.
 
-Where the work runs is an *engine* (:class:`StreamEngine`): :class:`ChunkEngine` runs it in
-this process; ``learner.distributed`` runs the same functions as Dask tasks (one per bag,
-partial sums reduced as a tree). The per-block arithmetic is the in-memory fit's own
-(:func:`~tpsr_ros.core.tpsr.ht_features`, :func:`~tpsr_ros.core.tpsr.projected_outer`,
-:func:`~tpsr_ros.core.tpsr.action_sums`, ...).
+Where the passes run is a :class:`StreamEngine`: :class:`ChunkEngine` runs them in this
+process; ``learner.distributed`` runs the same functions as Dask tasks (one per bag, partial
+sums reduced as a tree). The per-block arithmetic is the in-memory fit's own
+(:mod:`tpsr_ros.core.tpsr_stages`).
 """
 
 from __future__ import annotations
@@ -36,59 +37,54 @@ from __future__ import annotations
 import dataclasses
 import tempfile
 import time
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import scipy.linalg.blas
 
-from tpsr_ros.core.episodes import (
-    STEP_FIELDS,
-    Episodes,
-    Trajectory,
-    episode_starts,
-    episodes_at,
-    no_usable_episodes,
+from tpsr_ros.core.episode_stream import (
+    EpisodeCutter,
+    EpisodeMoments,
+    box_rows,
+    episode_moments,
+    episodes_of,
+    merge_moments,
+    whitened_episodes,
 )
+from tpsr_ros.core.episodes import Trajectory, no_usable_episodes
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.moments import Moments
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel
-from tpsr_ros.core.tpsr import (
+from tpsr_ros.core.sizing import Sizing
+from tpsr_ros.core.tpsr import BoxData, Survey, run_fit
+from tpsr_ros.core.tpsr_config import TPSRConfig
+from tpsr_ros.core.tpsr_model import TPSRModel
+from tpsr_ros.core.tpsr_stages import (
     Progress,
-    Stopwatch,
-    TPSRConfig,
-    TPSRModel,
-    action_operators,
     action_sums,
-    assemble_model,
-    check_action_counts,
-    check_enough_episodes,
     ht_features,
-    kernel_centres,
     obs_features,
     projected_outer,
-    start_and_normaliser,
-    truncated_svd,
-    whiten_test_window,
 )
-from tpsr_ros.core.whitening import Whitening, check_finite_matrix
+from tpsr_ros.core.whitened import ActionSums, Centres, WhitenedRows, Whitenings
+from tpsr_ros.core.whitening import Whitening
 
 __all__ = [
     "BLOCK_BYTES",
-    "ActionSums",
-    "Centres",
+    "WHITENED_FIELDS",
     "ChunkEngine",
     "ChunkSource",
     "EpisodeCutter",
     "EpisodeMoments",
     "PSums",
     "StreamEngine",
-    "WhitenedRows",
+    "StreamedFit",
     "WhitenedStore",
-    "Whitenings",
     "block_rows",
+    "box_rows",
     "episode_moments",
     "fit_pca_streamed",
     "fit_tpsr_streamed",
@@ -97,6 +93,8 @@ __all__ = [
     "parameter_sums",
     "whitened_episodes",
 ]
+# EpisodeCutter, EpisodeMoments, episode_moments, merge_moments, whitened_episodes and
+# box_rows live in tpsr_ros.core.episode_stream; they are named here for the engines.
 
 ChunkSource = Callable[[], Iterable[Trajectory]]
 """Returns a fresh iterator over the chunks on every call (the fit reads the data twice)."""
@@ -104,264 +102,12 @@ ChunkSource = Callable[[], Iterable[Trajectory]]
 BLOCK_BYTES = 64 * 2**20
 """Target size of one block's feature matrix; blocks hold 512 to 8192 rows."""
 
+WHITENED_FIELDS = tuple(f.name for f in dataclasses.fields(WhitenedRows))
+
 
 def block_rows(n_features: int) -> int:
     """Rows per block so that a ``(rows, n_features)`` float64 matrix is ~:data:`BLOCK_BYTES`."""
     return int(min(8192, max(512, BLOCK_BYTES // (8 * max(1, n_features)))))
-
-
-def _joined(head: Trajectory, tail: Trajectory) -> Trajectory:
-    return dataclasses.replace(
-        tail,
-        **{n: np.concatenate([getattr(head, n), getattr(tail, n)]) for n in STEP_FIELDS},
-    )
-
-
-class EpisodeCutter:
-    """Cuts consecutive chunks of one trajectory into the episodes of :func:`make_episodes`.
-
-    The rows of a segment that do not yet fill an episode are carried into the next chunk
-    when it continues that segment (same segment number) and dropped otherwise, exactly as
-    ``make_episodes`` drops a segment's remainder. At most ``max_episodes`` are cut.
-    """
-
-    def __init__(
-        self, history_length: int, test_length: int, max_episodes: int | None = None
-    ) -> None:
-        self.m, self.n = int(history_length), int(test_length)
-        if self.m < 1 or self.n < 1:
-            raise ConfigError(
-                f"history and test lengths must be at least 1, not {self.m} and {self.n}"
-            )
-        if max_episodes is not None and max_episodes < 0:
-            raise ConfigError(f"the number of episodes must not be negative, not {max_episodes}")
-        self.span = self.m + 1 + self.n
-        self.limit = max_episodes
-        self.emitted = 0
-        self.steps = 0
-        self.segments = 0
-        self.stamps: tuple[int, int] | None = None
-        """First and last stamp of the steps read (ns)."""
-        self._last_segment: int | None = None
-        self._carry: Trajectory | None = None
-
-    @property
-    def full(self) -> bool:
-        """Whether ``max_episodes`` episodes have been cut."""
-        return self.limit is not None and self.emitted >= self.limit
-
-    def cut(self, chunk: Trajectory) -> Episodes | None:
-        """Episodes completed by ``chunk`` (None if none)."""
-        if self.full or len(chunk) == 0:
-            return None
-        self.steps += len(chunk)
-        self.segments += int(np.count_nonzero(np.diff(chunk.segments)))
-        self.segments += int(chunk.segments[0]) != self._last_segment
-        self._last_segment = int(chunk.segments[-1])
-        first = int(chunk.stamps[0]) if self.stamps is None else self.stamps[0]
-        self.stamps = (first, int(chunk.stamps[-1]))
-        data = chunk
-        if self._carry is not None and int(self._carry.segments[-1]) == int(chunk.segments[0]):
-            data = _joined(self._carry, chunk)
-        last_start = data.segment_bounds()[-1][0]
-        done = last_start + (len(data) - last_start) // self.span * self.span
-        self._carry = data.rows(done, len(data)) if done < len(data) else None
-        first = episode_starts(data, self.span)
-        if self.limit is not None:
-            first = first[: self.limit - self.emitted]
-        self.emitted += int(first.size)
-        return episodes_at(data, first, self.m, self.n) if first.size else None
-
-
-def _checked(chunk: Trajectory) -> Trajectory:
-    check_finite_matrix(chunk.observations, "observations")
-    if len(chunk) and (chunk.actions.min() < 0 or chunk.actions.max() >= chunk.n_actions):
-        raise DataError(f"action indices must lie in 0..{chunk.n_actions - 1}")
-    return chunk
-
-
-def _episodes(chunks: Iterable[Trajectory], cutter: EpisodeCutter) -> Iterator[Episodes]:
-    for chunk in chunks:
-        episodes = cutter.cut(_checked(chunk))
-        if episodes is not None:
-            yield episodes
-        if cutter.full:
-            return
-
-
-@dataclass(frozen=True, eq=False)
-class EpisodeMoments:
-    """Pass 1's result for some episodes: moments of histories, tests, current observations."""
-
-    history: Moments
-    test: Moments
-    observation: Moments
-    n_actions: int
-    steps: int = 0
-    """Steps read (up to the last episode when ``max_episodes`` stopped the pass early)."""
-    segments: int = 0
-    stamps: tuple[int, int] | None = None
-    """Smallest first and largest last stamp (ns) of the steps read."""
-
-    @property
-    def episodes(self) -> int:
-        """Number of episodes."""
-        return self.observation.count
-
-    @classmethod
-    def of(cls, episodes: Episodes) -> EpisodeMoments:
-        """Moments of one block of episodes."""
-        return cls(
-            Moments.of(episodes.history),
-            Moments.of(episodes.test),
-            Moments.of(episodes.observation),
-            int(episodes.n_actions),
-        )
-
-    def merge(self, other: EpisodeMoments) -> EpisodeMoments:
-        """Moments of both sets of episodes (pairwise update)."""
-        if other.n_actions != self.n_actions or other.observation.dim != self.observation.dim:
-            raise DataError(
-                f"cannot fit data with {self.n_actions} actions and observations of "
-                f"{self.observation.dim} values together with data with {other.n_actions} "
-                f"actions and {other.observation.dim} values"
-            )
-        return EpisodeMoments(
-            self.history.merge(other.history),
-            self.test.merge(other.test),
-            self.observation.merge(other.observation),
-            self.n_actions,
-            self.steps + other.steps,
-            self.segments + other.segments,
-            _stamp_range(self.stamps, other.stamps),
-        )
-
-
-def _stamp_range(
-    a: tuple[int, int] | None, b: tuple[int, int] | None
-) -> tuple[int, int] | None:
-    if a is None or b is None:
-        return a or b
-    return min(a[0], b[0]), max(a[1], b[1])
-
-
-def merge_moments(a: EpisodeMoments | None, b: EpisodeMoments | None) -> EpisodeMoments | None:
-    """:meth:`EpisodeMoments.merge` where either side may be None (no episodes)."""
-    if a is None:
-        return b
-    if b is None:
-        return a
-    return a.merge(b)
-
-
-def episode_moments(
-    chunks: Iterable[Trajectory],
-    history_length: int,
-    test_length: int,
-    max_episodes: int | None = None,
-) -> EpisodeMoments | None:
-    """Pass 1 over ``chunks``: moments of their first ``max_episodes`` episodes (None: none)."""
-    total: EpisodeMoments | None = None
-    cutter = EpisodeCutter(history_length, test_length, max_episodes)
-    for episodes in _episodes(chunks, cutter):
-        total = merge_moments(total, EpisodeMoments.of(episodes))
-    if total is None:
-        return None
-    return dataclasses.replace(
-        total, steps=cutter.steps, segments=cutter.segments, stamps=cutter.stamps
-    )
-
-
-@dataclass(frozen=True, eq=False)
-class Whitenings:
-    """Algorithm 1's three whitenings, fitted from pass 1's moments."""
-
-    history: Whitening
-    test: Whitening
-    obs: Whitening
-
-    @classmethod
-    def fit(cls, moments: EpisodeMoments, cfg: TPSRConfig) -> Whitenings:
-        """Whitenings of histories and tests (``d^H = d^T``) and observations (``d^O``)."""
-        return cls(
-            Whitening.from_moments(moments.history, cfg.ht_dim, what="histories"),
-            Whitening.from_moments(moments.test, cfg.ht_dim, what="tests"),
-            Whitening.from_moments(
-                moments.observation,
-                cfg.obs_dim,
-                what="current observations",
-                variance=cfg.obs_variance,
-            ),
-        )
-
-    def apply(self, episodes: Episodes, cfg: TPSRConfig) -> WhitenedRows:
-        """Whitened rows of ``episodes`` (with the ``from-current`` test window if asked)."""
-        test0 = None
-        if cfg.p_th_tests == "from-current":
-            test0 = whiten_test_window(
-                self.test, episodes.observation, episodes.test, cfg.test_length
-            )
-        return WhitenedRows(
-            self.history.transform(episodes.history),
-            self.test.transform(episodes.test),
-            self.obs.transform(episodes.observation),
-            test0,
-            np.asarray(episodes.action, dtype=np.int64),
-        )
-
-
-@dataclass(frozen=True, eq=False)
-class WhitenedRows:
-    """Whitened episodes: histories, tests, current observations, ``P_TH`` tests, actions."""
-
-    history: np.ndarray
-    test: np.ndarray
-    observation: np.ndarray
-    test0: np.ndarray | None
-    """Tests of ``P_TH`` (None: ``test`` itself, the guide's ``after-current``)."""
-    actions: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.actions.shape[0])
-
-    @classmethod
-    def concatenate(cls, parts: Sequence[WhitenedRows]) -> WhitenedRows:
-        """The rows of ``parts``, one after the other."""
-        return cls(**{
-            name: None if getattr(parts[0], name) is None
-            else np.concatenate([getattr(part, name) for part in parts])
-            for name in _WHITENED_FIELDS
-        })  # fmt: skip
-
-    def rows(self, start: int, stop: int) -> WhitenedRows:
-        """Rows ``start:stop`` (views)."""
-        return self._map(lambda array: array[start:stop])
-
-    def copy(self) -> WhitenedRows:
-        """In-memory copy (e.g. to send a block of a memory map to a worker)."""
-        return self._map(np.array)
-
-    def _map(self, function: Callable[[np.ndarray], np.ndarray]) -> WhitenedRows:
-        """``function`` of every array (a missing ``test0`` stays missing)."""
-        return WhitenedRows(**{
-            name: None if (array := getattr(self, name)) is None else function(array)
-            for name in _WHITENED_FIELDS
-        })  # fmt: skip
-
-
-_WHITENED_FIELDS = tuple(field.name for field in dataclasses.fields(WhitenedRows))
-
-
-def whitened_episodes(
-    chunks: Iterable[Trajectory],
-    whitenings: Whitenings,
-    cfg: TPSRConfig,
-    max_episodes: int | None = None,
-) -> Iterator[WhitenedRows]:
-    """Pass 2 over ``chunks``: the whitened rows of their first ``max_episodes`` episodes."""
-    cutter = EpisodeCutter(cfg.history_length, cfg.test_length, max_episodes)
-    for episodes in _episodes(chunks, cutter):
-        yield whitenings.apply(episodes, cfg)
 
 
 class WhitenedStore:
@@ -374,19 +120,12 @@ class WhitenedStore:
     def __init__(
         self,
         n_episodes: int,
-        whitenings: Whitenings,
-        cfg: TPSRConfig,
+        widths: Mapping[str, int],
         directory: Path | str | None = None,
     ) -> None:
         self._tmp = tempfile.TemporaryDirectory(prefix="tpsr-stream-", dir=directory)
         root = Path(self._tmp.name)
-        shapes = {
-            "history": (n_episodes, whitenings.history.n_components),
-            "test": (n_episodes, whitenings.test.n_components),
-            "observation": (n_episodes, whitenings.obs.n_components),
-        }
-        if cfg.p_th_tests == "from-current":
-            shapes["test0"] = shapes["test"]
+        shapes = {name: (n_episodes, width) for name, width in widths.items()}
         self._arrays = {
             name: np.lib.format.open_memmap(root / f"{name}.npy", "w+", np.float64, shape)
             for name, shape in shapes.items()
@@ -419,7 +158,7 @@ class WhitenedStore:
         end = self.n_episodes if stop is None else stop
         return WhitenedRows(**{
             name: self._arrays[name][start:end] if name in self._arrays else None
-            for name in _WHITENED_FIELDS
+            for name in WHITENED_FIELDS
         })  # fmt: skip
 
     def close(self) -> None:
@@ -432,20 +171,6 @@ class WhitenedStore:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-@dataclass(frozen=True, eq=False)
-class Centres:
-    """Kernel centres (whitened): histories ``(l_H, d_H)``, tests, observations ``(l_O, d_O)``."""
-
-    history: np.ndarray
-    test: np.ndarray
-    observation: np.ndarray
-
-
-def _select_centres(rows: WhitenedRows, cfg: TPSRConfig) -> Centres:
-    """Algorithm 2's centres, as the in-memory fit chooses them (same seeds)."""
-    return Centres(*kernel_centres(rows.history, rows.test, rows.observation, cfg))
 
 
 @dataclass(eq=False)
@@ -498,24 +223,6 @@ def p_sums(
         phi_t0 = ht_features(np.asarray(test0), centres.test, cfg)
         sums.add(phi_h, phi_t0)
     return sums
-
-
-@dataclass(eq=False)
-class ActionSums:
-    """Per action: training samples and ``sum phi_O[i, o'] outer(A_T[i], A_H[i])``."""
-
-    counts: np.ndarray
-    sums: np.ndarray
-
-    @classmethod
-    def zeros(cls, n_actions: int, n_obs_centres: int, rank: int) -> ActionSums:
-        """Empty sums ``(n_actions, l_O, r^2)``."""
-        counts = np.zeros(n_actions, dtype=np.int64)
-        return cls(counts, np.zeros((n_actions, n_obs_centres, rank**2)))
-
-    def merged(self, other: ActionSums) -> ActionSums:
-        """Return a new :class:`ActionSums` of both."""
-        return ActionSums(self.counts + other.counts, self.sums + other.sums)
 
 
 def parameter_sums(
@@ -588,6 +295,9 @@ class StreamEngine(Protocol):
     ) -> ActionSums:
         """:func:`parameter_sums` over the rows ``start:``."""
 
+    def box_data(self, indices: np.ndarray, cfg: TPSRConfig, max_episodes: int | None) -> BoxData:
+        """The raw episodes ``indices`` (sorted; a third read of their data), for the box."""
+
 
 class ChunkEngine:
     """Runs every pass in this process, reading the chunks of ``source`` in order."""
@@ -643,6 +353,11 @@ class ChunkEngine:
         """See :class:`StreamEngine`."""
         return parameter_sums(store.rows(start), centres, svd, cfg, n_actions)
 
+    def box_data(self, indices: np.ndarray, cfg: TPSRConfig, max_episodes: int | None) -> BoxData:
+        """See :class:`StreamEngine`."""
+        cutter = EpisodeCutter(cfg.history_length, cfg.test_length, max_episodes)
+        return box_rows(episodes_of(self.source(), cutter), indices)
+
 
 def check_pass_counts(second: int, first: int) -> None:
     """Refuse a second pass that saw other episodes than the first (the data changed)."""
@@ -653,6 +368,118 @@ def check_pass_counts(second: int, first: int) -> None:
         )
 
 
+class StreamedFit:
+    """The data of a :class:`StreamEngine`'s passes, as :func:`tpsr_ros.core.tpsr.run_fit`
+    reads them (a context manager: the temporary store goes on exit)."""
+
+    stages: Mapping[str, str | None] = {
+        "survey": "pass 1: whitening statistics",
+        "rows": "pass 2: whitened episodes",
+        "features": None,
+    }
+
+    def __init__(
+        self,
+        passes: StreamEngine,
+        max_episodes: int | None = None,
+        scratch_dir: Path | str | None = None,
+    ) -> None:
+        self.passes = passes
+        self.max_episodes = max_episodes
+        self.scratch_dir = scratch_dir
+        self._moments: EpisodeMoments | None = None
+        self._store: WhitenedStore | None = None
+        self._cfg: TPSRConfig | None = None
+
+    @property
+    def store(self) -> WhitenedStore:
+        """The whitened rows pass 2 kept here."""
+        assert self._store is not None, "pass 2 has not run"
+        return self._store
+
+    def survey(self, cfg: TPSRConfig) -> Survey:
+        """Pass 1: the merged moments of the first ``max_episodes`` episodes."""
+        moments = self.passes.moments(cfg.history_length, cfg.test_length, self.max_episodes)
+        if moments is None:
+            raise no_usable_episodes(cfg.history_length, cfg.test_length, "the data")
+        self._moments = moments
+        info = {
+            "steps": int(moments.steps),
+            "segments": int(moments.segments),
+            "stamps_ns": list(moments.stamps) if moments.stamps else [],
+        }
+        return Survey(moments.episodes, moments.n_actions, moments.observation.dim, info)
+
+    def whitenings(self, cfg: TPSRConfig, codes: np.ndarray | None) -> Whitenings:
+        """Whitenings from the merged covariances."""
+        m = self._moments
+        assert m is not None
+        return Whitenings.from_moments(m.history, m.test, m.observation, cfg, codes)
+
+    def whiten(self, whitenings: Whitenings, cfg: TPSRConfig) -> None:
+        """Pass 2: every episode whitened; the store holds those the centres come from."""
+        assert self._moments is not None
+        n_episodes = self._moments.episodes
+        first = cfg.center_selection == "first"
+        start = max(cfg.ht_centers, cfg.obs_centers) if first else 0
+        stored = start if first and self.passes.keeps_rows else n_episodes  # k-means: all
+        self._store = WhitenedStore(stored, whitenings.widths(cfg), self.scratch_dir)
+        self._cfg = cfg
+        self.passes.whiten(whitenings, cfg, self.max_episodes, self._store)
+
+    def centre_rows(self) -> WhitenedRows:
+        """The stored rows."""
+        return self.store.rows()
+
+    def action_counts(self, start: int, n_actions: int) -> np.ndarray:
+        """Training episodes per action, counted by the passes."""
+        return self.passes.action_counts(self.store, start, n_actions)
+
+    def features(self, start: int, centres: Centres, cfg: TPSRConfig) -> None:
+        """Nothing: features are computed block by block inside the sums."""
+
+    def p_statistics(
+        self, start: int, centres: Centres, cfg: TPSRConfig
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """``P_H`` and ``P_TH`` from the blocked sums (``P_TH`` divided in place)."""
+        sums = self.passes.p_sums(self.store, start, centres, cfg)
+        n_train = sums.count
+        p_th = sums.cross
+        p_th /= n_train
+        return sums.history / n_train, p_th, int(n_train)
+
+    def parameter_sums(
+        self,
+        start: int,
+        centres: Centres,
+        svd: tuple[np.ndarray, np.ndarray, np.ndarray],
+        cfg: TPSRConfig,
+        n_actions: int,
+    ) -> ActionSums:
+        """The blocked per-action sums."""
+        return self.passes.parameter_sums(self.store, start, centres, svd, cfg, n_actions)
+
+    def box_data(self, indices: np.ndarray) -> BoxData:
+        """The state box's episodes, read a third time."""
+        assert self._cfg is not None
+        return self.passes.box_data(indices, self._cfg, self.max_episodes)
+
+    def info(self) -> dict[str, Any]:
+        """What ran the passes and how much scratch space the rows took."""
+        return {"streamed": {"engine": self.passes.description, "scratch_bytes": self.store.nbytes}}
+
+    def close(self) -> None:
+        """Remove the temporary store."""
+        if self._store is not None:
+            self._store.close()
+
+    def __enter__(self) -> StreamedFit:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 def fit_tpsr_streamed(
     source: ChunkSource | StreamEngine,
     *,
@@ -660,90 +487,33 @@ def fit_tpsr_streamed(
     max_episodes: int | None = None,
     progress: Progress | None = None,
     scratch_dir: Path | str | None = None,
+    sizing: Sizing | None = None,
+    action_codes: np.ndarray | None = None,
 ) -> TPSRModel:
     """Learn the TPSR of ``fit_tpsr_episodes(make_episodes(whole, m, n, max_episodes))``.
 
     Args:
         source: a :data:`ChunkSource` (run here by a :class:`ChunkEngine`) or an engine.
-        config: parameters (default :class:`TPSRConfig`).
+        config: parameters (default :class:`TPSRConfig`); every option of the in-memory fit.
         max_episodes: use only the first episodes (guide ``|E|``).
         progress: called with the name of each stage as it starts.
         scratch_dir: where the temporary memory maps go (default: the system's temp dir).
+        sizing: size the fit to the data once pass 1 has counted it, as
+            :func:`~tpsr_ros.core.tpsr.fit_tpsr` does.
+        action_codes: the command of each action, for action-aware features.
 
     Raises:
         DataError: as :func:`~tpsr_ros.core.tpsr.fit_tpsr`, and when the second pass does not
             see the episodes of the first (the data changed).
-        ConfigError: action-aware features (not supported here).
 
     """
-    cfg = config if config is not None else TPSRConfig()
     if max_episodes is not None and max_episodes < 1:
         raise ConfigError(f"the number of episodes must be at least 1, not {max_episodes}")
-    if cfg.uses_actions:
-        raise ConfigError(
-            "the streamed fit does not support action-aware features (history_action_weight, "
-            "test_action_weight); fit in memory instead"
+    passes: StreamEngine = source if hasattr(source, "moments") else ChunkEngine(source)  # type: ignore[arg-type,assignment]
+    with StreamedFit(passes, max_episodes, scratch_dir) as engine:
+        return run_fit(
+            engine, config, progress=progress, sizing=sizing, action_codes=action_codes
         )
-    if cfg.state_clip_quantile > 0:
-        raise ConfigError(
-            "the streamed fit does not support the state box (state_clip_quantile > 0); "
-            "fit in memory instead"
-        )
-    engine: StreamEngine = source if hasattr(source, "moments") else ChunkEngine(source)  # type: ignore[arg-type,assignment]
-    watch = Stopwatch(progress)
-    watch.stage("pass 1: whitening statistics")
-    moments = engine.moments(cfg.history_length, cfg.test_length, max_episodes)
-    if moments is None:
-        raise no_usable_episodes(cfg.history_length, cfg.test_length, "the data")
-    n_episodes, n_actions = moments.episodes, moments.n_actions
-    check_enough_episodes(n_episodes, cfg)
-    watch.stage("whitening")
-    whitenings = Whitenings.fit(moments, cfg)
-    first = cfg.center_selection == "first"
-    start = max(cfg.ht_centers, cfg.obs_centers) if first else 0  # first training row
-    stored = start if first and engine.keeps_rows else n_episodes  # k-means reads every row
-    with WhitenedStore(stored, whitenings, cfg, scratch_dir) as store:
-        watch.stage("pass 2: whitened episodes")
-        engine.whiten(whitenings, cfg, max_episodes, store)
-        watch.stage("kernel centres")
-        centres = _select_centres(store.rows(), cfg)
-        check_action_counts(engine.action_counts(store, start, n_actions))
-        watch.stage("P-statistics")
-        sums = engine.p_sums(store, start, centres, cfg)
-        n_train = sums.count
-        p_h = sums.history / n_train
-        p_th = sums.cross
-        p_th /= n_train
-        del sums
-        watch.stage("SVD")
-        u, s, v, s_all, usable = truncated_svd(p_th, cfg)
-        del p_th
-        watch.stage("parameters")
-        b_star, b_inf = start_and_normaliser(p_h, s, v)
-        b_sums = engine.parameter_sums(store, start, centres, (u, s, v), cfg, n_actions)
-        scratch = store.nbytes
-    watch.stop()
-    big_b = action_operators(b_sums.sums, b_sums.counts, cfg.action_pooling)
-    fit_info = {
-        "episodes": int(n_episodes),
-        "steps": int(moments.steps),
-        "segments": int(moments.segments),
-        "stamps_ns": list(moments.stamps) if moments.stamps else [],
-        "training_episodes": int(n_train),
-        "samples_per_action": b_sums.counts.tolist(),
-        "usable_singular_values": usable,
-        "timings": {name: round(sec, 6) for name, sec in watch.timings.items()},
-        "streamed": {"engine": engine.description, "scratch_bytes": scratch},
-    }
-    big_b = big_b.reshape(n_actions, centres.observation.shape[0], cfg.rank, cfg.rank)
-    return assemble_model(
-        cfg,
-        (whitenings.history, whitenings.test, whitenings.obs),
-        centres.observation,
-        (b_star, b_inf, big_b),
-        s_all,
-        fit_info,
-    )
 
 
 def fit_pca_streamed(
@@ -764,7 +534,7 @@ def fit_pca_streamed(
     total: Moments | None = None
     n_actions = 0
     cutter = EpisodeCutter(history_length, test_length, max_episodes)
-    for episodes in _episodes(source(), cutter):
+    for episodes in episodes_of(source(), cutter):
         part = Moments.of(episodes.steps())
         total = part if total is None else total.merge(part)
         n_actions = int(episodes.n_actions)

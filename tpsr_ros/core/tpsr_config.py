@@ -1,0 +1,149 @@
+"""Parameters of a TPSR fit (guide table 3.5), validated on construction.
+
+One frozen dataclass; every field carries its help text (:func:`tpsr_ros.core.fields.option`),
+from which ``learner fit`` builds its options. The defaults are the guide's (figure 4.5 with
+rank 5, section 4.3); :mod:`tpsr_ros.core.presets` names other settings.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Literal
+
+import numpy as np
+
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.fields import option as _param
+
+__all__ = ["TPSRConfig"]
+
+
+_NUMBER_RULES: tuple[tuple[tuple[str, ...], Callable[[float], bool], str], ...] = (
+    (("sigma_obs", "sigma_ht"), lambda v: np.isfinite(v) and v > 0, "a positive finite number"),
+    (
+        ("history_action_weight", "test_action_weight"),
+        lambda v: np.isfinite(v) and v >= 0,
+        "a non-negative finite number",
+    ),
+    (("state_clip_quantile",), lambda v: v == 0 or 0 < v < 0.5, "0 or in (0, 0.5)"),
+    (("action_pooling",), lambda v: np.isfinite(v) and 0 <= v <= 1, "a number in [0, 1]"),
+    (("obs_variance",), lambda v: v == 0 or 0 < v < 1, "0 or in (0, 1)"),
+)
+"""The real-valued parameters of :class:`TPSRConfig`: names, the rule, and how it reads."""
+
+
+@dataclass(frozen=True)
+class TPSRConfig:
+    """Parameters of a TPSR fit (guide table 3.5); defaults: figure 4.5, rank 5 (section 4.3).
+
+    History and test whitening dimensions, kernel centres and widths are coupled (``ht_*``),
+    as in the guide's experiments.
+    """
+
+    history_length: int = _param(1, "m: observations per history (guide h/t-length)")
+    test_length: int = _param(1, "n: observations per test (guide h/t-length)")
+    obs_dim: int = _param(10, "d^O: dimensions kept when whitening current observations")
+    obs_variance: float = _param(
+        0.0,
+        "keep instead the fewest d^O that explain this fraction of the current observations' "
+        "variance (0: obs_dim, the guide; the fitted model's obs_dim records the d^O chosen)",
+    )
+    ht_dim: int = _param(10, "d^H = d^T: dimensions kept when whitening histories and tests")
+    obs_centers: int = _param(500, "l^O: number of observation kernel centres")
+    ht_centers: int = _param(1000, "l^H = l^T: number of history and test kernel centres")
+    sigma_obs: float = _param(1.0, "sigma^O: kernel width of observation features")
+    sigma_ht: float = _param(2.0, "sigma^H = sigma^T: kernel width of history/test features")
+    rank: int = _param(5, "r: dimension of the TPSR state (singular values kept; guide dim)")
+    center_selection: Literal["first", "kmeans"] = _param(
+        "first",
+        "kernel centres: the first episodes (guide) or k-means centroids",
+        cli="--centers",
+        choices=("first", "kmeans"),
+    )
+    normalize_ht_features: bool = _param(
+        False, "normalise history/test features to sum 1 (Boots et al.; the guide does not)"
+    )
+    p_th_tests: Literal["after-current", "from-current"] = _param(
+        "after-current",
+        "test window of P_TH: after the current pair (guide eq. 3.2) or starting at it "
+        "(Boots et al. 2011)",
+        choices=("after-current", "from-current"),
+    )
+    history_action_weight: float = _param(
+        0.0,
+        "weight of each history step's action code joined to its observations before the "
+        "RBF kernel (0: observations only, the guide; see tpsr_ros.core.action_features)",
+    )
+    test_action_weight: float = _param(
+        0.0, "weight of each test step's action code joined to its observations (0: the guide)"
+    )
+    state_clip_quantile: float = _param(
+        0.0,
+        "clip every tracked state into the [q, 1 - q] quantiles of its training episodes' "
+        "states (0: no clipping, the guide; see tpsr_ros.core.state_box)",
+    )
+    action_pooling: float = _param(
+        0.0,
+        "shrink each action's operators toward their mean over all actions by this fraction "
+        "(0: one operator per action, the guide; 1: one for all; see pool_actions)",
+    )
+    seed: int = _param(0, "seed of k-means and of the SVD start vector")
+
+    def __post_init__(self) -> None:
+        for name in (
+            "history_length",
+            "test_length",
+            "obs_dim",
+            "ht_dim",
+            "obs_centers",
+            "ht_centers",
+            "rank",
+        ):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ConfigError(f"{name} must be a positive integer, not {value!r}")
+        for names, valid, rule in _NUMBER_RULES:
+            for name in names:
+                value = getattr(self, name)
+                real = not isinstance(value, bool) and isinstance(value, (int, float, np.floating))
+                if not (real and valid(value)):
+                    raise ConfigError(f"{name} must be {rule}, not {value!r}")
+        for f in fields(self):
+            allowed = f.metadata.get("choices")
+            if allowed is not None and getattr(self, f.name) not in allowed:
+                raise ConfigError(
+                    f"{f.name} must be one of {list(allowed)}, not {getattr(self, f.name)!r}"
+                )
+        if not isinstance(self.normalize_ht_features, bool):
+            raise ConfigError(
+                f"normalize_ht_features must be true or false, not {self.normalize_ht_features!r}"
+            )
+        if (
+            isinstance(self.seed, bool)
+            or not isinstance(self.seed, (int, np.integer))
+            or self.seed < 0
+        ):
+            raise ConfigError(f"seed must be a non-negative integer, not {self.seed!r}")
+        if self.rank > self.ht_centers + 1:
+            raise ConfigError(
+                f"rank {self.rank} exceeds the {self.ht_centers + 1} history/test features "
+                "(ht_centers + 1)"
+            )
+
+    @property
+    def uses_actions(self) -> bool:
+        """Whether histories or tests carry action codes (:mod:`tpsr_ros.core.action_features`)."""
+        return self.history_action_weight > 0 or self.test_action_weight > 0
+
+    def to_dict(self) -> dict[str, Any]:
+        """Parameters as a JSON-serialisable dict."""
+        return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> TPSRConfig:
+        """Inverse of :meth:`to_dict`; unknown names are refused."""
+        known = {f.name for f in fields(cls)}
+        if unknown := sorted(set(values) - known):
+            raise ConfigError(f"unknown TPSR parameters {unknown}")
+        return cls(**values)

@@ -1,0 +1,312 @@
+"""The stages of a TPSR fit that every fit shares (guide Algorithms 1-3).
+
+Whichever way the data arrive, in memory or in chunks, in one process or on a Dask
+cluster (:mod:`tpsr_ros.core.tpsr`, :mod:`tpsr_ros.core.streamed_fit`), a fit runs these:
+kernel centres (Algorithm 2), history/test and observation features, the compact rank-``r``
+SVD of ``P_TH``, ``b_*`` and ``b_inf`` (eqs. 3.5, 3.6) and the per-action sums of eqs. 3.3
+and 3.7, their pooling, and the checks on the way. One implementation of each means the
+fits agree to rounding by construction.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse.linalg
+
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.features import CONSTANT_SCALE, rbf_features, select_centers
+from tpsr_ros.core.tpsr_config import TPSRConfig
+from tpsr_ros.core.whitening import Whitening, flip_signs, single_blas_thread
+
+__all__ = [
+    "DENSE_SVD_LIMIT",
+    "EXTRA_SINGULAR_VALUES",
+    "Progress",
+    "StepActions",
+    "Stopwatch",
+    "action_operators",
+    "action_sums",
+    "as_actions",
+    "check_action_counts",
+    "check_enough_episodes",
+    "ht_features",
+    "kernel_centres",
+    "obs_features",
+    "p_th_test_window",
+    "pool_actions",
+    "projected_outer",
+    "start_and_normaliser",
+    "top_singular_triplets",
+    "truncated_svd",
+    "whiten_test_window",
+]
+
+DENSE_SVD_LIMIT = 200
+"""Matrices with a side at most this long get a full LAPACK SVD instead of ARPACK."""
+
+EXTRA_SINGULAR_VALUES = 5
+"""Singular values beyond the rank reported in the fit summary (to show the spectral gap)."""
+
+Progress = Callable[[str], None]
+
+
+def top_singular_triplets(
+    matrix: np.ndarray, k: int, *, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Compute the ``k`` largest singular triplets of ``matrix`` (``(p, q)``), exact to precision.
+
+    Returns ``U (p, k)``, ``s (k,)`` in decreasing order and ``V (q, k)`` with deterministic
+    signs. Uses ARPACK (``svds``, ``tol=0``) when the matrix exceeds :data:`DENSE_SVD_LIMIT`
+    and ``k`` is small enough, else a full LAPACK SVD.
+    """
+    p, q = matrix.shape
+    k = int(k)
+    if not 1 <= k <= min(p, q):
+        raise ConfigError(f"cannot take {k} singular values of a {p}x{q} matrix")
+    if min(p, q) <= DENSE_SVD_LIMIT or k >= min(p, q) - 1:
+        u, s, vt = scipy.linalg.svd(matrix, full_matrices=False)
+        u, s, v = u[:, :k], s[:k], vt[:k].T
+    else:
+        v0 = np.random.default_rng(seed).uniform(0.5, 1.5, size=min(p, q))
+        with single_blas_thread():  # ARPACK: many small matrix-vector products
+            u, s, vt = scipy.sparse.linalg.svds(matrix, k=k, tol=0, v0=v0, solver="arpack")
+        order = np.argsort(s)[::-1]
+        u, s, v = u[:, order], s[order], vt[order].T
+    u, v = flip_signs(u, v)
+    return np.ascontiguousarray(u), s.copy(), np.ascontiguousarray(v)
+
+
+def as_actions(actions: np.ndarray, n_rows: int, n_actions: int) -> np.ndarray:
+    arr = np.asarray(actions)
+    if arr.shape != (n_rows,):
+        raise DataError(f"expected {n_rows} actions, got an array of shape {arr.shape}")
+    if arr.dtype.kind == "f":
+        if not np.isfinite(arr).all() or not np.array_equal(arr, np.round(arr)):
+            raise DataError("actions must be integer indices")
+    elif arr.dtype.kind not in "iu":
+        raise DataError(f"actions must be integer indices, not {arr.dtype}")
+    arr = arr.astype(np.int64)
+    if arr.size and (arr.min() < 0 or arr.max() >= n_actions):
+        raise DataError(
+            f"action indices must lie in 0..{n_actions - 1}, found {arr.min()}..{arr.max()}"
+        )
+    return arr
+
+
+class Stopwatch:
+    """Records the duration of named stages and announces each one."""
+
+    def __init__(self, progress: Progress | None) -> None:
+        self.progress = progress
+        self.timings: dict[str, float] = {}
+        self._stage: str | None = None
+        self._start = 0.0
+
+    def stage(self, name: str) -> None:
+        self.stop()
+        if self.progress is not None:
+            self.progress(name)
+        self._stage, self._start = name, time.perf_counter()
+
+    def stop(self) -> None:
+        if self._stage is not None:
+            self.timings[self._stage] = time.perf_counter() - self._start
+            self._stage = None
+
+
+@dataclass(frozen=True)
+class StepActions:
+    """The actions of the history and test steps, for action-aware features.
+
+    ``history`` ``(E, m)`` and ``test`` ``(E, n)`` action indices (each step's action led to
+    its observation), ``current`` ``(E,)`` and ``codes`` ``(n_actions, d)`` standardised
+    action codes (:func:`tpsr_ros.core.action_features.standardised_codes`).
+    """
+
+    history: np.ndarray | None
+    test: np.ndarray | None
+    current: np.ndarray
+    codes: np.ndarray
+
+    def test_window(self, test_length: int) -> np.ndarray | None:
+        """Actions of Boots et al.'s ``P_TH`` test: the current one and ``n - 1`` test steps."""
+        if self.test is None:
+            return None
+        return np.concatenate([self.current[:, None], self.test[:, : test_length - 1]], axis=1)
+
+
+def p_th_test_window(observation: np.ndarray, test: np.ndarray, test_length: int) -> np.ndarray:
+    """Boots et al.'s test of ``P_TH``: the current observation and ``n - 1`` test steps."""
+    k = observation.shape[1]
+    return np.concatenate([observation, test[:, : (test_length - 1) * k]], axis=1)
+
+
+WINDOW_BLOCK_BYTES = 1 << 25
+"""Rows of the ``P_TH`` test window are built and whitened in blocks of about 32 MiB."""
+
+
+def whiten_test_window(
+    whitening: Whitening, observation: np.ndarray, test: np.ndarray, test_length: int
+) -> np.ndarray:
+    """``whitening.transform(p_th_test_window(...))``, a block of rows at a time.
+
+    The same values to rounding (bit-equal with OpenBLAS on the memory setting), without the
+    two full-size temporaries of the one-shot version (the window and its centred copy:
+    2 x 570 MB for tests of 8 images, whose first touch took 1.4 s of a 6-9 s fit).
+    """
+    n_rows = observation.shape[0]
+    width = observation.shape[1] * test_length
+    rows = max(1, WINDOW_BLOCK_BYTES // (8 * width))
+    white = np.empty((n_rows, whitening.n_components))
+    for start in range(0, n_rows, rows):
+        block = slice(start, start + rows)
+        white[block] = whitening.transform(
+            p_th_test_window(observation[block], test[block], test_length)
+        )
+    return white
+
+
+def check_enough_episodes(n_episodes: int, cfg: TPSRConfig) -> None:
+    """Refuse fewer episodes than the kernel centres (and, for 'first' ones, the rank) need."""
+    n_centres = max(cfg.ht_centers, cfg.obs_centers)
+    # 'first' centres are taken out of the data (t = |E| - max l); k-means centres are not.
+    needed = n_centres + cfg.rank if cfg.center_selection == "first" else n_centres
+    if n_episodes < needed:
+        raise DataError(
+            f"{n_episodes} episodes are too few for {n_centres} kernel centres: "
+            f"'{cfg.center_selection}' centres with rank {cfg.rank} need at least {needed} "
+            "(lower obs_centers/ht_centers or record more data)"
+        )
+
+
+def kernel_centres(
+    history: np.ndarray, test: np.ndarray, observation: np.ndarray, cfg: TPSRConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Algorithm 2, centres: ``l^H``, ``l^T`` and ``l^O`` of the whitened episodes' rows.
+
+    Shared by the in-memory and the streamed fit, so both choose the same centres (the
+    k-means seeds are ``seed``, ``seed + 1``, ``seed + 2``).
+    """
+    select = cfg.center_selection
+    return (
+        select_centers(history, cfg.ht_centers, select, seed=cfg.seed, what="history"),
+        select_centers(test, cfg.ht_centers, select, seed=cfg.seed + 1, what="test"),
+        select_centers(observation, cfg.obs_centers, select, seed=cfg.seed + 2, what="observation"),
+    )
+
+
+def ht_features(rows: np.ndarray, centres: np.ndarray, cfg: TPSRConfig) -> np.ndarray:
+    """History or test features of whitened ``rows``: ``(t, l + 1)`` with the constant feature."""
+    return rbf_features(
+        rows, centres, cfg.sigma_ht, normalize=cfg.normalize_ht_features, add_constant=True
+    )
+
+
+def obs_features(rows: np.ndarray, centres: np.ndarray, cfg: TPSRConfig) -> np.ndarray:
+    """Normalised features of whitened current observations: ``(t, l_O)``."""
+    return rbf_features(rows, centres, cfg.sigma_obs, normalize=True)
+
+
+def truncated_svd(
+    p_th: np.ndarray, cfg: TPSRConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Algorithm 3's compact rank-``r`` SVD ``P_TH ~ U S V^T``.
+
+    Returns ``U (l_T + 1, r)``, ``s (r,)``, ``V (l_H + 1, r)``, the singular values
+    computed (``r`` plus :data:`EXTRA_SINGULAR_VALUES`, to show the gap) and how many of
+    them are numerically non-zero; a rank above that is refused.
+    """
+    n_sv = min(cfg.rank + EXTRA_SINGULAR_VALUES, min(p_th.shape))
+    u, s_all, v = top_singular_triplets(p_th, n_sv, seed=cfg.seed)
+    tol = max(p_th.shape) * np.finfo(np.float64).eps * float(s_all[0])
+    usable = int(np.count_nonzero(s_all > tol))
+    if usable < cfg.rank:
+        raise DataError(
+            f"rank {cfg.rank} exceeds the {usable} usable singular values of P_TH (largest "
+            f"{s_all[: cfg.rank].tolist()}); lower the rank or widen the history/test kernels"
+        )
+    r = cfg.rank
+    return u[:, :r], s_all[:r], v[:, :r], s_all, usable
+
+
+def action_operators(sums: np.ndarray, counts: np.ndarray, pooling: float) -> np.ndarray:
+    """Eq. 3.7: the per-action sums ``(n_actions, ...)`` over their counts, then pooled.
+
+    Shared by the in-memory and the streamed fit; ``sums`` is divided in place.
+    """
+    sums /= counts.reshape(-1, *([1] * (sums.ndim - 1)))
+    return pool_actions(sums, counts, pooling)
+
+
+def pool_actions(operators: np.ndarray, counts: np.ndarray, weight: float) -> np.ndarray:
+    """``B_a <- (1 - w) B_a + w B``, ``B`` the operators of all samples whatever their action.
+
+    Each action's ``B_ao'`` is an average over the ``t_a`` training samples whose current
+    action is ``a``, about a 25th of the data, so it is noisy; ``B = sum_a t_a B_a / t`` is
+    the same average over every sample. Where the action that led to an observation tells
+    little beyond the observation (a fully observable room), shrinking toward ``B`` trades
+    that little for much less noise (measured in ``partial``, rank 8: one update from
+    ``b_*`` locates the robot to 3.1 m with per-action operators, 1.1 m pooled; see
+    docs/results.md). ``operators`` (``(n_actions, ...)``) are changed in place; ``w = 0``
+    leaves them as they are (the guide).
+    """
+    if weight == 0:
+        return operators
+    pooled = np.tensordot(counts / counts.sum(), operators, axes=1)
+    operators *= 1.0 - weight
+    operators += weight * pooled
+    return operators
+
+
+def start_and_normaliser(
+    p_h: np.ndarray, s: np.ndarray, v: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eqs. 3.5 and 3.6: ``b_* = S V^T e`` (``e = (0, ..., 0, 1000)``), ``b_inf = P_H^T V S^-1``."""
+    b_star = s * v[-1] * CONSTANT_SCALE
+    b_inf = (p_h @ v) / s
+    return b_star, b_inf
+
+
+def projected_outer(
+    phi_h: np.ndarray, phi_t: np.ndarray, svd: tuple[np.ndarray, np.ndarray, np.ndarray]
+) -> np.ndarray:
+    """Per sample ``outer(U^T phi_T[i], S^-1 V^T phi_H[i])`` flattened: ``(t, r^2)``."""
+    u, s, v = svd
+    n_train, r = phi_h.shape[0], s.shape[0]
+    a_t = phi_t @ u  # (t, r): U^T phi_T, transposed
+    a_h = phi_h @ v
+    a_h /= s  # (t, r): phi_H^T V S^-1
+    return (a_t[:, :, None] * a_h[:, None, :]).reshape(n_train, r * r)
+
+
+def check_action_counts(counts: np.ndarray) -> None:
+    """Refuse an action that is never the current action of a training episode."""
+    if (missing := np.flatnonzero(counts == 0)).size:
+        raise DataError(
+            f"action(s) {missing.tolist()} never occur as the current action of a training "
+            "episode; record more data or check the action mapping"
+        )
+
+
+def action_sums(
+    phi_o: np.ndarray, outer: np.ndarray, actions: np.ndarray, counts: np.ndarray
+) -> np.ndarray:
+    """Eqs. 3.3 and 3.7 unnormalised: ``sum_{i in Y_a} phi_O[i, o'] outer[i]`` per action.
+
+    Returns ``(n_actions, l_O, r^2)``; one ``(l_O x t_a) @ (t_a x r^2)`` product per action
+    (``counts`` = samples per action in ``actions``, which may be a block of the samples).
+    """
+    n_actions = counts.shape[0]
+    sums = np.zeros((n_actions, phi_o.shape[1], outer.shape[1]))
+    order = np.argsort(actions, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    for a in range(n_actions):
+        if counts[a]:
+            rows = order[bounds[a] : bounds[a + 1]]
+            sums[a] = phi_o[rows].T @ outer[rows]
+    return sums
