@@ -44,3 +44,23 @@ def test_fit_equals_the_episode_fit_and_fits_pca() -> None:
     np.testing.assert_array_equal(model.b_star, reference.b_star)
     pca = fit(traj, PCAConfig(dim=3))
     assert pca.method == "pca" and pca.track(actions, observations).states.shape == (900, 3)
+
+
+def test_fit_arrays_with_the_defaults_sizes_them_to_a_small_system() -> None:
+    """3000 steps of a ring of 6 cells (stay or move): the default preset, sized to 1000
+    episodes of 6 values, learns states from which the cell can be read off."""
+    rng = np.random.default_rng(0)
+    actions = rng.integers(0, 2, size=3000)
+    cells = np.cumsum(actions) % 6
+    observations = np.eye(6)[cells] + 0.1 * rng.normal(size=(3000, 6))
+    model = fit(actions, observations)
+    assert model.config.center_selection == "kmeans" and model.config.action_pooling == 1.0
+    assert model.fit_info["sized"] == {"ht_centers": [1000, 500], "ht_dim": [10, 6]}
+    states = model.track(actions, observations).states
+    design = np.column_stack([states, np.ones(len(states))])
+    half = len(states) // 2
+    weights, *_ = np.linalg.lstsq(design[:half], np.eye(6)[cells[:half]], rcond=None)
+    read = np.argmax(design[half:] @ weights, axis=1)
+    assert (read == cells[half:]).mean() > 0.95
+    with pytest.raises(Exception, match="actions \\(T,\\) and observations"):
+        fit(actions)

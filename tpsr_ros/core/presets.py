@@ -1,0 +1,121 @@
+"""Named settings of the fit and the planner: the project's best (the default) and the guide's.
+
+A preset is a set of changes to the dataclass defaults of :class:`TPSRConfig` and
+:class:`FQIConfig`, which stay the guide's values field by field (figure 4.5 with rank 5,
+section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
+
+- ``guide``: no change. Every model and score is the guide's algorithm as documented.
+- ``best``: the configuration chosen by the project's own experiments (docs/results.md,
+  "Studies"): k-means kernel centres, history/test features normalised to sum 1, rank 8,
+  every action's operators pooled, the observation whitening keeping 95 % of the
+  camera's variance; fitted Q in predictive units with an ensemble of 5 x 100 centres.
+
+Options given explicitly (``learner fit --rank 5``, ``--set tpsr.rank=5``) change single
+fields of a preset; :func:`departures` names them, so a model records its preset and what
+differs from it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.fqi import FQIConfig
+from tpsr_ros.core.tpsr import TPSRConfig
+
+__all__ = ["DEFAULT_PRESET", "PRESETS", "Preset", "departures", "get_preset"]
+
+
+def _frozen(values: Mapping[str, Any]) -> Mapping[str, Any]:
+    return MappingProxyType(dict(values))
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Changes to the guide's defaults of the fit (``tpsr``) and the planner (``fqi``).
+
+    ``robot_tpsr`` holds further changes for robot bags (camera and commands resampled on
+    a step grid), applied on top of ``tpsr``.
+    """
+
+    name: str
+    summary: str
+    tpsr: Mapping[str, Any] = field(default_factory=dict)
+    fqi: Mapping[str, Any] = field(default_factory=dict)
+    robot_tpsr: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for attr in ("tpsr", "fqi", "robot_tpsr"):
+            object.__setattr__(self, attr, _frozen(getattr(self, attr)))
+        self.tpsr_config(robot=True)  # every change must name a field and be valid
+        self.fqi_config()
+
+    def tpsr_values(self, *, robot: bool = False) -> dict[str, Any]:
+        """The preset's TPSR changes (with the robot-bag ones when ``robot``)."""
+        return {**self.tpsr, **(self.robot_tpsr if robot else {})}
+
+    def tpsr_config(self, *, robot: bool = False, **changes: Any) -> TPSRConfig:
+        """The preset's TPSR parameters, then ``changes``."""
+        return _build(TPSRConfig, {**self.tpsr_values(robot=robot), **changes}, self.name)
+
+    def fqi_config(self, **changes: Any) -> FQIConfig:
+        """The preset's fitted-Q parameters, then ``changes``."""
+        return _build(FQIConfig, {**self.fqi, **changes}, self.name)
+
+
+def _build(cls: type[Any], values: Mapping[str, Any], name: str) -> Any:
+    known = {f.name for f in dataclasses.fields(cls)}
+    if unknown := sorted(set(values) - known):
+        raise ConfigError(f"preset {name!r}: unknown {cls.__name__} fields {unknown}")
+    return cls(**values)
+
+
+PRESETS: Mapping[str, Preset] = MappingProxyType(
+    {
+        "best": Preset(
+            "best",
+            "the project's best: k-means centres, normalised history/test features, rank 8, "
+            "pooled action operators, observation whitening to 95 % of the variance; fitted Q "
+            "in predictive units, 5 x 100 centres",
+            tpsr={
+                "center_selection": "kmeans",
+                "normalize_ht_features": True,
+                "rank": 8,
+                "action_pooling": 1.0,
+                "obs_variance": 0.95,
+            },
+            fqi={"state_scaling": "predictive", "ensemble": 5, "centers": 100},
+        ),
+        "guide": Preset(
+            "guide",
+            "the guide's settings: figure 4.5 with rank 5, fitted Q as in section 4.1 "
+            "(robot bags: normalised history/test features)",
+            robot_tpsr={"normalize_ht_features": True},
+        ),
+    }
+)
+"""Every preset by name."""
+
+DEFAULT_PRESET = "best"
+"""The preset of every command and of :func:`tpsr_ros.fit` unless another is named."""
+
+
+def get_preset(name: str) -> Preset:
+    """The preset called ``name``; a ``ConfigError`` naming the choices otherwise."""
+    try:
+        return PRESETS[name]
+    except (KeyError, TypeError):
+        raise ConfigError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}") from None
+
+
+def departures(config: TPSRConfig | FQIConfig, reference: TPSRConfig | FQIConfig) -> dict[str, Any]:
+    """The fields of ``config`` whose values differ from ``reference``'s (a preset's config)."""
+    return {
+        f.name: getattr(config, f.name)
+        for f in dataclasses.fields(config)
+        if getattr(config, f.name) != getattr(reference, f.name)
+    }
