@@ -217,6 +217,7 @@ def assert_states_equal(published, expected):
 # -- faults ---------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_faults_are_counted_and_states_after_recovery_equal_offline_tracking(small):
     images, actions = small["images"], small["actions"]
     t = {k: k * S for k in range(1, 41)}
@@ -423,7 +424,7 @@ def test_a_late_joiner_gets_the_latched_episode_start(small):
             node.spin_once(0.01)
             feeder.spin_once(0.0)
         assert len(commands) == 1 and node.resets == 1
-        assert node.sync.last_stamp == 7 * S
+        assert node.source.last_stamp == 7 * S
     finally:
         node.close()
         feeder.close()
@@ -506,6 +507,7 @@ def test_start_up_refusals(small):
         FilterNode.preflight(bad)
 
 
+@pytest.mark.slow
 def test_the_command_line_refuses_in_one_line(small, tmp_path):
     other = random_policy(small["model"], tmp_path / "other.npz", fingerprint="f" * 64)
     proc = subprocess.run(

@@ -73,7 +73,7 @@ GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}
 
 
 def _layer(module: str) -> str:
-    if module in NODE_MODULES:
+    if module in NODE_MODULES or any(module.startswith(n + ".") for n in NODE_MODULES):
         return "node"
     for prefix in ("tpsr_ros.core", "tpsr_ros.io", "tpsr_ros.runtime"):
         if module == prefix or module.startswith(prefix + "."):
@@ -101,7 +101,8 @@ def _violations(layer: str, forbidden: tuple[str, ...]) -> dict[str, list[str]]:
 
 def test_the_graph_covers_the_project() -> None:
     assert {"tpsr_ros.core.tpsr", "tpsr_ros.io.bag", "tpsr_ros.runtime.node"} <= set(GRAPH)
-    assert "tpsr_ros.core.filtering" in GRAPH["tpsr_ros.core.tpsr"]  # lazy imports count too
+    assert "tpsr_ros.core.filtering" in GRAPH["tpsr_ros.core.tpsr_model"]
+    assert "learner.tune" in GRAPH["learner.measures"]  # lazy imports count too
 
 
 def test_core_imports_only_the_core() -> None:
@@ -243,3 +244,29 @@ def test_the_array_api_needs_no_bag_library_or_middleware() -> None:
     )
     result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+ROS_FREE_FILTER_PARTS = [
+    "tpsr_ros.filter_node.inputs",
+    "tpsr_ros.filter_node.health",
+    "tpsr_ros.filter_node.stepping",
+]
+
+
+def test_the_filter_nodes_parts_import_without_ros_bag_libraries_or_middleware() -> None:
+    assert set(ROS_FREE_FILTER_PARTS) <= set(MODULES)
+    _import_with_blocked(
+        ROS_FREE_FILTER_PARTS, (*BAG_LIBRARIES, *MIDDLEWARE, "sim_node", "learner", "yaml")
+    )
+
+
+def test_the_filter_nodes_health_levels_are_diagnostic_msgs_levels() -> None:
+    from tpsr_ros.filter_node import health
+    from tpsr_ros.runtime import diagnostics
+
+    assert (health.OK, health.WARN, health.ERROR, health.STALE) == (
+        diagnostics.OK,
+        diagnostics.WARN,
+        diagnostics.ERROR,
+        diagnostics.STALE,
+    )

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tpsr_ros.core.errors import ConfigError
-from tpsr_ros.runtime.pairing import ExactTimeSynchronizer, Outcome
+from tpsr_ros.core.pairing import ExactTimeSynchronizer, Outcome
 
 S = 10**9
 

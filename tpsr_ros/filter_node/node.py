@@ -1,66 +1,46 @@
-"""The TPSR filter node: tracks the predictive state online and, with a policy, drives the robot.
+"""The filter node: its ROS face around the ROS-free parts of this package.
 
-    python -m tpsr_ros.filter_node --ros-args -p model:=MODEL [-p policy:=POLICY]
-
-Boilerplate around three ROS-free parts (see msgs_doc/filter_node.md for the interface).
-A model learned from robot bags (``learner fit --step-period``) brings its own inputs: the
-node subscribes its camera and command topics and types, and
-:class:`tpsr_ros.core.resample.GridStepper` replaces the pairing below: steps on the model's
-grid with the latest image and the command in force, the offline rules one message at a
-time (states equal ``learner plot``'s). For simulator models:
-
-- :class:`tpsr_ros.runtime.pairing.ExactTimeSynchronizer` pairs ``/camera/image_raw`` and
-  ``/action`` by identical header stamp in a bounded buffer (like message_filters' ExactTime);
-- :class:`tpsr_ros.core.online.OnlineTracker` applies Algorithm 4 with the model's stateless
-  update, with the offline tracker's rules (start from ``b_*``, restart at gaps), so the
-  states published on ``/tpsr/state`` equal offline tracking of the same steps bit for bit;
-- the greedy policy (:func:`tpsr_ros.io.policy.load_policy`) turns each state into a
-  ``/cmd_vel`` command.
-
-Re-initialisation (state ``b_*``, next step starts a segment): on an episode start
-(``/sim/episode_start``, transient-local) newer than the last processed step, and on a
-backwards jump of time: a ``/clock``, episode-start, image or action stamp earlier than the
-last processed step by more than ``jump_threshold`` seconds. After a re-init the node
-publishes the command for ``b_*`` (in lockstep that commands the first step of an episode).
-An episode start at or before the last processed step (and not a jump) is stale and ignored.
-
-Faults never stop the node: undecodable messages, images of the wrong encoding, size,
-frame or data length, actions that are not finite or not one of the 25 actions are
-rejected (counted per reason, at most one warning per topic every 5 s); incomplete,
-duplicated, late and out-of-order messages are counted by the synchroniser; degenerate
-normalisers are recovered by the guard of :mod:`tpsr_ros.core.filtering` and counted.
-``/diagnostics`` reports it all once a second, with the input rates, the time since each
-input last delivered (WARN when one is silent, STALE when both are) and the messages lost in
-the middleware (gaps in the simulator's stamps, or what the middleware itself knows it lost:
-:meth:`~tpsr_ros.runtime.node.Subscription.get_lost_count`).
+Each message callback forwards to one of them and publishes what comes back:
+:mod:`~tpsr_ros.filter_node.inputs` turns decoded messages into observations and action
+indices, a step source of :mod:`~tpsr_ros.filter_node.stepping` turns those into steps,
+:class:`~tpsr_ros.core.online.OnlineTracker` into states, the policy into commands, and
+:mod:`~tpsr_ros.filter_node.health` keeps what ``/diagnostics`` says.
 """
 
 from __future__ import annotations
 
-import math
 import time
-from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any
 
-import numpy as np
-
 from tpsr_ros.core.actions import ACTIONS
-from tpsr_ros.core.cadence import CadenceGaps
-from tpsr_ros.core.episodes import (
-    DEFAULT_ACTION_TOLERANCE,
-    image_to_observation,
-    velocities_to_actions,
-)
-from tpsr_ros.core.errors import ConfigError, EncodingError, MessageError, TpsrError
-from tpsr_ros.core.images import Preprocessing, preprocess_images
+from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.online import OnlineTracker
-from tpsr_ros.core.resample import GridStep, GridStepper
 from tpsr_ros.core.units import NS_PER_S as _NS
+from tpsr_ros.filter_node.health import HealthLedger, Throttle
+from tpsr_ros.filter_node.inputs import (
+    Frame,
+    Rejected,
+    robot_command,
+    simulator_action,
+    simulator_image,
+)
+from tpsr_ros.filter_node.params import (
+    ACTION_TOPIC,
+    CLOCK_TOPIC,
+    CMD_VEL_TOPIC,
+    COMMAND_TYPES,
+    DIAGNOSTICS_TOPIC,
+    IMAGE_TOPIC,
+    RESET_TOPIC,
+    STATE_TOPIC,
+    FilterNodeParams,
+)
+from tpsr_ros.filter_node.stepping import Added, ExactPairing, GridStepping, Step
 from tpsr_ros.io import messages as m
-from tpsr_ros.io.filter_inputs import FilterInputs, input_topics, load_filter_inputs
-from tpsr_ros.io.images import decode_image
-from tpsr_ros.io.stream_spec import TWIST_STAMPED_TYPE
+from tpsr_ros.io.filter_inputs import FilterInputs, check_policy, filter_inputs, input_topics
+from tpsr_ros.io.model_io import open_model
+from tpsr_ros.io.policy import load_policy
 from tpsr_ros.runtime import (
     DEFAULT_QOS,
     LATCHED_QOS,
@@ -70,216 +50,48 @@ from tpsr_ros.runtime import (
     NodeOptions,
     QoSProfile,
     Reliability,
-    param,
     run_node,
 )
 from tpsr_ros.runtime.diagnostics import (
     DIAGNOSTICS_TYPE,
-    ERROR,
-    OK,
-    STALE,
-    WARN,
     RollingPercentiles,
     diagnostic_array,
     diagnostic_status,
 )
-from tpsr_ros.runtime.pairing import ExactTimeSynchronizer, Outcome
 
-__all__ = [
-    "ACTION_TOPIC",
-    "CLOCK_TOPIC",
-    "CMD_VEL_TOPIC",
-    "DIAGNOSTICS_TOPIC",
-    "IMAGE_TOPIC",
-    "REJECT_REASONS",
-    "RESET_TOPIC",
-    "STATE_TOPIC",
-    "FilterInputs",
-    "FilterNode",
-    "FilterNodeParams",
-    "load_inputs",
-    "main",
-]
+__all__ = ["FilterNode", "load_inputs", "main"]
 
 PROG = "python -m tpsr_ros.filter_node"
-# Relative names, so `-r __ns:=/robot1` moves every topic of a robot's filter under
-# /robot1/ (next to its simulator's); /diagnostics stays global, as diagnostic
-# aggregators expect (each status names its node).
-IMAGE_TOPIC = "camera/image_raw"
-ACTION_TOPIC = "action"
-RESET_TOPIC = "sim/episode_start"
-CLOCK_TOPIC = "clock"
-STATE_TOPIC = "tpsr/state"
-CMD_VEL_TOPIC = "cmd_vel"
-DIAGNOSTICS_TOPIC = "/diagnostics"
-REJECT_REASONS = ("undecodable", "encoding", "size", "data", "frame", "action")
-COMMAND_TYPES = {"twist": m.TWIST_TYPE, "twist_stamped": TWIST_STAMPED_TYPE}
-RATE_WINDOW_S = 10.0
-"""Input rates on /diagnostics count the messages of the last this many seconds."""
 CLOCK_QOS = QoSProfile(Reliability.BEST_EFFORT, Durability.VOLATILE, History.KEEP_LAST, 10)
 """Best effort, so /clock from any publisher matches (rosbag2 publishes it best-effort)."""
 WARN_PERIOD_S = 5.0
 """At most one warning per topic and kind (rejection, drop, duplicate...) in this many seconds."""
 SETTLE_S = 0.25
 """Once the command's subscribers are matched, time for their side of discovery to finish."""
-_RECOVERY_ERROR_RUN = 10
-
-
-@dataclass(frozen=True)
-class FilterNodeParams:
-    """Parameters of ``python -m tpsr_ros.filter_node``."""
-
-    model: str = param("", "model file (.npz) written by `learner fit` (required)")
-    policy: str = param(
-        "", "policy file written by `learner policy` for this model; empty: a pure filter"
-    )
-    queue_size: int = param(
-        10, "incomplete steps (image or action alone) buffered for pairing; the oldest go first"
-    )
-    step_period: float = param(
-        1.0, "s between consecutive steps; a step not one period after the last starts from b_*"
-    )
-    jump_threshold: float = param(
-        5.0, "s; a stamp earlier than the last step by more than this is a backwards time jump"
-    )
-    image_frame: str = param("camera", "required frame_id of images (empty: any)")
-    action_frame: str = param("base_link", "required frame_id of actions (empty: any)")
-    sensor_qos: str = param(
-        "reliable",
-        "reliability of the image and action subscriptions (best_effort also matches "
-        "sensor-data publishers)",
-        choices=("reliable", "best_effort"),
-    )
-    check_topics: bool = param(
-        True, "refuse a model trained on other image/action topics than the node subscribes"
-    )
-    wait_for_subscribers: int = param(
-        0, "hold the first command until /cmd_vel and /tpsr/state each have this many subscriptions"
-    )
-    diagnostics_period: float = param(1.0, "s between /diagnostics reports")
-    command_type: str = param(
-        "twist",
-        "type of the /cmd_vel commands: twist (geometry_msgs/Twist) or twist_stamped",
-        choices=tuple(COMMAND_TYPES),
-    )
-    input_timeout: float = param(
-        3.0, "s; an input silent for longer makes /diagnostics WARN, all inputs silent STALE"
-    )
-
-    def __post_init__(self) -> None:
-        if self.queue_size < 1:
-            raise ConfigError(f"queue_size must be >= 1, got {self.queue_size}")
-        for name in ("step_period", "diagnostics_period", "input_timeout"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ConfigError(f"{name} must be a positive number of seconds, got {value}")
-        if not (math.isfinite(self.jump_threshold) and self.jump_threshold >= 0):
-            raise ConfigError(f"jump_threshold must be >= 0 s, got {self.jump_threshold}")
-        if self.wait_for_subscribers < 0:
-            raise ConfigError("wait_for_subscribers must be >= 0")
-
-
-# -- loading and the start-up checks ------------------------------------------------------
 
 
 def load_inputs(
     params: FilterNodeParams,
-    image_topic: str = "/" + IMAGE_TOPIC,
-    action_topic: str = "/" + ACTION_TOPIC,
+    image_topic: str | None = None,
+    action_topic: str | None = None,
     namespace: str = "/",
 ) -> FilterInputs:
-    """:func:`tpsr_ros.io.filter_inputs.load_filter_inputs` with the node's parameters."""
-    return load_filter_inputs(
-        params.model,
-        params.policy,
+    """Open the model (once), load the policy and check them for a node subscribing the
+    given topics (default: the model's own, or the simulator's, in ``namespace``)."""
+    if not params.model:
+        raise ConfigError("no model given: pass -p model:=MODEL (a file from `learner fit`)")
+    model_file = open_model(params.model)
+    image, action = input_topics(model_file) or (IMAGE_TOPIC, ACTION_TOPIC)
+    prefix = namespace.rstrip("/")
+    policy = (load_policy(params.policy), params.policy) if params.policy else None
+    return filter_inputs(
+        model_file,
+        policy,
         check_topics=params.check_topics,
-        image_topic=image_topic,
-        action_topic=action_topic,
+        image_topic=image_topic or f"{prefix}/{image}",
+        action_topic=action_topic or f"{prefix}/{action}",
         namespace=namespace,
     )
-
-
-class _Rejected(Exception):
-    def __init__(self, reason: str, detail: str) -> None:
-        super().__init__(detail)
-        self.reason = reason
-
-
-def _image(msg: Any, shape: tuple[int, int], frame: str) -> np.ndarray:
-    if msg.encoding != "rgb8":
-        raise _Rejected("encoding", f"encoding {msg.encoding!r} is not rgb8")
-    if (int(msg.height), int(msg.width)) != shape or int(msg.step) != 3 * int(msg.width):
-        raise _Rejected(
-            "size",
-            f"image is {msg.height}x{msg.width} (step {msg.step}), expected "
-            f"{shape[0]}x{shape[1]} (step {3 * shape[1]})",
-        )
-    if len(msg.data) != shape[0] * shape[1] * 3:
-        raise _Rejected(
-            "data", f"image holds {len(msg.data)} bytes, expected {shape[0] * shape[1] * 3}"
-        )
-    if frame and msg.header.frame_id != frame:
-        raise _Rejected("frame", f"frame {msg.header.frame_id!r} is not {frame!r}")
-    return m.image_to_array(msg, shape=shape)
-
-
-def _action(msg: Any, frame: str, cache: dict[tuple[float, float], int]) -> int:
-    """Map a TwistStamped to its action index as offline tracking does (memoised)."""
-    if frame and msg.header.frame_id != frame:
-        raise _Rejected("frame", f"frame {msg.header.frame_id!r} is not {frame!r}")
-    try:
-        velocity = m.twist_to_xy(msg)
-        index = cache.get(velocity)
-        if index is None:
-            index = int(velocities_to_actions(np.array([velocity]), DEFAULT_ACTION_TOLERANCE)[0])
-            if len(cache) < 1024:
-                cache[velocity] = index
-        return index
-    except TpsrError as exc:
-        raise _Rejected("action", str(exc)) from None
-
-
-class _Frame:
-    """A camera image as the grid holds it: its observation, or why it has none."""
-
-    __slots__ = ("detail", "observation", "reason")
-
-    def __init__(self) -> None:
-        self.observation: np.ndarray | None = None
-        self.reason, self.detail = "data", "not decoded"
-
-    def reduce(self, msg: Any, msgtype: str, preprocessing: Preprocessing) -> None:
-        """Decode and preprocess ``msg`` (the offline observation, bit for bit)."""
-        try:
-            pixels = decode_image(msg, msgtype)
-            self.observation = preprocess_images(pixels[None], preprocessing)[0]
-        except MessageError as exc:
-            self.detail = str(exc)
-            self.reason = "encoding" if isinstance(exc, EncodingError) else "data"
-
-
-class _Throttle:
-    """True at most once per key every ``period_s`` (wall clock); counts what it held back."""
-
-    def __init__(self, period_s: float) -> None:
-        self.period_s = period_s
-        self._last: dict[tuple[str, str], float] = {}
-        self.suppressed: dict[tuple[str, str], int] = {}
-
-    def __call__(self, key: tuple[str, str]) -> bool:
-        now = time.monotonic()
-        last = self._last.get(key)
-        if last is not None and now - last < self.period_s:
-            self.suppressed[key] = self.suppressed.get(key, 0) + 1
-            return False
-        self._last[key] = now
-        return True
-
-    def take_suppressed(self, key: tuple[str, str]) -> int:
-        return self.suppressed.pop(key, 0)
-
-
-# -- the node -----------------------------------------------------------------------------
 
 
 class FilterNode(Node):
@@ -293,59 +105,91 @@ class FilterNode(Node):
     )
 
     @classmethod
-    def _resolved_inputs(cls, options: NodeOptions) -> tuple[str, str, str]:
+    def preflight(cls, options: NodeOptions) -> FilterInputs:
+        """Open and check the model and policy before joining the graph (once: the node's
+        :meth:`setup` takes what this opened)."""
+        params: FilterNodeParams = options.params
+        if not params.model:
+            raise ConfigError("no model given: pass -p model:=MODEL (a file from `learner fit`)")
+        model_file = open_model(params.model)
         # Node.resolve_topic needs only the options, name and namespace: use it unbound
         # so the check sees exactly the names setup() will subscribe.
         probe = object.__new__(cls)
         probe.options, probe.name, probe.namespace = options, options.name, options.namespace
-        image, action = input_topics(options.params.model) or (IMAGE_TOPIC, ACTION_TOPIC)
-        return (probe.resolve_topic(image), probe.resolve_topic(action), options.namespace)
-
-    @classmethod
-    def preflight(cls, options: NodeOptions) -> None:
-        """Refuse a missing or mismatched model/policy before joining the graph."""
-        load_inputs(options.params, *cls._resolved_inputs(options))
+        image, action = input_topics(model_file) or (IMAGE_TOPIC, ACTION_TOPIC)
+        policy = (load_policy(params.policy), params.policy) if params.policy else None
+        return filter_inputs(
+            model_file,
+            policy,
+            check_topics=params.check_topics,
+            image_topic=probe.resolve_topic(image),
+            action_topic=probe.resolve_topic(action),
+            namespace=options.namespace,
+        )
 
     def setup(self) -> None:
-        """Load and check the model and policy; create the endpoints and timers."""
+        """Take the checked model and policy; create the endpoints and timers."""
         p: FilterNodeParams = self.params
-        image_name, action_name = input_topics(p.model) or (IMAGE_TOPIC, ACTION_TOPIC)
+        prepared = self.prepared
+        self.inputs = prepared if isinstance(prepared, FilterInputs) else self.preflight(
+            self.options
+        )
+        image_name, action_name = input_topics(self.inputs.model_file) or (
+            IMAGE_TOPIC,
+            ACTION_TOPIC,
+        )
         self.image_topic = self.resolve_topic(image_name)
         self.action_topic = self.resolve_topic(action_name)
-        self.inputs = load_inputs(p, self.image_topic, self.action_topic, self.namespace)
         self.model = self.inputs.model
         self.policy = self.inputs.policy
         self.spec = self.inputs.spec
-        step_ns = self.spec.grid.step_ns if self.spec else round(p.step_period * _NS)
-        self.tracker = OnlineTracker(self.model, step_ns)
-        self.grid = GridStepper(self.spec.grid) if self.spec else None
-        # a robot camera's images the middleware lost without saying show in its stamps
-        self.camera_cadence = CadenceGaps() if self.spec else None
-        self.lost = {"image": 0, "action": 0}
-        self._last_input_stamp: dict[str, int | None] = {"image": None, "action": None}
-        self._arrivals: dict[str, deque[float]] = {
-            "image": deque(maxlen=100_000),
-            "action": deque(maxlen=100_000),
-        }
-        self._last_arrival: dict[str, float | None] = {"image": None, "action": None}
-        self._last_image_arrival_ns: int | None = None
-        self.far_commands = 0
-        self.sync = ExactTimeSynchronizer(
-            2, queue_size=p.queue_size, jump_threshold_ns=round(p.jump_threshold * _NS)
-        )
-        self.rejected = dict.fromkeys(REJECT_REASONS, 0)
-        self.resets = 0
-        self.stale_resets = 0
-        self.errors = 0
-        self.commands = 0
+        jump_ns = round(p.jump_threshold * _NS)
+        self.source: ExactPairing | GridStepping
+        if self.spec is None:
+            self.source = ExactPairing(
+                round(p.step_period * _NS), queue_size=p.queue_size, jump_threshold_ns=jump_ns
+            )
+        else:
+            self.source = GridStepping(self.spec.grid, jump_threshold_ns=jump_ns)
+        self.tracker = OnlineTracker(self.model, self.source_step_ns)
+        self.health = HealthLedger(p.input_timeout)
+        self._throttle = Throttle(WARN_PERIOD_S)
+        self.resets = self.stale_resets = self.errors = self.commands = 0
         self.latency = RollingPercentiles(1000)
-        self._throttle = _Throttle(WARN_PERIOD_S)
-        self._recovery_run = 0
         self._action_cache: dict[tuple[float, float], int] = {}
+        self._last_image_arrival_ns: int | None = None
         self._pending_command: tuple[int, int | None] | None = None
         self._ready_since: float | None = None
         self.commands_ready = self.policy is None
+        self._create_endpoints(image_name, action_name)
+        self.health.reported(self._problem_counts(), 0)
+        self.create_timer(p.diagnostics_period, self.publish_diagnostics)
+        if self.policy is not None:
+            self._ready_timer = self.create_timer(0.01, self._check_ready)
+        what = "pure filter" if self.policy is None else f"policy {p.policy}"
+        how = "pairing"
+        if self.spec is not None:
+            how = f"steps of {self.spec.grid.step_ns / _NS:g} s from"
+        self.logger.info(
+            f"model {p.model} ({self.model.method}, {self.model.state_dim}-d states, "
+            f"{self.inputs.fingerprint[:12]}); {what}; {how} {self.image_topic} and "
+            f"{self.action_topic}"
+        )
 
+    @property
+    def source_step_ns(self) -> int:
+        """The step period: the model's grid, or the ``step_period`` parameter."""
+        if self.spec is not None:
+            return int(self.spec.grid.step_ns)
+        return round(self.params.step_period * _NS)
+
+    @property
+    def grid(self) -> GridStepping | None:
+        """The grid step source of a model learned with ``--step-period`` (else None)."""
+        return self.source if isinstance(self.source, GridStepping) else None
+
+    def _create_endpoints(self, image_name: str, action_name: str) -> None:
+        p: FilterNodeParams = self.params
         sensor = QoSProfile(
             Reliability(p.sensor_qos), Durability.VOLATILE, History.KEEP_LAST, DEFAULT_QOS.depth
         )
@@ -388,21 +232,6 @@ class FilterNode(Node):
         self.clock_topic = self.create_subscription(
             CLOCK_TOPIC, m.CLOCK_TYPE, self._on_clock, CLOCK_QOS, raw=True
         ).topic
-        self._last_report = (time.monotonic(), 0, self._problem_counts())
-        self.create_timer(p.diagnostics_period, self.publish_diagnostics)
-        if self.policy is not None:
-            self._ready_timer = self.create_timer(0.01, self._check_ready)
-        what = "pure filter" if self.policy is None else f"policy {p.policy}"
-        how = (
-            "pairing"
-            if self.spec is None
-            else f"steps of {self.spec.grid.step_ns / _NS:g} s from"
-        )
-        self.logger.info(
-            f"model {p.model} ({self.model.method}, {self.model.state_dim}-d states, "
-            f"{self.inputs.fingerprint[:12]}); {what}; {how} {self.image_topic} and "
-            f"{self.action_topic}"
-        )
 
     # -- warnings and counters ------------------------------------------------------------
 
@@ -414,32 +243,22 @@ class FilterNode(Node):
             self.logger.warning(f"{topic}: {message}{more}")
 
     def _reject(self, topic: str, reason: str, detail: str) -> None:
-        self.rejected[reason] += 1
+        self.health.reject(reason)
         self._warn(topic, "rejected", f"rejected ({reason}): {detail}")
 
     def _problem_counts(self) -> dict[str, int]:
-        stats = self.sync.stats
-        counts = {
-            "dropped": stats.dropped,
-            "duplicates": stats.duplicates,
-            "late": stats.late,
-            "out_of_order": stats.out_of_order,
-            "time_jumps": stats.time_jumps,
-            "gaps": self.tracker.gaps,
-            "recoveries": self.tracker.recoveries,
-            "errors": self.errors,
-            # both lower bounds of the same loss: stamp gaps (simulator streams) and what
-            # the middleware knows it lost (sequence gaps, lost-sample events)
-            "lost_images": max(self.lost["image"], self.image_sub.get_lost_count()),
-            "lost_actions": max(self.lost["action"], self.action_sub.get_lost_count()),
-        }
-        if self.grid is not None:
-            counts["dropped"] = self.grid.images_out_of_order
-            counts["out_of_order"] = self.grid.images_out_of_order
-            counts["camera_gaps"] = self.grid.camera_gaps
-            counts["command_gaps"] = self.grid.command_gaps
-            counts["far_commands"] = self.far_commands
-        counts.update({f"rejected_{reason}": n for reason, n in self.rejected.items()})
+        source = self.source.counts()
+        counts = {k: source.pop(k) for k in ("dropped", "duplicates", "late", "out_of_order")}
+        counts["time_jumps"] = source.pop("time_jumps")
+        counts["gaps"] = self.tracker.gaps
+        counts["recoveries"] = self.tracker.recoveries
+        counts["errors"] = self.errors
+        # both lower bounds of the same loss: stamp gaps (the step source's) and what the
+        # middleware knows it lost (sequence gaps, lost-sample events)
+        counts["lost_images"] = max(source.pop("lost_images"), self.image_sub.get_lost_count())
+        counts["lost_actions"] = max(source.pop("lost_actions"), self.action_sub.get_lost_count())
+        counts.update(source)
+        counts.update({f"rejected_{reason}": n for reason, n in self.health.rejected.items()})
         return counts
 
     # -- callbacks ------------------------------------------------------------------------
@@ -451,61 +270,48 @@ class FilterNode(Node):
             self._reject(topic, "undecodable", str(exc))
             return None
 
-    def _arrived(self, which: str) -> None:
-        """Note an input message's arrival (rates and staleness on /diagnostics)."""
-        now = time.monotonic()
-        self._last_arrival[which] = now
-        arrivals = self._arrivals[which]
-        arrivals.append(now)
-        while arrivals[0] < now - RATE_WINDOW_S:
-            arrivals.popleft()
-
-    def _count_lost(self, which: str, stamp: int) -> None:
-        """Steps the middleware lost on a simulator stream, from the gaps in its stamps.
-
-        Simulator step k is stamped k periods after time 0 or after its episode start
-        (DESIGN.md), so a stamp n periods after the previous one on the topic (or after
-        time 0, or the last episode start) means n - 1 lost steps. A backwards jump of
-        time starts the count afresh from time 0.
-        """
-        last = self._last_input_stamp[which]
-        if last is None or stamp < last - self.sync.jump_threshold_ns:
-            last = 0
-        step = self.tracker.step_ns
-        if stamp > last and (stamp - last) % step == 0:
-            self.lost[which] += (stamp - last) // step - 1
-        if stamp > last:
-            self._last_input_stamp[which] = stamp
-
     def _on_image(self, data: bytes) -> None:
         start = time.perf_counter()
-        self._arrived("image")
+        self.health.arrived("image")
         msg = self._decode(data, m.IMAGE_TYPE, self.image_topic)
         if msg is None:
             return
         try:
-            image = _image(msg, self.inputs.image_shape, self.params.image_frame)
-        except _Rejected as exc:
+            observation = simulator_image(msg, self.inputs.image_shape, self.params.image_frame)
+        except Rejected as exc:
             self._reject(self.image_topic, exc.reason, str(exc))
             return
-        self._count_lost("image", m.stamp_of(msg))
-        self._add(0, m.stamp_of(msg), image, self.image_topic, start)
+        stamp = m.stamp_of(msg)
+        self._stepped(self.source.add_image(stamp, observation), stamp, self.image_topic, start)
 
     def _on_action(self, data: bytes) -> None:
         start = time.perf_counter()
-        self._arrived("action")
+        self.health.arrived("action")
         msg = self._decode(data, m.ACTION_TYPE, self.action_topic)
         if msg is None:
             return
         try:
-            action = _action(msg, self.params.action_frame, self._action_cache)
-        except _Rejected as exc:
+            action = simulator_action(msg, self.params.action_frame, self._action_cache)
+        except Rejected as exc:
             self._reject(self.action_topic, exc.reason, str(exc))
             return
-        self._count_lost("action", m.stamp_of(msg))
-        self._add(1, m.stamp_of(msg), action, self.action_topic, start)
+        stamp = m.stamp_of(msg)
+        self._stepped(self.source.add_action(stamp, action), stamp, self.action_topic, start)
 
-    # -- robot streams on the model's step grid (tpsr_ros.core.resample) ----------------
+    def _stepped(self, added: Added, stamp: int, topic: str, start: float) -> None:
+        """Restart on a jump back, warn about what was discarded, track the steps."""
+        if added.jumped:
+            self.tracker.reinit()
+            self.logger.info(f"time jumped back to {stamp / _NS:.3f} s: state re-initialised")
+        if added.problem == "dropped":
+            self._warn(topic, "dropped", "incomplete steps dropped (image or action missing)")
+        elif added.problem in ("duplicate", "late"):
+            what = f"{added.problem} message at {stamp / _NS:.3f} s ignored"
+            self._warn(topic, added.problem, what)
+        for step in added.steps:
+            self._process(step, start)
+
+    # -- robot streams on the model's step grid -------------------------------------------
 
     def _stream_time(self, msg: Any) -> int:
         """Header stamp, or for unstamped messages the stream time now.
@@ -525,107 +331,80 @@ class FilterNode(Node):
     def _on_grid_image(self, data: bytes) -> None:
         start = time.perf_counter()
         assert self.grid is not None and self.spec is not None
-        self._arrived("image")
+        self.health.arrived("image")
         msg = self._decode(data, self.image_type, self.image_topic)
         if msg is None:
             return
         stamp = self._stream_time(msg)
-        if self._grid_time_jumped(stamp):
+        frame = Frame()
+        added = self.grid.add_image(stamp, frame)
+        if added.jumped:
             self._reinit(f"camera time jumped back to {stamp / _NS:.3f} s")
-        assert self.camera_cadence is not None
-        self.lost["image"] += self.camera_cadence.add(stamp)
-        frame = _Frame()
-        steps = self.grid.add_image(stamp, frame)
         self._last_image_arrival_ns = time.monotonic_ns()
-        self._grid_steps(steps, start)
+        self._grid_steps(added.steps, start)
         # Downsampled at the input, once: after this image's steps have been published
         # (they hold the previous image), so it adds nothing to their latency, and the
         # node keeps an observation, not the camera's megabytes.
         frame.reduce(msg, self.image_type, self.spec.preprocessing)
 
-    def _grid_time_jumped(self, stamp: int) -> bool:
-        """Whether ``stamp`` is a backward jump of the stream's time; if so, restart the grid."""
-        assert self.grid is not None
-        last = self.grid.last_image_time
-        if last is None or stamp >= last - self.sync.jump_threshold_ns:
-            return False
-        self.grid.reset()
-        self.sync.stats.time_jumps += 1
-        return True
-
-    def _grid_steps(self, steps: list[GridStep], start: float) -> None:
+    def _grid_steps(self, steps: list[Step], start: float) -> None:
         """Process the steps one image completed; they all hold the previous image."""
         if not steps:
             return
-        frame: _Frame = steps[0].image
+        frame: Frame = steps[0].image
         if frame.observation is None:
             for _ in steps:  # one rejection per step, as each step is lost
                 self._reject(self.image_topic, frame.reason, frame.detail)
             return
         for step in steps:
-            self._process(step.stamp, int(step.command), frame.observation, start)
+            self._process(replace(step, image=frame.observation), start)
 
     def _on_grid_command(self, data: bytes) -> None:
         assert self.grid is not None and self.spec is not None
-        self._arrived("action")
+        self.health.arrived("action")
         msg = self._decode(data, self.action_type, self.action_topic)
         if msg is None:
             return
         codebook = self.spec.codebook
         try:
-            values = m.twist_components(msg, codebook.components)
-            index, distance = codebook.assign(values[None])
-        except TpsrError as exc:
-            self._reject(self.action_topic, "action", str(exc))
+            index, distance, values = robot_command(msg, codebook)
+        except Rejected as exc:
+            self._reject(self.action_topic, exc.reason, str(exc))
             return
-        if distance[0] > codebook.far_distance:
-            self.far_commands += 1
+        far = distance > codebook.far_distance
+        if far:
             self._warn(
                 self.action_topic,
                 "far",
-                f"command {values.tolist()} is {distance[0]:.3g} from its nearest action "
-                f"(more than {codebook.far_distance:.3g})",
+                f"command {values.tolist()} is {distance:.3g} from its nearest action (more "
+                f"than {codebook.far_distance:.3g})",
             )
-        self.grid.add_command(self._stream_time(msg), int(index[0]))
+        self.grid.add_action(self._stream_time(msg), index, far=far)
 
-    def _add(self, index: int, stamp: int, item: Any, topic: str, start: float) -> None:
-        dropped_before = self.sync.stats.dropped
-        result = self.sync.add(index, stamp, item)
-        if result.jumped:
-            self.tracker.reinit()
-            self.logger.info(f"time jumped back to {stamp / _NS:.3f} s: state re-initialised")
-        if self.sync.stats.dropped > dropped_before:
-            self._warn(topic, "dropped", "incomplete steps dropped (image or action missing)")
-        if result.outcome is Outcome.DUPLICATE:
-            self._warn(topic, "duplicate", f"duplicate message at {stamp / _NS:.3f} s ignored")
-        elif result.outcome is Outcome.LATE:
-            self._warn(topic, "late", f"late message at {stamp / _NS:.3f} s ignored")
-        elif result.outcome is Outcome.PAIRED:
-            assert result.items is not None
-            image, action = result.items
-            self._process(stamp, int(action), image_to_observation(image), start)
+    # -- tracking and commands ------------------------------------------------------------
 
-    def _process(self, stamp: int, action: int, observation: np.ndarray, start: float) -> None:
+    def _process(self, step: Step, start: float) -> None:
         try:
-            info = self.tracker.step(stamp, action, observation)
+            info = self.tracker.step(step.stamp, step.action, step.image)
         except Exception as exc:  # never let one step stop the node
             self.errors += 1
             self.tracker.reinit()
             if self._throttle((self.state_pub.topic, "error")):
-                self.logger.error(f"update at {stamp / _NS:.3f} s failed ({exc}); state reset")
+                self.logger.error(
+                    f"update at {step.stamp / _NS:.3f} s failed ({exc}); state reset"
+                )
             return
+        self.health.update(bool(info.recovered))
         if info.recovered:
-            self._recovery_run += 1
             self._warn(
                 self.state_pub.topic,
                 "recovery",
-                f"normaliser {info.normalizer:.3g} at {stamp / _NS:.3f} s: restarted from b_*",
+                f"normaliser {info.normalizer:.3g} at {step.stamp / _NS:.3f} s: restarted "
+                "from b_*",
             )
-        else:
-            self._recovery_run = 0
-        self.state_pub.publish(m.state_msg(stamp, info.state))
+        self.state_pub.publish(m.state_msg(step.stamp, info.state))
         if self.policy is not None:
-            self._command(info.state, stamp)
+            self._command(info.state, step.stamp)
         self.latency.add(time.perf_counter() - start)
 
     def _on_reset(self, data: bytes) -> None:
@@ -633,14 +412,10 @@ class FilterNode(Node):
         if msg is None:
             return
         stamp = m.stamp_of(msg)
-        last = self.sync.last_stamp
-        if last is not None and stamp <= last and not self.sync.check_time(stamp):
+        if not self.source.episode_start(stamp):
             self.stale_resets += 1
             self.logger.debug(f"episode start at {stamp / _NS:.3f} s is not newer: ignored")
             return
-        self.sync.start_after(stamp)
-        for which in self._last_input_stamp:  # step 1 of the episode comes one period later
-            self._last_input_stamp[which] = stamp
         self._reinit(f"episode start at {stamp / _NS:.3f} s")
         self.resets += 1
 
@@ -649,9 +424,7 @@ class FilterNode(Node):
         if msg is None:
             return
         stamp = m.stamp_of(msg)
-        # simulator streams are paired by stamp, robot streams stepped on the camera's grid
-        jumped = self.sync.check_time(stamp) if self.grid is None else self._grid_time_jumped(stamp)
-        if jumped:
+        if self.source.clock(stamp):
             self._reinit(f"{self.clock_topic} jumped back to {stamp / _NS:.3f} s")
 
     def _reinit(self, why: str) -> None:
@@ -660,9 +433,7 @@ class FilterNode(Node):
         if self.policy is not None:
             self._command(self.tracker.state)
 
-    # -- commands -------------------------------------------------------------------------
-
-    def _command(self, state: np.ndarray, stamp: int | None = None) -> None:
+    def _command(self, state: Any, stamp: int | None = None) -> None:
         assert self.policy is not None
         self._pending_command = (self.policy.action(state), stamp)
         if self.commands_ready:
@@ -710,19 +481,17 @@ class FilterNode(Node):
 
     # -- diagnostics ----------------------------------------------------------------------
 
+    def _topics(self) -> dict[str, str]:
+        return {"image": self.image_topic, "action": self.action_topic}
+
     def diagnostics_values(self) -> dict[str, Any]:
         """Every diagnostics key-value (also used by tests and the benchmark)."""
-        now = time.monotonic()
-        since, steps_then, _ = self._last_report
-        rate = (self.tracker.steps - steps_then) / max(now - since, 1e-9)
         p50, p99 = self.latency.percentiles(50, 99)
-        last = (
-            self.tracker.last_stamp
-            if self.tracker.last_stamp is not None
-            else (self.sync.last_stamp)
-        )
-        values: dict[str, Any] = {
-            "update_rate_hz": rate,
+        last = self.tracker.last_stamp
+        if last is None and isinstance(self.source, ExactPairing):
+            last = self.source.last_stamp
+        return {
+            "update_rate_hz": self.health.update_rate(self.tracker.steps),
             "latency_p50_ms": p50 * 1e3,
             "latency_p99_ms": p99 * 1e3,
             "steps": self.tracker.steps,
@@ -730,74 +499,32 @@ class FilterNode(Node):
             "resets": self.resets,
             "stale_resets": self.stale_resets,
             **self._problem_counts(),
-            **self._input_health(now),
+            **self.health.input_values(self._topics()),
             "last_stamp_s": "none" if last is None else f"{last / _NS:.9f}",
             "state_dim": self.model.state_dim,
             "model": self.inputs.fingerprint[:12],
             "policy": "none" if self.policy is None else self.params.policy,
         }
-        return values
 
-    def _input_health(self, now: float) -> dict[str, Any]:
-        values: dict[str, Any] = {}
-        for which, topic in (("image", self.image_topic), ("action", self.action_topic)):
-            recent = [t for t in self._arrivals[which] if t >= now - RATE_WINDOW_S]
-            span = min(RATE_WINDOW_S, now - recent[0]) if len(recent) > 1 else 0.0
-            values[f"{which}_rate_hz"] = (len(recent) - 1) / span if span > 0 else 0.0
-            last = self._last_arrival[which]
-            values[f"{which}_age_s"] = "never" if last is None else round(now - last, 3)
-            values[f"{which}_topic"] = topic
-        return values
-
-    def _silent(self) -> list[tuple[str, float]]:
-        """Inputs that delivered before but nothing for longer than ``input_timeout``."""
-        now = time.monotonic()
-        out = []
-        for which, topic in (("image", self.image_topic), ("action", self.action_topic)):
-            last = self._last_arrival[which]
-            if last is not None and now - last > self.params.input_timeout:
-                out.append((topic, now - last))
-        return out
-
-    def health(self, values: dict[str, Any]) -> tuple[int, str]:
-        """Level and message of the report: what got worse since the previous report."""
-        _, steps_then, problems_then = self._last_report
-        grown = [k for k, v in self._problem_counts().items() if v > problems_then.get(k, 0)]
-        rejected_now = sum(
-            v - problems_then.get(k, 0)
-            for k, v in self._problem_counts().items()
-            if k.startswith("rejected_")
-        )
-        if self._recovery_run >= _RECOVERY_ERROR_RUN:
-            return ERROR, f"the last {self._recovery_run} updates all needed recovery"
-        if rejected_now and self.tracker.steps == steps_then:
-            return ERROR, f"every message rejected ({rejected_now} since the last report)"
-        silent = self._silent()
-        if silent and len(silent) == 2:
-            age = min(a for _, a in silent)
-            return STALE, f"inputs silent for {age:.1f} s (no {silent[0][0]}, no {silent[1][0]})"
-        if grown:
-            return WARN, "since the last report: " + ", ".join(grown)
-        if silent:
-            return WARN, f"{silent[0][0]} silent for {silent[0][1]:.1f} s"
-        if self.tracker.steps == 0:
-            return OK, "waiting for paired images and actions"
-        return OK, "tracking"
+    def health_status(self) -> tuple[int, str]:
+        """Level and message of the next report: what got worse since the previous one."""
+        return self.health.assess(self._problem_counts(), self.tracker.steps, self._topics())
 
     def publish_diagnostics(self) -> None:
         """Publish one DiagnosticArray (timer callback)."""
         values = self.diagnostics_values()
-        level, message = self.health(values)
+        level, message = self.health_status()
         status = diagnostic_status(
             level, f"{self.name}: state tracking", message, values, hardware_id="tpsr"
         )
         self.diagnostics_pub.publish(diagnostic_array(time.time_ns(), [status]))
-        self._last_report = (time.monotonic(), self.tracker.steps, self._problem_counts())
+        self.health.reported(self._problem_counts(), self.tracker.steps)
 
     def on_parameter_change(self, name: str, value: Any) -> str | None:
         """``ros2 param set /tpsr_filter policy NEW``: swap the policy if it fits the model.
 
-        Checked exactly as at start-up; every other parameter is fixed at start-up.
+        Checked exactly as at start-up (against the model opened then); every other
+        parameter is fixed at start-up.
         """
         if name != "policy":
             return super().on_parameter_change(name, value)
@@ -808,15 +535,11 @@ class FilterNode(Node):
                 "the node"
             )
         try:
-            inputs = load_inputs(
-                replace(self.params, policy=str(value)),
-                self.image_topic,
-                self.action_topic,
-                self.namespace,
-            )
+            policy = load_policy(str(value))
+            check_policy(policy, self.inputs.model_file, str(value))
         except TpsrError as exc:
             return str(exc)
-        self.policy = inputs.policy
+        self.policy = policy
         self.logger.info(f"policy {value} now chooses the commands")
         return None
 
@@ -832,7 +555,3 @@ class FilterNode(Node):
 def main(argv: list[str] | None = None) -> None:
     """Entry point of ``python -m tpsr_ros.filter_node``."""
     run_node(FilterNode, prog=PROG, argv=argv)
-
-
-if __name__ == "__main__":
-    main()

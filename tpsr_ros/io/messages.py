@@ -23,6 +23,13 @@ from rosbags.typesys.store import Typestore
 
 from tpsr_ros.core.errors import MessageError
 from tpsr_ros.core.units import NS_PER_S as _NS
+from tpsr_ros.io.message_fields import (
+    image_to_array,
+    pose_to_xy,
+    stamp_of,
+    twist_components,
+    twist_to_xy,
+)
 
 __all__ = [
     "ACTION_TYPE",
@@ -95,12 +102,6 @@ def _header(stamp_ns: int, frame_id: str) -> Any:
     return _t("std_msgs/msg/Header")(
         stamp=_t("builtin_interfaces/msg/Time")(sec=sec, nanosec=nanosec), frame_id=frame_id
     )
-
-
-def stamp_of(msg: Any) -> int:
-    """Stamp of a message with a ``header`` (or a Clock) in integer nanoseconds."""
-    stamp = msg.clock if hasattr(msg, "clock") else msg.header.stamp
-    return int(stamp.sec) * _NS + int(stamp.nanosec)
 
 
 def starts_with_header(msgtype: str) -> bool:
@@ -218,29 +219,6 @@ def image_msg(stamp_ns: int, rgb: np.ndarray, frame_id: str = "camera") -> Any:
     )
 
 
-def image_to_array(
-    msg: Any, shape: tuple[int, int] | None = (16, 16), frame_id: str | None = None
-) -> np.ndarray:
-    """Validate an rgb8 image message and return it as an ``(H, W, 3)`` uint8 array.
-
-    ``shape`` and ``frame_id``, when given, must match; anything else raises
-    ``MessageError`` naming the mismatch.
-    """
-    if msg.encoding != "rgb8":
-        raise MessageError(f"image encoding {msg.encoding!r} is not rgb8")
-    height, width = int(msg.height), int(msg.width)
-    if shape is not None and (height, width) != tuple(shape):
-        raise MessageError(f"image is {height}x{width}, expected {shape[0]}x{shape[1]}")
-    if int(msg.step) != 3 * width:
-        raise MessageError(f"image step {msg.step} does not match width {width} x 3 bytes")
-    data = np.asarray(msg.data, dtype=np.uint8)
-    if data.size != height * width * 3:
-        raise MessageError(f"image holds {data.size} bytes, expected {height * width * 3}")
-    if frame_id is not None and msg.header.frame_id != frame_id:
-        raise MessageError(f"image frame {msg.header.frame_id!r} is not {frame_id!r}")
-    return data.reshape(height, width, 3)
-
-
 # bytes per pixel of the sensor_msgs/image_encodings a camera driver publishes
 _BYTES_PER_PIXEL = {
     "rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "mono16": 2,
@@ -288,28 +266,6 @@ def stamped_twist(stamp_ns: int, twist: Any, frame_id: str = "base_link") -> Any
     return _t(ACTION_TYPE)(header=_header(stamp_ns, frame_id), twist=twist)
 
 
-def twist_to_xy(msg: Any) -> tuple[float, float]:
-    """Planar linear velocity of a Twist or TwistStamped; non-finite values are refused."""
-    twist = msg.twist if hasattr(msg, "twist") else msg
-    vx, vy = float(twist.linear.x), float(twist.linear.y)
-    if not (np.isfinite(vx) and np.isfinite(vy)):
-        raise MessageError(f"velocity ({vx}, {vy}) is not finite")
-    return vx, vy
-
-
-def twist_components(msg: Any, components: tuple[str, ...]) -> np.ndarray:
-    """Chosen components (``"linear.x"``, ``"angular.z"``...) of a Twist or TwistStamped."""
-    twist = msg.twist if hasattr(msg, "twist") else msg
-    values = np.empty(len(components))
-    for i, name in enumerate(components):
-        part, axis = name.split(".")
-        values[i] = float(getattr(getattr(twist, part), axis))
-    if not np.isfinite(values).all():
-        shown = dict(zip(components, values.tolist(), strict=True))
-        raise MessageError(f"command {shown} is not finite")
-    return values
-
-
 def twist_from_components(values: dict[str, float]) -> Any:
     """``geometry_msgs/msg/Twist`` with the given components (``"linear.x"``...), others 0."""
     parts: dict[str, dict[str, float]] = {"linear": {}, "angular": {}}
@@ -329,11 +285,6 @@ def pose_msg(stamp_ns: int, x: float, y: float, frame_id: str = "map") -> Any:
         orientation=_t("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0),
     )
     return _t(POSE_TYPE)(header=_header(stamp_ns, frame_id), pose=pose)
-
-
-def pose_to_xy(msg: Any) -> tuple[float, float]:
-    """Planar position of a PoseStamped."""
-    return float(msg.pose.position.x), float(msg.pose.position.y)
 
 
 @dataclass(frozen=True)

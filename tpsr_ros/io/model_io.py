@@ -8,6 +8,7 @@ entry ``metadata``, a 0-d unicode array holding a JSON object::
      variance, timings...}, "n_actions": 25, "observation": {"size": 768, ...},
      "training": {...bags, steps, episodes, stamps, environment, topics...},
      "input": {...} (models learned with --step-period only),
+     "preset": {"name": "best", "changed": {...}} (descriptive; learner fit writes it),
      "created": "...", "software": {"tpsr_ros": "0.1.0", "numpy": "..."}}
 
 ``input`` (:class:`tpsr_ros.io.stream_spec.StreamSpec`) is what a model learned from robot bags
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import hashlib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -49,11 +51,13 @@ __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "METHODS",
+    "ModelFile",
     "check_output_path",
     "load_model",
     "metadata_field",
     "model_fingerprint",
     "model_stream_spec",
+    "open_model",
     "read_metadata",
     "save_model",
 ]
@@ -83,12 +87,15 @@ def save_model(
     *,
     training: dict[str, Any] | None = None,
     inputs: StreamSpec | None = None,
+    preset: dict[str, Any] | None = None,
     force: bool = False,
 ) -> Path:
     """Write ``model`` to ``path`` atomically.
 
     ``training`` describes the data (bags, stamps...); ``inputs`` the streams of a model
-    learned on the step grid (stored as ``"input"``; checked against the model first).
+    learned on the step grid (stored as ``"input"``; checked against the model first);
+    ``preset`` the named settings the fit started from and what its options changed
+    (``{"name": ..., "changed": {...}}``, shown by ``learner info``).
     """
     scaling = "rgb8 pixel values / 255, row-major (height, width, channel)"
     if inputs is not None:
@@ -112,6 +119,8 @@ def save_model(
     }
     if inputs is not None:
         metadata["input"] = inputs.as_dict()
+    if preset is not None:
+        metadata["preset"] = preset
     return write_archive(path, model.to_arrays(), metadata, force=force)
 
 
@@ -217,12 +226,42 @@ def read_metadata(path: Path | str) -> dict[str, Any]:
     return metadata
 
 
-def load_model(path: Path | str) -> TPSRModel | PCAModel:
-    """Load and validate a model written by :func:`save_model`."""
+@dataclass(frozen=True, eq=False)
+class ModelFile:
+    """A model archive read and validated once, with everything stored beside the model.
+
+    Open it with :func:`open_model` and hand it along: whoever needs the model, its
+    metadata, its input streams or its fingerprint reads them here, never from the file
+    again (like rosbags' ``AnyReader``, which parses a bag once for every reader).
+    """
+
+    path: Path
+    model: TPSRModel | PCAModel
+    metadata: dict[str, Any]
+    spec: StreamSpec | None
+    """The input streams of a model learned on the step grid; None: exact-stamp pairing."""
+    fingerprint: str
+    """:func:`model_fingerprint` of the model, what a policy names."""
+
+    @property
+    def training(self) -> dict[str, Any]:
+        """The metadata's description of the training data (empty when absent)."""
+        training = self.metadata.get("training")
+        return training if isinstance(training, dict) else {}
+
+    @property
+    def environment(self) -> str | None:
+        """The simulator environment of the training data, when it was one environment."""
+        environment = self.training.get("environment")
+        return environment if isinstance(environment, str) else None
+
+
+def open_model(path: Path | str) -> ModelFile:
+    """Read and validate a model file written by :func:`save_model`, once."""
     path = Path(path)
     metadata, arrays = _open_arrays(path)
     method = _check_metadata(path, metadata)
-    model_stream_spec(path, metadata)
+    spec = model_stream_spec(path, metadata)
     # read_archive has checked that the arrays are exactly those of _expected_shapes
     for name, arr in arrays.items():
         if name in _INTEGER_ARRAYS:
@@ -246,7 +285,12 @@ def load_model(path: Path | str) -> TPSRModel | PCAModel:
             f"{str(path)!r} declares {metadata['n_actions']} actions but its arrays hold "
             f"{model.n_actions}"
         )
-    return model
+    return ModelFile(path, model, metadata, spec, model_fingerprint(model))
+
+
+def load_model(path: Path | str) -> TPSRModel | PCAModel:
+    """Load and validate a model written by :func:`save_model` (:func:`open_model`'s model)."""
+    return open_model(path).model
 
 
 def model_fingerprint(model: StateModel) -> str:

@@ -266,10 +266,16 @@ class Node:
     description: ClassVar[str] = ""
 
     def __init__(
-        self, options: NodeOptions | None = None, *, transport: Transport | None = None
+        self,
+        options: NodeOptions | None = None,
+        *,
+        transport: Transport | None = None,
+        prepared: Any = None,
     ) -> None:
         self.options = options or NodeOptions.for_node(type(self))
         self.params: Any = self.options.params
+        self.prepared = prepared
+        """What :meth:`preflight` returned (e.g. a file it opened), for :meth:`setup`."""
         self.name = self.options.name
         self.namespace = self.options.namespace
         self.logger = Logger(
@@ -344,8 +350,13 @@ class Node:
         return reason
 
     @classmethod
-    def preflight(cls, options: NodeOptions) -> None:
-        """Checks before joining the graph (e.g. an output path); raise a TpsrError."""
+    def preflight(cls, options: NodeOptions) -> Any:
+        """Checks before joining the graph (e.g. an output path); raise a TpsrError.
+
+        What it returns (e.g. a file it had to open to check it) reaches :meth:`setup` as
+        ``self.prepared``, so nothing is read twice.
+        """
+        return None
 
     @classmethod
     def argument_parser(cls, prog: str) -> ArgumentParser:
@@ -560,8 +571,8 @@ def run_node(
         sys.exit(0)
     node: Node | None = None
     try:
-        node_cls.preflight(options)
-        node = node_cls(options)
+        prepared = node_cls.preflight(options)
+        node = node_cls(options, prepared=prepared)
         _install_signal_handlers(node)
         node.logger.debug(f"{node.transport.kind} transport ready; spinning until SIGINT/SIGTERM")
         node.spin()

@@ -1,0 +1,109 @@
+"""The filter node's ROS-free parts: the health ledger and the two step sources."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tpsr_ros.core.resample import GridConfig, resample_grid
+from tpsr_ros.filter_node.health import ERROR, OK, STALE, WARN, HealthLedger, Throttle
+from tpsr_ros.filter_node.stepping import ExactPairing, GridStepping
+
+S = 10**9
+TOPICS = {"image": "/camera/image_raw", "action": "/action"}
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_throttle_lets_one_warning_through_per_period_and_counts_the_rest() -> None:
+    clock = FakeClock()
+    throttle = Throttle(5.0, clock)
+    key = ("/camera/image_raw", "rejected")
+    assert throttle(key) and not throttle(key) and not throttle(key)
+    assert throttle(("/action", "rejected"))  # another key is not held back
+    clock.now += 5.0
+    assert throttle(key) and throttle.take_suppressed(key) == 2
+    assert throttle.take_suppressed(key) == 0
+
+
+def test_ledger_rates_silence_and_levels() -> None:
+    clock = FakeClock()
+    ledger = HealthLedger(input_timeout_s=3.0, clock=clock)
+    assert ledger.assess({}, 0, TOPICS) == (OK, "waiting for paired images and actions")
+    for k in range(11):  # 10 Hz on both inputs for one second
+        ledger.arrived("image")
+        ledger.arrived("action")
+        clock.now += 0.1 if k < 10 else 0.0
+    values = ledger.input_values(TOPICS)
+    assert values["image_rate_hz"] == pytest.approx(10.0) and values["action_age_s"] == 0.0
+    assert ledger.assess({"dropped": 0}, 11, TOPICS) == (OK, "tracking")
+    ledger.reported({"dropped": 0}, 11)
+    assert ledger.assess({"dropped": 2}, 12, TOPICS) == (WARN, "since the last report: dropped")
+    clock.now += 4.0
+    ledger.arrived("action")
+    level, message = ledger.assess({"dropped": 0}, 12, TOPICS)
+    assert level == WARN and message.startswith("/camera/image_raw silent for 4.")
+    clock.now += 4.0
+    level, message = ledger.assess({}, 12, TOPICS)
+    assert level == STALE and "no /camera/image_raw, no /action" in message
+
+
+def test_ledger_errors_on_a_run_of_recoveries_or_when_everything_is_rejected() -> None:
+    ledger = HealthLedger(3.0, clock=FakeClock())
+    for _ in range(10):
+        ledger.update(recovered=True)
+    assert ledger.assess({}, 10, TOPICS)[0] == ERROR
+    ledger.update(recovered=False)
+    assert ledger.assess({}, 11, TOPICS)[0] == OK
+    ledger.reported({"rejected_size": 0}, 11)
+    ledger.reject("size")
+    level, message = ledger.assess({"rejected_size": 1}, 11, TOPICS)
+    assert level == ERROR and "every message rejected (1" in message
+
+
+def test_exact_pairing_pairs_by_stamp_in_any_order_and_counts_lost_steps() -> None:
+    source = ExactPairing(S, queue_size=10, jump_threshold_ns=5 * S)
+    assert source.add_action(1 * S, 3).steps == []
+    (step,) = source.add_image(1 * S, "o1").steps
+    assert (step.stamp, step.action, step.image) == (1 * S, 3, "o1")
+    assert source.add_image(4 * S, "o4").steps == []  # steps 2 and 3 lost on the camera
+    (step,) = source.add_action(4 * S, 7).steps
+    assert step.image == "o4"
+    counts = source.counts()
+    assert counts["lost_images"] == 2 and counts["lost_actions"] == 2
+    assert source.add_image(4 * S, "again").problem == "duplicate"
+    assert source.add_image(3 * S, "late").problem == "late"
+    jumped = source.add_image(2 * S, "o2")  # 2 s back is no jump (threshold 5 s): late
+    assert not jumped.jumped and jumped.problem == "late"
+    assert source.clock(0) is False
+    assert source.add_action(0, 1).problem == "late"
+    assert source.episode_start(10 * S) and not source.episode_start(9 * S)  # then stale
+    assert source.add_action(1 * S, 2).jumped  # 9 s before the episode start: time jumped
+
+
+def test_grid_stepping_equals_offline_resampling() -> None:
+    rng = np.random.default_rng(1)
+    grid = GridConfig(S, S // 4, S, 2 * S)
+    images = np.cumsum(rng.uniform(0.15, 0.4, size=200) * S).astype(np.int64)
+    commands = np.sort(rng.uniform(0, images[-1], size=120)).astype(np.int64)
+    offline = resample_grid(images, commands, grid)
+    source = GridStepping(grid, jump_threshold_ns=5 * S)
+    online = []
+    events = sorted(
+        [(t, 0, k) for k, t in enumerate(images)] + [(t, 1, k) for k, t in enumerate(commands)]
+    )
+    for time, kind, index in events:  # each message at its time: commands before images
+        added = (
+            source.add_action(int(time), index) if kind else source.add_image(int(time), index)
+        )
+        online += added.steps
+    assert [s.stamp for s in online] == offline.stamps.tolist()
+    assert [s.image for s in online] == offline.image_index.tolist()
+    assert [s.action for s in online] == offline.command_index.tolist()
+    assert source.counts()["command_gaps"] == offline.no_command

@@ -1,0 +1,91 @@
+"""Parameters and topic names of the filter node (``python -m tpsr_ros.filter_node``).
+
+Topic names are relative, so ``-r __ns:=/robot1`` moves every topic of a robot's filter under
+``/robot1/`` (next to its simulator's); ``/diagnostics`` stays global, as diagnostic
+aggregators expect (each status names its node).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.stream_spec import TWIST_STAMPED_TYPE
+from tpsr_ros.runtime import param
+
+__all__ = [
+    "ACTION_TOPIC",
+    "CLOCK_TOPIC",
+    "CMD_VEL_TOPIC",
+    "COMMAND_TYPES",
+    "DIAGNOSTICS_TOPIC",
+    "IMAGE_TOPIC",
+    "RESET_TOPIC",
+    "STATE_TOPIC",
+    "FilterNodeParams",
+]
+
+IMAGE_TOPIC = "camera/image_raw"
+ACTION_TOPIC = "action"
+RESET_TOPIC = "sim/episode_start"
+CLOCK_TOPIC = "clock"
+STATE_TOPIC = "tpsr/state"
+CMD_VEL_TOPIC = "cmd_vel"
+DIAGNOSTICS_TOPIC = "/diagnostics"
+COMMAND_TYPES = {"twist": m.TWIST_TYPE, "twist_stamped": TWIST_STAMPED_TYPE}
+
+
+@dataclass(frozen=True)
+class FilterNodeParams:
+    """Parameters of ``python -m tpsr_ros.filter_node``."""
+
+    model: str = param("", "model file (.npz) written by `learner fit` (required)")
+    policy: str = param(
+        "", "policy file written by `learner policy` for this model; empty: a pure filter"
+    )
+    queue_size: int = param(
+        10, "incomplete steps (image or action alone) buffered for pairing; the oldest go first"
+    )
+    step_period: float = param(
+        1.0, "s between consecutive steps; a step not one period after the last starts from b_*"
+    )
+    jump_threshold: float = param(
+        5.0, "s; a stamp earlier than the last step by more than this is a backwards time jump"
+    )
+    image_frame: str = param("camera", "required frame_id of images (empty: any)")
+    action_frame: str = param("base_link", "required frame_id of actions (empty: any)")
+    sensor_qos: str = param(
+        "reliable",
+        "reliability of the image and action subscriptions (best_effort also matches "
+        "sensor-data publishers)",
+        choices=("reliable", "best_effort"),
+    )
+    check_topics: bool = param(
+        True, "refuse a model trained on other image/action topics than the node subscribes"
+    )
+    wait_for_subscribers: int = param(
+        0, "hold the first command until /cmd_vel and /tpsr/state each have this many subscriptions"
+    )
+    diagnostics_period: float = param(1.0, "s between /diagnostics reports")
+    command_type: str = param(
+        "twist",
+        "type of the /cmd_vel commands: twist (geometry_msgs/Twist) or twist_stamped",
+        choices=tuple(COMMAND_TYPES),
+    )
+    input_timeout: float = param(
+        3.0, "s; an input silent for longer makes /diagnostics WARN, all inputs silent STALE"
+    )
+
+    def __post_init__(self) -> None:
+        if self.queue_size < 1:
+            raise ConfigError(f"queue_size must be >= 1, got {self.queue_size}")
+        for name in ("step_period", "diagnostics_period", "input_timeout"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"{name} must be a positive number of seconds, got {value}")
+        if not (math.isfinite(self.jump_threshold) and self.jump_threshold >= 0):
+            raise ConfigError(f"jump_threshold must be >= 0 s, got {self.jump_threshold}")
+        if self.wait_for_subscribers < 0:
+            raise ConfigError("wait_for_subscribers must be >= 0")

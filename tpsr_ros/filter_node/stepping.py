@@ -1,0 +1,233 @@
+"""The filter node's steps without ROS: two step sources behind one interface.
+
+A step source turns the node's input messages, one at a time in arrival order, into the
+steps offline tracking makes of the same messages: ``(t_k, a_k, o_k)``.
+
+- :class:`ExactPairing` (simulator streams, DESIGN.md): the image and the executed action of
+  step k carry the identical stamp t_k and are paired by it
+  (:class:`~tpsr_ros.core.pairing.ExactTimeSynchronizer`). Stamps one step period apart make
+  a steady cadence, so a gap of n periods on an input means n - 1 lost messages.
+- :class:`GridStepping` (models learned with ``--step-period``): camera and commands are
+  resampled on the model's step grid (:class:`~tpsr_ros.core.resample.GridStepper`), the
+  latest image and the command in force at each grid time.
+
+Both answer ``add_image`` and ``add_action`` with :class:`Added` (the completed steps and
+whether time jumped back, which restarts the state) and report their counters with
+:meth:`counts`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from tpsr_ros.core.cadence import CadenceGaps
+from tpsr_ros.core.pairing import ExactTimeSynchronizer, Outcome
+from tpsr_ros.core.resample import GridConfig, GridStepper
+
+__all__ = ["Added", "ExactPairing", "GridStepping", "Step", "StepSource"]
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step to track: its stamp, action index and image content.
+
+    ``image`` is what was given to ``add_image``: the observation (:class:`ExactPairing`),
+    or whatever holds it (:class:`GridStepping`: the node's frame, decoded later).
+    """
+
+    stamp: int
+    action: int
+    image: Any
+
+
+@dataclass(frozen=True)
+class Added:
+    """What one input message did.
+
+    Attributes:
+        steps: the steps it completed, in stamp order.
+        jumped: time jumped back before it: the state restarts, the steps follow.
+        problem: ``"duplicate"``, ``"late"`` or ``"dropped"`` when the message or older
+            incomplete steps were discarded (worth a throttled warning), else None.
+
+    """
+
+    steps: list[Step] = field(default_factory=list)
+    jumped: bool = False
+    problem: str | None = None
+
+
+class StepSource(Protocol):
+    """Input messages to steps; see the module docstring."""
+
+    def add_image(self, stamp: int, image: Any) -> Added:
+        """An image message's content at ``stamp``."""
+
+    def add_action(self, stamp: int, action: int) -> Added:
+        """An action index at ``stamp``."""
+
+    def episode_start(self, stamp: int) -> bool:
+        """An episode starts after ``stamp``: True if the state restarts, False if stale."""
+
+    def clock(self, stamp: int) -> bool:
+        """The clock's time; True if it jumped back (the state restarts)."""
+
+    def counts(self) -> dict[str, int]:
+        """Counters for ``/diagnostics``, in report order."""
+
+
+class ExactPairing:
+    """Simulator streams paired by identical stamp, with loss counted from stamp gaps."""
+
+    def __init__(self, step_ns: int, *, queue_size: int, jump_threshold_ns: int) -> None:
+        self.step_ns = int(step_ns)
+        self.sync = ExactTimeSynchronizer(
+            2, queue_size=queue_size, jump_threshold_ns=jump_threshold_ns
+        )
+        self.lost = {"image": 0, "action": 0}
+        self._last_stamp: dict[str, int | None] = {"image": None, "action": None}
+
+    def _count_lost(self, which: str, stamp: int) -> None:
+        """Steps lost on one input, from the gaps in its stamps.
+
+        Simulator step k is stamped k periods after time 0 or after its episode start
+        (DESIGN.md), so a stamp n periods after the previous one on the input (or after
+        time 0, or the last episode start) means n - 1 lost steps. A backwards jump of
+        time starts the count afresh from time 0.
+        """
+        last = self._last_stamp[which]
+        if last is None or stamp < last - self.sync.jump_threshold_ns:
+            last = 0
+        if stamp > last and (stamp - last) % self.step_ns == 0:
+            self.lost[which] += (stamp - last) // self.step_ns - 1
+        if stamp > last:
+            self._last_stamp[which] = stamp
+
+    def _add(self, index: int, stamp: int, item: Any) -> Added:
+        self._count_lost(("image", "action")[index], stamp)
+        dropped_before = self.sync.stats.dropped
+        result = self.sync.add(index, stamp, item)
+        problem = None
+        if self.sync.stats.dropped > dropped_before:
+            problem = "dropped"
+        if result.outcome is Outcome.DUPLICATE:
+            problem = "duplicate"
+        elif result.outcome is Outcome.LATE:
+            problem = "late"
+        steps = []
+        if result.outcome is Outcome.PAIRED:
+            assert result.items is not None
+            image, action = result.items
+            steps.append(Step(stamp, int(action), image))
+        return Added(steps, result.jumped, problem)
+
+    def add_image(self, stamp: int, image: Any) -> Added:
+        """An image's observation (see :class:`StepSource`)."""
+        return self._add(0, stamp, image)
+
+    def add_action(self, stamp: int, action: int) -> Added:
+        """An executed action's index (see :class:`StepSource`)."""
+        return self._add(1, stamp, action)
+
+    def episode_start(self, stamp: int) -> bool:
+        """A start newer than the last step (or a jump back) restarts; older ones are stale."""
+        last = self.sync.last_stamp
+        if last is not None and stamp <= last and not self.sync.check_time(stamp):
+            return False
+        self.sync.start_after(stamp)
+        for which in self._last_stamp:  # step 1 of the episode comes one period later
+            self._last_stamp[which] = stamp
+        return True
+
+    def clock(self, stamp: int) -> bool:
+        """``/clock``: a jump back clears the pairing buffer."""
+        return self.sync.check_time(stamp)
+
+    @property
+    def last_stamp(self) -> int | None:
+        """Stamp of the last paired step (or the last episode start)."""
+        return self.sync.last_stamp
+
+    def counts(self) -> dict[str, int]:
+        """Pairing counters and the steps lost by stamps."""
+        stats = self.sync.stats
+        return {
+            "dropped": stats.dropped,
+            "duplicates": stats.duplicates,
+            "late": stats.late,
+            "out_of_order": stats.out_of_order,
+            "time_jumps": stats.time_jumps,
+            "lost_images": self.lost["image"],
+            "lost_actions": self.lost["action"],
+        }
+
+
+class GridStepping:
+    """Robot streams resampled on the model's step grid; lost images from the camera's cadence.
+
+    Images are given as they arrive (any object; a step holds the image in force at its
+    time) and commands as action indices; ``far`` counts commands farther from every code
+    than the codebook's ``far_distance``.
+    """
+
+    def __init__(self, grid: GridConfig, *, jump_threshold_ns: int) -> None:
+        self.stepper = GridStepper(grid)
+        self.jump_threshold_ns = int(jump_threshold_ns)
+        self.cadence = CadenceGaps()
+        self.lost_images = 0
+        self.time_jumps = 0
+        self.far_commands = 0
+
+    @property
+    def last_image_time(self) -> int | None:
+        """Stamp of the newest image (ns), or None."""
+        return self.stepper.last_image_time
+
+    def _jumped(self, stamp: int) -> bool:
+        """Whether ``stamp`` is a backward jump of the stream's time; if so, restart the grid."""
+        last = self.stepper.last_image_time
+        if last is None or stamp >= last - self.jump_threshold_ns:
+            return False
+        self.stepper.reset()
+        self.time_jumps += 1
+        return True
+
+    def add_image(self, stamp: int, image: Any) -> Added:
+        """An image: the grid steps before ``stamp``, each with the image before it."""
+        jumped = self._jumped(stamp)
+        self.lost_images += self.cadence.add(stamp)
+        steps = [
+            Step(s.stamp, int(s.command), s.image) for s in self.stepper.add_image(stamp, image)
+        ]
+        return Added(steps, jumped)
+
+    def add_action(self, stamp: int, action: int, *, far: bool = False) -> Added:
+        """A command in force from ``stamp`` on."""
+        self.far_commands += int(far)
+        self.stepper.add_command(stamp, action)
+        return Added()
+
+    def episode_start(self, stamp: int) -> bool:
+        """Robot streams have no episodes; a start message restarts the state."""
+        return True
+
+    def clock(self, stamp: int) -> bool:
+        """``/clock``: a jump back restarts the grid."""
+        return self._jumped(stamp)
+
+    def counts(self) -> dict[str, int]:
+        """Grid counters (images not newer than the last are dropped) and lost images."""
+        stepper = self.stepper
+        return {
+            "dropped": stepper.images_out_of_order,
+            "duplicates": 0,
+            "late": 0,
+            "out_of_order": stepper.images_out_of_order,
+            "time_jumps": self.time_jumps,
+            "lost_images": self.lost_images,
+            "lost_actions": 0,
+            "camera_gaps": stepper.camera_gaps,
+            "command_gaps": stepper.command_gaps,
+            "far_commands": self.far_commands,
+        }
