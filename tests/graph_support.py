@@ -52,13 +52,13 @@ def fresh_domain(salt: int = 0) -> int:
     different processes start from different places (the pid), so parallel test runs on
     one machine rarely meet.
     """
-    from tpsr_ros.runtime import dds
+    from tpsr_ros.runtime import dds_discovery
 
-    span = dds.LAST_SAFE_DOMAIN_ID
+    span = dds_discovery.LAST_SAFE_DOMAIN_ID
     seed = os.getpid() * 7 + 31 * salt + 3 * next(_COUNTER)
     for k in range(span):
         candidate = (seed + k) % span + 1
-        if candidate not in dds._DOMAINS:
+        if candidate not in dds_discovery._DOMAINS:
             return candidate
     raise RuntimeError(f"this test process has configured all {span} test domains")
 

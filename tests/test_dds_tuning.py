@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from tests.graph_support import LOOPBACK
-from tpsr_ros.runtime import dds
+from tpsr_ros.runtime import dds, dds_discovery
 from tpsr_ros.runtime.dds_tuning import (
     SOCKET_RCVBUF_NEEDED,
     config_is_loopback,
@@ -73,7 +73,7 @@ def test_the_node_warns_at_start_up_when_the_limit_is_low(monkeypatch, tmp_path,
 
     rmem = tmp_path / "rmem_max"
     rmem.write_text("212992\n")
-    monkeypatch.setattr(dds, "socket_buffer_problem", lambda: socket_buffer_problem(rmem))
+    monkeypatch.setattr(dds_discovery, "socket_buffer_problem", lambda: socket_buffer_problem(rmem))
     monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
     transport = dds.DdsTransport("tuning_probe", domain_id=fresh_domain(19))
     Node(NodeOptions(name="tuning_probe"), transport=transport).close()

@@ -389,7 +389,7 @@ def test_recorder_selects_topics_adapts_qos_and_records_late_publishers(tmp_path
     ignored = talker.create_publisher("/ignored", m.CLOCK_TYPE)
     rec = _recorder(bus, tmp_path / "bag", "/scan", "/late")
     assert rec.wait_for(lambda: "/scan" in rec.subscribed, 5)
-    assert rec.qos["/scan"].reliability.value == "best_effort"
+    assert rec.planner.qos["/scan"].reliability.value == "best_effort"
     late = _talker(bus, "late").create_publisher("/late", m.POSE_TYPE)
     assert rec.wait_for(lambda: "/late" in rec.subscribed, 5)
     scan.publish(m.clock_msg(1))

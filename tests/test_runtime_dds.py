@@ -87,9 +87,10 @@ def test_domain_id_from_env(monkeypatch):
 def test_a_taken_discovery_port_is_explained(monkeypatch):
     """Above domain 101 the discovery port lies among Linux's ephemeral ports; when another
     socket holds it, the error says so (the CI failure of a test that drew domain 126)."""
-    from tpsr_ros.runtime import dds
+    from tpsr_ros.runtime import dds, dds_discovery
 
-    unconfigured = (d for d in range(232, dds.LAST_SAFE_DOMAIN_ID, -1) if d not in dds._DOMAINS)
+    configured = dds_discovery._DOMAINS
+    unconfigured = (d for d in range(232, dds.LAST_SAFE_DOMAIN_ID, -1) if d not in configured)
     for domain_id in unconfigured:
         if (holder := hold_discovery_port(monkeypatch, domain_id)) is not None:
             break

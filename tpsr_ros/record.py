@@ -2,6 +2,10 @@
 
     python -m tpsr_ros.record -o BAG [TOPIC ...]
 
+The node's ROS face around two ROS-free pieces of :mod:`tpsr_ros.io.recording`: the
+subscription planner (which topics, which QoS) and the loss ledger (what was recorded and
+what was not, per topic).
+
 With no topic, every topic found in the graph is recorded (except hidden ones and
 ``/rosout``, ``/parameter_events``); topics are discovered every ``--polling-interval``
 ms, so publishers that appear later are recorded from then on. Each subscription adapts to
@@ -42,27 +46,23 @@ line.
 
 from __future__ import annotations
 
-import json
 import time
-from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
 from tpsr_ros.cli import ArgumentParser, positive_float, positive_int
-from tpsr_ros.core.cadence import CadenceGaps
-from tpsr_ros.core.errors import BagError, MessageError, TpsrError
+from tpsr_ros.core.errors import MessageError, TpsrError
 from tpsr_ros.io.bag import BagWriter, check_bag_path_free
 from tpsr_ros.io.bag_cache import CachedBagWriter
 from tpsr_ros.io.messages import (
     IMAGE_TYPE,
     deserialize,
     image_problem,
-    jazzy_typestore,
     peek_stamp,
     starts_with_header,
 )
-from tpsr_ros.io.qos import adapt_to_publishers, compatible, to_bag_qos
-from tpsr_ros.runtime import Node, NodeOptions, QoSProfile, Subscription, run_node
+from tpsr_ros.io.recording import LossLedger, SubscriptionPlanner
+from tpsr_ros.runtime import Node, NodeOptions, Subscription, run_node
 from tpsr_ros.runtime.diagnostics import (
     DIAGNOSTICS_TYPE,
     OK,
@@ -74,17 +74,12 @@ from tpsr_ros.runtime.diagnostics import (
 __all__ = ["RecorderNode", "main"]
 
 PROG = "python -m tpsr_ros.record"
-EXCLUDED_BY_DEFAULT = ("/rosout", "/parameter_events")
 DIAGNOSTICS_TOPIC = "/diagnostics"
 # unread samples the middleware may hold per topic while the recorder is busy (DDS backend)
 CACHE_SAMPLES = 256
 DEFAULT_MAX_MESSAGE_BYTES = 256 * 1024 * 1024
 DEFAULT_MAX_CACHE_BYTES = 1024 * 1024 * 1024
 _LOGGED_REJECTIONS = 5  # per topic and kind; later ones are counted only
-
-
-def _hidden(topic: str) -> bool:
-    return any(part.startswith("_") for part in topic.split("/"))
 
 
 class RecorderNode(Node):
@@ -151,20 +146,15 @@ class RecorderNode(Node):
         args = self.options.args
         if args is None:
             raise TpsrError("the recorder needs its command-line options (-o BAG)")
-        self.wanted = {self.resolve_topic(t) for t in args.topics} or None
-        self.include_hidden = bool(args.include_hidden_topics)
+        self.planner = SubscriptionPlanner(
+            {self.resolve_topic(t) for t in args.topics} or None,
+            bool(args.include_hidden_topics),
+        )
+        self.ledger = LossLedger()
         self.writer = CachedBagWriter(
             BagWriter(args.output, compress=args.compression == "zstd").open(),
             args.max_cache_size,
         )
-        self.subscribed: dict[str, str] = {}
-        self.qos: dict[str, QoSProfile] = {}
-        self.counts: dict[str, int] = defaultdict(int)
-        self.lost: dict[str, int] = defaultdict(int)
-        self.rejected: dict[str, int] = defaultdict(int)
-        self.dropped: dict[str, int] = defaultdict(int)
-        self.cadence: dict[str, CadenceGaps] = {}
-        self._missing_logged: dict[str, int] = defaultdict(int)
         self.subscriptions: dict[str, Subscription] = {}
         self.max_message_size = int(args.max_message_size)
         self._warned: set[tuple[str, str]] = set()
@@ -177,8 +167,14 @@ class RecorderNode(Node):
         self.create_timer(args.polling_interval / 1000.0, self.discover)
         self.create_timer(args.flush_interval, self.writer.flush)
         self.create_timer(1.0, self.publish_diagnostics)
-        what = "all topics" if self.wanted is None else ", ".join(sorted(self.wanted))
+        wanted = self.planner.wanted
+        what = "all topics" if wanted is None else ", ".join(sorted(wanted))
         self.logger.info(f"recording {what} to {args.output}")
+
+    @property
+    def subscribed(self) -> dict[str, str]:
+        """Recorded topics and their types."""
+        return self.planner.subscribed
 
     def _scan_now(self) -> None:
         self._first_scan.cancel()
@@ -189,70 +185,34 @@ class RecorderNode(Node):
             self._warned.add(key)
             self.logger.warning(message)
 
-    def _selected(self, topic: str) -> bool:
-        if self.wanted is not None:
-            return topic in self.wanted
-        if topic in EXCLUDED_BY_DEFAULT:
-            return False
-        return self.include_hidden or not _hidden(topic)
-
     def discover(self) -> None:
         """Subscribe to every selected topic that has publishers and is not recorded yet."""
         self.check_losses()
-        by_topic: dict[str, list[Any]] = defaultdict(list)
-        for endpoint in self.transport.publishers():
-            if self._selected(endpoint.topic):
-                by_topic[endpoint.topic].append(endpoint)
-        own = by_topic.get(DIAGNOSTICS_TOPIC, [])
-        for e in own:  # the recorder's own /diagnostics publisher is not recorded
-            if e.msgtype == DIAGNOSTICS_TYPE and e.qos == self.diagnostics.qos:
-                own.remove(e)
+        publishers = list(self.transport.publishers())
+        for e in publishers:  # the recorder's own /diagnostics publisher is not recorded
+            if e.topic == DIAGNOSTICS_TOPIC and e.msgtype == DIAGNOSTICS_TYPE and (
+                e.qos == self.diagnostics.qos
+            ):
+                publishers.remove(e)
                 break
-        for topic, endpoints in sorted(by_topic.items()):
-            if not endpoints:
-                continue
-            types = sorted({e.msgtype for e in endpoints})
-            if len(types) > 1:
-                raise BagError(f"topic type clash: {topic} is published as {' and '.join(types)}")
-            msgtype = types[0]
-            if topic in self.subscribed:
-                if self.subscribed[topic] != msgtype:
-                    raise BagError(
-                        f"topic type clash: {topic} is recorded as {self.subscribed[topic]} "
-                        f"but a publisher now offers {msgtype}"
-                    )
-                for e in endpoints:
-                    if not compatible(e.qos, self.qos[topic]):
-                        self._warn_once(
-                            (topic, "qos"),
-                            f"a publisher on {topic} offers {e.qos}, which the recorder's "
-                            f"{self.qos[topic]} subscription cannot receive",
-                        )
-                continue
-            if msgtype not in jazzy_typestore().fielddefs:
-                self._warn_once(
-                    (topic, "type"), f"not recording {topic}: unknown message type {msgtype}"
-                )
-                continue
-            qos = adapt_to_publishers(e.qos for e in endpoints)
-            offered = [to_bag_qos(e.qos) for e in endpoints]
-            self.writer.add_topic(topic, msgtype, offered)
-            self.subscriptions[topic] = self.create_subscription(
-                topic, msgtype, self._writer_for(topic, msgtype), qos, raw=True
-            )
-            self.subscribed[topic] = msgtype
-            self.qos[topic] = qos
-            self.logger.info(f"subscribed to {topic} ({msgtype}; {qos})")
+        planned, warnings = self.planner.plan(publishers)
+        for key, message in warnings:
+            self._warn_once(key, message)
+        for sub in planned:
+            self.writer.add_topic(sub.topic, sub.msgtype, sub.offered)
+            self.subscriptions[sub.topic] = self.create_subscription(
+                sub.topic, sub.msgtype, self._writer_for(sub.topic, sub.msgtype), sub.qos,
+                raw=True,
+            )  # fmt: skip
+            self.logger.info(f"subscribed to {sub.topic} ({sub.msgtype}; {sub.qos})")
 
     def _writer_for(self, topic: str, msgtype: str) -> Any:
-        put = self.writer.put
-        counts, rejected, dropped = self.counts, self.rejected, self.dropped
+        put, ledger = self.writer.put, self.ledger
+        counts, rejected, dropped = ledger.recorded, ledger.rejected, ledger.dropped
         max_size = self.max_message_size
         is_image = msgtype == IMAGE_TYPE
         own_reports = topic == DIAGNOSTICS_TOPIC and msgtype == DIAGNOSTICS_TYPE
-        cadence = None
-        if starts_with_header(msgtype) and not own_reports:
-            cadence = self.cadence[topic] = CadenceGaps()
+        cadence = ledger.add_topic(topic, starts_with_header(msgtype) and not own_reports)
 
         def on_message(data: bytes) -> None:
             received = time.time_ns()
@@ -268,7 +228,7 @@ class RecorderNode(Node):
             if problem is None and put(topic, received, data):
                 counts[topic] += 1
                 return
-            index = counts[topic] + rejected[topic] + dropped[topic]  # this message's
+            index = ledger.index(topic)  # this message's
             if problem is not None:
                 rejected[topic] += 1
                 self._log_refusal("rejected", topic, index, rejected[topic], problem)
@@ -305,68 +265,25 @@ class RecorderNode(Node):
             self.logger.warning(f"{kind} message {index} on {topic}: {why}; not recorded{more}")
 
     def check_losses(self) -> None:
-        """Log (and count) what the middleware reports lost since the last check."""
-        for topic, subscription in self.subscriptions.items():
-            total = subscription.get_lost_count()
-            if total > self.lost[topic]:
-                self.logger.warning(
-                    f"lost {total - self.lost[topic]} messages on {topic} before they reached "
-                    f"the recorder (reported by the middleware; {total} on this topic so far)"
-                )
-                self.lost[topic] = total
-        for topic, cadence in self.cadence.items():
-            if cadence.missing > self._missing_logged[topic]:
-                rate = f"{1e9 / cadence.period_ns:.3g} Hz" if cadence.period_ns else "steady"
-                self.logger.warning(
-                    f"{cadence.missing - self._missing_logged[topic]} messages missing on "
-                    f"{topic} by its header stamps (a {rate} stream; lost before the recorder, "
-                    f"by the publisher or the middleware; {cadence.missing} on this topic so far)"
-                )
-                self._missing_logged[topic] = cadence.missing
-
-    def missing_by_stamps(self, topic: str | None = None) -> int:
-        """Messages missing from steady header-stamp cadences (one topic, or all)."""
-        if topic is not None:
-            return self.cadence[topic].missing if topic in self.cadence else 0
-        return sum(c.missing for c in self.cadence.values())
+        """Log (and count) what the middleware reports lost, and what is missing by stamps."""
+        reported = {t: s.get_lost_count() for t, s in self.subscriptions.items()}
+        for line in self.ledger.middleware_lost(reported) + self.ledger.new_missing():
+            self.logger.warning(line)
 
     def totals(self) -> tuple[int, int, int, int, int]:
         """(recorded, lost, dropped, rejected, missing by stamps) messages over all topics."""
-        return (
-            sum(self.counts.values()),
-            sum(self.lost.values()),
-            sum(self.dropped.values()),
-            sum(self.rejected.values()),
-            self.missing_by_stamps(),
-        )
-
-    @staticmethod
-    def losses(totals: tuple[int, int, int, int, int]) -> str:
-        """``lost L (reported by the middleware), dropped D (write cache full), rejected R;
-        missing M by header stamps`` of :meth:`totals`."""
-        _, lost, dropped, rejected, missing = totals
-        return (
-            f"lost {lost} (reported by the middleware), "
-            f"dropped {dropped} (write cache full), rejected {rejected}; "
-            f"missing {missing} by header stamps"
-        )
+        return self.ledger.totals()
 
     def publish_diagnostics(self) -> None:
         """One ``DiagnosticStatus``: WARN once anything was lost or rejected, else OK."""
         self.check_losses()
-        totals = self.totals()
         values: dict[str, Any] = {
             "bag": str(self.writer.path),
             "cache bytes": self.writer.queued_bytes,
+            **self.ledger.diagnostics_values(),
         }
-        for topic in sorted(self.subscribed):
-            values[f"{topic} recorded"] = self.counts[topic]
-            values[f"{topic} lost"] = self.lost[topic]
-            values[f"{topic} dropped"] = self.dropped[topic]
-            values[f"{topic} rejected"] = self.rejected[topic]
-            values[f"{topic} missing by stamps"] = self.missing_by_stamps(topic)
-        level = WARN if any(totals[1:]) else OK
-        message = f"recorded {totals[0]}; {self.losses(totals)}"
+        level = WARN if self.ledger.any_loss() else OK
+        message = f"recorded {self.ledger.totals()[0]}; {self.ledger.losses()}"
         status = diagnostic_status(level, self._status_name, message, values)
         self.diagnostics.publish(diagnostic_array(time.time_ns(), [status]))
 
@@ -380,33 +297,15 @@ class RecorderNode(Node):
                 if self.transport.spin_once(0.0) == 0:
                     break
             self.check_losses()
-            _, lost, dropped, rejected, missing = self.totals()
-            by_topic = {
-                t: {
-                    "recorded": self.counts[t],
-                    "lost": self.lost[t],
-                    "dropped": self.dropped[t],
-                    "rejected": self.rejected[t],
-                    "missing_by_stamps": self.missing_by_stamps(t),
-                }
-                for t in sorted(self.subscribed)
-            }
-            for key, value in (
-                ("lost_messages", str(lost)),
-                ("dropped_messages", str(dropped)),
-                ("rejected_messages", str(rejected)),
-                ("missing_by_stamps", str(missing)),
-                ("by_topic", json.dumps(by_topic)),
-            ):
-                self.writer.set_custom_data(f"recorder.{key}", value)
+            for key, value in self.ledger.custom_data().items():
+                self.writer.set_custom_data(key, value)
         finally:
             self.writer.close()
-        totals = self.totals()
         line = (
-            f"recorded {totals[0]} messages on {len(self.subscribed)} topics to "
-            f"{self.writer.path}; {self.losses(totals)}"
+            f"recorded {self.ledger.totals()[0]} messages on {len(self.subscribed)} topics to "
+            f"{self.writer.path}; {self.ledger.losses()}"
         )
-        (self.logger.warning if any(totals[1:]) else self.logger.info)(line)
+        (self.logger.warning if self.ledger.any_loss() else self.logger.info)(line)
 
 
 def _image_cdr_problem(data: bytes) -> str | None:
