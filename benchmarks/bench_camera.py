@@ -1,4 +1,4 @@
-"""A 1080p rgb8 camera at 60 Hz into the recorder, on each backend (the issue's check).
+"""A 1080p rgb8 camera at 60 Hz into the recorder, on each backend (the large-camera check).
 
 This process is the camera: reliable, keep-last 30 (a camera driver's usual QoS), one
 1920x1080 rgb8 image every 1/60 s on a fixed schedule (a late image is sent at once, the

@@ -1,4 +1,4 @@
-"""The filter node behind a 1080p rgb8 camera at 30 Hz, on each backend (issue 19's check).
+"""The filter node behind a 1080p rgb8 camera at 30 Hz, on each backend (latency and loss).
 
 Model: the simulator's random run (6000 steps of the full environment, 16x16 rgb8 images)
 re-stamped as a robot recording at 30 Hz: image k at k/30 s, its velocity command

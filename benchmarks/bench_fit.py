@@ -3,7 +3,7 @@
 Data: a generated 24000-step ``full`` bag (8000 episodes of history 1 + current + test 1),
 read once and timed separately. Fit: the defaults of ``TPSRConfig`` = the guide's figure 4.5
 settings with rank 5: l_H = l_T = 1000, l_O = 500, 25 actions, 10 whitened dimensions.
-Target (issue 4): the whole fit under 2 s on this machine.
+Target: the whole fit under 2 s on 2 cores.
 
 The literal Algorithm 3 (per-sample (l_T+1) x (l_H+1) outer products; line 14 once per
 action, observation centre and sample) is far too slow to run: it is timed on a subsample

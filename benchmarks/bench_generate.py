@@ -1,7 +1,7 @@
 """Bag generation throughput (simulate, render, serialise, write MCAP) on one core.
 
 Each run happens in a child process pinned to one CPU with single-threaded BLAS, so the
-figure is per core. Target (issue 2): at least 5000 steps/s.
+figure is per core. Target: at least 5000 steps/s.
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
-"""Bag reading against raw MCAP record iteration (issue 18: at most 1.5x), and its memory.
+"""Bag reading against raw MCAP record iteration (target: at most 1.5x), and its memory.
 
 Data: the 24000-step ``full`` bag of ``bench_fit`` (generated once). Timed in this
 process, median of 5 rounds that each run the four in turn (a busy machine slows all
 alike): iterating every message record with the ``mcap`` library alone, touching each
-record's ``.data`` (the issue's reference: no decoding, no pairing); rosbags' own message
+record's ``.data`` (the reference: no decoding, no pairing); rosbags' own message
 iteration (faster than the ``mcap`` library's, and the floor of our reader, which parses
 records with it); ``read_trajectory``; and consuming every chunk of
 ``iter_trajectory_chunks``. Peak RSS (``VmHWM``) is measured in
@@ -12,7 +12,7 @@ chunked reader's peak must not grow with the data, ``read_trajectory``'s holds i
 
 Robot bags (``learner fit --step-period``): a 2000-step bgr8 bag of ``sim_node.robot_bag``
 (40x40 camera at 4 Hz, ``Twist`` at 2 Hz, ``Odometry`` at 10 Hz), ``read_stream_trajectory``
-against the raw iteration of the same bag, the same way (no target: issue 18 names the
+against the raw iteration of the same bag, the same way (no target: the target names the
 simulator bags).
 """
 

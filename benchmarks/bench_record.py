@@ -42,7 +42,7 @@ def rclpy_importable() -> bool:
 def bag_root() -> str | None:
     """Where the benchmark bags go: tmpfs when there is one, so the disk is not measured.
 
-    A 1080p rgb8 stream is 186 MB/s at 30 Hz and 373 MB/s at 60 Hz; this machine's disk
+    A 1080p rgb8 stream is 186 MB/s at 30 Hz and 373 MB/s at 60 Hz; a disk
     takes about 250 MB/s (dd), so on disk it, not the recorder, would set the rate.
     """
     shm = Path("/dev/shm")

@@ -1,8 +1,8 @@
-"""Learning from robot-shaped bags (issue 16's acceptance check): R^2 and timings.
+"""Learning from robot-shaped bags (the robot-bag check): R^2 and timings.
 
 For each camera (bgr8 ``Image``, jpeg ``CompressedImage``, mono8 ``Image``) a bag of the
 robot-shaped generator (``sim_node.robot_bag``: 40x40 at 4 Hz with 5-40 ms stamp jitter,
-``Twist`` at 2 Hz with +-0.6 m/s jitter, ``/odom``) is fitted with exactly the issue's
+``Twist`` at 2 Hz with +-0.6 m/s jitter, ``/odom``) is fitted with exactly the documented
 command (``--step-period 1.0 --image-size 16 --actions 25``, every other parameter at its
 default, which for robot bags includes normalised history/test features), and
 ``learner plot`` prints the R^2 of the true position from the states.

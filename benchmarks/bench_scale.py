@@ -1,4 +1,4 @@
-"""Scale of the streamed fit (issue 18): steps/s and peak RSS at 10^5 and 10^6 steps, the
+"""Scale of the streamed fit: steps/s and peak RSS at 10^5 and 10^6 steps, the
 speedup of 2 local Dask workers over 1, and fit time and peak memory at 1 000 / 5 000 /
 20 000 history/test centres.
 

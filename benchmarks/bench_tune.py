@@ -1,4 +1,4 @@
-"""Wall time of ``learner tune`` on a 24000-step `full` bag (issue 14: within its default
+"""Wall time of ``learner tune`` on a 24000-step `full` bag (within its default
 budget of 5 minutes on a 2-core machine), with the candidates it tried and the best."""
 
 from __future__ import annotations

@@ -48,14 +48,15 @@ from typing import Any
 import numpy as np
 
 from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, Evaluation, Trial
-from learner.streams import require_simulator_model
+from learner.inputs import require_simulator_model
 from sim_node import Environment
 from sim_node.topics import CMD_IGNORED_TOPIC
 from tpsr_ros.core.errors import ModelFormatError, TpsrError
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import check_bag_path_free
-from tpsr_ros.io.filter_inputs import load_filter_inputs
+from tpsr_ros.io.filter_inputs import filter_inputs
+from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.policy import TRUE_POSITION, load_policy
 from tpsr_ros.runtime import (
     LATCHED_QOS,
@@ -286,8 +287,9 @@ def _check_inputs(
         )
     policy.check_environment(environment)
     model = policy.model_path(model_path).resolve()
-    require_simulator_model(model)
-    load_filter_inputs(str(model), str(policy_path))
+    model_file = open_model(model)  # once: the filter node opens it again in its process
+    require_simulator_model(model_file)
+    filter_inputs(model_file, (policy, str(policy_path)))
     return policy_path, model
 
 

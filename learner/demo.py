@@ -2,10 +2,12 @@
 
 Everything goes to ``demo_output/`` (recreated on every run):
 
-1. a random training run (24000 steps) and a separate random RL run (15000 steps) of the
-   simulator, written as bags (``python -m sim_node.generate``);
-2. a TPSR with the guide's default parameters (``learner fit``) and a fitted-Q policy on
-   the states tracked over the RL run (``learner policy``);
+1. a random training run (24000 steps) and a separate random RL run (15000 steps; 20000
+   in ``partial`` and ``distractors``, as in the guide) of the simulator, written as bags
+   (``python -m sim_node.generate``);
+2. a TPSR (``learner fit``) and a fitted-Q policy on the states tracked over the RL run
+   (``learner policy``), both with the default preset (``best``; ``--preset guide`` for the
+   guide's settings);
 3. the standard evaluation headless (``learner evaluate``), beside the floors (the best
    constant action, uniformly random actions) and the ceiling (fitted Q on the true
    position), then over the nodes: sim_node and the filter node as separate processes in
@@ -29,7 +31,9 @@ from tqdm import tqdm
 from learner.cli import main as learner_main
 from learner.closed_loop import run_closed_loop
 from learner.evaluate import START_POSITIONS, STEPS, evaluate
+from learner.experiment import RL_STEPS
 from learner.floors import ConstantFloor, constant_floor, random_floor
+from learner.options import add_preset_option
 from learner.representations import load_tracker
 from sim_node import Environment, SimConfig
 from sim_node.generate import generate_bag
@@ -125,9 +129,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--rl-steps",
         type=positive_int,
-        default=15_000,
-        help="steps of the random RL run (default: %(default)s)",
+        default=None,
+        help="steps of the random RL run (default: the guide's, 15000 in full and 20000 in "
+        "partial and distractors)",
     )
+    add_preset_option(parser, "fit and fitted-Q (learner fit and learner policy)")
     parser.add_argument(
         "--fit-option",
         action="append",
@@ -142,23 +148,25 @@ def main(argv: list[str] | None = None) -> int:
         shutil.rmtree(out)
     (out / "bags").mkdir(parents=True)
     env = args.environment
+    rl_steps = args.rl_steps or RL_STEPS[env]
     train, rl, closed = out / "bags" / "train", out / "bags" / "rl", out / "bags" / "closed_loop"
     model, policy = out / "model.npz", out / "policy.npz"
 
     _stage(1, f"simulating the training run: {args.train_steps} random steps ({env}) -> {train}")
     generate_bag(train, SimConfig(environment=env), args.train_steps, seed=0, progress=True)
-    _stage(2, f"simulating the RL run: {args.rl_steps} random steps ({env}) -> {rl}")
-    generate_bag(rl, SimConfig(environment=env), args.rl_steps, seed=1, progress=True)
+    _stage(2, f"simulating the RL run: {rl_steps} random steps ({env}) -> {rl}")
+    generate_bag(rl, SimConfig(environment=env), rl_steps, seed=1, progress=True)
 
-    _stage(3, f"learner fit {train} -o {model}  (guide defaults)")
-    learner_main(["fit", str(train), "-o", str(model), *args.fit_option])
-    _stage(4, f"learner policy {model} {rl} -o {policy}  (fitted Q-iteration)")
-    learner_main(["policy", str(model), str(rl), "-o", str(policy)])
+    preset = ["--preset", args.preset]
+    _stage(3, f"learner fit {train} -o {model} --preset {args.preset}")
+    learner_main(["fit", str(train), "-o", str(model), *preset, *args.fit_option])
+    _stage(4, f"learner policy {model} {rl} -o {policy} --preset {args.preset}  (fitted Q)")
+    learner_main(["policy", str(model), str(rl), "-o", str(policy), *preset])
 
     _stage(5, f"learner evaluate {policy} --environment {env}  (headless; floors, ceiling)")
     headless = evaluate(load_policy(policy), load_tracker(model), env)
     ceiling_policy = out / "policy_true_position.npz"
-    learner_main(["policy", TRUE_POSITION, str(rl), "-o", str(ceiling_policy)])
+    learner_main(["policy", TRUE_POSITION, str(rl), "-o", str(ceiling_policy), *preset])
     bounds = Bounds(
         constant_floor(env),
         random_floor(env, policy_seed=0).score,

@@ -20,10 +20,11 @@ from typing import Any
 
 import numpy as np
 
+from learner.inputs import require_simulator_model
 from learner.representations import Tracker, load_tracker
-from learner.streams import require_simulator_model
 from sim_node import Environment, RobotEnv, SimConfig
 from tpsr_ros.core.errors import ModelFormatError
+from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.policy import TRUE_POSITION, Policy, load_policy
 
 __all__ = [
@@ -148,8 +149,9 @@ def register(subparsers: Any) -> None:
 def _tracker_for(policy: Policy, model: str | None) -> Tracker:
     if policy.representation == TRUE_POSITION:
         return load_tracker(TRUE_POSITION)
-    require_simulator_model(policy.model_path(model))
-    return load_tracker(policy.model_path(model))
+    model_file = open_model(policy.model_path(model))
+    require_simulator_model(model_file)
+    return load_tracker(model_file)
 
 
 def run(args: argparse.Namespace) -> int:

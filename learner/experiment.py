@@ -20,7 +20,6 @@ diverges or does not converge is refitted with ten times the ridge (up to 1.0,
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import json
 import os
@@ -37,39 +36,39 @@ import numpy as np
 from tqdm import tqdm
 
 from learner.evaluate import Evaluation, evaluate
-from learner.floors import CONSTANT, FLOORS, RANDOM, constant_floor, random_floor
+from learner.floors import CONSTANT, FLOORS, constant_floor, random_floor
+from learner.measures import criterion_of, memory_of, tuned
+from learner.options import add_preset_option
 from learner.overrides import apply_overrides
 from learner.planning import fit_q_on, ridge_ladder
 from learner.plots import affine_r2, neighbour_position_error
 from learner.representations import ModelTracker, Tracker, TruePositionTracker
 from learner.simulated import random_trajectory
+from learner.tables import METHODS, Row, format_table, plot_summary, summarise, write_csv
 from sim_node import Environment
 from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError, DivergenceError, TpsrError
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.pca_baseline import PCAConfig, fit_pca
+from tpsr_ros.core.presets import DEFAULT_PRESET, departures, get_preset
+from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
 from tpsr_ros.io.model_io import model_fingerprint
 from tpsr_ros.io.policy import TRUE_POSITION, Policy
 
 __all__ = [
-    "METHODS",
     "ExperimentConfig",
-    "Row",
     "add_grid_options",
     "config_from_args",
     "default_config",
-    "difference_in_sems",
-    "plot_summary",
+    "experiment_command",
     "prepare_outputs",
     "register",
     "run",
     "run_experiment",
-    "summarise",
 ]
 
-METHODS = (CONSTANT, RANDOM, "tpsr", "pca", TRUE_POSITION)
 RL_STEPS = {"full": 15000, "partial": 20000, "distractors": 20000}
 PCA_DIM = {"full": 2, "partial": 3, "distractors": 3}  # guide figure 4.5 / appendix A.2-A.3
 
@@ -91,11 +90,30 @@ class ExperimentConfig:
     fqi: FQIConfig = field(default_factory=FQIConfig)
     tune_budget: float | None = None
     """Seconds of ``learner tune`` on each run's own training data (None: no tuning)."""
+    tune_candidates: int | None = None
+    """At most this many tuning candidates per run (None: as many as the budget allows)."""
+    preset: str = "guide"
+    """The preset ``tpsr`` and ``fqi`` started from (:mod:`tpsr_ros.core.presets`); the
+    dataclass defaults are the guide's."""
+    memory: bool = False
+    """Also measure each learned model's memory (:mod:`learner.memory`, in ``partial``)."""
+    criterion: bool = False
+    """Also score each TPSR run's configuration by ``learner tune``'s held-out criterion on
+    its own training data (:mod:`learner.criterion`; no reward, no ground truth)."""
 
     def __post_init__(self) -> None:
         Environment.parse(self.environment)
+        get_preset(self.preset)
+        if self.memory and self.environment != "partial":
+            raise ConfigError(
+                "--memory needs --environment partial: only there do two places look alike"
+            )
         if self.tune_budget is not None and not self.tune_budget > 0:
             raise ConfigError(f"the tuning budget must be positive, not {self.tune_budget!r}")
+        if self.tune_candidates is not None and (
+            self.tune_budget is None or self.tune_candidates < 1
+        ):
+            raise ConfigError("tune_candidates needs a tuning budget and must be >= 1")
         if not self.episodes or min(self.episodes) < 1:
             raise ConfigError("data sizes (--episodes) must be positive")
         if self.repetitions < 1 or self.first_repetition < 0:
@@ -115,37 +133,56 @@ class ExperimentConfig:
         return episodes * (self.tpsr.history_length + 1 + self.tpsr.test_length)
 
 
-def default_config(environment: str, **overrides: Any) -> ExperimentConfig:
-    """The guide's settings for ``environment`` (RL steps, PCA dimension), then overrides."""
+def default_config(
+    environment: str, preset: str = DEFAULT_PRESET, **overrides: Any
+) -> ExperimentConfig:
+    """The guide's protocol for ``environment`` (RL steps, PCA dimension) with the fit and
+    planner of ``preset``, then ``overrides``."""
+    chosen = get_preset(preset)
     values: dict[str, Any] = {
         "environment": environment,
         "rl_steps": RL_STEPS[environment],
         "pca": PCAConfig(dim=PCA_DIM[environment]),
+        "tpsr": chosen.tpsr_config(),
+        "fqi": chosen.fqi_config(),
+        "preset": chosen.name,
     }
     values.update(overrides)
     return ExperimentConfig(**values)
 
 
-@dataclass(frozen=True)
-class Row:
-    """One learning-planning run: a method at a data size and repetition."""
+def _setting(value: Any) -> str:
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
-    environment: str
-    method: str
-    episodes: int
-    repetition: int
-    train_seed: int
-    rl_seed: int
-    score: float
-    trial_rewards: str
-    fit_seconds: float
-    fqi_ridge: float
-    recoveries: int
-    r2_x: float
-    r2_y: float
-    status: str
-    parameters: str = "{}"
-    position_error: float = float("nan")  # median 10-NN error, m (nan in CSVs written before)
+
+def experiment_command(config: ExperimentConfig, episodes: Sequence[int] | None = None) -> str:
+    """The ``learner experiment`` command that runs ``config`` (at ``episodes``, default all).
+
+    Settings are written as they depart from the preset's (``--set``) and from the
+    protocol's defaults, so the command is as short as the configuration allows.
+    """
+    reference = default_config(config.environment, config.preset)
+    parts = [f"python -m learner experiment --environment {config.environment}"]
+    if config.preset != DEFAULT_PRESET:
+        parts.append(f"--preset {config.preset}")
+    sizes = tuple(episodes or config.episodes)
+    if sizes != ExperimentConfig.__dataclass_fields__["episodes"].default:
+        parts.append("--episodes " + " ".join(map(str, sizes)))
+    for name in ("repetitions", "first_repetition", "seed", "rl_seed", "rl_steps"):
+        if getattr(config, name) != getattr(reference, name):
+            parts.append(f"--{name.replace('_', '-')} {getattr(config, name)}")
+    for group in ("tpsr", "pca", "fqi"):
+        changed = departures(getattr(config, group), getattr(reference, group))
+        parts += [f"--set {group}.{k}={_setting(v)}" for k, v in changed.items()]
+    if config.tune_budget is not None:
+        parts.append(f"--tune --tune-budget {config.tune_budget:g}")
+    if config.tune_candidates is not None:
+        parts.append(f"--tune-candidates {config.tune_candidates}")
+    if config.memory:
+        parts.append("--memory")
+    if config.criterion:
+        parts.append("--criterion")
+    return " ".join(parts)
 
 
 def _plan_and_score(
@@ -187,9 +224,12 @@ def _row(
     episodes: int,
     repetition: int,
     extra: dict[str, Any],
+    command_config: ExperimentConfig | None = None,
     **result: Any,
 ) -> Row:
-    """A run's row: its identity and seeds, ``result`` and every parameter it used."""
+    """A run's row: its identity and seeds, ``result``, every parameter it used and the
+    command of its grid (from ``command_config``, the grid's configuration, default
+    ``config``)."""
     return Row(
         environment=config.environment,
         method=method,
@@ -198,6 +238,8 @@ def _row(
         train_seed=config.train_seed(episodes, repetition),
         rl_seed=config.rl_seed,
         parameters=_parameters(config, method, extra),
+        preset=config.preset,
+        command=experiment_command(command_config or config),
         **result,
     )
 
@@ -232,25 +274,6 @@ def _floor_row(config: ExperimentConfig, method: str, episodes: int, repetition:
     )
 
 
-def _tuned(config: ExperimentConfig, train: Trajectory) -> tuple[TPSRConfig, dict[str, Any]]:
-    """``config.tpsr``, or with ``tune_budget`` what ``learner tune`` picks from ``train``."""
-    if config.tune_budget is None:
-        return config.tpsr, {}
-    from learner.tune import tune
-
-    result = tune(train, budget=config.tune_budget, seed=config.tpsr.seed, base=config.tpsr)
-    return result.best.config, {
-        "tune": {
-            "criterion": round(result.best.score.value, 6),
-            "se": round(result.best.score.se, 6),
-            "highest": round(result.top.score.value, 6),
-            "candidates": len(result.trials),
-            "seconds": round(result.seconds, 1),
-            "budget": config.tune_budget,
-        }
-    }
-
-
 def _learn_states(
     config: ExperimentConfig, method: str, train: Trajectory, rl: Trajectory
 ) -> tuple[Tracker, np.ndarray, int]:
@@ -260,7 +283,9 @@ def _learn_states(
         return tracker, tracker.track(rl), 0
     if method == "tpsr":
         episodes = make_episodes(train, config.tpsr.history_length, config.tpsr.test_length)
-        model = fit_tpsr_episodes(episodes, config=config.tpsr)
+        # sizes set with --set stay as set; the preset's follow the data (core.sizing)
+        given = departures(config.tpsr, get_preset(config.preset).tpsr_config())
+        model = fit_tpsr_episodes(episodes, config=config.tpsr, sizing=Sizing(given))
     else:
         model = fit_pca(train.observations, n_actions=train.n_actions, config=config.pca)
     track = model.track(rl.actions, rl.observations)
@@ -281,8 +306,10 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
         run_config, extra = config, {}
         try:
             if method == "tpsr":
-                tuned, extra = _tuned(config, train)
-                run_config = dataclasses.replace(config, tpsr=tuned)
+                tuned_config, extra = tuned(
+                    config.tpsr, train, config.tune_budget, config.tune_candidates
+                )
+                run_config = dataclasses.replace(config, tpsr=tuned_config)
                 start = time.perf_counter()  # the fit alone: the tuning's time is in ``extra``
             tracker, states, recoveries = _learn_states(run_config, method, train, rl)
             fit_seconds = time.perf_counter() - start
@@ -290,10 +317,17 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 run_config = dataclasses.replace(run_config, tpsr=tracker.model.config)
             r2 = affine_r2(states, rl.positions)
             position_error = neighbour_position_error(states, rl.positions)
+            memory = memory_of(tracker) if config.memory else (float("nan"), float("nan"))
+            criterion = (
+                criterion_of(run_config.tpsr, train)
+                if config.criterion and method == "tpsr"
+                else float("nan")
+            )
             score, trials, ridge, status = _plan_and_score(config, tracker, rl, states)
         except TpsrError as exc:  # a failed fit is a result, not a crash
             fit_seconds, recoveries, r2 = time.perf_counter() - start, 0, np.full(2, np.nan)
-            position_error = float("nan")
+            position_error, memory = float("nan"), (float("nan"), float("nan"))
+            criterion = float("nan")
             score, trials, ridge, status = float("nan"), "", config.fqi.ridge, f"error: {exc}"
         rows.append(
             _row(
@@ -302,6 +336,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 episodes,
                 repetition,
                 extra,
+                command_config=config,
                 score=score,
                 trial_rewards=trials,
                 fit_seconds=round(fit_seconds, 3),
@@ -311,6 +346,9 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 r2_y=round(float(r2[1]), 4),
                 position_error=round(position_error, 3),
                 status=status,
+                memory=memory[0],
+                memory_distance=round(memory[1], 6),
+                criterion=round(criterion, 6),
             )
         )
     return rows
@@ -347,120 +385,6 @@ def run_experiment(
                 bar.update()
     bar.close()
     return [row for cell in cells for row in results[cell]]
-
-
-def summarise(rows: Sequence[Row]) -> list[dict[str, Any]]:
-    """Mean, median, SEM and failures per (method, data size), and each margin over the floor.
-
-    For every method that is not a floor, ``floor`` names the best floor at the same data
-    size (highest mean) and ``margin_sem`` is ``(mean - floor mean) / sqrt(SEM^2 + floor
-    SEM^2)``: how many standard errors of the difference the method lies above it (NaN
-    when no floor ran).
-    """
-    table = []
-    keys = sorted({(r.method, r.episodes) for r in rows}, key=lambda k: (METHODS.index(k[0]), k[1]))
-    for method, episodes in keys:
-        scores = np.array([r.score for r in rows if (r.method, r.episodes) == (method, episodes)])
-        ok = scores[np.isfinite(scores)]
-        table.append(
-            {
-                "method": method,
-                "episodes": episodes,
-                "runs": len(scores),
-                "failed": int(len(scores) - len(ok)),
-                "mean": float(ok.mean()) if len(ok) else float("nan"),
-                "median": float(np.median(ok)) if len(ok) else float("nan"),
-                "sem": float(ok.std(ddof=1) / np.sqrt(len(ok))) if len(ok) > 1 else float("nan"),
-            }
-        )
-    for entry in table:
-        floors = [t for t in table if t["method"] in FLOORS and t["episodes"] == entry["episodes"]]
-        entry["floor"], entry["margin_sem"] = "", float("nan")
-        if entry["method"] in FLOORS or not floors:
-            continue
-        best = max(floors, key=lambda t: t["mean"])
-        entry["floor"] = best["method"]
-        entry["margin_sem"] = difference_in_sems(entry, best)
-    return table
-
-
-def difference_in_sems(a: dict[str, Any], b: dict[str, Any]) -> float:
-    """``(mean_a - mean_b) / sqrt(SEM_a^2 + SEM_b^2)`` of two summary entries.
-
-    A missing SEM (one run) counts as 0; with both 0 the result is +-inf (or nan when the
-    means are equal).
-    """
-    spread = float(np.hypot(np.nan_to_num(a["sem"]), np.nan_to_num(b["sem"])))
-    difference = a["mean"] - b["mean"]
-    return difference / spread if spread > 0 else float(np.sign(difference) * np.inf)
-
-
-def margin_text(entry: dict[str, Any]) -> str:
-    """The margin over the best floor in SEMs, as printed in tables (``-`` for floors)."""
-    margin = entry.get("margin_sem", float("nan"))
-    if not entry.get("floor") or not np.isfinite(entry["mean"]):
-        return "-"
-    return f"{margin:+.1f} over {entry['floor']}"
-
-
-def write_csv(rows: Sequence[Row], path: Path) -> None:
-    """All rows, one per run, with every seed."""
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=[f.name for f in dataclasses.fields(Row)])
-        writer.writeheader()
-        writer.writerows(dataclasses.asdict(r) for r in rows)
-
-
-def plot_summary(table: Sequence[dict[str, Any]], environment: str, path: Path) -> None:
-    """Mean (line), median (dashed) and SEM band per method over data size, like guide 4.5."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    colours = {
-        CONSTANT: "tab:brown",
-        RANDOM: "tab:olive",
-        "tpsr": "tab:red",
-        "pca": "tab:blue",
-        TRUE_POSITION: "tab:gray",
-    }
-    fig, ax = plt.subplots(figsize=(6.4, 4.8))
-    for method in METHODS:
-        part = [t for t in table if t["method"] == method]
-        if not part:
-            continue
-        x = np.array([t["episodes"] for t in part])
-        mean = np.array([t["mean"] for t in part])
-        sem = np.nan_to_num(np.array([t["sem"] for t in part]))
-        ax.plot(x, mean, "-o", color=colours[method], label=f"{method} mean")
-        ax.plot(
-            x, [t["median"] for t in part], "--", color=colours[method], label=f"{method} median"
-        )
-        ax.fill_between(x, mean - sem, mean + sem, color=colours[method], alpha=0.2)
-    ax.set_xlabel("training episodes")
-    ax.set_ylabel("mean reward of 10 trials (max ~470)")
-    ax.set_title(f"{environment}: learning-planning loop")
-    ax.set_ylim(min(-100.0, *(t["mean"] - 20 for t in table if np.isfinite(t["mean"]))), 500)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, ncol=5, loc="upper center", bbox_to_anchor=(0.5, -0.14))
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def format_table(table: Sequence[dict[str, Any]]) -> list[str]:
-    """The summary as aligned text lines."""
-    lines = [
-        f"{'method':14s} {'episodes':>8s} {'runs':>4s} {'mean':>7s} {'median':>7s} "
-        f"{'sem':>6s} {'failed':>6s}  margin (SEMs)"
-    ]
-    for t in table:
-        lines.append(
-            f"{t['method']:14s} {t['episodes']:8d} {t['runs']:4d} {t['mean']:7.1f} "
-            f"{t['median']:7.1f} {t['sem']:6.1f} {t['failed']:6d}  {margin_text(t)}"
-        )
-    return lines
 
 
 def add_grid_options(parser: argparse.ArgumentParser) -> None:
@@ -516,11 +440,32 @@ def add_grid_options(parser: argparse.ArgumentParser) -> None:
         help="tuning time per run with --tune (default: learner tune's 300)",
     )
     parser.add_argument(
+        "--tune-candidates",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="with --tune: at most N candidates per run (reproducible whatever the machine's "
+        "speed, given the budget)",
+    )
+    parser.add_argument(
+        "--criterion",
+        action="store_true",
+        help="also score each TPSR run's configuration by learner tune's held-out criterion "
+        "on its own training data (the criterion column)",
+    )
+    parser.add_argument(
+        "--memory",
+        action="store_true",
+        help="also measure each learned model's memory (learner memory, in partial): the "
+        "memory and memory_distance columns",
+    )
+    parser.add_argument(
         "--p-th-tests",
         choices=("after-current", "from-current"),
-        default="after-current",
-        help="TPSR P_TH test window (see learner fit)",
+        default=None,
+        help="TPSR P_TH test window (see learner fit; default: the preset's)",
     )
+    add_preset_option(parser)
 
 
 def register(subparsers: Any) -> None:
@@ -555,30 +500,32 @@ def config_from_args(
 ) -> ExperimentConfig:
     """The grid the options of :func:`add_grid_options` describe, with ``assignments`` applied."""
     overrides: dict[str, Any] = {
+        "memory": args.memory,
+        "criterion": args.criterion,
         "repetitions": args.repetitions,
         "first_repetition": args.first_repetition,
         "methods": tuple(methods),
         "rl_seed": args.rl_seed,
         "seed": args.seed,
     }
-    base = default_config(args.environment)
-    configs = {
-        "tpsr": dataclasses.replace(base.tpsr, p_th_tests=args.p_th_tests),
-        "pca": base.pca,
-        "fqi": base.fqi,
-    }
+    base = default_config(args.environment, args.preset)
+    tpsr = base.tpsr
+    if args.p_th_tests is not None:
+        tpsr = dataclasses.replace(tpsr, p_th_tests=args.p_th_tests)
+    configs = {"tpsr": tpsr, "pca": base.pca, "fqi": base.fqi}
     overrides.update(apply_overrides(configs, assignments))
     if args.episodes:
         overrides["episodes"] = tuple(args.episodes)
     if args.rl_steps:
         overrides["rl_steps"] = args.rl_steps
-    if args.tune_budget is not None and not args.tune:
-        raise ConfigError("--tune-budget needs --tune")
+    if (args.tune_budget is not None or args.tune_candidates is not None) and not args.tune:
+        raise ConfigError("--tune-budget and --tune-candidates need --tune")
+    overrides["tune_candidates"] = args.tune_candidates
     if args.tune:
         from learner.tune import DEFAULT_BUDGET
 
         overrides["tune_budget"] = args.tune_budget or DEFAULT_BUDGET
-    return default_config(args.environment, **overrides)
+    return default_config(args.environment, args.preset, **overrides)
 
 
 def prepare_outputs(directory: Path, stem: str, force: bool) -> tuple[Path, Path]:

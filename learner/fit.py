@@ -3,7 +3,10 @@
 Every parameter of guide table 3.5 is an option generated from the fields of
 :class:`~tpsr_ros.core.tpsr.TPSRConfig` (name, default, help and choices spelled once, there);
 the PCA baseline's from :class:`~tpsr_ros.core.pca_baseline.PCAConfig` and the topic names from
-:class:`~tpsr_ros.io.trajectory.Topics`. Stage lines go to stderr, the summary to stdout.
+:class:`~tpsr_ros.io.trajectory.Topics`. The TPSR options change the ``--preset`` (default
+``best``, the project's best settings; ``guide``, the guide's: :mod:`tpsr_ros.core.presets`),
+and the model records the preset and what the options changed in it. Stage lines go to
+stderr, the summary to stdout.
 
 ``--stream`` runs :func:`~tpsr_ros.core.streamed_fit.fit_tpsr_streamed` over the bags in
 chunks (two passes, memory bounded by chunk and centre counts; same model to 1e-9);
@@ -17,20 +20,27 @@ import dataclasses
 import functools
 import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from types import MappingProxyType
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 
 from learner.config_file import describe, read_fit_config
 from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible, dask_client
-from learner.streams import add_stream_options, fit_options_from_args, topics_from_args
+from learner.inputs import add_stream_options, fit_options_from_args, topics_from_args
+from learner.options import (
+    add_config_options,
+    add_preset_option,
+    config_from_args,
+    preset_from_args,
+)
 from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory, common_value, make_episodes
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
+from tpsr_ros.core.presets import Preset, departures
+from tpsr_ros.core.sizing import Sizing, describe_sizing
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.streamed_fit import fit_pca_streamed, fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
@@ -48,98 +58,13 @@ from tpsr_ros.io.streams import (
 from tpsr_ros.io.trajectory import Topics, read_trajectory
 
 __all__ = [
-    "add_config_options",
     "add_topic_options",
-    "config_from_args",
     "read_training_bags",
     "register",
     "run",
     "summary_lines",
     "topics_from_args",
 ]
-
-C = TypeVar("C")
-
-ROBOT_BAG_TPSR_DEFAULTS: Mapping[str, Any] = MappingProxyType({"normalize_ht_features": True})
-"""TPSR parameters whose default differs for robot bags (``--step-period``).
-
-Normalised history/test features explain the true position better from every robot-shaped
-camera measured (README, "Learning from your robot's bag": R^2 in x up by 0.09-0.13, and the
-grey camera's from 0.74-0.78 to 0.87-0.92); simulator bags keep the guide's unnormalised
-features, so their models stay those of the guide's reference path.
-"""
-
-
-def _option_name(f: dataclasses.Field[Any], prefix: str = "", suffix: str = "") -> str:
-    return str(f.metadata.get("cli") or f"--{prefix}{f.name.replace('_', '-')}{suffix}")
-
-
-def add_config_options(
-    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
-    cls: type[Any],
-    robot_defaults: Mapping[str, Any] | None = None,
-    *,
-    file_defaults: bool = False,
-) -> None:
-    """One option per field of the frozen config dataclass ``cls`` (dest = field name).
-
-    Fields in ``robot_defaults`` default to None, resolved by :func:`config_from_args`:
-    the value given there for robot bags, the dataclass default otherwise. With
-    ``file_defaults`` every field defaults to None, so that :func:`config_from_args` can
-    tell an option given on the command line (it wins) from one a config file may set.
-    """
-    robot_defaults = robot_defaults or {}
-    for f in dataclasses.fields(cls):
-        kwargs: dict[str, Any] = {
-            "dest": f.name,
-            "default": f.default,
-            "help": f"{f.metadata.get('help', '')} (default: %(default)s)",
-        }
-        if f.name in robot_defaults:
-            kwargs["default"] = None
-            kwargs["help"] = (
-                f"{f.metadata.get('help', '')} (default: {robot_defaults[f.name]} for robot "
-                f"bags (--step-period), {f.default} for simulator bags)"
-            )
-        elif file_defaults:
-            kwargs["default"] = None
-            kwargs["help"] = f"{f.metadata.get('help', '')} (default: {f.default})"
-        if file_defaults:
-            kwargs["help"] = kwargs["help"][:-1] + ", or the --config file's)"
-        if isinstance(f.default, bool):
-            kwargs["action"] = argparse.BooleanOptionalAction
-        else:
-            kwargs["type"] = type(f.default)
-            if "choices" in f.metadata:
-                kwargs["choices"] = f.metadata["choices"]
-            else:
-                kwargs["metavar"] = {int: "N", float: "X"}.get(type(f.default), "VALUE")
-        parser.add_argument(_option_name(f), **kwargs)
-
-
-def config_from_args(
-    cls: type[C],
-    args: argparse.Namespace,
-    robot_defaults: Mapping[str, Any] | None = None,
-    file_values: Mapping[str, Any] | None = None,
-) -> C:
-    """Build ``cls`` from the options :func:`add_config_options` added (validated there).
-
-    An option left at None takes its value from ``file_values`` (a ``--config`` file)
-    when it sets it, else from ``robot_defaults`` when given (robot bags), else the
-    dataclass default. Options given on the command line always win.
-    """
-    values = {}
-    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
-        value = getattr(args, f.name)
-        if value is None and f.default is not None:
-            if file_values is not None and f.name in file_values:
-                value = file_values[f.name]
-            else:
-                value = (robot_defaults or {}).get(f.name, f.default)
-        values[f.name] = value
-    return cls(**values)
-
 
 def add_topic_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """``--image-topic`` etc. from :class:`Topics` (None when not given: see topics_from_args)."""
@@ -195,12 +120,9 @@ def register(subparsers: Any) -> None:
         help="TPSR parameters from a YAML file written by learner tune (options given "
         "here win over the file's)",
     )
-    add_config_options(
-        parser.add_argument_group("TPSR parameters (guide table 3.5)"),
-        TPSRConfig,
-        robot_defaults=ROBOT_BAG_TPSR_DEFAULTS,
-        file_defaults=True,
-    )
+    parameters = parser.add_argument_group("TPSR parameters (guide table 3.5)")
+    add_preset_option(parameters, "fit")
+    add_config_options(parameters, TPSRConfig, config_file=True)
     add_config_options(parser.add_argument_group("PCA baseline"), PCAConfig)
     add_topic_options(parser.add_argument_group("topics"))
     add_stream_options(
@@ -273,17 +195,24 @@ def run(args: argparse.Namespace) -> int:
     stream_options = fit_options_from_args(args)
     robot_bags = stream_options is not None
     file_values = None if args.config is None else read_fit_config(args.config)
-    tpsr_config = config_from_args(
-        TPSRConfig, args, ROBOT_BAG_TPSR_DEFAULTS if robot_bags else None, file_values
-    )
+    preset = preset_from_args(args)
+    preset_config = preset.tpsr_config(robot=robot_bags)
+    tpsr_config = config_from_args(TPSRConfig, args, preset_config, file_values)
     if file_values is not None:
         _say(f"TPSR parameters from {args.config}: {describe(tpsr_config)}")
-    if robot_bags:
-        _say_robot_defaults(args, file_values)
+    record = None
+    if args.method == "tpsr":
+        _say_preset(preset, preset_config, tpsr_config, robot_bags)
+        record = {"name": preset.name, "changed": departures(tpsr_config, preset_config)}
+    # what the user set stays as set; the preset's sizes follow the data
+    given = {f.name for f in dataclasses.fields(TPSRConfig) if getattr(args, f.name) is not None}
+    args.sizing = Sizing(given | set(file_values or {}))
     pca_config = config_from_args(PCAConfig, args)
     topics = topics_from_args(args)
     if args.stream or args.workers is not None or args.scheduler is not None:
-        return _run_streamed(args, output, tpsr_config, pca_config, topics, stream_options)
+        return _run_streamed(
+            args, output, tpsr_config, pca_config, topics, stream_options, record
+        )
     timings: dict[str, float] = {}
 
     _say(f"reading {len(args.bags)} bag(s)")
@@ -305,8 +234,9 @@ def run(args: argparse.Namespace) -> int:
     if args.method == "tpsr":
         codes = None if spec is None else spec.codebook.codes  # action-aware features
         model = fit_tpsr_episodes(
-            episodes, config=tpsr_config, progress=_say, action_codes=codes
+            episodes, config=tpsr_config, progress=_say, action_codes=codes, sizing=args.sizing
         )
+        _say_sizing(model)
     else:
         _say("PCA")
         model = fit_pca(episodes.steps(), n_actions=trajectory.n_actions, config=pca_config)
@@ -321,7 +251,7 @@ def run(args: argparse.Namespace) -> int:
         "reading_seconds": round(timings["reading bags"], 6),
         "fit_seconds": round(timings["fit"], 6),
     }
-    _write(model, output, training, spec, timings, force=args.force)
+    _write(model, output, training, spec, timings, preset=record, force=args.force)
     return 0
 
 
@@ -380,6 +310,7 @@ def _run_streamed(
     pca_config: PCAConfig,
     topics: Topics,
     stream_options: FitOptions | None,
+    preset: dict[str, Any] | None,
 ) -> int:
     """``--stream`` (and ``--workers`` / ``--scheduler``): the streamed fit, then as :func:`run`."""
     distributed = args.workers is not None or args.scheduler is not None
@@ -430,6 +361,7 @@ def _run_streamed(
             max_episodes=args.episodes,
             progress=_say,
             scratch_dir=args.scratch_dir,
+            sizing=args.sizing,
         )
         if distributed:
             where = args.scheduler or f"a local cluster of {args.workers} worker(s)"
@@ -442,6 +374,7 @@ def _run_streamed(
         else:
             model = fit(lambda: reader.read_all(args.bags))
         episodes = int(model.fit_info["episodes"])
+        _say_sizing(model)
     timings["fit"] = time.perf_counter() - start
     info = model.fit_info
     training = {
@@ -460,21 +393,26 @@ def _run_streamed(
         "reading_seconds": round(timings["reading bags"], 6),
         "fit_seconds": round(timings["fit"], 6),
     }  # fmt: skip
-    _write(model, output, training, spec, timings, force=args.force)
+    _write(model, output, training, spec, timings, preset=preset, force=args.force)
     return 0
 
 
-def _say_robot_defaults(args: argparse.Namespace, file_values: Mapping[str, Any] | None) -> None:
-    """Say which robot-bag defaults (``ROBOT_BAG_TPSR_DEFAULTS``) the fit took: those neither
-    the command line nor the ``--config`` file set."""
-    chosen = args.normalize_ht_features is not None or "normalize_ht_features" in (
-        file_values or {}
-    )
-    if args.method == "tpsr" and not chosen:
-        _say(
-            "history/test features normalised to sum 1 (the robot-bag default; "
-            "--no-normalize-ht-features for the guide's unnormalised ones)"
-        )
+def _say_sizing(model: StateModel) -> None:
+    """Say which sizes the fit lowered to what the data carry (:mod:`tpsr_ros.core.sizing`)."""
+    sized = model.fit_info.get("sized") if isinstance(model, TPSRModel) else None
+    if sized:
+        changes = {name: (int(old), int(new)) for name, (old, new) in sized.items()}
+        _say(describe_sizing(int(model.fit_info["episodes"]), changes))
+
+
+def _say_preset(
+    preset: Preset, preset_config: TPSRConfig, config: TPSRConfig, robot_bags: bool
+) -> None:
+    """Say which preset the fit starts from and what the options changed in it."""
+    changed = departures(config, preset_config)
+    robot = " with its robot-bag settings" if robot_bags and preset.robot_tpsr else ""
+    what = " ".join(f"{k}={v}" for k, v in changed.items()) or "nothing"
+    _say(f"preset {preset.name}{robot} ({preset.summary}); changed by options: {what}")
 
 
 def _write(
@@ -484,12 +422,13 @@ def _write(
     spec: StreamSpec | None,
     timings: dict[str, float],
     *,
+    preset: dict[str, Any] | None,
     force: bool,
 ) -> None:
     """Write the model file, then print the summary (with the time writing took)."""
     _say(f"writing {output}")
     start = time.perf_counter()
-    save_model(model, output, training=training, inputs=spec, force=force)
+    save_model(model, output, training=training, inputs=spec, preset=preset, force=force)
     timings["writing"] = time.perf_counter() - start
     for line in summary_lines(model, training, timings, output):
         print(line)

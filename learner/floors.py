@@ -1,4 +1,4 @@
-"""The floors of every results table: the best state-blind policies (DESIGN.md, issue 11).
+"""The floors of every results table: the best state-blind policies (DESIGN.md).
 
 A learned representation is worth something only where its policy beats every policy
 that ignores the state. Two floors run the standard protocol (:mod:`learner.evaluate`)

@@ -1,4 +1,4 @@
-"""``learner info MODEL``: what a model file holds (method, parameters, data, fit summary)."""
+"""``learner info MODEL``: what a model file holds (method, preset, parameters, data, summary)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ import json
 from pathlib import Path
 from typing import Any
 
-from tpsr_ros.io.model_io import load_model, metadata_field, model_stream_spec, read_metadata
+from tpsr_ros.io.model_io import metadata_field, open_model
+from tpsr_ros.io.stream_spec import StreamSpec
 
 __all__ = ["info_lines", "register", "run"]
 
@@ -23,12 +24,11 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Validate the whole file (arrays too), then print its metadata."""
-    load_model(args.model)
-    metadata = read_metadata(args.model)
+    model_file = open_model(args.model)
     if args.json:
-        print(json.dumps(metadata, indent=2, sort_keys=True))
+        print(json.dumps(model_file.metadata, indent=2, sort_keys=True))
     else:
-        print("\n".join(info_lines(args.model, metadata)))
+        print("\n".join(info_lines(model_file.path, model_file.metadata, model_file.spec)))
     return 0
 
 
@@ -49,8 +49,21 @@ def _mapping(value: Any) -> dict[str, Any]:
     return value if isinstance(value, dict) else {}
 
 
-def info_lines(path: Path, metadata: dict[str, Any]) -> list[str]:
-    """Human-readable description of a model's metadata."""
+def _preset_line(record: Any) -> str:
+    """``preset: best; changed by options: rank=5`` (models written before presets: unknown)."""
+    record = _mapping(record)
+    name = record.get("name")
+    if not isinstance(name, str):
+        return "preset: not recorded (a model written before presets existed)"
+    changed = _mapping(record.get("changed"))
+    what = ", ".join(f"{k}={v}" for k, v in changed.items()) or "nothing"
+    return f"preset: {name}; changed by options: {what}"
+
+
+def info_lines(
+    path: Path, metadata: dict[str, Any], spec: StreamSpec | None = None
+) -> list[str]:
+    """Human-readable description of a model's metadata (``spec``: its input streams)."""
     summary = _mapping(metadata.get("summary"))
     training = _mapping(metadata.get("training"))
     lines = [
@@ -60,6 +73,7 @@ def info_lines(path: Path, metadata: dict[str, Any]) -> list[str]:
         f"method: {metadata['method']}, state dimension {metadata.get('state_dim')}, "
         f"{metadata['n_actions']} actions, observation size "
         f"{metadata_field(metadata, 'observation', 'size')}",
+        _preset_line(metadata.get("preset")),
         "parameters: " + ", ".join(f"{k}={v}" for k, v in metadata["parameters"].items()),
     ]
     if training:
@@ -71,7 +85,6 @@ def info_lines(path: Path, metadata: dict[str, Any]) -> list[str]:
             f"{training.get('environment')}, stamps {training.get('stamps_ns')} ns"
         )
         lines.append(f"bags: {', '.join(map(str, paths))}")
-    spec = model_stream_spec(path, metadata)
     if spec is not None:
         prep, grid = spec.preprocessing, spec.grid.as_dict()
         book = spec.codebook

@@ -1,4 +1,4 @@
-"""Robot bags in the learner: the ``fit`` options of the step grid, and bags read for a model.
+"""The learner's inputs: topic and step-grid options, and bags read as a model reads them.
 
 ``learner fit --step-period SECONDS`` resamples the camera and command streams onto a step
 grid (:mod:`tpsr_ros.core.resample`) and remembers its topics, preprocessing, grid and
@@ -18,7 +18,7 @@ from tpsr_ros.cli import positive_int
 from tpsr_ros.core.codebook import COMPONENTS, DEFAULT_COMPONENTS
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError
-from tpsr_ros.io.model_io import metadata_field, model_stream_spec, read_metadata
+from tpsr_ros.io.model_io import ModelFile, metadata_field
 from tpsr_ros.io.stream_spec import StreamSpec
 from tpsr_ros.io.streams import DEFAULT_POSE_FRAME, FitOptions, read_stream_trajectory
 from tpsr_ros.io.trajectory import Topics, read_trajectory
@@ -167,8 +167,7 @@ def recorded_topic(metadata: dict[str, Any], name: str) -> str | None:
 
 
 def read_for_model(
-    model_path: Path | str,
-    metadata: dict[str, Any],
+    model_file: ModelFile,
     bags: list[Path],
     args: argparse.Namespace,
     *,
@@ -180,7 +179,8 @@ def read_for_model(
     and ``--action-topic``, if given, must agree); the pose and reward topics are the ones
     given, else the ones of its training bags. Other models pair the topics given by stamp.
     """
-    spec: StreamSpec | None = model_stream_spec(model_path, metadata)
+    spec: StreamSpec | None = model_file.spec
+    metadata = model_file.metadata
     if spec is None:
         return read_trajectory(
             bags, topics=topics_from_args(args), require_ground_truth=require_ground_truth
@@ -189,7 +189,7 @@ def read_for_model(
         given = getattr(args, f"{name}_topic", None)
         if given and given != own:
             raise ConfigError(
-                f"model {str(model_path)!r} reads {name} topic {own}, not {given} (omit "
+                f"model {str(model_file.path)!r} reads {name} topic {own}, not {given} (omit "
                 f"--{name}-topic: the model remembers it)"
             )
     pose = getattr(args, "pose_topic", None) or recorded_topic(metadata, "pose")
@@ -205,16 +205,16 @@ def read_for_model(
     )
 
 
-def require_simulator_model(model_path: Path | str) -> None:
+def require_simulator_model(model_file: ModelFile) -> None:
     """Refuse a model learned from robot bags where the simulator's actions are meant.
 
     The simulator executes the 25 pairs by index; a robot model's action indices name its
     own codebook, so driving the simulator with them would be silently wrong.
     """
-    spec = model_stream_spec(model_path, read_metadata(model_path))
+    spec = model_file.spec
     if spec is not None and spec.codebook.kind != "sim":
         raise ConfigError(
-            f"model {str(model_path)!r} was learned from robot bags ({len(spec.codebook)} "
+            f"model {str(model_file.path)!r} was learned from robot bags ({len(spec.codebook)} "
             f"{spec.codebook.kind} actions over {', '.join(spec.codebook.components)}); the "
             "simulator's protocol needs a model of its own 25 actions"
         )

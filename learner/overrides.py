@@ -24,6 +24,7 @@ from tpsr_ros.core.tpsr import TPSRConfig
 __all__ = [
     "CONFIG_CLASSES",
     "apply_overrides",
+    "convert",
     "parameter_names",
     "parse_assignment",
     "resolve",
@@ -85,6 +86,12 @@ def _convert(group: str, field: str, text: str) -> Any:
         article = {bool: "true or false", int: "an integer", float: "a number"}[kind]
         raise ConfigError(f"--set {group}.{field} takes {article}, got {text!r}") from None
     raise ConfigError(f"--set {group}.{field}: parameters of type {kind} cannot be set")
+
+
+def convert(name: str, text: str) -> Any:
+    """``text`` as a value of parameter ``name`` (qualified or bare), as ``--set`` reads it."""
+    group, field = resolve(name.replace("-", "_"))
+    return _convert(group, field, text)
 
 
 def apply_overrides(configs: Mapping[str, Any], assignments: Iterable[str]) -> dict[str, Any]:

@@ -18,14 +18,21 @@ from typing import Any
 import numpy as np
 
 from learner.criterion import CriterionConfig, ObservationFeatures, future_targets
-from learner.fit import add_config_options, add_topic_options, config_from_args, topics_from_args
+from learner.fit import add_topic_options, topics_from_args
+from learner.inputs import read_for_model
+from learner.options import (
+    add_config_options,
+    add_preset_option,
+    config_from_args,
+    preset_from_args,
+)
 from learner.representations import Tracker, load_tracker
-from learner.streams import read_for_model
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import DataError, DivergenceError
 from tpsr_ros.core.fqi import FQIConfig, QFunction, fit_q
-from tpsr_ros.io.model_io import read_metadata
+from tpsr_ros.core.presets import departures
+from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.npz_archive import check_output_path
 from tpsr_ros.io.policy import TRUE_POSITION, Policy, save_policy
 from tpsr_ros.io.trajectory import read_trajectory
@@ -116,11 +123,13 @@ def fit_policy(
     *,
     environment: str | None,
     model_path: str | None = None,
+    preset: dict[str, Any] | None = None,
 ) -> Policy:
     """Track states over ``trajectory``, fit Q on its transitions, return the greedy policy.
 
-    The metadata record the fitted-Q configuration used: a larger ridge than ``config``'s
-    if the fit diverged (:func:`fit_q_on`).
+    The metadata record the fitted-Q configuration used (a larger ridge than ``config``'s
+    if the fit diverged: :func:`fit_q_on`) and ``preset``, the named settings it started
+    from and what changed in them.
     """
     start = time.perf_counter()
     states = tracker.track(trajectory)
@@ -135,6 +144,7 @@ def fit_policy(
         metadata={
             "model_path": model_path,
             "fqi": config.to_dict(),
+            **({"preset": preset} if preset is not None else {}),
             "data": {**trajectory.summary(), "transitions": n_transitions},
             "timing_s": {"tracking": tracked - start, "fitted_q": done - tracked},
         },
@@ -157,7 +167,9 @@ def register(subparsers: Any) -> None:
         "20000 partial and distractors; default: all)",
     )
     parser.add_argument("--force", action="store_true", help="overwrite an existing POLICY")
-    add_config_options(parser.add_argument_group("fitted Q-iteration"), FQIConfig)
+    planner = parser.add_argument_group("fitted Q-iteration")
+    add_preset_option(planner, "fitted-Q")
+    add_config_options(planner, FQIConfig)
     add_topic_options(parser.add_argument_group("topics"))
     parser.set_defaults(run=run)
 
@@ -178,18 +190,27 @@ def _first_steps(trajectory: Trajectory, steps: int | None) -> Trajectory:
 def run(args: argparse.Namespace) -> int:
     """Fit and save a policy."""
     output = check_output_path(args.output, force=args.force)
-    config = config_from_args(FQIConfig, args)
-    tracker = load_tracker(args.model)
+    preset = preset_from_args(args)
+    config = config_from_args(FQIConfig, args, preset.fqi_config())
     if str(args.model) == TRUE_POSITION:
+        tracker = load_tracker(TRUE_POSITION)
         read = read_trajectory(args.bags, topics=topics_from_args(args))
     else:  # a model reads bags as its training bags were read (its input spec, if any)
-        read = read_for_model(args.model, read_metadata(args.model), args.bags, args)
+        model_file = open_model(args.model)
+        tracker = load_tracker(model_file)
+        read = read_for_model(model_file, args.bags, args)
     trajectory = _first_steps(read, args.steps)
     environment = trajectory.summary()["environment"]
     if not isinstance(environment, str):
         environment = None  # unknown or mixed: evaluation will not check it
+    record = {"name": preset.name, "changed": departures(config, preset.fqi_config())}
     policy = fit_policy(
-        tracker, trajectory, config, environment=environment, model_path=str(args.model)
+        tracker,
+        trajectory,
+        config,
+        environment=environment,
+        model_path=str(args.model),
+        preset=record,
     )
     save_policy(policy, output, force=args.force)
     timing = policy.metadata["timing_s"]

@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 
 from learner.fit import add_topic_options
-from learner.streams import read_for_model
+from learner.inputs import read_for_model
 from tpsr_ros.core.episodes import track_trajectory
 from tpsr_ros.core.errors import DataError
-from tpsr_ros.io.model_io import check_output_path, load_model, model_stream_spec, read_metadata
+from tpsr_ros.io.model_io import check_output_path, open_model
 
 __all__ = ["affine_r2", "neighbour_position_error", "plot_states", "register", "run"]
 
@@ -166,13 +166,11 @@ def run(args: argparse.Namespace) -> int:
     if output.exists() and not args.force:
         raise DataError(f"output file {str(output)!r} already exists; use --force to overwrite it")
     check_output_path(output, force=True)
-    model = load_model(args.model)
-    metadata = read_metadata(args.model)
+    model_file = open_model(args.model)
+    model = model_file.model
     # simulator models demand ground truth as always; robot models plot without it
-    exact = model_stream_spec(args.model, metadata) is None
-    trajectory = read_for_model(
-        args.model, metadata, args.bags, args, require_ground_truth=exact
-    )
+    exact = model_file.spec is None
+    trajectory = read_for_model(model_file, args.bags, args, require_ground_truth=exact)
     tracked = track_trajectory(model, trajectory)
     known = np.isfinite(trajectory.positions).all(axis=1)
     r2 = affine_r2(tracked.states[known], trajectory.positions[known]) if known.sum() > 2 else None

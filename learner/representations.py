@@ -18,7 +18,7 @@ import numpy as np
 from tpsr_ros.core.episodes import Trajectory, image_to_observation, track_trajectory
 from tpsr_ros.core.errors import DataError
 from tpsr_ros.core.state_model import StateModel
-from tpsr_ros.io.model_io import load_model, model_fingerprint
+from tpsr_ros.io.model_io import ModelFile, open_model
 from tpsr_ros.io.policy import TRUE_POSITION
 
 __all__ = ["ModelTracker", "Tracker", "TruePositionTracker", "load_tracker"]
@@ -93,9 +93,10 @@ class TruePositionTracker:
         return np.asarray(trajectory.positions, dtype=np.float64)
 
 
-def load_tracker(spec: str | Path) -> ModelTracker | TruePositionTracker:
-    """``"true-position"`` for the baseline, otherwise the path of a model file."""
+def load_tracker(spec: str | Path | ModelFile) -> ModelTracker | TruePositionTracker:
+    """``"true-position"`` for the baseline, an opened model file, or a model file's path."""
+    if isinstance(spec, ModelFile):
+        return ModelTracker(spec.model, spec.fingerprint)
     if str(spec) == TRUE_POSITION:
         return TruePositionTracker()
-    model = load_model(spec)
-    return ModelTracker(model, model_fingerprint(model))
+    return load_tracker(open_model(spec))

@@ -2,7 +2,8 @@
 
 One :mod:`learner.experiment` grid per value of one fit or fitted-Q parameter (any
 ``--set`` name), everything else held fixed: the learned method the parameter belongs to
-(``tpsr.*`` and ``fqi.*``: the TPSR; ``pca.*``: PCA) at every value, and once beside them
+(``tpsr.*`` and ``fqi.*``: the TPSR; ``pca.*``: PCA; ``--methods`` for others, e.g. PCA
+under each fitted-Q setting too) at every value, and once beside them
 the floors (best constant action, random actions) and the ceiling (true position; at every
 value when the parameter is a fitted-Q one, since the ceiling plans with it too). Writes
 ``study_<env>_<name>.csv`` (every run, its parameters as JSON) and ``.png`` (score and the
@@ -26,11 +27,10 @@ from learner.experiment import (
     config_from_args,
     prepare_outputs,
     run_experiment,
-    summarise,
-    write_csv,
 )
 from learner.floors import CONSTANT, RANDOM
 from learner.overrides import parse_assignment, resolve
+from learner.tables import summarise, write_csv
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.io.policy import TRUE_POSITION
 
@@ -55,9 +55,9 @@ def run_study(
 ) -> tuple[list[Any], list[StudyPoint]]:
     """Floors (and the ceiling) once, then the parameter's method at every value."""
     group = name.split(".", 1)[0]
-    learned = ["pca"] if group == "pca" else ["tpsr"]
+    learned = list(args.methods or (["pca"] if group == "pca" else ["tpsr"]))
     once = [CONSTANT, RANDOM] if group == "fqi" else [CONSTANT, RANDOM, TRUE_POSITION]
-    if group == "fqi":
+    if group == "fqi" and TRUE_POSITION not in learned:
         learned.append(TRUE_POSITION)
     # validate every value before any run: a typo must not cost the first values' hours
     configs = [config_from_args(args, learned, [*args.assignments, f"{name}={v}"]) for v in values]
@@ -162,6 +162,14 @@ def register(subparsers: Any) -> None:
         required=True,
         metavar="NAME=V1,V2,...",
         help="the parameter (any --set name) and its values, e.g. tpsr.sigma_ht=1,2,4",
+    )
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        choices=("tpsr", "pca"),
+        default=None,
+        help="learned representations run at every value (default: the one the parameter "
+        "belongs to, the TPSR for fitted-Q parameters)",
     )
     parser.add_argument(
         "-o", "--output", type=Path, default=Path("results"),

@@ -49,6 +49,7 @@ from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import median_distance
+from tpsr_ros.core.sizing import Sizing, describe_sizing, size_to_data
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.core.whitening import Whitening
 from tpsr_ros.io.model_io import check_output_path
@@ -233,13 +234,14 @@ def _planned(widths: dict[str, float], episodes: int) -> int:
 def _candidates(
     base: TPSRConfig, widths: dict[str, float], episodes: int, best: Callable[[], TPSRConfig]
 ) -> Iterator[tuple[str, TPSRConfig]]:
-    """The guide's defaults first, median widths second, then each stage around the best.
+    """The base (a preset's settings) first, median widths second, then each stage around
+    the best.
 
-    The defaults come first so that a budget that allows one candidate returns a model
-    no worse than an untuned fit: at the median observation width the filter of a
-    `full` bag explodes (docs/results.md, "Tuning").
+    The base comes first so that a budget that allows one candidate returns a model no
+    worse than an untuned fit: at the median observation width the filter of a `full`
+    bag explodes (docs/results.md, "Tuning").
     """
-    yield "guide defaults", base
+    yield "base", base
     yield "median widths", dataclasses.replace(base, **widths)
     for stage, propose in _stages(widths, episodes):
         for candidate in propose(best()):
@@ -250,6 +252,7 @@ def tune(
     trajectory: Trajectory,
     *,
     budget: float = DEFAULT_BUDGET,
+    candidates: int | None = None,
     seed: int = 0,
     base: TPSRConfig | None = None,
     criterion: CriterionConfig | None = None,
@@ -258,11 +261,16 @@ def tune(
     clock: Clock = time.perf_counter,
     started: float | None = None,
 ) -> TuneResult:
-    """Search fit parameters for ``trajectory`` within ``budget`` seconds (from ``started``).
+    """Search fit parameters for ``trajectory`` within ``budget`` seconds (from ``started``)
+    and at most ``candidates`` candidates (None: no count limit).
 
     ``report`` gets one line per candidate (parameters, criterion, best so far) and the
-    reason the search stopped. The first candidate always runs, whatever the budget.
+    reason the search stopped. The first candidate always runs, whatever the budget. A
+    count limit makes the search reproducible whatever the machine's speed: with a budget
+    long enough, the same data and seed give the same candidates and choice.
     """
+    if candidates is not None and candidates < 1:
+        raise ConfigError(f"candidates must be at least 1, not {candidates}")
     start = clock() if started is None else started
     say = report or (lambda _line: None)
     crit = criterion or CriterionConfig()
@@ -272,16 +280,9 @@ def tune(
     widths = median_widths(train, base, seed=seed)
     span = base.history_length + 1 + base.test_length
     episodes = len(train) // span
-    if max(base.ht_centers, base.obs_centers) > episodes // 2:
-        base = dataclasses.replace(
-            base,
-            ht_centers=min(base.ht_centers, episodes // 2),
-            obs_centers=min(base.obs_centers, episodes // 2),
-        )
-        say(
-            f"{episodes} training episodes: at most {episodes // 2} kernel centres "
-            f"(ht_centers {base.ht_centers}, obs_centers {base.obs_centers})"
-        )
+    base, sized = size_to_data(base, episodes, train.observations.shape[1], Sizing())
+    if sized:
+        say(describe_sizing(episodes, sized))
     say(
         f"median widths: sigma_obs {widths['sigma_obs']:.3g}, sigma_ht {widths['sigma_ht']:.3g} "
         f"({len(train)} steps fitted, {len(heldout)} held out)"
@@ -303,6 +304,9 @@ def tune(
     for stage, candidate in _candidates(base, widths, episodes, lambda: best().config):
         if candidate in seen:
             continue
+        if candidates is not None and len(trials) >= candidates:
+            stopped = f"the limit of {candidates} candidate(s) was reached"
+            break
         elapsed = clock() - start
         longest = max((t.score.seconds for t in trials), default=0.0)
         if trials and elapsed + longest > budget:
@@ -389,6 +393,11 @@ def register(subparsers: Any) -> None:
         help="time for reading and the search (default: %(default)s); the first candidate "
         "always runs",
     )
+    parser.add_argument(
+        "--candidates", type=positive_int, default=None, metavar="N",
+        help="try at most N candidates (reproducible on any machine, given the time; "
+        "default: as many as the budget allows)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of sampling and fits")
     parser.add_argument(
         "--steps", type=positive_int, default=None, metavar="N",
@@ -396,8 +405,10 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("--force", action="store_true", help="overwrite an existing CONFIG")
     from learner.fit import add_topic_options
-    from learner.streams import add_stream_options
+    from learner.inputs import add_stream_options
+    from learner.options import add_preset_option
 
+    add_preset_option(parser, "fit (the search starts from it)")
     add_topic_options(parser.add_argument_group("topics"))
     add_stream_options(
         parser.add_argument_group(
@@ -414,8 +425,9 @@ def _say(line: str) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Read the bags, tune within the budget, write CONFIG.yaml, print the best."""
-    from learner.fit import ROBOT_BAG_TPSR_DEFAULTS, read_training_bags
-    from learner.streams import fit_options_from_args, topics_from_args
+    from learner.fit import read_training_bags
+    from learner.inputs import fit_options_from_args, topics_from_args
+    from learner.options import preset_from_args
 
     start = time.perf_counter()
     if args.seed < 0:
@@ -426,11 +438,11 @@ def run(args: argparse.Namespace) -> int:
     trajectory, spec = read_training_bags(args, topics_from_args(args), stream_options, _say)
     if args.steps is not None:
         trajectory = trajectory.rows(0, min(len(trajectory), args.steps))
-    # the search starts from what learner fit would fit: for robot bags, their defaults
-    base = TPSRConfig(**ROBOT_BAG_TPSR_DEFAULTS) if spec is not None else None
+    # the search starts from what learner fit would fit with the same preset
+    base = preset_from_args(args).tpsr_config(robot=spec is not None)
     result = tune(
-        trajectory, budget=args.budget, seed=args.seed, base=base, report=_say, progress=True,
-        started=start,
+        trajectory, budget=args.budget, candidates=args.candidates, seed=args.seed, base=base,
+        report=_say, progress=True, started=start,
     )
     header = (
         f"learner tune {' '.join(map(str, args.bags))} (seed {args.seed}, budget "

@@ -1,4 +1,4 @@
-"""Hostile input (issue 17): params files, -p values, bag metadata.yaml, damaged MCAP bytes."""
+"""Hostile input: params files, -p values, bag metadata.yaml, damaged MCAP bytes."""
 
 from __future__ import annotations
 
@@ -6,7 +6,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,12 +57,11 @@ def _params_file(tmp_path: Path, content: str | bytes) -> str:
         ("node: [unclosed\n", "not valid YAML (line 2)"),
     ],
 )
+@pytest.mark.timeout(30)  # an exponential expansion (a YAML bomb) would not end: it fails
 def test_hostile_params_files_are_one_line_usage_errors(tmp_path, content, fragment):
-    start = time.perf_counter()
     with pytest.raises(UsageError) as info:
         _resolve("--params-file", _params_file(tmp_path, content))
     assert fragment in str(info.value) and "\n" not in str(info.value)
-    assert time.perf_counter() - start < 5  # no exponential expansion
 
 
 def test_values_are_typed_as_rcl_types_them():
@@ -139,6 +137,7 @@ def _read_all(bag: Path) -> int:
         return sum(1 for _ in reader.messages())
 
 
+@pytest.mark.slow
 def test_damaged_mcap_bytes_give_a_bag_error_never_a_traceback(tmp_path):
     # seeded mutations of the sample bag: flipped bits inside compressed chunks, records
     # claiming 2**40 bytes, zeroed lengths; each read either succeeds or says "damaged"
@@ -172,6 +171,7 @@ def test_damaged_mcap_bytes_give_a_bag_error_never_a_traceback(tmp_path):
     assert outcomes["refused"] > 10, outcomes  # the mutations do hit structure and chunks
 
 
+@pytest.mark.slow
 def test_messages_missing_from_what_the_metadata_lists_are_reported(tmp_path):
     # rosbag2's own talker bag read as 0 of 20 messages and `play` exited 0: never again
     bag = _bag_with_metadata(

@@ -12,12 +12,13 @@ import pytest
 from cli_support import run_entry
 
 from learner.cli import build_parser, main
-from learner.fit import ROBOT_BAG_TPSR_DEFAULTS, config_from_args
+from learner.options import config_from_args
 from learner.plots import affine_r2
 from sim_node import SimConfig
 from sim_node.generate import generate_bag
 from tpsr_ros.core.episodes import track_trajectory
 from tpsr_ros.core.pca_baseline import PCAModel
+from tpsr_ros.core.presets import PRESETS
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel
 from tpsr_ros.io.model_io import load_model, read_metadata
 from tpsr_ros.io.trajectory import read_trajectory
@@ -56,19 +57,28 @@ def test_every_table_3_5_parameter_is_an_option():
     ):
         assert name in options, name
     actions = {a.dest: a for a in fit._actions}
+    best, guide = PRESETS["best"], PRESETS["guide"]
     for f in dataclasses.fields(TPSRConfig):
         # resolved at run time (None here): an option given wins over a --config file's
-        # value, which wins over the robot-bag default, which wins over the config's
+        # value, which wins over the preset's (with its robot-bag settings), then the config's
         assert actions[f.name].default is None, f.name
-        assert str(f.default) in actions[f.name].help and "--config" in actions[f.name].help
+        help_text = actions[f.name].help
+        assert str(getattr(best.tpsr_config(), f.name)) in help_text and "--config" in help_text
+        assert str(f.default) in help_text, f.name  # the guide's value, the dataclass default
+    assert actions["preset"].default == "best"
     args = fit.parse_args(["bag", "-o", "model.npz"])
     assert config_from_args(TPSRConfig, args) == TPSRConfig()
-    robot = config_from_args(TPSRConfig, args, ROBOT_BAG_TPSR_DEFAULTS)
-    assert robot == TPSRConfig(**ROBOT_BAG_TPSR_DEFAULTS)
-    from_file = config_from_args(TPSRConfig, args, ROBOT_BAG_TPSR_DEFAULTS, {"rank": 3})
-    assert from_file == TPSRConfig(rank=3, **ROBOT_BAG_TPSR_DEFAULTS)
+    assert config_from_args(TPSRConfig, args, best.tpsr_config()) == best.tpsr_config()
+    robot = config_from_args(TPSRConfig, args, guide.tpsr_config(robot=True))
+    assert robot == TPSRConfig(normalize_ht_features=True)
+    from_file = config_from_args(TPSRConfig, args, guide.tpsr_config(robot=True), {"rank": 3})
+    assert from_file == TPSRConfig(rank=3, normalize_ht_features=True)
+    given = fit.parse_args(["bag", "-o", "m.npz", "--rank", "4", "--no-normalize-ht-features"])
+    mixed = config_from_args(TPSRConfig, given, best.tpsr_config(), {"rank": 3})
+    assert mixed == best.tpsr_config(rank=4, normalize_ht_features=False)
 
 
+@pytest.mark.slow
 def test_fit_info_plot(small_bag, tmp_path, capsys):
     model_path = tmp_path / "m.npz"
     assert (
@@ -92,10 +102,17 @@ def test_fit_info_plot(small_bag, tmp_path, capsys):
     assert "timing: reading bags" in out and "whitening" in out
     for stage in ("reading 1 bag(s)", "whitening", "features", "SVD", "writing"):
         assert stage in err
+    assert "preset best" in err  # the fit says which preset it starts from
     model = load_model(model_path)
     assert isinstance(model, TPSRModel)
-    assert model.config == TPSRConfig(obs_centers=40, ht_centers=80, rank=3, sigma_ht=3.0)
+    expected = PRESETS["best"].tpsr_config(obs_centers=40, ht_centers=80, rank=3, sigma_ht=3.0)
+    # obs_variance 0.95 chooses d^O from the data; the model records the choice
+    assert model.config == dataclasses.replace(expected, obs_dim=model.config.obs_dim)
+    assert model.config.obs_dim != expected.obs_dim
     meta = read_metadata(model_path)
+    assert meta["preset"]["name"] == "best"
+    assert meta["preset"]["changed"] == {"obs_centers": 40, "ht_centers": 80, "rank": 3,
+                                         "sigma_ht": 3.0}
     assert meta["training"]["episodes"] == 250 and meta["training"]["steps"] == 900
     assert meta["training"]["environment"] == "full"
     assert meta["training"]["bags"][0]["generator"]["seed"] == 3
@@ -104,6 +121,8 @@ def test_fit_info_plot(small_bag, tmp_path, capsys):
     assert main(["info", str(model_path)]) == 0
     out, _ = capsys.readouterr()
     assert "method: tpsr, state dimension 3, 25 actions" in out and "rank=3" in out
+    changed = "obs_centers=40, ht_centers=80, sigma_ht=3.0, rank=3"
+    assert f"preset: best; changed by options: {changed}" in out
 
     png = tmp_path / "states.png"
     assert main(["plot", str(model_path), str(small_bag), "-o", str(png)]) == 0
@@ -112,6 +131,7 @@ def test_fit_info_plot(small_bag, tmp_path, capsys):
     assert "R^2 of true position" in out
 
 
+@pytest.mark.slow
 def test_pca_method(small_bag, tmp_path, capsys):
     path = tmp_path / "p.npz"
     assert main(["fit", str(small_bag), "-o", str(path), "--method", "pca", "--pca-dim", "3"]) == 0
@@ -128,8 +148,9 @@ def test_errors_are_one_line_and_write_nothing(small_bag, tmp_path, capsys):
     )
     assert code == 1 and err.count("\n") == 1 and err.startswith("learner: error: ")
     assert "Traceback" not in err and not out_path.exists()
-    code, _, err = run_entry(
-        ["fit", str(small_bag), "-o", str(out_path), "--episodes", "100"], capsys
+    code, _, err = run_entry(  # sizes set on purpose are kept, and refused if too large
+        ["fit", str(small_bag), "-o", str(out_path), "--episodes", "100", "--ht-centers", "1000"],
+        capsys,
     )
     assert code == 1 and "too few for 1000 kernel centres" in err and not out_path.exists()
     code, _, err = run_entry(["fit", str(tmp_path / "nope"), "-o", str(out_path)], capsys)
@@ -141,6 +162,18 @@ def test_errors_are_one_line_and_write_nothing(small_bag, tmp_path, capsys):
     assert code == 1 and "use --force" in err and out_path.read_bytes() == b"keep me"
     code, _, err = run_entry(["info", str(out_path)], capsys)
     assert code == 1 and "truncated or foreign" in err
+
+
+def test_the_presets_sizes_follow_the_data_and_the_fit_says_so(small_bag, tmp_path, capsys):
+    out_path = tmp_path / "m.npz"
+    code, _, err = run_entry(["fit", str(small_bag), "-o", str(out_path), "--episodes", "100"],
+                             capsys)
+    assert code == 0, err
+    assert "100 episodes carry less than configured: ht_centers 1000 -> 50, obs_centers 500 " \
+        "-> 50" in err
+    model = load_model(out_path)
+    assert (model.config.ht_centers, model.config.obs_centers, model.config.rank) == (50, 50, 8)
+    assert model.fit_info["sized"] == {"ht_centers": [1000, 50], "obs_centers": [500, 50]}
 
 
 def test_python_dash_m_entry_point(tmp_path):
@@ -171,20 +204,23 @@ def full_bags(tmp_path_factory):
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    ("options", "minimum"),
+    ("options", "minimum", "training"),
     [
-        ([], 0.6),  # guide defaults (sigma_h/t 2.0): x ~0.7, y ~0.8 on our simulator
-        (["--sigma-ht", "4.0"], 0.8),
-    ],  # inside the guide's working range 2-6 (section 4.3)
-    ids=["defaults", "sigma-ht-4"],
+        (["--preset", "guide"], 0.6, 7000),  # sigma_h/t 2.0: x ~0.7, y ~0.8 on our simulator
+        (["--preset", "guide", "--sigma-ht", "4.0"], 0.8, 7000),  # the guide's range 2-6 (4.3)
+        ([], 0.9, 8000),  # the defaults: k-means centres train on every episode
+    ],
+    ids=["guide", "guide-sigma-ht-4", "defaults"],
 )
-def test_full_environment_states_predict_position(full_bags, tmp_path, capsys, options, minimum):
+def test_full_environment_states_predict_position(
+    full_bags, tmp_path, capsys, options, minimum, training
+):
     train, rl = full_bags
     model_path = tmp_path / "full.npz"
     assert main(["fit", str(train), "-o", str(model_path), *options]) == 0
     capsys.readouterr()
     model = load_model(model_path)
-    assert model.fit_info["training_episodes"] == 7000
+    assert model.fit_info["training_episodes"] == training
     tracked = track_trajectory(model, rl)
     r2 = affine_r2(tracked.states, rl.positions)
     with capsys.disabled():

@@ -127,6 +127,7 @@ def test_memory_steps_counts_from_the_first_identical_step():
     assert memory_steps(distance, 6) == (1, True)
 
 
+@pytest.mark.slow
 def test_memory_command(tmp_path):
     from sim_node import SimConfig
     from sim_node.generate import generate_bag

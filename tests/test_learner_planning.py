@@ -12,7 +12,7 @@ from cli_support import run_entry
 
 from learner.cli import main as learner_main
 from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, evaluate, run_protocol
-from learner.experiment import default_config, run_cell, run_experiment, summarise
+from learner.experiment import default_config, run_cell, run_experiment
 from learner.floors import BlindTracker, constant_floor, random_floor
 from learner.overrides import apply_overrides
 from learner.planning import (
@@ -25,10 +25,11 @@ from learner.planning import (
 )
 from learner.representations import TruePositionTracker, load_tracker
 from learner.simulated import random_trajectory
+from learner.tables import summarise
 from sim_node import RobotEnv, SimConfig, action_index
 from sim_node.generate import generate_bag
-from tpsr_ros.core.errors import ConfigError, DivergenceError
 from tpsr_ros.core.episodes import Trajectory
+from tpsr_ros.core.errors import ConfigError, DivergenceError
 from tpsr_ros.core.fqi import FQIConfig, fit_q
 from tpsr_ros.core.pca_baseline import PCAConfig
 from tpsr_ros.core.tpsr import TPSRConfig
@@ -77,8 +78,9 @@ def test_true_position_baseline_scores_at_least_460(environment):
     assert all(t.goal_step is not None for t in result.trials)
 
 
+@pytest.mark.slow
 def test_state_blind_floors_score_near_zero_and_far_below_the_ceiling():
-    # pushing blindly into the goal corner collides there: it must not pay (issue 11)
+    # pushing blindly into the goal corner collides there: it must not pay
     push = run_protocol(lambda _state: action_index(6.0, 6.0), BlindTracker(), "full")
     assert push.score < 0, [t.reward for t in push.trials]
     assert all(t.goal_step is not None for t in push.trials)  # it does reach the zone
@@ -95,6 +97,7 @@ def test_state_blind_floors_score_near_zero_and_far_below_the_ceiling():
     assert abs(first.score) < 100
 
 
+@pytest.mark.slow
 def test_evaluation_follows_the_documented_protocol():
     # a policy that always stands still: every trial stays at its start and earns nothing
     rl = random_trajectory("full", 3000, seed=5)
@@ -147,6 +150,7 @@ def test_a_diverging_fitted_q_is_refitted_at_larger_ridges():
         fit_q_on(states, trajectory, FQIConfig(centers=40, ridge=2.0, iterations=2))
 
 
+@pytest.mark.slow
 def test_policy_and_evaluate_commands(bags, capsys):
     policy, model = bags / "policy.npz", bags / "model.npz"
     code, out, err = run_entry(["evaluate", str(policy), "--environment", "full"], capsys)
@@ -163,10 +167,13 @@ def test_policy_and_evaluate_commands(bags, capsys):
     assert again == (0, out, err)
 
 
+@pytest.mark.slow
 def test_a_policy_planned_in_predictive_units(bags, tmp_path, capsys):
     policy = tmp_path / "policy.npz"
     args = ["policy", str(bags / "model.npz"), str(bags / "rl"), "-o", str(policy)]
-    code, _, err = run_entry([*args, "--state-scaling", "predictive", "--centers", "40"], capsys)
+    code, _, err = run_entry(
+        [*args, "--preset", "guide", "--state-scaling", "predictive", "--centers", "40"], capsys
+    )
     assert code == 0, err
     loaded = load_policy(policy)
     assert loaded.metadata["fqi"]["state_scaling"] == "predictive"
@@ -183,6 +190,7 @@ def test_a_policy_planned_in_predictive_units(bags, tmp_path, capsys):
     assert code == 0 and out.splitlines()[-1].startswith("score: "), err
 
 
+@pytest.mark.slow
 def test_policy_command_says_when_it_raised_the_ridge(bags, tmp_path, capsys):
     policy = tmp_path / "policy.npz"
     args = ["policy", str(bags / "model.npz"), str(bags / "rl"), "-o", str(policy)]
@@ -192,6 +200,7 @@ def test_policy_command_says_when_it_raised_the_ridge(bags, tmp_path, capsys):
     assert used > 1e-8 and f"diverged at ridge 1e-08; refitted at ridge {used:g}" in err
 
 
+@pytest.mark.slow
 def test_bad_input_to_policy_and_evaluate(bags, tmp_path, capsys):
     model, policy = tmp_path / "model.npz", tmp_path / "policy.npz"
     model.write_bytes((bags / "model.npz").read_bytes())
@@ -227,6 +236,7 @@ def _small_grid(**overrides):
     return default_config("full", **{**settings, **overrides})
 
 
+@pytest.mark.slow
 def test_experiment_grid_rows_seeds_and_rerun_of_one_row(tmp_path):
     config = _small_grid()
     rows = run_experiment(config, workers=2, progress=False)
@@ -258,6 +268,7 @@ def test_experiment_grid_rows_seeds_and_rerun_of_one_row(tmp_path):
     assert table[("random", 400)]["floor"] == "" and np.isnan(table[("random", 400)]["margin_sem"])
 
 
+@pytest.mark.slow
 def test_a_run_records_the_observation_dimensions_its_fit_chose():
     from tpsr_ros.core.episodes import make_episodes
     from tpsr_ros.core.whitening import Whitening
@@ -273,6 +284,7 @@ def test_a_run_records_the_observation_dimensions_its_fit_chose():
     assert recorded["obs_dim"] == chosen != tpsr.obs_dim
 
 
+@pytest.mark.slow
 def test_experiment_command_writes_csv_and_plot(tmp_path, capsys):
     out = tmp_path / "results"
     args = ["experiment", "--environment", "full", "--episodes", "300", "--repetitions", "1",
@@ -319,6 +331,7 @@ def test_set_changes_any_fit_or_fitted_q_parameter_and_refuses_bad_ones():
             apply_overrides(configs, [text])
 
 
+@pytest.mark.slow
 def test_experiment_command_set_and_floors(tmp_path, capsys):
     out = tmp_path / "results"
     args = ["experiment", "--environment", "full", "--episodes", "300", "--repetitions", "1",

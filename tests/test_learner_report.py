@@ -1,20 +1,29 @@
-"""learner report: floors beside the ceiling, margins, and verdicts by fixed rules."""
+"""learner report: floors beside the ceiling, verdicts by fixed rules, a page made of CSVs alone."""
 
 from __future__ import annotations
 
-import csv
+import itertools
+import json
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
+import pytest
 
-from learner.experiment import Row, summarise, write_csv
-from learner.report import BETTER, NOT_REPRODUCED, REPRODUCED, judge
+from learner.appendix import SECTIONS
+from learner.jobs import Job
+from learner.overrides import convert
+from learner.results_page import HEADLINE, all_jobs
+from learner.tables import Row, read_csv, summarise, write_csv
+from learner.verdicts import BETTER, NOT_REPRODUCED, REPRODUCED, judge
 
 ENVIRONMENTS = ("full", "partial", "distractors")
+REPOSITORY = Path(__file__).resolve().parents[1]
 
 
-def _rows(environment, scores_by_method, episodes=(2000, 8000)):
+def _rows(environment, scores_by_method, episodes=(2000, 8000), **fields):
     """Rows with the given scores: ``{method: [score, ...]}`` at every data size."""
     rows = []
     for size in episodes:
@@ -22,7 +31,7 @@ def _rows(environment, scores_by_method, episodes=(2000, 8000)):
             for k, score in enumerate(scores):
                 rows.append(
                     Row(environment, method, size, k, 1, 100, float(score), "", 0.0, 0.01, 0,
-                        0.9, 0.9, "ok")
+                        0.9, 0.9, "ok", **fields)
                 )
     return rows
 
@@ -63,51 +72,112 @@ def test_verdicts_better_and_not_reproduced():
     assert verdicts[claims[3]] == NOT_REPRODUCED and verdicts[claims[4]] == NOT_REPRODUCED
 
 
-def test_report_reuse_writes_floors_margins_and_findings(tmp_path):
-    rng = np.random.default_rng(2)
-    results, docs = tmp_path / "results", tmp_path / "docs"
-    results.mkdir()
+def _argument(job: Job, name: str, default: str = "") -> str:
+    return job.argv[job.argv.index(name) + 1] if name in job.argv else default
+
+
+def _fake_rows(job: Job, rng: np.random.Generator) -> list[Row]:
+    """Rows shaped like those the job's command writes, with random scores."""
+    environment = _argument(job, "--environment")
+    sizes = (2000, 8000) if job.argv[0] == "experiment" and "--episodes" not in job.argv else (
+        int(_argument(job, "--episodes")),
+    )
+    methods = ["constant", "random", "tpsr", "pca", "true-position"]
+    if "--methods" in job.argv:
+        start = job.argv.index("--methods") + 1
+        methods = list(itertools.takewhile(lambda m: not m.startswith("--"), job.argv[start:]))
+    extra = {"memory": 0.0, "memory_distance": 0.01} if "--memory" in job.argv else {}
+    if job.argv[0] == "experiment":
+        tune = {"tune": {"candidates": 24, "seconds": 50.0}} if "--tune" in job.argv else {}
+        parameters = json.dumps({"tpsr": {"rank": 8}, **tune})
+        scores = {m: rng.normal(400, 20, 3) for m in methods}
+        return _rows(environment, scores, sizes, parameters=parameters, **extra)
+    name, values = _argument(job, "--vary").split("=")
+    group, field = name.split(".")
+    rows = _rows(environment, {"constant": [0.0] * 3, "random": rng.normal(5, 5, 3)}, sizes)
+    for value in values.split(","):
+        parameters = json.dumps({group: {field: convert(name, value)}})
+        learned = {m: rng.normal(420, 20, 3) for m in methods[:2] if m in ("tpsr", "pca")}
+        learned = learned or {"tpsr": rng.normal(420, 20, 3)}
+        rows += _rows(environment, learned, sizes, parameters=parameters, criterion=0.3)
+    return rows
+
+
+@pytest.fixture()
+def fake_results(tmp_path):
+    rng = np.random.default_rng(3)
+    results = tmp_path / "results"
+    for job in all_jobs():
+        path = job.path(results)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_csv(_fake_rows(job, rng), path)
+    return results
+
+
+@pytest.mark.slow
+def test_report_reuse_renders_every_job_and_is_reproducible(fake_results, tmp_path):
+    docs = tmp_path / "docs"
     docs.mkdir()
-    for environment in ENVIRONMENTS:
-        scores = {"constant": [0.0] * 3, "random": rng.normal(0, 30, 3),
-                  "tpsr": rng.normal(300, 30, 3), "pca": rng.normal(200, 30, 3),
-                  "true-position": [469.7] * 3}
-        write_csv(_rows(environment, scores), results / f"experiment_{environment}.csv")
-    (docs / "results.md").write_text("STALE PAGE\n<!-- discussion -->\nhand-written discussion\n")
+    command = [sys.executable, "-m", "learner", "report", "--reuse", "--results",
+               str(fake_results), "--docs", str(docs)]
+    first = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert first.returncode == 0, first.stderr
+    page = (docs / "results.md").read_text()
+    figures = {env: (docs / f"results_{env}.png").read_bytes() for env in ENVIRONMENTS}
+    second = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert second.returncode == 0, second.stderr
+    assert (docs / "results.md").read_text() == page  # the CSVs alone decide the bytes
+    assert {env: (docs / f"results_{env}.png").read_bytes() for env in ENVIRONMENTS} == figures
+    for job in all_jobs():  # every table names the command that made it
+        assert job.command in page, job.command
+    for section in SECTIONS:
+        assert f"### {section.title}" in page
+    for env in ENVIRONMENTS:
+        assert f"### `{env}`" in page and f"![{env}](results_{env}.png)" in page
+    assert page.count("| random actions (floor) |") == 3 and "(ceiling)" in page
+    assert "session" not in page.lower() and "issue" not in page.lower()
+
+
+@pytest.mark.slow
+def test_report_reuse_names_the_command_of_a_missing_csv(fake_results, tmp_path):
+    missing = HEADLINE["guide"][1]
+    missing.path(fake_results).unlink()
+    docs = tmp_path / "docs"
+    docs.mkdir()
     result = subprocess.run(
-        [sys.executable, "-m", "learner", "report", "--reuse", "--results", str(results),
+        [sys.executable, "-m", "learner", "report", "--reuse", "--results", str(fake_results),
          "--docs", str(docs)], capture_output=True, text=True, timeout=120,
+    )
+    assert result.returncode != 0 and missing.command in result.stderr
+    assert result.stderr.count("\n") == 1  # one line, no traceback
+
+
+@pytest.mark.slow
+def test_the_committed_page_is_what_the_committed_csvs_give(tmp_path):
+    """A fresh clone's ``learner report --reuse`` rewrites docs/results.md byte for byte."""
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    result = subprocess.run(
+        [sys.executable, "-m", "learner", "report", "--reuse", "--results",
+         str(REPOSITORY / "results"), "--docs", str(docs)],
+        capture_output=True, text=True, timeout=300,
     )
     assert result.returncode == 0, result.stderr
-    page = (docs / "results.md").read_text()
-    assert page.endswith("<!-- discussion -->\nhand-written discussion\n")
-    assert "STALE PAGE" not in page.split("<!--")[0]
-    for environment in ENVIRONMENTS:
-        assert f"## `{environment}`" in page
-        assert (docs / f"results_{environment}.png").stat().st_size > 10_000
-    assert page.count("| constant (floor) |") == 6 and page.count("| random (floor) |") == 6
-    assert page.count("(ceiling) |") == 6 and "over random" in page
-    assert page.count("| `distractors` |") == 3
-    # every row of the CSVs made it in: 5 methods x 2 sizes x 3 runs
-    with (results / "experiment_full.csv").open() as handle:
-        assert len(list(csv.DictReader(handle))) == 30
-    missing = subprocess.run(
-        [sys.executable, "-m", "learner", "report", "--reuse", "--results", str(tmp_path / "no"),
-         "--docs", str(docs)], capture_output=True, text=True, timeout=120,
-    )
-    assert missing.returncode != 0 and "run without --reuse" in missing.stderr
+    assert (docs / "results.md").read_text() == (REPOSITORY / "docs" / "results.md").read_text()
 
 
-def test_csvs_written_before_the_position_error_column_still_read(tmp_path):
-    from learner.report import _read_rows
-
+def test_csvs_written_before_new_columns_still_read(tmp_path):
     path = tmp_path / "experiment_full.csv"
     write_csv(_rows("full", {"tpsr": [400, 410]}, episodes=(2000,)), path)
     lines = path.read_text().splitlines()
     header = lines[0].split(",")
-    column = header.index("position_error")
-    old = [",".join(v for i, v in enumerate(line.split(",")) if i != column) for line in lines]
+    keep = [i for i, name in enumerate(header) if name not in ("position_error", "criterion")]
+    old = [",".join(line.split(",")[i] for i in keep) for line in lines]
     path.write_text("\n".join(old) + "\n")
-    rows = _read_rows(path)
+    rows = read_csv(path)
     assert [r.score for r in rows] == [400.0, 410.0]
-    assert all(np.isnan(r.position_error) for r in rows)
+    assert all(np.isnan(r.position_error) and np.isnan(r.criterion) for r in rows)
+    path.write_text("environment,nonsense\nfull,1\n")
+    with pytest.raises(Exception, match="unknown columns"):
+        read_csv(path)
+    shutil.rmtree(tmp_path)

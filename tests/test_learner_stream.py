@@ -5,7 +5,6 @@ from __future__ import annotations
 import dataclasses
 import shutil
 import socket
-import time
 import types
 
 import numpy as np
@@ -17,6 +16,7 @@ from sim_node.generate import generate_bag
 from tpsr_ros.core.episodes import make_episodes
 from tpsr_ros.core.errors import BagError, ConfigError
 from tpsr_ros.core.pca_baseline import fit_pca
+from tpsr_ros.core.presets import PRESETS
 from tpsr_ros.core.streamed_fit import fit_pca_streamed, fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
 from tpsr_ros.io.bag_chunks import BagChunks, survey_bags
@@ -24,7 +24,7 @@ from tpsr_ros.io.model_io import load_model, read_metadata
 from tpsr_ros.io.trajectory import read_trajectory
 
 SMALL = ["--obs-centers", "40", "--ht-centers", "80", "--rank", "3"]
-CONFIG = TPSRConfig(obs_centers=40, ht_centers=80, rank=3)
+CONFIG = PRESETS["best"].tpsr_config(obs_centers=40, ht_centers=80, rank=3)  # the CLI's
 ARRAYS = ("obs_mean", "obs_whitening", "obs_centers", "b_star", "b_inf", "B", "singular_values")
 
 
@@ -49,6 +49,7 @@ def assert_same(model, reference, tol=1e-9):
         assert np.abs(a - b).max() <= tol * np.abs(b).max(), name
 
 
+@pytest.mark.slow
 def test_stream_option_writes_the_in_memory_model(bags, reference, tmp_path, capsys):
     out = tmp_path / "m.npz"
     code, stdout, stderr = run_entry(
@@ -69,6 +70,28 @@ def test_stream_option_writes_the_in_memory_model(bags, reference, tmp_path, cap
     assert "1200 steps, 2 segment(s), 399 episodes" in stdout  # as the in-memory PCA fit
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("how", [["--stream", "--chunk-steps", "150"], ["--workers", "1"]])
+def test_every_fit_option_streams_and_distributes(bags, tmp_path, capsys, how):
+    """Options the streamed fit once refused (action-aware features, the state box) give
+    the in-memory model streamed and on Dask too."""
+    if "--workers" in how:
+        pytest.importorskip("distributed")
+    options = [*SMALL, "--history-length", "2", "--test-length", "2", "--history-action-weight",
+               "1", "--test-action-weight", "0.5", "--state-clip-quantile", "0.05"]
+    memory, other = tmp_path / "memory.npz", tmp_path / "other.npz"
+    code, _, err = run_entry(["fit", *map(str, bags), "-o", str(memory), *options], capsys)
+    assert code == 0, err
+    code, _, err = run_entry(["fit", *map(str, bags), "-o", str(other), *options, *how], capsys)
+    assert code == 0, err
+    streamed, reference = load_model(other), load_model(memory)
+    assert_same(streamed, reference)
+    assert np.abs(streamed.state_box - reference.state_box).max() <= 1e-9 * np.abs(
+        reference.state_box
+    ).max()
+
+
+@pytest.mark.slow
 def test_streamed_pca_baseline_equals_fit_pca(bags):
     reader = BagChunks(chunk_steps=111)
     episodes = make_episodes(read_trajectory(bags), 1, 1)
@@ -79,13 +102,15 @@ def test_streamed_pca_baseline_equals_fit_pca(bags):
         assert np.abs(a - b).max() <= 1e-9 * np.abs(b).max(), name
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_equals_one_process(bags, reference, monkeypatch):
     """Rows stay on the workers: the client holds only the 'first' centres' rows."""
     distributed = pytest.importorskip("distributed")
     import learner.distributed
     from learner.distributed import DaskEngine, check_bags_visible
 
-    kmeans = dataclasses.replace(CONFIG, center_selection="kmeans")
+    first = TPSRConfig(obs_centers=40, ht_centers=80, rank=3)  # the guide's 'first' centres
+    kmeans = dataclasses.replace(first, center_selection="kmeans")
 
     reader = BagChunks(chunk_steps=512)
     with (
@@ -96,28 +121,29 @@ def test_dask_local_cluster_equals_one_process(bags, reference, monkeypatch):
     ):
         check_bags_visible(client, bags)
         engine = DaskEngine(client, bags, reader)
-        model = fit_tpsr_streamed(engine, config=CONFIG)
-        limited = fit_tpsr_streamed(engine, config=CONFIG, max_episodes=230)  # bag b left out
+        model = fit_tpsr_streamed(engine, config=first)
+        limited = fit_tpsr_streamed(engine, config=first, max_episodes=230)  # bag b left out
         with_kmeans = fit_tpsr_streamed(engine, config=kmeans)  # the client gathers every row
         monkeypatch.setattr(learner.distributed, "MAX_SHIPPED_P_TH_BYTES", 0)
-        p_th_here = fit_tpsr_streamed(engine, config=CONFIG)  # P_TH summed in the client
+        p_th_here = fit_tpsr_streamed(engine, config=first)  # P_TH summed in the client
         with pytest.raises(ConfigError, match=r"cannot see bag\(s\)"):
             check_bags_visible(client, [*bags, bags[0].parent / "elsewhere"])
     assert model.fit_info["streamed"]["engine"].startswith("dask, 2 worker(s)")
-    assert_same(model, reference)
-    one_process = fit_tpsr_streamed(lambda: reader.read_all(bags), config=CONFIG)
+    assert_same(model, fit_tpsr_episodes(make_episodes(read_trajectory(bags), 1, 1), config=first))
+    one_process = fit_tpsr_streamed(lambda: reader.read_all(bags), config=first)
     assert_same(model, one_process)
     assert_same(p_th_here, one_process)
     row_bytes = one_process.fit_info["streamed"]["scratch_bytes"] // 399  # 248: 3 x 10 + 1
     assert row_bytes == 8 * (3 * 10 + 1)
-    centre_rows = max(CONFIG.ht_centers, CONFIG.obs_centers)
+    centre_rows = max(first.ht_centers, first.obs_centers)
     assert model.fit_info["streamed"]["scratch_bytes"] == centre_rows * row_bytes
     assert with_kmeans.fit_info["streamed"]["scratch_bytes"] == 399 * row_bytes
     assert_same(with_kmeans, fit_tpsr_streamed(lambda: reader.read_all(bags), config=kmeans))
     first_230 = make_episodes(read_trajectory(bags), 1, 1, max_episodes=230)
-    assert_same(limited, fit_tpsr_episodes(first_230, config=CONFIG))
+    assert_same(limited, fit_tpsr_episodes(first_230, config=first))
 
 
+@pytest.mark.slow
 def test_a_scheduler_that_does_not_answer_is_one_line(bags, tmp_path, capsys):
     pytest.importorskip("distributed")
     with socket.socket() as sock:  # a port nobody listens on
@@ -182,16 +208,17 @@ def test_option_conflicts_are_one_line(bags, tmp_path, capsys):
     assert code == 1 and "PCA baseline streams in one process only" in stderr
 
 
+@pytest.mark.slow
 def test_robot_bags_stream_on_their_step_grid(bags, tmp_path, capsys):
     """--step-period: each bag is read whole on the grid and sliced into chunks."""
-    common = ["fit", *map(str, bags), "--step-period", "1", *SMALL]
+    common = ["fit", *map(str, bags), "--step-period", "1", *SMALL, "--preset", "guide"]
     code, _, stderr = run_entry([*common, "-o", str(tmp_path / "mem.npz")], capsys)
     assert code == 0, stderr
     code, _, stderr = run_entry(
         [*common, "-o", str(tmp_path / "str.npz"), "--stream", "--chunk-steps", "100"], capsys
     )
     assert code == 0, stderr
-    assert "features normalised to sum 1 (the robot-bag default" in stderr
+    assert "preset guide with its robot-bag settings" in stderr
     streamed = load_model(tmp_path / "str.npz")
     assert streamed.config.normalize_ht_features  # the robot-bag default, streamed too
     assert_same(streamed, load_model(tmp_path / "mem.npz"))
@@ -209,15 +236,15 @@ def silent_listener():
         yield sock.getsockname()[1]
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(60)  # a scheduler timeout that is not honoured hangs: the test fails
 def test_a_scheduler_that_accepts_but_never_answers_is_one_line_in_time(
     bags, tmp_path, capsys, silent_listener
 ):
     pytest.importorskip("distributed")
     out = tmp_path / "m.npz"
     argv = ["fit", str(bags[0]), "-o", str(out), "--scheduler", f"tcp://127.0.0.1:{silent_listener}"]
-    start = time.perf_counter()
     code, _, stderr = run_entry([*argv, "--scheduler-timeout", "1.5", *SMALL], capsys)
-    assert time.perf_counter() - start < 6
     assert code == 1
     last = stderr.strip().splitlines()[-1]
     assert last.startswith("learner: error: no Dask scheduler answers at")
@@ -253,12 +280,12 @@ def test_a_cluster_with_no_workers_left_is_a_one_line_error_not_a_hang():
         distributed.Client(cluster, set_as_default=False) as client,
     ):
         future = client.submit(sum, [3, 4], pure=False)  # no worker will ever run it
-        start = time.perf_counter()
         with pytest.raises(ConfigError, match="has no workers left") as caught:
             gather(client, [future], poll=0.5)
-        assert time.perf_counter() - start < 5 and "\n" not in str(caught.value)
+        assert "\n" not in str(caught.value)
 
 
+@pytest.mark.slow
 def test_workers_option_writes_the_streamed_model(bags, tmp_path, capfd):
     pytest.importorskip("distributed")
     common = ["fit", *map(str, bags), *SMALL]
@@ -274,6 +301,7 @@ def test_workers_option_writes_the_streamed_model(bags, tmp_path, capfd):
     assert_same(model, load_model(tmp_path / "s.npz"))
 
 
+@pytest.mark.slow
 def test_a_bag_that_vanishes_under_dask_is_one_line_without_worker_tracebacks(
     bags, tmp_path, capfd, monkeypatch
 ):

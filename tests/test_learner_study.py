@@ -15,6 +15,7 @@ GRID = ["--environment", "full", "--episodes", "300", "--repetitions", "1",
         "--rl-steps", "2000", "--workers", "1"]
 
 
+@pytest.mark.slow
 def test_study_runs_every_value_with_the_same_seeds_as_experiment(tmp_path, capsys):
     out = tmp_path / "results"
     assert main(["study", *GRID, "--vary", "pca.dim=2,3", "-o", str(out)]) == 0
@@ -37,6 +38,7 @@ def test_study_runs_every_value_with_the_same_seeds_as_experiment(tmp_path, caps
     assert alone == studied[1:]
 
 
+@pytest.mark.slow
 def test_fitted_q_parameters_move_the_ceiling_too(tmp_path):
     out = tmp_path / "results"
     args = ["study", *GRID, "--vary", "fqi.centers=20,40", "-o", str(out)]

@@ -53,6 +53,7 @@ def options(**changes) -> FitOptions:
 # -- the resampled steps are the simulator's steps ------------------------------------------
 
 
+@pytest.mark.slow
 def test_streams_read_once_give_the_spec_and_steps_of_reading_twice(robot):
     bags = [robot["bag"]]
     topics = {"pose_topic": "/odom", "reward_topic": "/reward"}
@@ -74,6 +75,7 @@ def test_streams_read_once_give_the_spec_and_steps_of_reading_twice(robot):
         read_stream_trajectory([robot["bag"], robot["bag"]], spec, streams=streams)
 
 
+@pytest.mark.slow
 def test_resampled_steps_are_the_simulator_steps(robot):
     config = robot["config"]
     spec = fit_stream_spec([robot["bag"]], options(), image_topic=CAMERA, action_topic="/cmd_vel")
@@ -145,8 +147,8 @@ def test_fit_info_plot_policy_need_no_options_again(robot, capsys):
     err = capsys.readouterr().err
     assert "steps of 1 s (camera period 0.25 s); observations 8x8 colour" in err
     assert "commands: 0 of 898 farther than" in err  # none far from its code: reported
-    assert "features normalised to sum 1 (the robot-bag default" in err
-    assert load_model(model).config.normalize_ht_features  # robot bags' default
+    assert "preset best (" in err
+    assert load_model(model).config.normalize_ht_features  # the default preset's
     metadata = read_metadata(model)
     spec = model_stream_spec(model, metadata)
     assert spec is not None and len(spec.codebook) == 25 and spec.image_topic == CAMERA
@@ -167,16 +169,19 @@ def test_fit_info_plot_policy_need_no_options_again(robot, capsys):
     assert "25 kmeans actions over linear.x, linear.y; steps of 1 s" in out
 
 
+@pytest.mark.slow
 def test_the_robot_bag_default_yields_to_an_explicit_option(robot, capsys):
     tmp, bag = robot["tmp"], robot["bag"]
     model = tmp / "guide_features.npz"
     argv = ["fit", str(bag), "--image-topic", CAMERA, *ROBOT, "--image-size", "8",
-            "--actions", "25", "-o", str(model), *SMALL, "--no-normalize-ht-features"]
+            "--actions", "25", "-o", str(model), *SMALL, "--no-normalize-ht-features",
+            "--preset", "guide"]  # fmt: skip
     assert main(argv) == 0
-    assert "robot-bag default" not in capsys.readouterr().err
+    assert "normalize_ht_features=False" in capsys.readouterr().err
     assert not load_model(model).config.normalize_ht_features
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("file_sets_it", "said"), [(False, True), (True, False)])
 def test_the_robot_bag_default_is_said_unless_the_config_file_sets_it(
     robot, capsys, file_sets_it, said
@@ -188,12 +193,15 @@ def test_the_robot_bag_default_is_said_unless_the_config_file_sets_it(
     model = tmp / f"from_config_{file_sets_it}.npz"
     argv = ["fit", str(bag), "--image-topic", CAMERA, *ROBOT, "--image-size", "8",
             "--actions", "25", "-o", str(model), "--obs-centers", "40", "--ht-centers", "80",
-            "--config", str(config)]  # fmt: skip
+            "--config", str(config), "--preset", "guide"]  # fmt: skip
     assert main(argv) == 0
-    assert ("robot-bag default" in capsys.readouterr().err) == said
+    err = capsys.readouterr().err
+    assert "preset guide with its robot-bag settings" in err
+    assert ("normalize_ht_features=False" not in err) == said
     assert load_model(model).config.normalize_ht_features == said
 
 
+@pytest.mark.slow
 def test_a_model_whose_input_entry_is_wrong_is_refused(robot):
     model = robot["tmp"] / "m_input.npz"
     argv = ["fit", str(robot["bag"]), "--image-topic", CAMERA, *ROBOT, "--image-size", "8",
@@ -215,6 +223,7 @@ def test_a_model_whose_input_entry_is_wrong_is_refused(robot):
             load_model(path)
 
 
+@pytest.mark.slow
 def test_a_bag_without_ground_truth_plots_by_time(robot, tmp_path, capsys):
     model = robot["tmp"] / "m_nopose.npz"
     bare = tmp_path / "bare"
@@ -292,12 +301,13 @@ def dataclass_replace_type(spec):
 # -- simulator bags: the exact-stamp pairing, bit for bit -----------------------------------
 
 
+@pytest.mark.slow
 def test_simulator_bags_give_the_model_of_the_unchanged_core_path(tmp_path):
     config = SimConfig(environment="full")
     bag = tmp_path / "sim"
     generate_bag(bag, config, 600, seed=4)
     model_path = tmp_path / "sim.npz"
-    assert main(["fit", str(bag), "-o", str(model_path), *SMALL]) == 0
+    assert main(["fit", str(bag), "-o", str(model_path), *SMALL, "--preset", "guide"]) == 0
     run = random_rollout(config, 600, seed=4)
     # the observations and actions every earlier version used: pixels / 255, the 25 indices
     reference = Trajectory.from_arrays(
@@ -312,6 +322,7 @@ def test_simulator_bags_give_the_model_of_the_unchanged_core_path(tmp_path):
     assert "input" not in read_metadata(model_path)  # read as simulator bags always were
 
 
+@pytest.mark.slow
 def test_ground_truth_from_tf_equals_odometry(robot, tmp_path):
     types = msgs.jazzy_typestore().types
     tf_bag = tmp_path / "tf"
@@ -362,7 +373,7 @@ def test_steps_sharing_an_image_all_get_it(robot):
 
 
 def test_the_recorded_topic_of_odd_training_metadata_is_none():
-    from learner.streams import recorded_topic
+    from learner.inputs import recorded_topic
 
     # the descriptive metadata is not validated on load: anything may stand there
     for odd in ({}, {"training": []}, {"training": None}, {"training": {"bags": [1]}}):

@@ -38,6 +38,7 @@ from sim_node.generate import generate_bag
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.features import median_distance
+from tpsr_ros.core.presets import PRESETS
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.io.model_io import load_model
 
@@ -71,6 +72,7 @@ def _score(config: TPSRConfig, split) -> float:
     return score.value
 
 
+@pytest.mark.slow
 def test_criterion_prefers_the_right_model(pomdp_split):
     right = _score(RIGHT, pomdp_split)
     assert right > 0.03  # the exact Bayes belief reaches about 0.2 at horizon 1
@@ -151,14 +153,15 @@ def bag(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_tune_then_fit_with_its_config(bag, tmp_path, capsys):
     config = tmp_path / "tuned.yaml"
     code, out, err = run_entry(["tune", str(bag), "-o", str(config), "--budget", "5"], capsys)
     assert code == 0, err
     content = yaml.safe_load(config.read_text())
     tried = content["tune"]["tried"]
-    assert [t["stage"] for t in tried[:2]] == ["guide defaults", "median widths"]
-    assert "[1] guide defaults" in err and "[2] median widths" in err and "criterion" in out
+    assert [t["stage"] for t in tried[:2]] == ["base", "median widths"]
+    assert "[1] base" in err and "[2] median widths" in err and "criterion" in out
     top = max((t for t in tried if "criterion" in t), key=lambda t: t["criterion"])
     assert content["tune"]["highest_criterion"] == top["criterion"]
     assert all("se" in t and t["se"] > 0 for t in tried if "criterion" in t)
@@ -186,6 +189,7 @@ def assert_fitted_with(fitted: TPSRConfig, requested: TPSRConfig) -> None:
         assert fitted.obs_dim == requested.obs_dim
 
 
+@pytest.mark.slow
 def test_a_robot_bag_is_tuned_from_its_resampled_steps(tmp_path, capsys):
     from sim_node.robot_bag import RobotBagConfig, write_robot_bag
 
@@ -198,7 +202,7 @@ def test_a_robot_bag_is_tuned_from_its_resampled_steps(tmp_path, capsys):
     assert code == 0, err
     assert "9 actions over linear.x, linear.y (kmeans)" in err  # read on the step grid
     tried = yaml.safe_load(config.read_text())["tune"]["tried"]
-    assert tried[0] == {**tried[0], "stage": "guide defaults", "normalize_ht_features": True}
+    assert tried[0] == {**tried[0], "stage": "base", "normalize_ht_features": True}
     code, _, err = run_entry(
         ["fit", str(bag), *robot, "--config", str(config), "-o", str(tmp_path / "m.npz")], capsys
     )
@@ -207,6 +211,7 @@ def test_a_robot_bag_is_tuned_from_its_resampled_steps(tmp_path, capsys):
     assert fitted == TPSRConfig(**yaml.safe_load(config.read_text())["tpsr"])
 
 
+@pytest.mark.slow
 def test_a_tiny_budget_stops_after_the_first_candidate(bag, tmp_path, capsys):
     config = tmp_path / "tiny.yaml"
     code, _, err = run_entry(["tune", str(bag), "-o", str(config), "--budget", "0.01"], capsys)
@@ -214,9 +219,9 @@ def test_a_tiny_budget_stops_after_the_first_candidate(bag, tmp_path, capsys):
     assert "budget of 0.01 s reached after 1 candidate(s)" in err
     content = yaml.safe_load(config.read_text())
     assert len(content["tune"]["tried"]) == 1
-    # one candidate: the guide's defaults, centres capped at half the 600 fitted episodes
-    capped = {"ht_centers": 300, "obs_centers": 300}
-    assert TPSRConfig(**content["tpsr"]) == TPSRConfig(**capped)
+    # one candidate: the default preset, its centres sized to half the 600 fitted episodes
+    sized = PRESETS["best"].tpsr_config(ht_centers=300, obs_centers=300)
+    assert TPSRConfig(**content["tpsr"]) == sized
 
 
 @pytest.mark.parametrize("force", [[], ["--force"]])
@@ -229,6 +234,7 @@ def test_an_unusable_output_is_refused_before_the_search(bag, tmp_path, capsys, 
         assert "[1]" not in err  # no candidate was fitted
 
 
+@pytest.mark.slow
 def test_tune_function_reports_every_candidate():
     rng = np.random.default_rng(2)
     pomdp = sticky_pomdp()
@@ -387,7 +393,7 @@ def test_experiment_tunes_each_run_on_its_own_training_data(tmp_path):
     out = tmp_path / "results"
     grid = ["experiment", "--environment", "full", "--episodes", "300", "--repetitions", "1",
             "--rl-steps", "2000", "--workers", "1", "--methods", "tpsr", "-o", str(out)]
-    with pytest.raises(ConfigError, match="--tune-budget needs --tune"):
+    with pytest.raises(ConfigError, match="--tune-budget and --tune-candidates need --tune"):
         main([*grid, "--tune-budget", "2"])
     assert main([*grid, "--tune", "--tune-budget", "2"]) == 0
     with (out / "experiment_full.csv").open() as handle:

@@ -1,0 +1,516 @@
+"""The appendix of the results page: studies of the planner, the fit switches, tuning, memory.
+
+Each section asks one question, names the commands that write its CSVs, and computes its
+table and verdict from those CSVs alone. Every study runs on the selection seeds
+(:data:`learner.jobs.SELECTION_SEEDS`), the seeds the default configuration was chosen on;
+the page's headline runs on fresh ones. Verdicts follow the page's fixed rule
+(:data:`learner.verdicts.DIFFERENCE_SEMS`): one value beats another only by more than two
+standard errors of the difference; anything closer is within the noise.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.stats import spearmanr
+
+from learner.jobs import ENVIRONMENTS, SELECTION_SEEDS, Job, experiment_job, study_job
+from learner.overrides import convert
+from learner.tables import Row, difference_in_sems, summarise
+from learner.verdicts import DIFFERENCE_SEMS
+from tpsr_ros.core.presets import DEFAULT_PRESET, PRESETS, departures
+from tpsr_ros.core.tpsr import TPSRConfig
+from tpsr_ros.io.policy import TRUE_POSITION
+
+__all__ = ["SECTIONS", "SELECTION_EPISODES", "Section", "cell"]
+
+SELECTION_EPISODES = {"full": 2000, "partial": 8000, "distractors": 8000}
+"""Data size of every study: the smallest of the headline in ``full`` (at 8000 episodes every
+setting is at the ceiling there), the largest elsewhere."""
+
+Data = Mapping[Job, list[Row]]
+
+
+@dataclass(frozen=True)
+class Section:
+    """One study: its question, the jobs that write its CSVs, and how it is rendered."""
+
+    key: str
+    title: str
+    question: str
+    jobs: tuple[Job, ...]
+    render: Callable[[Section, Data], list[str]]
+    commands: str = ""
+    """What to say instead of listing the commands (when they are another section's)."""
+
+    def lines(self, data: Data) -> list[str]:
+        """The section as markdown: title, question, commands, table and verdict."""
+        commands = self.commands or "\n".join(
+            ["**Commands** (selection seeds):", "", "```sh", *(j.command for j in self.jobs), "```"]
+        )
+        return [
+            f"### {self.title}",
+            "",
+            f"**Question.** {self.question}",
+            "",
+            commands,
+            "",
+            *self.render(self, data),
+            "",
+        ]
+
+
+def cell(entry: Mapping[str, Any] | None) -> str:
+    """``mean / median / SEM`` of a summary entry (and its failed runs), ``-`` when absent."""
+    if entry is None or not math.isfinite(entry["mean"]):
+        return "-"
+    text = f"{entry['mean']:.1f} / {entry['median']:.1f} / {entry['sem']:.1f}"
+    return text + (f" ({entry['failed']} failed)" if entry["failed"] else "")
+
+
+def _parameters(row: Row) -> dict[str, Any]:
+    return json.loads(row.parameters) if row.parameters else {}
+
+
+def _mean(values: Sequence[float], fmt: str) -> str:
+    finite = [v for v in values if math.isfinite(v)]
+    return format(float(np.mean(finite)), fmt) if finite else "-"
+
+
+def _median(values: Sequence[float], fmt: str) -> str:
+    finite = [v for v in values if math.isfinite(v)]
+    return format(float(np.median(finite)), fmt) if finite else "-"
+
+
+def _comparison(entry: Mapping[str, Any], base: Mapping[str, Any]) -> tuple[float, float]:
+    """``(mean difference, its size in SEMs of the difference)`` of two summary entries."""
+    return entry["mean"] - base["mean"], difference_in_sems(dict(entry), dict(base))
+
+
+def _judged(difference: float, sems: float) -> str:
+    if not math.isfinite(difference):
+        return "not measured"
+    noise = "within the noise" if abs(sems) <= DIFFERENCE_SEMS else "outside the noise"
+    return f"{difference:+.1f} ({sems:+.1f} SEM, {noise})"
+
+
+# -- one-parameter studies (learner study) -------------------------------------------------
+
+
+def _vary(job: Job) -> tuple[str, list[str]]:
+    text = job.argv[job.argv.index("--vary") + 1]
+    name, values = text.split("=", 1)
+    return name, values.split(",")
+
+
+def _default_value(name: str) -> Any:
+    group, field = name.split(".", 1)
+    preset = PRESETS[DEFAULT_PRESET]
+    config = preset.tpsr_config() if group == "tpsr" else preset.fqi_config()
+    return getattr(config, field)
+
+
+def _study_entries(
+    job: Job, rows: list[Row]
+) -> tuple[list[dict[str, Any]], dict[tuple[str, str], dict[str, Any]]]:
+    """Reference entries (floors, ceiling run once) and ``{(value, method): entry}``."""
+    name, values = _vary(job)
+    group, field = name.split(".", 1)
+    typed = {value: convert(name, value) for value in values}
+    by_value: dict[tuple[str, str], dict[str, Any]] = {}
+    reference = [r for r in rows if field not in _parameters(r).get(group, {})]
+    for value, parsed in typed.items():
+        mine = [r for r in rows if _parameters(r).get(group, {}).get(field, None) == parsed]
+        for entry in summarise(mine):
+            runs = [r for r in mine if r.method == entry["method"]]
+            entry["r2"] = (
+                _mean([r.r2_x for r in runs], ".2f") + " / " + _mean([r.r2_y for r in runs], ".2f")
+            )
+            entry["position_error"] = _median([r.position_error for r in runs], ".2f")
+            by_value[(value, entry["method"])] = entry
+    return summarise(reference), by_value
+
+
+def _render_study(section: Section, data: Data) -> list[str]:
+    name, values = _vary(section.jobs[0])
+    default = _default_value(name)
+    default_text = next((v for v in values if convert(name, v) == default), None)
+    lines = [
+        f"Every other setting is the default's; the default's value is `{default_text}`. "
+        "Cells: mean / median / SEM of 10 runs; R² of the true position's affine map from "
+        "the states (x / y); position error: the median distance between the robot and where "
+        "its 10 nearest states place it (m); the difference to the default's value in SEMs of "
+        "the difference.",
+        "",
+        "| environment (episodes) | value | method | score | R² x / y | position error | "
+        "vs the default |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    verdicts: list[str] = []
+    for job in section.jobs:
+        environment = job.argv[job.argv.index("--environment") + 1]
+        size = SELECTION_EPISODES[environment]
+        reference, entries = _study_entries(job, data[job])
+        for entry in reference:
+            lines.append(
+                f"| `{environment}` ({size}) | - | {entry['method']} | {cell(entry)} | | | |"
+            )
+        methods = list(dict.fromkeys(m for _, m in entries))
+        for method in methods:
+            base = entries.get((default_text or "", method))
+            for value in values:
+                entry = entries.get((value, method))
+                if entry is None:
+                    continue
+                versus = "the default" if value == default_text or base is None else (
+                    _judged(*_comparison(entry, base))
+                )
+                lines.append(
+                    f"| `{environment}` ({size}) | `{value}` | {method} | {cell(entry)} | "
+                    f"{entry['r2']} | {entry['position_error']} | {versus} |"
+                )
+            if method != TRUE_POSITION and base is not None:
+                verdicts.append(
+                    _study_verdict(environment, method, values, default_text, entries, base)
+                )
+    return [*lines, "", "**Verdict.**", "", *verdicts]
+
+
+def _study_verdict(
+    environment: str,
+    method: str,
+    values: list[str],
+    default: str | None,
+    entries: Mapping[tuple[str, str], dict[str, Any]],
+    base: dict[str, Any],
+) -> str:
+    """One bullet: which value scores highest for ``method`` and how the default compares."""
+    measured = [(v, entries[(v, method)]) for v in values if (v, method) in entries]
+    finite = [(v, e) for v, e in measured if math.isfinite(e["mean"])]
+    best_value, best = max(finite, key=lambda item: item[1]["mean"])
+    if best_value == default:
+        others = [(v, e) for v, e in finite if v != default]
+        if not others:
+            return f"- `{environment}`, {method}: only the default was measured."
+        runner, second = max(others, key=lambda item: item[1]["mean"])
+        difference, sems = _comparison(base, second)
+        return (
+            f"- `{environment}`, {method}: the default `{default}` scores highest; the next, "
+            f"`{runner}`, {difference:.1f} below it ({sems:.1f} SEM)."
+        )
+    difference, sems = _comparison(best, base)
+    if sems > DIFFERENCE_SEMS:
+        return (
+            f"- `{environment}`, {method}: **`{best_value}` beats the default `{default}`** by "
+            f"{difference:.1f} ({sems:.1f} SEM)."
+        )
+    return (
+        f"- `{environment}`, {method}: `{best_value}` scores {difference:.1f} above the default "
+        f"`{default}`, within the noise ({sems:.1f} SEM)."
+    )
+
+
+def _study(key: str, title: str, question: str, vary: str, *options: str) -> Section:
+    jobs = tuple(
+        study_job(
+            "studies", env, vary, "--episodes", str(SELECTION_EPISODES[env]), *SELECTION_SEEDS,
+            *options,
+        )
+        for env in ENVIRONMENTS
+    )
+    return Section(key, title, question, jobs, _render_study)
+
+
+# -- tuning ---------------------------------------------------------------------------------
+
+TUNE_OPTIONS = ("--tune", "--tune-budget", "600", "--tune-candidates", "24")
+"""The tuner as studied: 24 candidates (the whole grid of ``learner tune``'s stages up to the
+finer widths), with a time budget long enough never to bind."""
+
+
+def _tuning_jobs(kind: str) -> tuple[Job, ...]:
+    options = TUNE_OPTIONS if kind == "tuned" else ()
+    return tuple(
+        experiment_job(
+            f"tuning/{kind}", env, "--episodes", str(SELECTION_EPISODES[env]), "--methods",
+            "tpsr", *SELECTION_SEEDS, *options,
+        )
+        for env in ENVIRONMENTS
+    )
+
+
+def _tuned_changes(rows: list[Row]) -> str:
+    """The changes the tuner made to the default most often, with how many runs made each."""
+    preset = PRESETS[DEFAULT_PRESET].tpsr_config()
+    counts: Counter[str] = Counter()
+    for row in rows:
+        values = _parameters(row).get("tpsr")
+        if not isinstance(values, dict):
+            continue
+        chosen = TPSRConfig.from_dict(values)
+        for name, value in departures(chosen, preset).items():
+            if name != "obs_dim":  # the fit records the d^O that obs_variance chose
+                shown = f"{value:.3g}" if isinstance(value, float) else str(value)
+                counts[f"{name}={shown}"] += 1
+    return ", ".join(f"`{text}` ({n})" for text, n in counts.most_common(4)) or "nothing"
+
+
+def _render_tuning(section: Section, data: Data) -> list[str]:
+    half = len(section.jobs) // 2
+    lines = [
+        "| environment (episodes) | default | tuned | tuned - default | candidates | "
+        "tuning time (median) | most frequent changes (runs) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    verdicts = []
+    for preset_job, tuned_job in zip(section.jobs[:half], section.jobs[half:], strict=True):
+        environment = preset_job.argv[preset_job.argv.index("--environment") + 1]
+        base = summarise(data[preset_job])[0]
+        tuned_rows = data[tuned_job]
+        tuned = summarise(tuned_rows)[0]
+        records = [_parameters(r).get("tune", {}) for r in tuned_rows]
+        candidates = _median([float(t.get("candidates", math.nan)) for t in records], ".0f")
+        seconds = _median([float(t.get("seconds", math.nan)) for t in records], ".0f")
+        difference, sems = _comparison(tuned, base)
+        lines.append(
+            f"| `{environment}` ({SELECTION_EPISODES[environment]}) | {cell(base)} | "
+            f"{cell(tuned)} | {_judged(difference, sems)} | {candidates} | {seconds} s | "
+            f"{_tuned_changes(tuned_rows)} |"
+        )
+        verdicts.append(
+            f"- `{environment}`: tuning "
+            + ("gains" if difference > 0 else "loses")
+            + f" {abs(difference):.1f} ({sems:+.1f} SEM"
+            + (", outside the noise)." if abs(sems) > DIFFERENCE_SEMS else ", within the noise).")
+        )
+    return [*lines, "", "**Verdict.**", "", *verdicts]
+
+
+# -- criterion validation ---------------------------------------------------------------
+
+
+def _spearman(a: Sequence[float], b: Sequence[float]) -> tuple[float, float]:
+    """Spearman's rho and its p-value; NaN when either side is constant or not finite."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    keep = np.isfinite(a) & np.isfinite(b)
+    if keep.sum() < 3 or np.ptp(a[keep]) == 0 or np.ptp(b[keep]) == 0:
+        return math.nan, math.nan
+    rho, p = spearmanr(a[keep], b[keep])
+    return float(rho), float(p)
+
+
+def _configuration_label(row: Row, field: str) -> str:
+    """``the default`` or ``field=value`` for a TPSR run of a fit-switch study."""
+    values = _parameters(row)["tpsr"]
+    changed = departures(TPSRConfig.from_dict(values), PRESETS[DEFAULT_PRESET].tpsr_config())
+    changed.pop("obs_dim", None)  # the fit records the d^O that obs_variance chose
+    return "the default" if not changed else f"{field}={values[field]}"
+
+
+def _render_criterion(section: Section, data: Data) -> list[str]:
+    lines = [
+        "Each configuration of the fit-switch studies above (one value of one switch, ten "
+        "runs each; the default counted once) with its mean RL score and the median of "
+        "`learner tune`'s criterion over its runs (computed on each run's own training data: "
+        "no reward, no ground truth). Spearman's rank correlation across configurations, "
+        "and across single runs.",
+        "",
+        "| environment | configurations | rho (criterion, mean score) | p | rho per run (runs) | "
+        "highest criterion | its score | highest score |",
+        "|---|---:|---:|---:|---|---|---|---|",
+    ]
+    for environment in ENVIRONMENTS:
+        configurations: dict[str, list[Row]] = {}
+        labels: dict[str, str] = {}
+        seen: set[tuple[str, int]] = set()
+        for job in section.jobs:
+            if job.argv[job.argv.index("--environment") + 1] != environment:
+                continue
+            name, _ = _vary(job)
+            field = name.split(".", 1)[1]
+            for row in data[job]:
+                if row.method != "tpsr" or not math.isfinite(row.criterion):
+                    continue
+                key = row.parameters  # the same configuration in two studies: the same runs
+                if (key, row.repetition) in seen:
+                    continue
+                seen.add((key, row.repetition))
+                configurations.setdefault(key, []).append(row)
+                labels.setdefault(key, _configuration_label(row, field))
+        if len(configurations) < 3:
+            lines.append(f"| `{environment}` | {len(configurations)} | - | - | - | - | - | - |")
+            continue
+        keys = list(configurations)
+        score = np.array([np.nanmean([r.score for r in configurations[k]]) for k in keys])
+        crit = np.array([np.median([r.criterion for r in configurations[k]]) for k in keys])
+        runs = [r for k in keys for r in configurations[k] if math.isfinite(r.score)]
+        rho, p = _spearman(crit, score)
+        rho_runs, _ = _spearman([r.criterion for r in runs], [r.score for r in runs])
+        top_crit, top_score = keys[int(np.argmax(crit))], keys[int(np.argmax(score))]
+        lines.append(
+            f"| `{environment}` | {len(keys)} | {rho:+.2f} | {p:.3f} | {rho_runs:+.2f} "
+            f"({len(runs)}) | `{labels[top_crit]}` | {score[keys.index(top_crit)]:.1f} | "
+            f"`{labels[top_score]}` {score.max():.1f} |"
+        )
+    return lines
+
+
+# -- memory -------------------------------------------------------------------------------
+
+
+def _render_memory(section: Section, data: Data) -> list[str]:
+    lines = [
+        "`learner memory`'s experiment on every model (no execution noise; two runs that "
+        "differ for a few steps and then see the same images under the same actions): "
+        "memory is the number of steps the two states stay more than 0.1 of the state "
+        "spread apart (the smaller of its two variants); the distance is the paths "
+        "variant's at its first identical step.",
+        "",
+        "| preset | method | runs | memory in steps (median, max) | distance at the first "
+        "identical step (median, max) | score |",
+        "|---|---|---:|---|---|---|",
+    ]
+    most = 0.0
+    for job in section.jobs:
+        preset = job.argv[job.argv.index("--preset") + 1] if "--preset" in job.argv else (
+            DEFAULT_PRESET
+        )
+        rows = data[job]
+        for entry in summarise(rows):
+            mine = [r for r in rows if r.method == entry["method"] and math.isfinite(r.memory)]
+            memory = [r.memory for r in mine]
+            distance = [r.memory_distance for r in mine]
+            most = max([most, *memory])
+            lines.append(
+                f"| {preset} | {entry['method']} | {len(mine)} | {_median(memory, '.0f')}, "
+                f"{max(memory, default=math.nan):.0f} | {_median(distance, '.3f')}, "
+                f"{max(distance, default=math.nan):.3f} | {cell(entry)} |"
+            )
+    verdict = (
+        f"No model remembers more than {most:.0f} step(s) of a differing past: the guide's "
+        "memory (3-4 steps, section 4.4) does not reproduce with either preset."
+        if most < 3
+        else f"The longest memory measured is {most:.0f} steps."
+    )
+    return [*lines, "", f"**Verdict.** {verdict}"]
+
+
+def _memory_jobs() -> tuple[Job, ...]:
+    options = ("--episodes", "8000", "--methods", "tpsr", "pca", "--memory", *SELECTION_SEEDS)
+    return (
+        experiment_job("memory/best", "partial", *options),
+        experiment_job("memory/guide", "partial", "--preset", "guide", *options),
+    )
+
+
+# -- the sections ---------------------------------------------------------------------------
+
+_FIT_SWITCHES = (
+    _study(
+        "centres",
+        "Fit: kernel centres",
+        "Do k-means centroids serve as kernel centres better than the first episodes "
+        "(the guide's choice)?",
+        "tpsr.center_selection=first,kmeans",
+        "--criterion",
+    ),
+    _study(
+        "normalised",
+        "Fit: normalised history/test features",
+        "Does normalising the history and test features to sum 1 (Boots et al.) help?",
+        "tpsr.normalize_ht_features=false,true",
+        "--criterion",
+    ),
+    _study(
+        "pooling",
+        "Fit: pooled action operators",
+        "Each action's operators are estimated from a 25th of the data; does shrinking them "
+        "toward the operator of all actions help?",
+        "tpsr.action_pooling=0,0.5,1",
+        "--criterion",
+    ),
+    _study(
+        "obs-variance",
+        "Fit: observation whitening dimensions",
+        "The guide keeps 10 whitened dimensions of the current observation; does keeping "
+        "those that explain 95 % or 98 % of its variance instead help?",
+        "tpsr.obs_variance=0,0.95,0.98",
+        "--criterion",
+    ),
+    _study(
+        "rank",
+        "Fit: rank",
+        "Which dimension of the state is best?",
+        "tpsr.rank=5,8,12",
+        "--criterion",
+    ),
+)
+
+_PLANNER = (
+    _study(
+        "state-scaling",
+        "Planner: state units",
+        "Fitted Q measures distances between states: per-dimension z-scores (the guide's), "
+        "whitened principal axes, or axes weighted by what they predict of the next images?",
+        "fqi.state_scaling=standardise,whiten,predictive",
+        "--methods",
+        "tpsr",
+        "pca",
+    ),
+    _study(
+        "ensemble",
+        "Planner: ensemble",
+        "Does averaging five fitted-Q members, each with its own k-means centres, help?",
+        "fqi.ensemble=1,5",
+        "--methods",
+        "tpsr",
+        "pca",
+    ),
+    _study(
+        "fq-centres",
+        "Planner: fitted-Q centres",
+        "Does a finer planner (200 RBF centres per member instead of 100) help, and whom?",
+        "fqi.centers=100,200",
+        "--methods",
+        "tpsr",
+        "pca",
+    ),
+)
+
+SECTIONS: tuple[Section, ...] = (
+    *_PLANNER,
+    *_FIT_SWITCHES,
+    Section(
+        "tuning",
+        "Tuning: `learner tune` against the defaults",
+        "Does choosing the fit's parameters per data set by the held-out criterion "
+        "(`learner experiment --tune`, starting from the defaults) beat the defaults?",
+        (*_tuning_jobs("preset"), *_tuning_jobs("tuned")),
+        _render_tuning,
+    ),
+    Section(
+        "criterion",
+        "Tuning: does the criterion rank configurations as the RL score does?",
+        "`learner tune` ranks candidates without reward or ground truth; does its criterion "
+        "order the fit switches above as the learning-planning score does?",
+        tuple(job for section in _FIT_SWITCHES for job in section.jobs),
+        _render_criterion,
+        "**Commands**: those of the five fit-switch studies above (their `--criterion` "
+        "option writes each run's criterion).",
+    ),
+    Section(
+        "memory",
+        "Memory (guide section 4.4)",
+        "How many steps does a model remember of a past that its current images and actions "
+        "no longer show (`partial`)?",
+        _memory_jobs(),
+        _render_memory,
+    ),
+)
+"""Every section of the appendix, in page order."""

@@ -1,0 +1,76 @@
+"""The commands behind the results page: each writes one CSV under ``results/``.
+
+A :class:`Job` is ``python -m learner ARGV -o results/DIRECTORY``; ``learner report`` runs the
+jobs whose CSV is missing (``--rerun``: all) and renders the page from the CSVs alone, so
+every number on it comes from a command the page names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = [
+    "ENVIRONMENTS",
+    "HEADLINE_SEEDS",
+    "SELECTION_SEEDS",
+    "Job",
+    "experiment_job",
+    "study_job",
+]
+
+ENVIRONMENTS = ("full", "partial", "distractors")
+
+SELECTION_SEEDS = ("--seed", "0", "--rl-seed", "100")
+"""Training and RL seeds the default configuration was chosen on (the studies use them)."""
+
+HEADLINE_SEEDS = ("--seed", "11", "--rl-seed", "111")
+"""Fresh seeds, never used to choose anything: the headline tables run on them."""
+
+
+@dataclass(frozen=True)
+class Job:
+    """``python -m learner ARGV -o results/DIRECTORY``, which writes ``DIRECTORY/CSV``."""
+
+    directory: str
+    argv: tuple[str, ...]
+    csv: str
+
+    @property
+    def command(self) -> str:
+        """The command as a user types it (run from the repository's root)."""
+        return " ".join(("python -m learner", *self.argv, "-o", f"results/{self.directory}"))
+
+    def path(self, results: Path) -> Path:
+        """Where the job's CSV lies under the results directory ``results``."""
+        return results / self.directory / self.csv
+
+    def argv_for(self, results: Path, workers: int) -> list[str]:
+        """``learner`` arguments that (re)write the CSV under ``results``."""
+        return [
+            *self.argv,
+            "-o",
+            str(results / self.directory),
+            "--force",
+            "--workers",
+            str(workers),
+        ]
+
+
+def experiment_job(directory: str, environment: str, *options: str) -> Job:
+    """A ``learner experiment`` job for one environment."""
+    return Job(
+        directory,
+        ("experiment", "--environment", environment, *options),
+        f"experiment_{environment}.csv",
+    )
+
+
+def study_job(directory: str, environment: str, vary: str, *options: str) -> Job:
+    """A ``learner study --vary NAME=V1,V2...`` job for one environment."""
+    name = vary.split("=", 1)[0].replace(".", "_")
+    return Job(
+        directory,
+        ("study", "--environment", environment, "--vary", vary, *options),
+        f"study_{environment}_{name}.csv",
+    )
