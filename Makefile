@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench fuzz fuzz-cli clean
+.PHONY: demo test check bench fuzz fuzz-cli clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,8 +21,14 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(PY) -m learner.demo
 
+# the whole suite, one worker per core (pytest-xdist); tests/conftest.py pins BLAS to one
+# thread per worker
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto
+
+# the fast tier while working: every test not marked slow
+check: $(STAMP)
+	$(PY) -m pytest -q -n auto -m "not slow"
 
 bench: $(STAMP)
 	$(PY) -m benchmarks
@@ -33,8 +39,8 @@ fuzz: $(STAMP)
 	FUZZ_SEED=$$seed FUZZ_CASES=$${FUZZ_CASES:-2000} RECOVER_ALL=1 $(PY) -m pytest -q \
 	  tests/test_fuzz.py tests/test_recover_conformance.py
 
-# the acceptance run of issue 17: mutated inputs through the real commands and nodes, each
-# under a 2 GiB address-space cap and a 20 s limit; rerun one case with --seed S --case N
+# mutated inputs through the real commands and nodes, each under a 2 GiB address-space cap
+# and a 20 s limit; rerun one case with --seed S --case N
 fuzz-cli: $(STAMP)
 	nice -n 10 $(PY) tests/fuzz_cli.py --minutes $${FUZZ_MINUTES:-15} \
 	  $${FUZZ_SEED:+--seed $$FUZZ_SEED} --out fuzz_output

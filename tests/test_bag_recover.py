@@ -1,4 +1,4 @@
-"""bag_recover never loses what it was given (issue 17, defect 1): every message the mcap
+"""bag_recover never loses what it was given: every message the mcap
 reader can read is kept, whatever its type; a damaged chunk costs that chunk only; the
 original is deleted only when the result is verified and nothing but a truncated final
 record was lost."""

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import time
 
+import pytest
+
 from sim_node.node import SimNode
 from tpsr_ros.io import messages as m
 from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions, parse_ros_args
@@ -96,6 +98,7 @@ def test_episode_steps_zero_never_ignores():
         driver.node.close()
 
 
+@pytest.mark.slow
 def test_the_filter_drives_the_standard_protocol_exactly_like_the_headless_evaluation(
     tmp_path,
 ):

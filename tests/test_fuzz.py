@@ -1,5 +1,5 @@
 """Seeded mutation fuzzing of every file we accept: model and policy archives, bag
-``metadata.yaml`` and MCAP bytes, params files (issue 17).
+``metadata.yaml`` and MCAP bytes, params files.
 
 Each case mutates a valid file (flipped bits, overwritten or duplicated spans, truncation,
 huge integers written over lengths) and loads it as the CLI or node would. The only
@@ -116,6 +116,7 @@ def _read_bag(directory: Path) -> None:
             pass
 
 
+@pytest.mark.slow
 def test_fuzz_bag_metadata_and_mcap(tmp_path):
     source = BAGS / "full"
     for name, seed in (("metadata.yaml", 3), ("full.mcap", 4)):

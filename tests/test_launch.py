@@ -10,7 +10,6 @@ import ast
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -120,15 +119,22 @@ def test_the_launch_file_runs_the_closed_loop(tmp_path, monkeypatch):
     probe = Node(NodeOptions(name="launch_probe"),
                  transport=open_transport(backend, "launch_probe", "/"))
     reports: list[dict[str, str]] = []
+    recorded: list[dict[str, str]] = []
     probe.create_subscription(
         "/diagnostics", DIAGNOSTICS_TYPE,
-        lambda msg: reports.extend(
-            status_values(s) for s in msg.status if s.name.startswith("tpsr_filter:")
-        ),
+        lambda msg: [
+            (reports if s.name.startswith("tpsr_filter:") else recorded).append(status_values(s))
+            for s in msg.status
+            if s.name.startswith(("tpsr_filter:", "tpsr_recorder:"))
+        ],
     )
 
     def episode_done() -> bool:
         return any(r.get("steps") == "5" and r.get("commands") == "6" for r in reports)
+
+    def episode_recorded() -> bool:
+        topics = ("/camera/image_raw", "/action", "/tpsr/state")
+        return any(all(r.get(f"{t} recorded") == "5" for t in topics) for r in recorded)
 
     try:
         with Launch(tmp_path, spin=probe.spin_once, timeout_s=90) as launch:
@@ -137,7 +143,7 @@ def test_the_launch_file_runs_the_closed_loop(tmp_path, monkeypatch):
                 "episode_steps:=5", "log_level:=debug",
             ])  # fmt: skip
             launch.wait("the filter's report of 5 steps and 6 commands", episode_done)
-            time.sleep(0.5)  # the recorder receives the last step's messages
+            launch.wait("the recorder's report of the 5 steps", episode_recorded)
             code = proc.stop(timeout_s=60)
     finally:
         probe.close()
@@ -154,6 +160,7 @@ def test_the_launch_file_runs_the_closed_loop(tmp_path, monkeypatch):
     assert counts["/cmd_vel"] in (5, 6)
 
 
+@pytest.mark.slow
 def test_a_node_process_passes_each_output_line_to_a_callback_and_its_log(tmp_path):
     """The runtime launcher's pipe mode (how ``tpsr_ros.launch`` prefixes node output)."""
     expected = subprocess.run(

@@ -1,4 +1,5 @@
-"""The README's array example runs as printed, and its states mean something."""
+"""The README: short, its array example runs as printed and its states mean something, its
+robot-bag commands run."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -26,7 +28,7 @@ def test_the_readme_array_example_runs() -> None:
     states = namespace["states"]
     actions, observations = namespace["actions"], namespace["observations"]
     model, state = namespace["model"], namespace["state"]
-    assert isinstance(states, np.ndarray) and states.shape == (3000, 5)
+    assert isinstance(states, np.ndarray) and states.shape == (3000, 8)  # the preset's rank
     # update is the one-step form of track (Algorithm 4, bit for bit)
     np.testing.assert_array_equal(state, states[0])
     again = model.initial_state()  # type: ignore[attr-defined]
@@ -39,6 +41,15 @@ def test_the_readme_array_example_runs() -> None:
     weights = np.linalg.lstsq(features[:2000], np.eye(6)[cells[:2000]], rcond=None)[0]
     accuracy = np.mean(np.argmax(features[2000:] @ weights, axis=1) == cells[2000:])
     assert accuracy > 0.95
+
+
+def test_the_readme_fits_a_screen_and_speaks_of_the_software() -> None:
+    text = README.read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 150
+    assert text.index("make demo") < text.index("make test") < text.index("## ")  # set-up first
+    assert "RESULTS_TABLE" not in text
+    for link in re.findall(r"\]\(([^)#]+)\)", text):  # every link leads somewhere
+        assert (README.parent / link).exists(), link
 
 
 def test_the_user_api_is_the_package() -> None:
@@ -71,6 +82,7 @@ def _robot_commands() -> list[str]:
     return match.group(1).replace("\\\n", " ").strip().splitlines()
 
 
+@pytest.mark.slow
 def test_the_readme_robot_bag_commands_run(tmp_path) -> None:
     import os
     import shlex

@@ -146,6 +146,7 @@ def _stall_recorder(
     return bag, recorder.text()
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not rclpy_available(), reason="rclpy (ROS 2) not importable")
 def test_rclpy_recorder_stalled_behind_a_keep_last_publisher_reports_each_lost_image(
     tmp_path, monkeypatch
@@ -168,6 +169,7 @@ def test_rclpy_recorder_stalled_behind_a_keep_last_publisher_reports_each_lost_i
     assert f"recorded {recorded} messages on 1 topics to {bag}; lost {lost}" in log
 
 
+@pytest.mark.slow
 def test_dds_recorder_stalled_behind_a_keep_last_camera_counts_the_missing_by_stamps(
     tmp_path, monkeypatch
 ):

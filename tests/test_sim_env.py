@@ -25,11 +25,13 @@ def _previous_positions(run, start):
     return np.vstack([start, run.positions[:-1]])
 
 
+@pytest.mark.slow
 def test_robot_never_leaves_the_room(long_run):
     assert long_run.positions.min() >= R - 1e-3
     assert long_run.positions.max() <= L - R + 1e-3
 
 
+@pytest.mark.slow
 def test_robot_cannot_tunnel_when_driven_hard_into_walls_and_corners():
     env = RobotEnv(SimConfig(), seed=0)
     env.reset(options={"position": (22.5, 22.5)})

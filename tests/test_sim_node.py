@@ -235,6 +235,7 @@ def test_ignored_commands_are_announced_on_the_graph():
     assert ignored[0].frame_id == "episode_steps" and ignored[0].stamp.sec == 2  # t_2
 
 
+@pytest.mark.slow
 def test_sigterm_stops_the_node_gracefully_and_logs_the_count(tmp_path, monkeypatch):
     """SIGTERM once the node is spinning: a /clock message seen in the graph, not a log line."""
     import os

@@ -69,6 +69,7 @@ def test_features_are_indicators(pomdp_run):
     assert ((weights > 0).sum(axis=0) == 1).all()  # each centre shows exactly one symbol
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", ["after-current", "from-current"])
 def test_one_step_predictions_from_b_star_converge(pomdp_run, variant):
     pomdp, obs, actions = pomdp_run
@@ -88,6 +89,7 @@ def test_one_step_predictions_from_b_star_converge(pomdp_run, variant):
     assert errors[-1] < 0.01, errors
 
 
+@pytest.mark.slow
 def test_filtered_predictions_converge_with_boots_p_th(pomdp_run):
     pomdp, obs, actions = pomdp_run
     mean_errors = [
@@ -97,6 +99,7 @@ def test_filtered_predictions_converge_with_boots_p_th(pomdp_run):
     assert mean_errors[-1] < 0.04, mean_errors
 
 
+@pytest.mark.slow
 def test_the_guides_p_th_biases_filtering(pomdp_run):
     """Guide eq. 3.2 pairs histories with the test *after* the current pair; B_ao then maps a
     state to one of another definition, and repeated updates drift even with much data."""

@@ -219,7 +219,7 @@ SAMPLE_BAGS = Path(__file__).resolve().parent.parent / "bags"
 
 
 def _object_reader(bag: Path) -> dict[str, np.ndarray]:
-    """The reader before issue 18, kept as the reference: a rosbags object per message."""
+    """The reader the chunked one replaced, kept as the reference: a rosbags object per message."""
     topics = Topics()
     data: dict[str, dict[int, object]] = {t: {} for t in topics.types()}
     with BagReader(bag) as reader:
@@ -242,6 +242,7 @@ def _object_reader(bag: Path) -> dict[str, np.ndarray]:
     }
 
 
+@pytest.mark.slow
 def test_the_sample_bag_reads_as_with_a_rosbags_object_per_message():
     bag = SAMPLE_BAGS / "full"
     expected = _object_reader(bag)

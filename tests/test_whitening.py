@@ -98,6 +98,7 @@ def test_non_finite_and_mismatched_data():
         Whitening.fit(np.zeros((1, 4)), 1)
 
 
+@pytest.mark.slow
 def test_wide_data_take_the_lanczos_path_with_the_dense_result():
     # histories of several images are wider than DENSE_MAX_DIM: no covariance is formed,
     # and the eigenpairs agree with the dense eigendecomposition to machine precision
@@ -140,6 +141,7 @@ def test_a_variance_fraction_keeps_the_fewest_directions_that_explain_it(fractio
     assert fitted.n_components == kept
 
 
+@pytest.mark.slow
 def test_the_variance_rule_from_moments_and_on_wide_data_agrees_with_the_dense_one():
     from tpsr_ros.core import whitening
     from tpsr_ros.core.moments import Moments
