@@ -27,6 +27,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "learner.tune",
     "learner.info",
     "learner.plots",
+    "learner.track",
     "learner.planning",
     "learner.evaluate",
     "learner.closed_loop",

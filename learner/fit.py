@@ -28,7 +28,12 @@ import numpy as np
 
 from learner.config_file import describe, read_fit_config
 from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible, dask_client
-from learner.inputs import add_stream_options, fit_options_from_args, topics_from_args
+from learner.inputs import (
+    add_stream_options,
+    fit_options_from_args,
+    require_given_topics,
+    topics_from_args,
+)
 from learner.options import (
     add_config_options,
     add_preset_option,
@@ -192,6 +197,7 @@ def _say(message: str) -> None:
 def run(args: argparse.Namespace) -> int:
     """Read bags, cut episodes, fit, write the model and print a summary."""
     output = check_output_path(args.output, force=args.force)
+    require_given_topics(args.bags, args)
     stream_options = fit_options_from_args(args)
     robot_bags = stream_options is not None
     file_values = None if args.config is None else read_fit_config(args.config)

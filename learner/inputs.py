@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ from tpsr_ros.cli import positive_int
 from tpsr_ros.core.codebook import COMPONENTS, DEFAULT_COMPONENTS
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.model_io import ModelFile, metadata_field
 from tpsr_ros.io.stream_spec import StreamSpec
 from tpsr_ros.io.streams import DEFAULT_POSE_FRAME, FitOptions, read_stream_trajectory
@@ -29,6 +31,7 @@ __all__ = [
     "image_size",
     "read_for_model",
     "recorded_topic",
+    "require_given_topics",
     "require_simulator_model",
     "topics_from_args",
 ]
@@ -157,6 +160,27 @@ def topics_from_args(args: argparse.Namespace) -> Topics:
             for f in dataclasses.fields(Topics)
         }
     )
+
+
+def require_given_topics(bags: Sequence[Path], args: argparse.Namespace) -> None:
+    """Refuse a topic named by an option (``--pose-topic``, ``--reward-topic``) that a bag
+    lacks: a topic given on purpose is not optional, even where the default one is."""
+    given = {
+        f"--{name}-topic": topic
+        for name in ("pose", "reward")
+        if (topic := getattr(args, f"{name}_topic", None))
+    }
+    if not given:
+        return
+    for bag in bags:
+        with BagReader(bag) as reader:
+            available = reader.topics_with_messages
+        for option, topic in given.items():
+            if topic not in available:
+                raise ConfigError(
+                    f"bag {str(bag)!r} has no messages on {option} {topic} (it has "
+                    f"{sorted(available)})"
+                )
 
 
 def recorded_topic(metadata: dict[str, Any], name: str) -> str | None:

@@ -19,7 +19,7 @@ import numpy as np
 
 from learner.criterion import CriterionConfig, ObservationFeatures, future_targets
 from learner.fit import add_topic_options, topics_from_args
-from learner.inputs import read_for_model
+from learner.inputs import read_for_model, require_given_topics
 from learner.options import (
     add_config_options,
     add_preset_option,
@@ -190,6 +190,7 @@ def _first_steps(trajectory: Trajectory, steps: int | None) -> Trajectory:
 def run(args: argparse.Namespace) -> int:
     """Fit and save a policy."""
     output = check_output_path(args.output, force=args.force)
+    require_given_topics(args.bags, args)
     preset = preset_from_args(args)
     config = config_from_args(FQIConfig, args, preset.fqi_config())
     if str(args.model) == TRUE_POSITION:

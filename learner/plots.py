@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from learner.fit import add_topic_options
-from learner.inputs import read_for_model
+from learner.inputs import read_for_model, require_given_topics
 from tpsr_ros.core.episodes import track_trajectory
 from tpsr_ros.core.errors import DataError
 from tpsr_ros.io.model_io import check_output_path, open_model
@@ -166,6 +166,7 @@ def run(args: argparse.Namespace) -> int:
     if output.exists() and not args.force:
         raise DataError(f"output file {str(output)!r} already exists; use --force to overwrite it")
     check_output_path(output, force=True)
+    require_given_topics(args.bags, args)
     model_file = open_model(args.model)
     model = model_file.model
     # simulator models demand ground truth as always; robot models plot without it

@@ -426,13 +426,14 @@ def _say(line: str) -> None:
 def run(args: argparse.Namespace) -> int:
     """Read the bags, tune within the budget, write CONFIG.yaml, print the best."""
     from learner.fit import read_training_bags
-    from learner.inputs import fit_options_from_args, topics_from_args
+    from learner.inputs import fit_options_from_args, require_given_topics, topics_from_args
     from learner.options import preset_from_args
 
     start = time.perf_counter()
     if args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, not {args.seed}")
     check_output_path(args.output, force=args.force)  # refused before the search, not after
+    require_given_topics(args.bags, args)
     _say(f"reading {len(args.bags)} bag(s)")
     stream_options = fit_options_from_args(args)
     trajectory, spec = read_training_bags(args, topics_from_args(args), stream_options, _say)

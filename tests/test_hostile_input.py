@@ -318,3 +318,52 @@ def test_library_error_text_is_cut_to_one_line():
     assert one_line(OSError()) == "OSError"
     long = one_line(ValueError("x" * 500), limit=50)
     assert len(long) == 50 and long.endswith("...")
+
+
+def _learner(*argv: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "learner", *argv], cwd=cwd, capture_output=True, text=True,
+        timeout=120,
+    )
+
+
+def _one_line_error(done: subprocess.CompletedProcess[str]) -> str:
+    """The error line of a command that failed cleanly (progress lines may precede it)."""
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith("learner: error: "), done.stderr
+    return last
+
+
+def test_deeply_nested_generator_settings_are_a_one_line_error(tmp_path):
+    """custom_data holding 5000 '[' is a BagError naming the bag, not a RecursionError."""
+    import yaml
+
+    bag = tmp_path / "bag"
+    shutil.copytree(Path(__file__).parents[1] / "bags" / "full", bag)
+    metadata = bag / "metadata.yaml"
+    content = yaml.safe_load(metadata.read_text())
+    content["rosbag2_bagfile_information"]["custom_data"]["tpsr_ros.generator"] = "[" * 5000
+    metadata.write_text(yaml.safe_dump(content))
+    done = _learner("fit", str(bag), "-o", str(tmp_path / "m.npz"), cwd=tmp_path)
+    assert "nested too deeply" in _one_line_error(done)
+
+
+def test_a_named_pose_topic_missing_from_the_bag_is_a_one_line_error(tmp_path):
+    bag = Path(__file__).parents[1] / "bags" / "full"
+    done = _learner("fit", str(bag), "-o", str(tmp_path / "m.npz"), "--pose-topic", "/odom",
+                    cwd=tmp_path)
+    assert "has no messages on --pose-topic /odom" in _one_line_error(done)
+    assert not (tmp_path / "m.npz").exists()
+
+
+def test_a_compressed_camera_without_a_step_period_says_to_add_one(tmp_path):
+    from sim_node.robot_bag import RobotBagConfig, write_robot_bag
+
+    bag = tmp_path / "robot"
+    write_robot_bag(bag, RobotBagConfig(steps=5, encoding="jpeg"))
+    done = _learner("fit", str(bag), "-o", str(tmp_path / "m.npz"), "--image-topic",
+                    "/front_camera/image_raw/compressed", "--action-topic", "/cmd_vel",
+                    cwd=tmp_path)
+    line = _one_line_error(done)
+    assert "CompressedImage" in line and "add --step-period SECONDS" in line

@@ -111,6 +111,11 @@ def _bag_custom_data(reader: BagReader) -> tuple[str | None, Any]:
         generator = json.loads(custom["tpsr_ros.generator"])
     except (KeyError, TypeError, ValueError):
         generator = None
+    except RecursionError:  # e.g. 5000 nested '[': hostile, not merely malformed
+        raise BagError(
+            f"bag {str(reader.path)!r}: custom_data 'tpsr_ros.generator' is nested too deeply "
+            "to be the generator's settings"
+        ) from None
     return (str(env) if env else None), generator
 
 
@@ -275,9 +280,16 @@ class _BagSteps:
         wanted = topics.types()
         for topic, msgtype in wanted.items():
             if topic in available and available[topic] != msgtype:
+                hint = ""
+                if topic in (topics.image, topics.action):
+                    hint = (
+                        "; simulator bags pair rgb8 images and TwistStamped actions by "
+                        "identical stamp: for a robot's camera and commands add --step-period "
+                        "SECONDS (their streams are resampled onto steps of that period)"
+                    )
                 raise BagError(
                     f"topic {topic!r} of bag {str(self.path)!r} has type {available[topic]}, "
-                    f"expected {msgtype}"
+                    f"expected {msgtype}{hint}"
                 )
         return [t for t in wanted if t in available]
 
