@@ -35,6 +35,21 @@ def test_a_steady_stream_without_holes_counts_nothing():
     assert _feed(_camera(2000, jitter=0.2, seed=2)).missing == 0
 
 
+def test_a_camera_with_30_percent_interval_jitter_loses_nothing():
+    rng = np.random.default_rng(8)
+    intervals = rng.uniform(0.7, 1.3, 5000) * PERIOD
+    assert _feed(10**12 + np.cumsum(intervals).astype(np.int64)).missing == 0
+    assert _feed(_camera(5000, jitter=0.3, seed=10)).missing == 0  # stamps off by 30 %
+
+
+def test_a_camera_with_a_third_of_its_intervals_stretched_loses_nothing():
+    rng = np.random.default_rng(9)
+    intervals = np.full(5000, PERIOD, dtype=np.float64)
+    stretched = rng.random(5000) < 1 / 3
+    intervals[stretched] *= rng.uniform(1.0, 3.0, int(stretched.sum()))
+    assert _feed(10**12 + np.cumsum(intervals).astype(np.int64)).missing == 0
+
+
 def test_irregular_streams_are_not_judged():
     rng = np.random.default_rng(3)
     events = 10**12 + np.cumsum(rng.exponential(PERIOD, 2000)).astype(np.int64)  # commands

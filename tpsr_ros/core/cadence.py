@@ -24,8 +24,10 @@ class CadenceGaps:
     """Counts stamps missing from one stream's regular cadence; feed it with :meth:`add`.
 
     ``window`` intervals estimate the period; the cadence is regular when at least
-    ``min_intervals`` are known and the 10th and 90th percentiles of the window lie within
-    ``tolerance`` (relative) of their median; the period is then their mean, which makes
+    ``min_intervals`` are known and every interval of the window lies within ``tolerance``
+    (relative) of their median: a stream is judged against its own jitter, so a camera whose
+    intervals vary by more (a phone's stretched frames) is never read as losing messages.
+    The period is then the window's mean, which makes
     the count exact for gaps of a few dozen periods with a jitter of 10 % of a period
     (longer gaps are counted to within the period's error times their length). A backward
     jump of the stamps (a restarted sensor, a bag replayed in a loop) starts the estimate
@@ -82,7 +84,7 @@ class CadenceGaps:
         ordered = sorted(self._intervals)
         n = len(ordered)
         median = ordered[n // 2]
-        low, high = ordered[n // 10], ordered[n - 1 - n // 10]
+        low, high = ordered[0], ordered[-1]
         regular = (1 - self.tolerance) * median <= low and high <= (1 + self.tolerance) * median
         # the mean of regular intervals is the span of their stamps over their count: the
         # stamps' jitter cancels, which a long gap (n periods) needs to round to n
