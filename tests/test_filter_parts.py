@@ -99,11 +99,51 @@ def test_grid_stepping_equals_offline_resampling() -> None:
         [(t, 0, k) for k, t in enumerate(images)] + [(t, 1, k) for k, t in enumerate(commands)]
     )
     for time, kind, index in events:  # each message at its time: commands before images
-        added = (
-            source.add_action(int(time), index) if kind else source.add_image(int(time), index)
-        )
+        added = source.add_action(int(time), index) if kind else source.add_image(int(time), index)
         online += added.steps
+    online += source.flush().steps  # the streams end: the steps before the last image
     assert [s.stamp for s in online] == offline.stamps.tolist()
     assert [s.image for s in online] == offline.image_index.tolist()
     assert [s.action for s in online] == offline.command_index.tolist()
     assert source.counts()["command_gaps"] == offline.no_command
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_unstamped_commands_get_their_offline_dates_in_any_handling_order(seed) -> None:
+    """Commands without stamps are dated by the first image sent after them; handled in
+    any order within the latency bound (a backend serving one topic before the other),
+    the steps are those of the bag's order."""
+    rng = np.random.default_rng(seed)
+    grid = GridConfig(75 * S // 1000, 55 * S // 1000, 3 * S // 10, 3 * S // 10, phase_ns=0)
+    frames = np.cumsum(rng.uniform(0.04, 0.16, 150) * S).astype(np.int64)
+    images = [(int(t) + 2 * 10**6, "image", int(t), k) for k, t in enumerate(frames)]
+    commands = [(int(t), "command", None, k) for k, t in enumerate(frames)]  # at frame stamps
+    sent_order = sorted(images + commands)  # (sent, kind, stamp, index): as a bag logs them
+    # offline: each command dated by the next image in the bag's order
+    dates, pending = [], []
+    for _, kind, stamp, k in sent_order:
+        if kind == "command":
+            pending.append(k)
+        else:
+            dates += [(stamp, c) for c in pending]
+            pending = []
+    offline = resample_grid(frames, np.array([d for d, _ in dates]), grid)
+    indices = zip(offline.stamps, offline.command_index, offline.image_index, strict=True)
+    expected = [(int(s), dates[c][1], int(i)) for s, c, i in indices]
+    # online: each topic in its own order, the two interleaved by random delays up to 0.3 s
+    arrival = {}
+    for kind in ("image", "command"):
+        stream = [e for e in sent_order if e[1] == kind]
+        late = np.maximum.accumulate([e[0] + rng.uniform(0, 0.3 * S) for e in stream])
+        arrival.update({e: t for e, t in zip(stream, late, strict=True)})
+    handled = sorted(sent_order, key=arrival.__getitem__)
+    source = GridStepping(grid, jump_threshold_ns=5 * S, max_latency_ns=S)
+    online = []
+    for sent, kind, stamp, k in handled:
+        if kind == "image":
+            online += source.add_image(stamp, k, sent_ns=sent).steps
+        else:
+            online += source.add_action(None, k, sent_ns=sent).steps
+    online += source.flush().steps
+    assert [(s.stamp, s.action, s.image) for s in online] == expected
+    assert len(expected) > 100

@@ -3,16 +3,27 @@
 A robot records its camera and its velocity commands at their own rates and clocks. The
 learner and the filter node need steps ``(a_k, o_k)`` one period apart. The rules, shared by
 offline reading (:func:`resample_grid`, vectorised) and the filter node
-(:class:`GridStepper`, one message at a time, in arrival order):
+(:class:`GridStepper`, one message at a time):
 
-- **grid**: step times ``t_k = origin + k * period`` with ``origin`` = the first image time
-  plus half the camera period (so image stamp jitter below half a camera period never
-  changes which image a step takes); a step exists once an image *later* than ``t_k`` has
-  arrived, so the last step lies before the last image;
+- **grid**: step times ``t_k = phase + k * period`` (absolute times: the grid does not
+  depend on which message came first). The phase is chosen from the training data to keep
+  step times far from image and command events (:func:`choose_phase`), so stamp jitter and
+  the timing of unstamped commands never decide which side of a step an event falls on.
+  Models written before phases existed keep their rule: ``t_k = origin + k * period`` from
+  half a camera period after the first image. A stream's steps are those after its first
+  image and before its last;
 - **observation**: the latest image at or before ``t_k``; if it is older than
   ``image_timeout`` (camera silence), the step is a gap;
 - **action**: the command in force at ``t_k``: the latest command at or before ``t_k``,
-  held for at most ``command_timeout``; no command in force makes the step a gap.
+  held for at most ``command_timeout``; no command in force makes the step a gap. A
+  command's time is its header stamp; an unstamped one (``Twist``, or a zero stamp) is
+  dated by the stamp of the first image after it, in the bag's order offline and in the
+  publishers' send order online: only the order of messages decides, which a replay keeps;
+- **online** (:class:`GridStepper`): step ``k`` closes once both streams have passed
+  ``t_k`` (an image and a command later than ``t_k`` arrived), or once either stream is
+  ``max_latency`` past ``t_k`` (the other is late or silent), or on :meth:`GridStepper.flush`
+  (both silent). Messages of each stream in order, interleaved in any order within the
+  latency bound, give exactly the offline steps.
 
 A gap ends the segment (the next step restarts from ``b_*``). Images must arrive in stamp
 order; an image not newer than the one before is dropped (:func:`increasing`).
@@ -34,10 +45,16 @@ __all__ = [
     "GridStep",
     "GridStepper",
     "ResampledSteps",
-    "grid_origin",
+    "choose_phase",
+    "grid_times",
     "increasing",
     "resample_grid",
 ]
+
+PHASE_CANDIDATES = 200
+"""Phases :func:`choose_phase` compares, evenly over one period."""
+MAX_PHASE_EVENTS = 20_000
+"""Events :func:`choose_phase` scores at most (an even subsample of more)."""
 
 
 @dataclass(frozen=True)
@@ -46,10 +63,11 @@ class GridConfig:
 
     Attributes:
         step_ns: the step period.
-        camera_period_ns: the camera's median frame interval in the training data; the grid
-            starts half of it after the first image.
+        camera_period_ns: the camera's median frame interval in the training data.
         image_timeout_ns: oldest usable image at a step (longer camera silence: a gap).
         command_timeout_ns: how long a command stays in force.
+        phase_ns: step times are the times congruent to it modulo ``step_ns``
+            (``0 <= phase_ns < step_ns``); None: the origin rule of older models.
 
     """
 
@@ -57,6 +75,7 @@ class GridConfig:
     camera_period_ns: int
     image_timeout_ns: int
     command_timeout_ns: int
+    phase_ns: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("step_ns", "camera_period_ns", "image_timeout_ns", "command_timeout_ns"):
@@ -64,15 +83,27 @@ class GridConfig:
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
                 raise ConfigError(f"{name} must be a positive integer (ns), not {value!r}")
             object.__setattr__(self, name, int(value))
+        phase = self.phase_ns
+        if phase is not None:
+            if (
+                isinstance(phase, bool)
+                or not isinstance(phase, (int, np.integer))
+                or not (0 <= phase < self.step_ns)
+            ):
+                raise ConfigError(f"phase_ns must be in [0, step_ns), not {phase!r}")
+            object.__setattr__(self, "phase_ns", int(phase))
 
     def as_dict(self) -> dict[str, Any]:
         """JSON form (seconds) stored in model metadata."""
-        return {
+        values = {
             "step_period_s": self.step_ns / NS_PER_S,
             "camera_period_s": self.camera_period_ns / NS_PER_S,
             "image_timeout_s": self.image_timeout_ns / NS_PER_S,
             "command_timeout_s": self.command_timeout_ns / NS_PER_S,
         }
+        if self.phase_ns is not None:
+            values["phase_s"] = self.phase_ns / NS_PER_S
+        return values
 
     @classmethod
     def from_dict(cls, data: Any) -> GridConfig:
@@ -87,12 +118,64 @@ class GridConfig:
             if not (np.isfinite(value) and 0 < value < 1e6):
                 raise ConfigError(f"the step grid's {key} {value!r} is not in (0, 1e6) s")
             values.append(round(value * NS_PER_S))
-        return cls(*values)
+        phase = data.get("phase_s")
+        if phase is not None:
+            if (
+                isinstance(phase, bool)
+                or not isinstance(phase, (int, float))
+                or not (np.isfinite(phase) and 0 <= phase < data["step_period_s"])
+            ):
+                raise ConfigError(f"the step grid's phase_s {phase!r} is not in [0, the period)")
+            phase = min(round(phase * NS_PER_S), values[0] - 1)
+        step, camera, image, command = values
+        return cls(step, camera, image, command, phase_ns=phase)
 
 
-def grid_origin(first_image_ns: int, config: GridConfig) -> int:
-    """Time of step 0: half a camera period after the first image."""
-    return int(first_image_ns) + config.camera_period_ns // 2
+def first_step(first_image_ns: int, config: GridConfig) -> int:
+    """Time of a stream's first step: the first grid time after its first image."""
+    first = int(first_image_ns)
+    if config.phase_ns is None:
+        return first + config.camera_period_ns // 2
+    step = config.step_ns
+    return first + 1 + (config.phase_ns - first - 1) % step
+
+
+def grid_times(first_image_ns: int, last_image_ns: int, config: GridConfig) -> np.ndarray:
+    """Every step time of a stream whose images span ``[first, last]``: after the first
+    image, before the last."""
+    start = first_step(first_image_ns, config)
+    count = max(0, -(-(int(last_image_ns) - start) // config.step_ns))  # t_k < last image
+    return start + np.arange(count, dtype=np.int64) * config.step_ns
+
+
+def choose_phase(
+    events_ns: np.ndarray, step_ns: int, spans_ns: np.ndarray | None = None
+) -> int:
+    """The phase whose step times lie farthest from the events (image and command times).
+
+    An event may be a span (``spans_ns``: its length, e.g. from when an unstamped command
+    was logged to the image that dates it): a step inside it is at distance 0. Each of
+    :data:`PHASE_CANDIDATES` phases is scored by the 5th percentile of the distance from the
+    events to the nearest step time (all events fold into one period); the best wins, the
+    earliest among equals. A step time far from every event makes which side of it an event
+    falls on immune to stamp jitter and to how a command was timed.
+    """
+    events = np.asarray(events_ns, dtype=np.int64)
+    if events.size == 0:
+        return 0
+    spans = np.zeros(events.size) if spans_ns is None else np.asarray(spans_ns, np.float64)
+    if events.size > MAX_PHASE_EVENTS:  # an even subsample keeps the cost bounded
+        pick = np.linspace(0, events.size - 1, MAX_PHASE_EVENTS).astype(np.int64)
+        events, spans = events[pick], spans[pick]
+    start = (events % step_ns).astype(np.float64)
+    candidates = np.arange(PHASE_CANDIDATES, dtype=np.float64) * step_ns / PHASE_CANDIDATES
+    after_start = (candidates[:, None] - start[None, :]) % step_ns  # candidate past the start
+    inside = after_start <= spans[None, :]
+    before = step_ns - after_start  # to the span's start, going forward
+    beyond = after_start - np.minimum(spans, step_ns)[None, :]  # past the span's end
+    distance = np.where(inside, 0.0, np.minimum(before, beyond))
+    score = np.percentile(distance, 5, axis=1)
+    return round(float(candidates[int(np.argmax(score))]))
 
 
 def increasing(times: np.ndarray) -> np.ndarray:
@@ -137,9 +220,8 @@ def resample_grid(
         raise ConfigError("image times must be non-empty and increasing")
     if np.any(np.diff(commands) < 0):
         raise ConfigError("command times must be sorted")
-    origin = grid_origin(int(images[0]), config)
-    count = max(0, -(-(int(images[-1]) - origin) // config.step_ns))  # t_k < last image
-    grid = origin + np.arange(count, dtype=np.int64) * config.step_ns
+    grid = grid_times(int(images[0]), int(images[-1]), config)
+    count = int(grid.size)
     image_index = np.searchsorted(images, grid, side="right") - 1
     newest_before = np.searchsorted(images, grid - config.step_ns, side="right") - 1
     fresh = int(np.count_nonzero(image_index > newest_before))
@@ -176,42 +258,77 @@ class GridStep:
 class GridStepper:
     """The rules of :func:`resample_grid`, applied to messages as they arrive.
 
-    Feed commands with :meth:`add_command` and images with :meth:`add_image`; each image
-    completes the grid steps before it and returns them. Given the messages of a bag in
-    its order, the steps equal :func:`resample_grid`'s (the commands of a step must have
-    arrived before the image that completes it). Counters: ``images``, ``commands``,
-    ``images_out_of_order`` (not newer than the previous image: dropped),
+    Feed images with :meth:`add_image` and commands with :meth:`add_command` (each stream
+    in its own order, the two interleaved in any order); each returns the steps it closes
+    (module docstring: both streams past ``t_k``, or one ``max_latency_ns`` past it).
+    :meth:`flush` closes the steps before the newest image when both streams fell silent.
+    Counters: ``images``, ``commands``, ``images_out_of_order`` (not newer than the previous
+    image: dropped), ``late`` (messages at or before a closed step: they changed nothing),
     ``camera_gaps`` and ``command_gaps`` (grid steps that were gaps), ``steps``.
     """
 
-    def __init__(self, config: GridConfig, command_history: int = 256) -> None:
+    def __init__(
+        self, config: GridConfig, max_latency_ns: int = NS_PER_S, command_history: int = 256
+    ) -> None:
+        if max_latency_ns < 0:
+            raise ConfigError(f"the latency bound must be >= 0 ns, not {max_latency_ns}")
         self.config = config
+        self.max_latency_ns = int(max_latency_ns)
         self._command_history = command_history
-        self._commands: list[tuple[int, Any]] = []  # (time, command), in time order
-        self.images = self.commands = self.images_out_of_order = 0
+        self.images = self.commands = self.images_out_of_order = self.late = 0
         self.camera_gaps = self.command_gaps = self.steps = 0
         self.reset()
 
     def reset(self) -> None:
-        """Forget grid, last image and commands: a new grid starts at the next image."""
+        """Forget every image, command and step: a new grid starts at the next image."""
+        self._images: list[tuple[int, Any]] = []  # (time, image), increasing
+        self._commands: list[tuple[int, Any]] = []  # (time, command), in time order
+        self._next: int | None = None  # time of the next step to close
+        self._closed: int | None = None  # time of the last step closed
         self.origin: int | None = None
-        self._next = 0
-        self.last_image: tuple[int, Any] | None = None
-        self._commands.clear()
+        self.command_time: int | None = None  # newest command time
 
     @property
     def last_image_time(self) -> int | None:
         """Time of the newest image (ns), or None."""
-        return None if self.last_image is None else self.last_image[0]
+        return self._images[-1][0] if self._images else None
 
-    def add_command(self, time_ns: int, command: Any) -> None:
-        """A command in force from ``time_ns`` on (kept in time order)."""
+    @property
+    def last_image(self) -> tuple[int, Any] | None:
+        """The newest image ``(time, image)``, or None."""
+        return self._images[-1] if self._images else None
+
+    def add_command(self, time_ns: int, command: Any) -> list[GridStep]:
+        """A command in force from ``time_ns`` on (kept in time order); the steps it closes."""
         self.commands += 1
         time_ns = int(time_ns)
+        if self._closed is not None and time_ns <= self._closed:
+            self.late += 1
         index = bisect.bisect_right(self._commands, time_ns, key=_time_of)
         self._commands.insert(index, (time_ns, command))
         if len(self._commands) > self._command_history:
             del self._commands[0]  # the oldest: keep the latest command_history
+        if self.command_time is None or time_ns > self.command_time:
+            self.command_time = time_ns
+        return self._close()
+
+    def add_image(self, time_ns: int, image: Any) -> list[GridStep]:
+        """Add an image; return the steps it closes."""
+        time_ns = int(time_ns)
+        if self._images and time_ns <= self._images[-1][0]:
+            self.images_out_of_order += 1
+            return []
+        self.images += 1
+        if self._closed is not None and time_ns <= self._closed:
+            self.late += 1
+        self._images.append((time_ns, image))
+        if self._next is None:
+            self._next = self.origin = first_step(time_ns, self.config)
+        return self._close()
+
+    def flush(self) -> list[GridStep]:
+        """Close every step before the newest image (both streams silent: nothing else comes)."""
+        return self._close(everything=True)
 
     def _command_at(self, time_ns: int) -> Any | None:
         index = bisect.bisect_right(self._commands, time_ns, key=_time_of) - 1
@@ -219,33 +336,51 @@ class GridStepper:
             return None
         return self._commands[index][1]
 
-    def add_image(self, time_ns: int, image: Any) -> list[GridStep]:
-        """Add an image; return the grid steps it completes (those before ``time_ns``)."""
-        time_ns = int(time_ns)
-        if self.last_image is not None and time_ns <= self.last_image[0]:
-            self.images_out_of_order += 1
-            return []
-        self.images += 1
+    def _image_at(self, time_ns: int) -> tuple[int, Any] | None:
+        index = bisect.bisect_right(self._images, time_ns, key=_time_of) - 1
+        return self._images[index] if index >= 0 else None
+
+    def _due(self, t: int, everything: bool) -> bool:
+        """Whether step time ``t`` can close: it precedes the newest image, and both streams
+        passed it, or one passed it by the latency bound (or ``everything``)."""
+        newest_image = self._images[-1][0]
+        if t >= newest_image:
+            return False
+        if everything:
+            return True
+        commands = self.command_time
+        if commands is not None and commands > t:
+            return True
+        return max(newest_image, commands or newest_image) - t >= self.max_latency_ns
+
+    def _close(self, everything: bool = False) -> list[GridStep]:
         steps: list[GridStep] = []
-        if self.origin is None:
-            self.origin = grid_origin(time_ns, self.config)
-            self._next = 0
-        elif self.last_image is not None:
-            step = self.config.step_ns
-            last_time, last = self.last_image
-            due = -(-(time_ns - self.origin) // step)  # grid points before time_ns
-            while self._next < due:
-                t = self.origin + self._next * step
-                if t - last_time > self.config.image_timeout_ns:
-                    self.camera_gaps += due - self._next  # camera silence up to this image
-                    self._next = due
-                    break
-                command = self._command_at(t)
-                if command is None:
-                    self.command_gaps += 1
-                else:
-                    steps.append(GridStep(t, last, command))
-                    self.steps += 1
-                self._next += 1
-        self.last_image = (time_ns, image)
+        while self._next is not None and self._images and self._due(self._next, everything):
+            t = self._next
+            image = self._image_at(t)
+            assert image is not None  # the first step lies after the first image
+            if t - image[0] > self.config.image_timeout_ns:
+                # camera silence: every step up to the next image is a gap
+                following = self._images[bisect.bisect_right(self._images, t, key=_time_of)][0]
+                skipped = -(-(following - t) // self.config.step_ns)
+                self.camera_gaps += skipped
+                self._closed = t + (skipped - 1) * self.config.step_ns
+                self._next = self._closed + self.config.step_ns
+                continue
+            if (command := self._command_at(t)) is None:
+                self.command_gaps += 1
+            else:
+                steps.append(GridStep(t, image[1], command))
+                self.steps += 1
+            self._closed = t
+            self._next = t + self.config.step_ns
+        self._forget()
         return steps
+
+    def _forget(self) -> None:
+        """Drop images no step can take any more (all but the latest at or before the next)."""
+        if self._next is None:
+            return
+        keep = bisect.bisect_right(self._images, self._next, key=_time_of) - 1
+        if keep > 0:
+            del self._images[:keep]

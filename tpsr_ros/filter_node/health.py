@@ -102,14 +102,18 @@ class HealthLedger:
             values[f"{which}_topic"] = topics[which]
         return values
 
+    def idle_for(self) -> float | None:
+        """Seconds since any input last arrived (None before the first)."""
+        arrivals = [t for t in self._last_arrival.values() if t is not None]
+        return self.clock() - max(arrivals) if arrivals else None
+
     def silent(self) -> list[tuple[str, float]]:
         """Inputs that delivered before but nothing for longer than the timeout, with ages."""
         now = self.clock()
         return [
             (which, now - last)
             for which in INPUTS
-            if (last := self._last_arrival[which]) is not None
-            and now - last > self.input_timeout_s
+            if (last := self._last_arrival[which]) is not None and now - last > self.input_timeout_s
         ]
 
     def update_rate(self, steps: int) -> float:

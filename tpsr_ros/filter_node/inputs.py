@@ -97,23 +97,31 @@ def robot_command(msg: Any, codebook: ActionCodebook) -> tuple[int, float, np.nd
 
 
 class Frame:
-    """A robot camera image as a step holds it: its observation, or why it has none.
+    """A robot camera image as a step holds it: decoded to its observation on first use.
 
-    The image is decoded after the steps it completes were processed (they hold the
-    previous image), so its decoding adds nothing to their latency.
+    Steps mostly take images older than the one that closes them, so a new image is
+    decoded after the steps it closed were published: its decoding adds nothing to their
+    latency. The message is dropped once decoded, so the node keeps observations, not the
+    camera's megabytes.
     """
 
-    __slots__ = ("detail", "observation", "reason")
+    __slots__ = ("_msg", "_msgtype", "_preprocessing", "detail", "observation", "reason")
 
-    def __init__(self) -> None:
+    def __init__(self, msg: Any, msgtype: str, preprocessing: Preprocessing) -> None:
+        self._msg, self._msgtype, self._preprocessing = msg, msgtype, preprocessing
         self.observation: np.ndarray | None = None
         self.reason, self.detail = "data", "not decoded"
 
-    def reduce(self, msg: Any, msgtype: str, preprocessing: Preprocessing) -> None:
-        """Decode and preprocess ``msg`` (the offline observation, bit for bit)."""
+    def reduce(self) -> np.ndarray | None:
+        """The observation (the offline one, bit for bit), decoding the message if not yet;
+        None when it cannot be decoded (``reason`` and ``detail`` say why)."""
+        if self._msg is None:
+            return self.observation
         try:
-            pixels = decode_image(msg, msgtype)
-            self.observation = preprocess_images(pixels[None], preprocessing)[0]
+            pixels = decode_image(self._msg, self._msgtype)
+            self.observation = preprocess_images(pixels[None], self._preprocessing)[0]
         except MessageError as exc:
             self.detail = str(exc)
             self.reason = "encoding" if isinstance(exc, EncodingError) else "data"
+        self._msg = None
+        return self.observation

@@ -17,7 +17,7 @@ from tpsr_ros.core.actions import ACTIONS
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.online import OnlineTracker
 from tpsr_ros.core.units import NS_PER_S as _NS
-from tpsr_ros.filter_node.health import HealthLedger, Throttle
+from tpsr_ros.filter_node.health import OK, WARN, HealthLedger, Throttle
 from tpsr_ros.filter_node.inputs import (
     Frame,
     Rejected,
@@ -50,6 +50,7 @@ from tpsr_ros.runtime import (
     NodeOptions,
     QoSProfile,
     Reliability,
+    Subscription,
     run_node,
 )
 from tpsr_ros.runtime.diagnostics import (
@@ -131,8 +132,8 @@ class FilterNode(Node):
         """Take the checked model and policy; create the endpoints and timers."""
         p: FilterNodeParams = self.params
         prepared = self.prepared
-        self.inputs = prepared if isinstance(prepared, FilterInputs) else self.preflight(
-            self.options
+        self.inputs = (
+            prepared if isinstance(prepared, FilterInputs) else self.preflight(self.options)
         )
         image_name, action_name = input_topics(self.inputs.model_file) or (
             IMAGE_TOPIC,
@@ -150,22 +151,26 @@ class FilterNode(Node):
                 round(p.step_period * _NS), queue_size=p.queue_size, jump_threshold_ns=jump_ns
             )
         else:
-            self.source = GridStepping(self.spec.grid, jump_threshold_ns=jump_ns)
+            self.source = GridStepping(
+                self.spec.grid, jump_threshold_ns=jump_ns,
+                max_latency_ns=round(p.max_latency * _NS),
+            )  # fmt: skip
         self.tracker = OnlineTracker(self.model, self.source_step_ns)
         self.health = HealthLedger(p.input_timeout)
         self._throttle = Throttle(WARN_PERIOD_S)
         self.resets = self.stale_resets = self.errors = self.commands = 0
         self.latency = RollingPercentiles(1000)
         self._action_cache: dict[tuple[float, float], int] = {}
-        self._last_image_arrival_ns: int | None = None
         self._pending_command: tuple[int, int | None] | None = None
         self._ready_since: float | None = None
         self.commands_ready = self.policy is None
         self._create_endpoints(image_name, action_name)
-        self.health.reported(self._problem_counts(), 0)
+        self._report_done()
         self.create_timer(p.diagnostics_period, self.publish_diagnostics)
         if self.policy is not None:
             self._ready_timer = self.create_timer(0.01, self._check_ready)
+        if self.spec is not None:
+            self.create_timer(min(0.1, p.max_latency / 4), self._flush_if_idle)
         what = "pure filter" if self.policy is None else f"policy {p.policy}"
         how = "pairing"
         if self.spec is not None:
@@ -181,7 +186,7 @@ class FilterNode(Node):
         """The step period: the model's grid, or the ``step_period`` parameter."""
         if self.spec is not None:
             return int(self.spec.grid.step_ns)
-        return round(self.params.step_period * _NS)
+        return round(float(self.params.step_period) * _NS)
 
     @property
     def grid(self) -> GridStepping | None:
@@ -313,53 +318,50 @@ class FilterNode(Node):
 
     # -- robot streams on the model's step grid -------------------------------------------
 
-    def _stream_time(self, msg: Any) -> int:
-        """Header stamp, or for unstamped messages the stream time now.
-
-        The stream's clock is the camera's: the newest image stamp plus the time elapsed
-        since it arrived (an unstamped command is placed between the images it arrived
-        between, as its log time places it in a bag).
-        """
-        if hasattr(msg, "header") and (stamp := m.stamp_of(msg)) > 0:
-            return stamp
-        assert self.grid is not None
-        last = self.grid.last_image_time
-        if last is None or self._last_image_arrival_ns is None:
-            return time.time_ns()
-        return last + max(1, time.monotonic_ns() - self._last_image_arrival_ns)
+    @staticmethod
+    def _sent(subscription: Subscription) -> int:
+        """When the message in hand was published: the middleware's source timestamp (the
+        publisher's clock), else now. Unstamped commands are dated by this order."""
+        sent = subscription.source_ns
+        return time.time_ns() if sent is None else sent
 
     def _on_grid_image(self, data: bytes) -> None:
         start = time.perf_counter()
+        sent = self._sent(self.image_sub)
         assert self.grid is not None and self.spec is not None
         self.health.arrived("image")
         msg = self._decode(data, self.image_type, self.image_topic)
         if msg is None:
             return
-        stamp = self._stream_time(msg)
-        frame = Frame()
-        added = self.grid.add_image(stamp, frame)
+        stamp = m.stamp_of(msg)
+        stamp = stamp if stamp > 0 else sent  # unstamped: offline takes the log time
+        frame = Frame(msg, self.image_type, self.spec.preprocessing)
+        added = self.grid.add_image(stamp, frame, sent)
         if added.jumped:
             self._reinit(f"camera time jumped back to {stamp / _NS:.3f} s")
-        self._last_image_arrival_ns = time.monotonic_ns()
         self._grid_steps(added.steps, start)
-        # Downsampled at the input, once: after this image's steps have been published
-        # (they hold the previous image), so it adds nothing to their latency, and the
-        # node keeps an observation, not the camera's megabytes.
-        frame.reduce(msg, self.image_type, self.spec.preprocessing)
+        frame.reduce()  # decoded now, after the steps it closed: it adds nothing to them
 
     def _grid_steps(self, steps: list[Step], start: float) -> None:
-        """Process the steps one image completed; they all hold the previous image."""
-        if not steps:
-            return
-        frame: Frame = steps[0].image
-        if frame.observation is None:
-            for _ in steps:  # one rejection per step, as each step is lost
-                self._reject(self.image_topic, frame.reason, frame.detail)
-            return
+        """Process closed steps, each with its image decoded (or rejected with the reason)."""
         for step in steps:
-            self._process(replace(step, image=frame.observation), start)
+            frame: Frame = step.image
+            observation = frame.reduce()
+            if observation is None:  # one rejection per step, as each step is lost
+                self._reject(self.image_topic, frame.reason, frame.detail)
+                continue
+            self._process(replace(step, image=observation), start)
+
+    def _flush_if_idle(self) -> None:
+        """Both inputs silent for ``max_latency``: close the steps before the newest image."""
+        assert self.grid is not None
+        idle = self.health.idle_for()
+        if idle is not None and idle >= self.params.max_latency:
+            self._grid_steps(self.grid.flush().steps, time.perf_counter())
 
     def _on_grid_command(self, data: bytes) -> None:
+        start = time.perf_counter()
+        sent = self._sent(self.action_sub)
         assert self.grid is not None and self.spec is not None
         self.health.arrived("action")
         msg = self._decode(data, self.action_type, self.action_topic)
@@ -379,7 +381,9 @@ class FilterNode(Node):
                 f"command {values.tolist()} is {distance:.3g} from its nearest action (more "
                 f"than {codebook.far_distance:.3g})",
             )
-        self.grid.add_action(self._stream_time(msg), index, far=far)
+        stamp = m.stamp_of(msg) if hasattr(msg, "header") else 0
+        added = self.grid.add_action(stamp if stamp > 0 else None, index, sent_ns=sent, far=far)
+        self._grid_steps(added.steps, start)
 
     # -- tracking and commands ------------------------------------------------------------
 
@@ -390,17 +394,14 @@ class FilterNode(Node):
             self.errors += 1
             self.tracker.reinit()
             if self._throttle((self.state_pub.topic, "error")):
-                self.logger.error(
-                    f"update at {step.stamp / _NS:.3f} s failed ({exc}); state reset"
-                )
+                self.logger.error(f"update at {step.stamp / _NS:.3f} s failed ({exc}); state reset")
             return
         self.health.update(bool(info.recovered))
         if info.recovered:
             self._warn(
                 self.state_pub.topic,
                 "recovery",
-                f"normaliser {info.normalizer:.3g} at {step.stamp / _NS:.3f} s: restarted "
-                "from b_*",
+                f"normaliser {info.normalizer:.3g} at {step.stamp / _NS:.3f} s: restarted from b_*",
             )
         self.state_pub.publish(m.state_msg(step.stamp, info.state))
         if self.policy is not None:
@@ -507,8 +508,24 @@ class FilterNode(Node):
         }
 
     def health_status(self) -> tuple[int, str]:
-        """Level and message of the next report: what got worse since the previous one."""
-        return self.health.assess(self._problem_counts(), self.tracker.steps, self._topics())
+        """Level and message of the next report: what got worse since the previous one.
+
+        Far commands inform (a key-value); they WARN only when more than
+        ``far_commands_warn`` of the commands since the previous report were far.
+        """
+        counts = self._problem_counts()
+        far = counts.pop("far_commands", 0)
+        level, message = self.health.assess(counts, self.tracker.steps, self._topics())
+        far_then, commands_then = self._far_reported
+        commands = self.grid.stepper.commands if self.grid is not None else 0
+        share = (far - far_then) / max(1, commands - commands_then)
+        if level == OK and far > far_then and share > self.params.far_commands_warn:
+            level = WARN
+            message = (
+                f"{share:.0%} of the commands since the last report were far from every "
+                f"action (more than far_commands_warn {self.params.far_commands_warn:g})"
+            )
+        return level, message
 
     def publish_diagnostics(self) -> None:
         """Publish one DiagnosticArray (timer callback)."""
@@ -518,7 +535,14 @@ class FilterNode(Node):
             level, f"{self.name}: state tracking", message, values, hardware_id="tpsr"
         )
         self.diagnostics_pub.publish(diagnostic_array(time.time_ns(), [status]))
-        self.health.reported(self._problem_counts(), self.tracker.steps)
+        self._report_done()
+
+    def _report_done(self) -> None:
+        """Remember the counters of the report just published."""
+        counts = self._problem_counts()
+        commands = self.grid.stepper.commands if self.grid is not None else 0
+        self._far_reported = (counts.pop("far_commands", 0), commands)
+        self.health.reported(counts, self.tracker.steps)
 
     def on_parameter_change(self, name: str, value: Any) -> str | None:
         """``ros2 param set /tpsr_filter policy NEW``: swap the policy if it fits the model.

@@ -77,14 +77,29 @@ class FilterNodeParams:
     input_timeout: float = param(
         3.0, "s; an input silent for longer makes /diagnostics WARN, all inputs silent STALE"
     )
+    far_commands_warn: float = param(
+        0.5,
+        "fraction (step-grid models); far commands (farther from every action than half the "
+        "codes' spacing, normal for continuous teleoperation) are counted, and make "
+        "/diagnostics WARN only when more than this fraction of the commands since the last "
+        "report were far",
+    )
+    max_latency: float = param(
+        1.0,
+        "s (step-grid models); a step closes once both inputs passed its time, or once one "
+        "input is this far past it (the other late or silent); both silent this long: the "
+        "steps before the newest image close",
+    )
 
     def __post_init__(self) -> None:
         if self.queue_size < 1:
             raise ConfigError(f"queue_size must be >= 1, got {self.queue_size}")
-        for name in ("step_period", "diagnostics_period", "input_timeout"):
+        for name in ("step_period", "diagnostics_period", "input_timeout", "max_latency"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name} must be a positive number of seconds, got {value}")
+        if not (math.isfinite(self.far_commands_warn) and 0 <= self.far_commands_warn <= 1):
+            raise ConfigError(f"far_commands_warn must be in [0, 1], got {self.far_commands_warn}")
         if not (math.isfinite(self.jump_threshold) and self.jump_threshold >= 0):
             raise ConfigError(f"jump_threshold must be >= 0 s, got {self.jump_threshold}")
         if self.wait_for_subscribers < 0:

@@ -18,14 +18,15 @@ whether time jumped back, which restarts the state) and report their counters wi
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from tpsr_ros.core.cadence import CadenceGaps
 from tpsr_ros.core.pairing import ExactTimeSynchronizer, Outcome
-from tpsr_ros.core.resample import GridConfig, GridStepper
+from tpsr_ros.core.resample import GridConfig, GridStep, GridStepper
 
-__all__ = ["Added", "ExactPairing", "GridStepping", "Step", "StepSource"]
+__all__ = ["Added", "CommandDating", "ExactPairing", "GridStepping", "Step", "StepSource"]
 
 
 @dataclass(frozen=True)
@@ -163,18 +164,63 @@ class ExactPairing:
         }
 
 
+class CommandDating:
+    """Unstamped commands dated by the first image sent after them, as a bag's order dates
+    them offline (:mod:`tpsr_ros.core.resample`).
+
+    ``sent`` is when a message was published (the middleware's source timestamp, or its
+    arrival where there is none): the order of sending, not of the callbacks, decides, so
+    a replay gives every command the date it has offline. A command sent after the newest
+    image waits for the next one; a command handled after images sent later than it takes
+    the first of those (the last :data:`HISTORY` images are kept for that).
+    """
+
+    HISTORY = 256
+
+    def __init__(self) -> None:
+        self._images: list[tuple[int, int]] = []  # (sent, stamp), in sending order
+        self._waiting: list[tuple[int, Any]] = []  # (sent, command) sent after the newest
+
+    def reset(self) -> None:
+        """Forget images and waiting commands (time jumped back)."""
+        self._images.clear()
+        self._waiting.clear()
+
+    def image(self, sent: int, stamp: int) -> list[tuple[int, Any]]:
+        """An image; returns the waiting commands it dates, as ``(date, command)``."""
+        if self._images and sent <= self._images[-1][0]:
+            self._images.clear()  # the sender's clock went back: a new stream
+        self._images.append((int(sent), int(stamp)))
+        del self._images[: -self.HISTORY]
+        dated = [(int(stamp), c) for t, c in self._waiting if t < sent]
+        self._waiting = [(t, c) for t, c in self._waiting if t >= sent]
+        return dated
+
+    def command(self, sent: int, command: Any) -> tuple[int, Any] | None:
+        """A command: ``(date, command)`` if an image was sent after it, else None (waits)."""
+        index = bisect.bisect_right(self._images, sent, key=lambda pair: pair[0])
+        if index < len(self._images):
+            return self._images[index][1], command
+        self._waiting.append((int(sent), command))
+        return None
+
+
 class GridStepping:
     """Robot streams resampled on the model's step grid; lost images from the camera's cadence.
 
     Images are given as they arrive (any object; a step holds the image in force at its
     time) and commands as action indices; ``far`` counts commands farther from every code
-    than the codebook's ``far_distance``.
+    than the codebook's ``far_distance``. ``max_latency_ns``: how far one stream may run
+    ahead of a step before the step closes without the other (:class:`GridStepper`).
     """
 
-    def __init__(self, grid: GridConfig, *, jump_threshold_ns: int) -> None:
-        self.stepper = GridStepper(grid)
+    def __init__(
+        self, grid: GridConfig, *, jump_threshold_ns: int, max_latency_ns: int = 10**9
+    ) -> None:
+        self.stepper = GridStepper(grid, max_latency_ns)
         self.jump_threshold_ns = int(jump_threshold_ns)
         self.cadence = CadenceGaps()
+        self.dating = CommandDating()
         self.lost_images = 0
         self.time_jumps = 0
         self.far_commands = 0
@@ -190,23 +236,39 @@ class GridStepping:
         if last is None or stamp >= last - self.jump_threshold_ns:
             return False
         self.stepper.reset()
+        self.dating.reset()
         self.time_jumps += 1
         return True
 
-    def add_image(self, stamp: int, image: Any) -> Added:
-        """An image: the grid steps before ``stamp``, each with the image before it."""
+    def add_image(self, stamp: int, image: Any, sent_ns: int = 0) -> Added:
+        """An image (``sent_ns``: when it was published, to date unstamped commands); the
+        steps it closes."""
         jumped = self._jumped(stamp)
         self.lost_images += self.cadence.add(stamp)
-        steps = [
-            Step(s.stamp, int(s.command), s.image) for s in self.stepper.add_image(stamp, image)
-        ]
-        return Added(steps, jumped)
+        last = self.stepper.last_image_time
+        steps = []
+        if last is None or stamp > last:  # else the stepper drops it: it dates nothing
+            for date, action in self.dating.image(sent_ns, stamp):
+                steps += self.stepper.add_command(date, action)
+        steps += self.stepper.add_image(stamp, image)
+        return Added(_steps(steps), jumped)
 
-    def add_action(self, stamp: int, action: int, *, far: bool = False) -> Added:
-        """A command in force from ``stamp`` on."""
+    def add_action(
+        self, stamp: int | None, action: int, *, sent_ns: int = 0, far: bool = False
+    ) -> Added:
+        """A command in force from ``stamp`` on; ``stamp`` None (unstamped): from the first
+        image sent after ``sent_ns``. The steps it closes."""
         self.far_commands += int(far)
-        self.stepper.add_command(stamp, action)
-        return Added()
+        if stamp is None:
+            dated = self.dating.command(sent_ns, action)
+            if dated is None:
+                return Added()
+            stamp = dated[0]
+        return Added(_steps(self.stepper.add_command(stamp, action)))
+
+    def flush(self) -> Added:
+        """Close the steps before the newest image (both inputs fell silent)."""
+        return Added(_steps(self.stepper.flush()))
 
     def episode_start(self, stamp: int) -> bool:
         """Robot streams have no episodes; a start message restarts the state."""
@@ -222,7 +284,7 @@ class GridStepping:
         return {
             "dropped": stepper.images_out_of_order,
             "duplicates": 0,
-            "late": 0,
+            "late": stepper.late,
             "out_of_order": stepper.images_out_of_order,
             "time_jumps": self.time_jumps,
             "lost_images": self.lost_images,
@@ -231,3 +293,7 @@ class GridStepping:
             "command_gaps": stepper.command_gaps,
             "far_commands": self.far_commands,
         }
+
+
+def _steps(closed: list[GridStep]) -> list[Step]:
+    return [Step(s.stamp, int(s.command), s.image) for s in closed]

@@ -65,7 +65,8 @@ class BagStreams:
     action_type: str
     image_times: np.ndarray  # (I,) of the images kept (increasing)
     image_numbers: np.ndarray  # (I,) their message index on the topic
-    command_times: np.ndarray
+    command_times: np.ndarray  # (C,) header stamp, or (unstamped) the next image's stamp
+    command_log_times: np.ndarray  # (C,) when each was logged
     commands: np.ndarray  # (C, len(components))
     pose_topic: str | None
     pose_type: str
@@ -138,6 +139,7 @@ def _read_streams(
         numbers = dict.fromkeys(wanted, 0)
         image_times: list[int] = []
         command_times: list[int] = []
+        command_logs: list[int] = []
         commands: list[np.ndarray] = []
         pose_times: list[int] = []
         pose_data: list[bytes] = []
@@ -163,9 +165,10 @@ def _read_streams(
                 elif topic == action_topic:
                     msg = deserialize(data, types[topic])
                     commands.append(twist_components(msg, components))
-                    command_times.append(
-                        log_time if action_type == TWIST_TYPE else _time(msg, log_time)
-                    )
+                    stamp = 0 if action_type == TWIST_TYPE else stamp_of(msg)
+                    # unstamped: dated later by the next image (UNDATED: its position)
+                    command_times.append(stamp if stamp > 0 else UNDATED - len(image_times))
+                    command_logs.append(int(log_time))
                 else:
                     msg = deserialize(data, types[topic])
                     if tuple(msg.name[:1]) != ("reward",) or len(msg.position) < 1:
@@ -177,7 +180,9 @@ def _read_streams(
         environment = reader.custom_data.get("tpsr_ros.environment") or None
     times = np.array(image_times, dtype=np.int64)
     keep = increasing(times)
-    command_t = np.array(command_times, dtype=np.int64)
+    command_t, dated = _date_commands(np.array(command_times, dtype=np.int64), times, keep)
+    command_log = np.array(command_logs, dtype=np.int64)[dated]
+    command_t = command_t[dated]
     order = np.argsort(command_t, kind="stable")
     pose_t = np.array(pose_times, dtype=np.int64)
     pose_order = np.argsort(pose_t, kind="stable")
@@ -189,7 +194,8 @@ def _read_streams(
         image_times=times[keep],
         image_numbers=np.flatnonzero(keep),
         command_times=command_t[order],
-        commands=np.array(commands, dtype=np.float64).reshape(-1, len(components))[order],
+        command_log_times=command_log[order],
+        commands=np.array(commands, dtype=np.float64).reshape(-1, len(components))[dated][order],
         pose_topic=pose_topic if pose_topic in wanted else None,
         pose_type=available.get(pose_topic or "", ""),
         pose_times=pose_t[pose_order],
@@ -202,6 +208,27 @@ def _read_streams(
         environment=str(environment) if environment else None,
         dropped_images=int(times.size - keep.sum()),
     )
+
+
+UNDATED = -(2**62)
+"""Command times below this mark an unstamped command: ``UNDATED - n`` came after n images."""
+
+
+def _date_commands(
+    times: np.ndarray, image_times: np.ndarray, keep: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unstamped commands dated by the stamp of the next kept image in the bag's order (see
+    :mod:`tpsr_ros.core.resample`); returns the times and which commands have one (those
+    after the last image have none)."""
+    unstamped = times <= UNDATED
+    kept = np.flatnonzero(keep)
+    following = np.searchsorted(kept, UNDATED - times[unstamped])  # first kept image after
+    known = following < kept.size
+    dated = np.ones(times.size, dtype=bool)
+    dated[np.flatnonzero(unstamped)[~known]] = False
+    out = times.copy()
+    out[np.flatnonzero(unstamped)[known]] = image_times[kept[following[known]]]
+    return out, dated
 
 
 def read_bag_streams(

@@ -498,6 +498,7 @@ class DdsTransport(Transport):
                     break
                 for data, info in samples:
                     if info.valid_data and not handle.closed:
+                        handle.source_ns = int(info.source_timestamp)
                         handle.callback(data)
                         count += 1
                 if len(samples) < _TAKE_BATCH:

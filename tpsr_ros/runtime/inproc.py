@@ -10,6 +10,7 @@ joiners, and a keep-last reader drops its oldest undelivered sample when full.
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from typing import ClassVar
 
@@ -42,7 +43,7 @@ class _Publisher(PublisherHandle):
     def __init__(self, owner: InprocTransport, topic: str, msgtype: str, qos: QoSProfile):
         self.owner, self.topic, self.msgtype, self.qos = owner, topic, msgtype, qos
         keep = qos.depth if qos.history is History.KEEP_LAST else None
-        self.history: deque[bytes] | None = (
+        self.history: deque[tuple[bytes, int]] | None = (  # (data, publish time)
             deque(maxlen=keep) if qos.durability is Durability.TRANSIENT_LOCAL else None
         )
         self.closed = False
@@ -56,11 +57,12 @@ class _Publisher(PublisherHandle):
         data = pad_cdr(data)
         bus = self.owner.bus
         with bus.lock:
+            sent = time.time_ns()  # under the lock: publish times follow publish order
             if self.history is not None:
-                self.history.append(data)
+                self.history.append((data, sent))
             targets = [s for s in bus.subscriptions.get(self.topic, ()) if self.matches(s)]
         for sub in targets:
-            sub.deliver(data)
+            sub.deliver(data, sent)
 
     def matched_count(self) -> int:
         bus = self.owner.bus
@@ -86,13 +88,13 @@ class _Subscription(SubscriptionHandle):
         self.owner, self.topic, self.msgtype, self.qos = owner, topic, msgtype, qos
         self.callback = callback
         keep = qos.depth if qos.history is History.KEEP_LAST else None
-        self.queue: deque[bytes] = deque(maxlen=keep)
+        self.queue: deque[tuple[bytes, int]] = deque(maxlen=keep)  # (data, publish time)
         self.closed = False
 
-    def deliver(self, data: bytes) -> None:
+    def deliver(self, data: bytes, sent: int) -> None:
         with self.owner.ready:
             if not self.closed:
-                self.queue.append(data)
+                self.queue.append((data, sent))
                 self.owner.ready.notify_all()
 
     def matched_count(self) -> int:
@@ -142,8 +144,8 @@ class InprocTransport(Transport):
             ]
         if qos.durability is Durability.TRANSIENT_LOCAL:
             for samples in history:
-                for data in samples:
-                    sub.deliver(data)
+                for data, sent in samples:
+                    sub.deliver(data, sent)
         self._subs.append(sub)
         return sub
 
@@ -157,9 +159,10 @@ class InprocTransport(Transport):
                 s.queue.clear()
         count = 0
         for sub, items in batches:
-            for data in items:
+            for data, sent in items:
                 if sub.closed:
                     break
+                sub.source_ns = sent
                 sub.callback(data)
                 count += 1
         return count

@@ -229,6 +229,12 @@ class Subscription:
         """Messages the middleware reported lost on this subscription so far."""
         return self._handle.lost_count() if self._handle is not None else 0
 
+    @property
+    def source_ns(self) -> int | None:
+        """Inside the callback: when the message was published (publisher's clock, ns), or
+        None where the middleware does not say (:class:`~.transport.SubscriptionHandle`)."""
+        return self._handle.source_ns if self._handle is not None else None
+
     def destroy(self) -> None:
         """Remove the subscription; its callback is not called again."""
         if self._handle is not None:

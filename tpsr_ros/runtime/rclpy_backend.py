@@ -236,6 +236,8 @@ class RclpyTransport(Transport):
         def on_raw(data: bytes, info: Any) -> None:
             self._dispatched += 1
             handle.note_sequence(info)
+            sent = info.get("source_timestamp") if isinstance(info, dict) else None
+            handle.source_ns = sent if isinstance(sent, int) and sent > 0 else None
             callback(data)
 
         from rclpy.event_handler import SubscriptionEventCallbacks, UnsupportedEventTypeError

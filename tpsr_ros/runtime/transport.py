@@ -70,7 +70,15 @@ class PublisherHandle(ABC):
 
 
 class SubscriptionHandle(ABC):
-    """Backend subscription: its callback receives CDR bytes inside ``spin_once``."""
+    """Backend subscription: its callback receives CDR bytes inside ``spin_once``.
+
+    ``source_ns``: while the callback runs, when the message was published (ns on the
+    publisher's clock: the DDS source timestamp; in process, the publish time), or None
+    where the middleware does not say. Messages of several topics from one publisher are
+    put in send order by it, whatever order the subscriptions are served in.
+    """
+
+    source_ns: int | None = None
 
     @abstractmethod
     def matched_count(self) -> int:
