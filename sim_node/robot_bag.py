@@ -1,24 +1,32 @@
 """A simulated run recorded the way a real robot records it (test data for robot bags).
 
     python -m sim_node.robot_bag --steps 300 --seed 0 --encoding bgr8 -o robot_bag
+    python -m sim_node.robot_bag --timeline step-start --steps 6000 -o robot_bag
+    python -m sim_node.robot_bag --timeline phone --steps 70 -o phone_bag
 
-The simulator's random run (1 s steps, the 25 velocity pairs) is re-recorded as a
-researcher's robot would: a camera of its own size and rate with late, jittered stamps,
-unstamped continuous velocity commands at their own rate, and odometry. Shape (defaults):
+The simulator's random run (the 25 velocity pairs) is re-recorded as a researcher's robot
+would: a camera of its own size and rate with late, jittered stamps, unstamped continuous
+velocity commands at their own times, and odometry. Three timelines (``--timeline``):
 
-- ``/front_camera/image_raw``: ``sensor_msgs/msg/Image``, bgr8 (or mono8), 40x40, 4 Hz,
-  stamped 5..40 ms after the frame time (``--encoding jpeg``: ``sensor_msgs/msg/CompressedImage``
-  on ``/front_camera/image_raw/compressed``);
-- ``/cmd_vel``: ``geometry_msgs/msg/Twist`` at 2 Hz, unstamped: the step's pair plus uniform
-  ±0.6 m/s per component, angular.z 0;
-- ``/odom``: ``nav_msgs/msg/Odometry`` at 10 Hz (position, frame ``odom``);
-- ``/reward``: ``sensor_msgs/msg/JointState`` at 1 Hz, the simulator's reward of each step.
+- ``moving`` (default): 1 s steps. ``/front_camera/image_raw`` (``sensor_msgs/msg/Image``,
+  bgr8 or mono8, 40x40; ``--encoding jpeg``: ``CompressedImage`` on ``.../compressed``) at
+  4 Hz on quarter seconds, stamped 5..40 ms late, rendering the robot as it moves (step
+  ``k`` moves it linearly during ``[k-1, k]`` s); ``/cmd_vel`` (``Twist``, unstamped) 0.4
+  and 0.9 s into each step (+ 0..20 ms): the step's pair plus uniform ±0.6 m/s per
+  component as linear.x/linear.y; ``/odom`` at 10 Hz.
+- ``step-start``: as ``moving``, but the four frames of a step all show the scene at the
+  step's start, the two commands are sent at the step's start and half a second later
+  (+ 0..20 ms), and ``/odom`` runs at 4 Hz.
+- ``phone``: a phone on a differential-drive base. Steps of 0.3 s; a 256x96 JPEG camera
+  at 18 Hz nominal, about 14 Hz on average as a third of its intervals are stretched up to
+  3x; one ``Twist``
+  per frame, logged at the frame's stamp (linear.x and angular.z carry the step's pair
+  plus ±0.6 jitter); ``/odom`` at 10 Hz.
 
-Timeline: simulator step ``k`` moves the robot during ``[k-1, k]`` s (positions are
-interpolated linearly inside a step; frames and odometry render those positions); its two
-commands are logged 0.4 and 0.9 s into the step (+ 0..20 ms); the camera frames fall on
-quarter seconds. Images are logged 1..3 ms after their stamp. Everything is seeded.
-The bag carries no ``tpsr_ros.environment`` entry: it is a "robot" bag, not a simulator bag.
+Every timeline adds ``/reward`` (``sensor_msgs/msg/JointState``, the simulator's reward of
+each step, stamped at the step's end). Images are logged 1..3 ms after their stamp. The run
+starts 100 s into the bag's clock. Everything is seeded. The bag carries no
+``tpsr_ros.environment`` entry: it is a "robot" bag, not a simulator bag.
 """
 
 from __future__ import annotations
@@ -51,31 +59,44 @@ from tpsr_ros.io.messages import (
     twist_from_components,
 )
 
-__all__ = ["ENCODINGS", "RobotBagConfig", "main", "write_robot_bag"]
+__all__ = ["ENCODINGS", "TIMELINES", "RobotBagConfig", "main", "write_robot_bag"]
 
 PROG = "python -m sim_node.robot_bag"
 ENCODINGS = ("bgr8", "mono8", "jpeg")
+TIMELINES = ("moving", "step-start", "phone")
 IMAGE_TOPIC = "/front_camera/image_raw"
 COMPRESSED_TOPIC = "/front_camera/image_raw/compressed"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
 START_S = 100  # the run starts 100 s into the bag's clock
+PHONE_CAMERA = (96, 256)  # (height, width)
+PHONE_RATE = 18.0  # Hz nominal; about 14 Hz on average with the stretched intervals
+PHONE_STEP_S = 0.3
 
 
 @dataclass(frozen=True)
 class RobotBagConfig:
-    """Settings of a robot-shaped bag (see the module docstring)."""
+    """Settings of a robot-shaped bag (see the module docstring).
+
+    ``encoding`` None: jpeg for the ``phone`` timeline, bgr8 otherwise. ``image_size`` and
+    ``camera_rate`` shape the ``moving`` and ``step-start`` cameras (the phone's is fixed).
+    """
 
     steps: int = 300
     seed: int = 0
-    encoding: str = "bgr8"
+    encoding: str | None = None
     image_size: int = 40
     camera_rate: float = 4.0
     environment: str = "full"
     command_jitter: float = 0.6
     jpeg_quality: int = 90
     command_topic: str = "/cmd_vel"
+    timeline: str = "moving"
 
     def __post_init__(self) -> None:
+        if self.timeline not in TIMELINES:
+            raise ConfigError(f"timeline {self.timeline!r} is not one of {TIMELINES}")
+        if self.encoding is None:
+            object.__setattr__(self, "encoding", "jpeg" if self.timeline == "phone" else "bgr8")
         if self.encoding not in ENCODINGS:
             raise ConfigError(f"encoding {self.encoding!r} is not one of {ENCODINGS}")
         if self.steps < 3 or self.image_size < 1 or self.camera_rate not in (1.0, 2.0, 4.0, 5.0):
@@ -85,6 +106,88 @@ class RobotBagConfig:
     def image_topic(self) -> str:
         """The camera topic (``.../compressed`` for jpeg)."""
         return COMPRESSED_TOPIC if self.encoding == "jpeg" else IMAGE_TOPIC
+
+    @property
+    def step_seconds(self) -> float:
+        """Bag seconds per simulator step."""
+        return PHONE_STEP_S if self.timeline == "phone" else 1.0
+
+
+@dataclass(frozen=True)
+class Timeline:
+    """When everything happens, in seconds since the run's start (step ``k`` ends at
+    ``k * step_seconds``), and what the camera and odometry see."""
+
+    frame_s: np.ndarray  # (F,) frame times
+    frame_positions: np.ndarray  # (F, 2) the positions the frames show
+    stamp_delay_ns: tuple[int, int]  # header stamp minus frame time: uniform in [lo, hi]
+    command_s: np.ndarray  # (C,) when the commands are sent
+    command_delay_ns: int  # their log times are up to this much later (uniform)
+    command_steps: np.ndarray  # (C,) the step (1-based) each command belongs to
+    components: tuple[str, str]  # the Twist components carrying the pair
+    odom_s: np.ndarray
+
+
+def _moving(config: RobotBagConfig, run: Any) -> Timeline:
+    n, per_step = config.steps, round(config.camera_rate)
+    # camera frames at 1/rate s from 1 s (the end of step 1) to N s
+    frame_s = 1.0 + np.arange((n - 1) * per_step + 1) / config.camera_rate
+    # two commands per step k = 2..N, 0.4 and 0.9 s into it
+    step_k = np.repeat(np.arange(2, n + 1), 2)
+    command_s = step_k - 1 + np.tile([0.4, 0.9], n - 1)
+    return Timeline(
+        frame_s=frame_s,
+        frame_positions=_interpolated(run.positions, frame_s),
+        stamp_delay_ns=(5_000_000, 40_000_000),
+        command_s=command_s,
+        command_delay_ns=20_000_000,
+        command_steps=step_k,
+        components=("linear.x", "linear.y"),
+        odom_s=1.0 + np.arange((n - 1) * 10 + 1) / 10.0,
+    )
+
+
+def _step_start(config: RobotBagConfig, run: Any) -> Timeline:
+    n, per_step = config.steps, round(config.camera_rate)
+    frame_s = 1.0 + np.arange((n - 1) * per_step) / config.camera_rate  # [1, N)
+    step_k = np.repeat(np.arange(2, n + 1), 2)
+    command_s = step_k - 1 + np.tile([0.0, 0.5], n - 1)
+    return Timeline(
+        frame_s=frame_s,
+        frame_positions=_interpolated(run.positions, np.floor(frame_s)),  # the step's start
+        stamp_delay_ns=(5_000_000, 40_000_000),
+        command_s=command_s,
+        command_delay_ns=20_000_000,
+        command_steps=step_k,
+        components=("linear.x", "linear.y"),
+        odom_s=1.0 + np.arange((n - 1) * 4 + 1) / 4.0,
+    )
+
+
+def _phone(config: RobotBagConfig, run: Any) -> Timeline:
+    rng = np.random.default_rng(config.seed + 2)  # the camera's own clock
+    step_s, n = PHONE_STEP_S, config.steps
+    span = (n - 1) * step_s
+    intervals = np.full(int(span * PHONE_RATE * 1.5) + 2, 1.0 / PHONE_RATE)
+    stretched = rng.random(intervals.size) < 1 / 3
+    intervals[stretched] *= rng.uniform(1.0, 3.0, int(stretched.sum()))
+    frame_s = step_s + np.concatenate([[0.0], np.cumsum(intervals)])
+    frame_s = frame_s[frame_s <= n * step_s]
+    # one command per frame, at its stamp: the pair of the step the frame falls in
+    command_steps = np.minimum(n, np.floor(frame_s / step_s).astype(np.int64) + 1)
+    return Timeline(
+        frame_s=frame_s,
+        frame_positions=_interpolated(run.positions, frame_s / step_s),
+        stamp_delay_ns=(0, 0),
+        command_s=frame_s,
+        command_delay_ns=0,
+        command_steps=command_steps,
+        components=("linear.x", "angular.z"),
+        odom_s=step_s + np.arange(int(span * 10) + 1) / 10.0,
+    )
+
+
+_TIMELINES = {"moving": _moving, "step-start": _step_start, "phone": _phone}
 
 
 def _t(name: str) -> Any:
@@ -139,6 +242,17 @@ def _odometry(stamp: int, x: float, y: float) -> Any:
     )
 
 
+def _render(config: RobotBagConfig, positions: np.ndarray) -> np.ndarray:
+    """The frames ``(F, H, W, 3)`` uint8 (the phone's: a square render widened)."""
+    if config.timeline != "phone":
+        sim = SimConfig(environment=config.environment, image_size=config.image_size)
+        return Camera(sim).render(positions)
+    height, width = PHONE_CAMERA
+    square = Camera(SimConfig(environment=config.environment, image_size=height))
+    columns = np.arange(width) * height // width  # nearest source column
+    return np.ascontiguousarray(square.render(positions)[:, :, columns])
+
+
 def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
     """Simulate and write the bag; returns the number of messages written."""
     output = check_bag_path_free(Path(output))
@@ -147,34 +261,33 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
     n = config.steps
     sec = NS_PER_S
     start = START_S * sec
-    # camera frames at 1/rate s from 1 s (the end of step 1) to N s
-    per_step = round(config.camera_rate)
-    frame_s = 1.0 + np.arange((n - 1) * per_step + 1) / config.camera_rate
-    camera = Camera(SimConfig(environment=config.environment, image_size=config.image_size))
-    images = camera.render(_interpolated(run.positions, frame_s))
+    timeline = _TIMELINES[config.timeline](config, run)
+    encoding = str(config.encoding)  # resolved by RobotBagConfig
+    frame_s = timeline.frame_s
+    images = _render(config, timeline.frame_positions)
     image_stamps = start + np.rint(frame_s * sec).astype(np.int64)
-    image_stamps += rng.integers(5_000_000, 40_000_001, size=frame_s.size)
+    low, high = timeline.stamp_delay_ns
+    image_stamps += rng.integers(low, high + 1, size=frame_s.size)
     image_logs = image_stamps + rng.integers(1_000_000, 3_000_001, size=frame_s.size)
-    # two commands per step k = 2..N, 0.4 and 0.9 s into it, jittered in value and time
-    step_k = np.repeat(np.arange(2, n + 1), 2)
-    command_s = step_k - 1 + np.tile([0.4, 0.9], n - 1)
+    # commands jittered in value and (log) time
+    command_s = timeline.command_s
     command_logs = start + np.rint(command_s * sec).astype(np.int64)
-    command_logs += rng.integers(0, 20_000_001, size=command_s.size)
+    command_logs += rng.integers(0, timeline.command_delay_ns + 1, size=command_s.size)
     jitter = rng.uniform(-config.command_jitter, config.command_jitter, size=(command_s.size, 2))
-    commands = run.commands[step_k - 1] + jitter
-    odom_s = 1.0 + np.arange((n - 1) * 10 + 1) / 10.0
-    odom_xy = _interpolated(run.positions, odom_s)
+    commands = run.commands[timeline.command_steps - 1] + jitter
+    odom_s = timeline.odom_s
+    odom_xy = _interpolated(run.positions, odom_s / config.step_seconds)
     odom_stamps = start + np.rint(odom_s * sec).astype(np.int64)
 
-    image_type, _ = _image_message(0, images[0], config.encoding, config.jpeg_quality)
+    image_type, _ = _image_message(0, images[0], encoding, config.jpeg_quality)
     records: list[tuple[int, int, str, bytes]] = []  # (log time, order, topic, CDR)
     for i in range(frame_s.size):
         msgtype, msg = _image_message(
-            int(image_stamps[i]), images[i], config.encoding, config.jpeg_quality
+            int(image_stamps[i]), images[i], encoding, config.jpeg_quality
         )
         records.append((int(image_logs[i]), 0, config.image_topic, serialize(msg, msgtype)))
     for i in range(command_s.size):
-        twist = twist_from_components({"linear.x": commands[i, 0], "linear.y": commands[i, 1]})
+        twist = twist_from_components(dict(zip(timeline.components, commands[i], strict=True)))
         records.append(
             (int(command_logs[i]), 1, config.command_topic, serialize(twist, TWIST_TYPE))
         )
@@ -185,7 +298,7 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
         sample = RewardSample(
             float(run.rewards[k - 1]), bool(run.wall_contact[k - 1]), bool(run.goal_zone[k - 1])
         )
-        stamp = start + k * sec
+        stamp = start + round(k * config.step_seconds * sec)
         records.append(
             (stamp + 1_000_000, 3, "/reward", serialize(reward_msg(stamp, sample), REWARD_TYPE))
         )
@@ -204,16 +317,28 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Parse the command line and write one robot-shaped bag."""
     parser = ArgumentParser(prog=PROG, description=__doc__.split("\n")[0])
-    parser.add_argument("--steps", type=positive_int, default=300, help="simulator steps (1 s)")
+    parser.add_argument("--steps", type=positive_int, default=300, help="simulator steps")
     parser.add_argument("--seed", type=int, default=0, help="seed of every random stream")
-    parser.add_argument("--encoding", choices=ENCODINGS, default="bgr8", help="camera encoding")
+    parser.add_argument(
+        "--timeline", choices=TIMELINES, default="moving", help="when frames and commands come"
+    )
+    parser.add_argument(
+        "--encoding",
+        choices=ENCODINGS,
+        default=None,
+        help="camera encoding (default: jpeg for the phone, bgr8 otherwise)",
+    )
     parser.add_argument("--image-size", type=positive_int, default=40, help="camera pixels")
     parser.add_argument("-o", "--output", required=True, type=Path, help="new bag directory")
     args = parser.parse_args(argv)
     if args.seed < 0:
         parser.error(f"argument --seed: {args.seed} is negative")
     config = RobotBagConfig(
-        steps=args.steps, seed=args.seed, encoding=args.encoding, image_size=args.image_size
+        steps=args.steps,
+        seed=args.seed,
+        encoding=args.encoding,
+        image_size=args.image_size,
+        timeline=args.timeline,
     )
     count = write_robot_bag(args.output, config)
     print(f"wrote {args.output}: {args.steps} steps, {count} messages", file=sys.stderr)
