@@ -26,10 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from learner.config_file import describe, read_fit_config
+from learner.config_file import describe, read_fit_config, read_fit_inputs
 from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible, dask_client
 from learner.inputs import (
     add_stream_options,
+    apply_config_inputs,
     fit_options_from_args,
     require_given_topics,
     topics_from_args,
@@ -51,6 +52,7 @@ from tpsr_ros.core.streamed_fit import fit_pca_streamed, fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
 from tpsr_ros.io.bag_chunks import DEFAULT_CHUNK_STEPS, BagChunks, survey_bags
 from tpsr_ros.io.model_io import check_output_path, save_model
+from tpsr_ros.io.stream_defaults import check_fit_memory, grid_step_count
 from tpsr_ros.io.stream_spec import StreamSpec
 from tpsr_ros.io.streams import (
     DEFAULT_POSE_FRAME,
@@ -70,6 +72,7 @@ __all__ = [
     "summary_lines",
     "topics_from_args",
 ]
+
 
 def add_topic_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """``--image-topic`` etc. from :class:`Topics` (None when not given: see topics_from_args)."""
@@ -176,8 +179,7 @@ def add_streamed_options(parser: argparse.ArgumentParser | argparse._ArgumentGro
         type=positive_float,
         default=DEFAULT_TIMEOUT,
         metavar="SECONDS",
-        help="give up on a scheduler that does not answer within this time "
-        "(default: %(default)s)",
+        help="give up on a scheduler that does not answer within this time (default: %(default)s)",
     )
     parser.add_argument(
         "--scratch-dir",
@@ -197,6 +199,9 @@ def _say(message: str) -> None:
 def run(args: argparse.Namespace) -> int:
     """Read bags, cut episodes, fit, write the model and print a summary."""
     output = check_output_path(args.output, force=args.force)
+    if args.config is not None:
+        if taken := apply_config_inputs(args, read_fit_inputs(args.config)):
+            _say(f"options from {args.config}: {', '.join(taken)}")
     require_given_topics(args.bags, args)
     stream_options = fit_options_from_args(args)
     robot_bags = stream_options is not None
@@ -216,9 +221,7 @@ def run(args: argparse.Namespace) -> int:
     pca_config = config_from_args(PCAConfig, args)
     topics = topics_from_args(args)
     if args.stream or args.workers is not None or args.scheduler is not None:
-        return _run_streamed(
-            args, output, tpsr_config, pca_config, topics, stream_options, record
-        )
+        return _run_streamed(args, output, tpsr_config, pca_config, topics, stream_options, record)
     timings: dict[str, float] = {}
 
     _say(f"reading {len(args.bags)} bag(s)")
@@ -282,6 +285,10 @@ def read_training_bags(
         pose_frame=pose_frame,
     )
     spec = _robot_spec(args, options, topics, streams, say)
+    prep = spec.preprocessing
+    check_fit_memory(  # the batch fit holds every observation
+        grid_step_count(streams, spec.grid), prep.height * prep.width * (1 if prep.grey else 3)
+    )
     trajectory = read_stream_trajectory(
         args.bags,
         spec,
@@ -305,7 +312,7 @@ def _robot_spec(
     spec = fit_stream_spec(
         args.bags, options, image_topic=topics.image, action_topic=topics.action, streams=streams
     )
-    say(_spec_line(spec))
+    say(_spec_line(spec, options))
     return spec
 
 
@@ -440,14 +447,25 @@ def _write(
         print(line)
 
 
-def _spec_line(spec: StreamSpec) -> str:
+def _spec_line(spec: StreamSpec, options: FitOptions | None = None) -> str:
+    """The spec in one line; with ``options``, which values are defaults sized to the data."""
     prep, grid = spec.preprocessing, spec.grid.as_dict()
+    chosen = options is not None
+    phase = grid.get("phase_s")
     return (
-        f"steps of {grid['step_period_s']:g} s (camera period {grid['camera_period_s']:.3g} s); "
-        f"observations {prep.width}x{prep.height} {'grey' if prep.grey else 'colour'}; "
-        f"{len(spec.codebook)} actions over {', '.join(spec.codebook.components)} "
+        f"steps of {grid['step_period_s']:g} s"
+        + ("" if phase is None else f", offset {phase:.3f} s")
+        + (" (chosen to keep steps clear of stamps; --step-offset to set)"
+           if chosen and options.step_offset is None else "")
+        + f" (camera period {grid['camera_period_s']:.3g} s, images used up to "
+        f"{grid['image_timeout_s']:.3g} s old); "
+        f"observations {prep.width}x{prep.height} {'grey' if prep.grey else 'colour'}"
+        + (" (default; --image-size to set)" if chosen and options.image_size is None else "")
+        + f"; {len(spec.codebook)} actions over {', '.join(spec.codebook.components)} "
         f"({spec.codebook.kind})"
-    )
+        + (" (default sized to the steps; --actions to set)"
+           if chosen and options.actions is None and spec.codebook.kind == "kmeans" else "")
+    )  # fmt: skip
 
 
 def _commands_line(trajectory: Trajectory, spec: StreamSpec) -> str:

@@ -19,6 +19,7 @@ from tpsr_ros.cli import positive_int
 from tpsr_ros.core.codebook import COMPONENTS, DEFAULT_COMPONENTS
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.units import NS_PER_S
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.model_io import ModelFile, metadata_field
 from tpsr_ros.io.stream_spec import StreamSpec
@@ -27,16 +28,26 @@ from tpsr_ros.io.trajectory import Topics, read_trajectory
 
 __all__ = [
     "add_stream_options",
+    "apply_config_inputs",
     "fit_options_from_args",
     "image_size",
     "read_for_model",
     "recorded_topic",
     "require_given_topics",
     "require_simulator_model",
+    "stream_inputs",
     "topics_from_args",
 ]
 
-GRID_ONLY = ("image_size", "grey", "actions", "components", "image_timeout", "command_timeout")
+GRID_ONLY = (
+    "image_size",
+    "grey",
+    "actions",
+    "components",
+    "image_timeout",
+    "command_timeout",
+    "step_offset",
+)
 
 
 def image_size(text: str) -> tuple[int, int]:
@@ -85,7 +96,8 @@ def add_stream_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup
         type=image_size,
         default=None,
         metavar="N|WxH",
-        help="observation pixels, resized by area averaging (default: the camera's size)",
+        help="observation pixels, resized down by area averaging (default: 16 on the camera's "
+        "longer side, aspect kept)",
     )
     parser.add_argument(
         "--grey",
@@ -99,7 +111,8 @@ def add_stream_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup
         default=None,
         metavar="K",
         help="learn a codebook of K actions from the commands (k-means, seeded by --seed); "
-        "default: the simulator's 25 pairs, for simulator bags only",
+        "default: the simulator's 25 pairs for simulator bags, else one per 60 steps (2 to "
+        "25) that the data support",
     )
     parser.add_argument(
         "--components",
@@ -114,7 +127,8 @@ def add_stream_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup
         type=_seconds,
         default=None,
         metavar="SECONDS",
-        help="a step whose latest image is older is a gap (camera silence; default: one step)",
+        help="a step whose latest image is older is a gap (camera silence; default: one step, "
+        "or twice the camera's 95th-percentile frame interval if longer)",
     )
     parser.add_argument(
         "--command-timeout",
@@ -122,7 +136,15 @@ def add_stream_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup
         default=None,
         metavar="SECONDS",
         help="a command stays in force this long; a step with none in force is a gap "
-        "(default: two steps)",
+        "(default: two steps, or twice the commands' 95th-percentile interval if longer)",
+    )
+    parser.add_argument(
+        "--step-offset",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="step times are SECONDS + k * --step-period on the bag clock (default: the "
+        "offset that keeps steps farthest from image and command stamps)",
     )
 
 
@@ -148,8 +170,47 @@ def fit_options_from_args(args: argparse.Namespace) -> FitOptions | None:
         actions=args.actions,
         image_timeout=args.image_timeout,
         command_timeout=args.command_timeout,
+        step_offset=args.step_offset,
         seed=int(args.seed) if isinstance(getattr(args, "seed", None), int) else 0,
     )
+
+
+def apply_config_inputs(args: argparse.Namespace, values: dict[str, Any]) -> list[str]:
+    """Take the config file's ``input`` options for those not given on the command line;
+    returns the names taken."""
+    taken = []
+    for key, value in values.items():
+        current = getattr(args, key, None)
+        if current is None or (key == "components" and tuple(current) == DEFAULT_COMPONENTS):
+            setattr(args, key, value)
+            taken.append(key)
+    return taken
+
+
+def stream_inputs(args: argparse.Namespace, spec: StreamSpec | None) -> dict[str, Any]:
+    """The ``input`` section of a config file: the topics given and, for robot bags, the
+    spec's resolved options, so that ``learner fit --config`` reads the data the same way."""
+    values: dict[str, Any] = {
+        key: getattr(args, key)
+        for key in ("image_topic", "action_topic", "pose_topic", "reward_topic", "pose_frame")
+        if getattr(args, key, None) is not None
+    }
+    if spec is None:
+        return values
+    grid, prep, codebook = spec.grid, spec.preprocessing, spec.codebook
+    values.update(
+        image_topic=spec.image_topic,
+        action_topic=spec.action_topic,
+        step_period=grid.step_ns / NS_PER_S,
+        step_offset=None if grid.phase_ns is None else grid.phase_ns / NS_PER_S,
+        image_timeout=grid.image_timeout_ns / NS_PER_S,
+        command_timeout=grid.command_timeout_ns / NS_PER_S,
+        image_size=(prep.height, prep.width),
+        grey=prep.grey,
+        components=tuple(codebook.components),
+        actions=len(codebook) if codebook.kind == "kmeans" else None,
+    )
+    return values
 
 
 def topics_from_args(args: argparse.Namespace) -> Topics:

@@ -78,7 +78,16 @@ def test_streams_read_once_give_the_spec_and_steps_of_reading_twice(robot):
 @pytest.mark.slow
 def test_resampled_steps_are_the_simulator_steps(robot):
     config = robot["config"]
-    spec = fit_stream_spec([robot["bag"]], options(), image_topic=CAMERA, action_topic="/cmd_vel")
+    chosen = fit_stream_spec([robot["bag"]], options(), image_topic=CAMERA, action_topic="/cmd_vel")
+    # frames 5-40 ms after each quarter second; commands logged 0.4 and 0.9 s into a step,
+    # each dated by the next frame: the widest spans clear of both are 0.04-0.255 s and
+    # 0.54-0.755 s into a step
+    phase = chosen.grid.phase_ns / S
+    assert 0.05 < phase < 0.245 or 0.55 < phase < 0.745, phase
+    spec = fit_stream_spec(
+        [robot["bag"]], options(step_offset=0.15), image_topic=CAMERA, action_topic="/cmd_vel"
+    )
+    assert spec.grid.phase_ns == 0.15 * S
     assert spec.codebook.components == ("linear.x", "linear.y")  # angular.z is constant
     assert spec.grid.camera_period_ns == pytest.approx(S / 4, abs=0.02 * S)
     trajectory = read_stream_trajectory(
@@ -108,12 +117,11 @@ def test_jpeg_and_grey_cameras_give_nearly_the_same_observations(tmp_path, robot
     for encoding in ("bgr8", "jpeg", "mono8"):
         bags[encoding] = tmp_path / encoding
         write_robot_bag(bags[encoding], RobotBagConfig(steps=30, seed=2, encoding=encoding))
-    colour = fit_stream_spec([bags["bgr8"]], options(image_size=(16, 16)), image_topic=CAMERA,
-                             action_topic="/cmd_vel")
-    jpeg = fit_stream_spec([bags["jpeg"]], options(image_size=(16, 16)),
-                           image_topic=CAMERA + "/compressed", action_topic="/cmd_vel")
-    mono = fit_stream_spec([bags["mono8"]], options(image_size=(16, 16)), image_topic=CAMERA,
+    small = options(image_size=(16, 16), actions=4)  # 28 steps
+    colour = fit_stream_spec([bags["bgr8"]], small, image_topic=CAMERA, action_topic="/cmd_vel")
+    jpeg = fit_stream_spec([bags["jpeg"]], small, image_topic=CAMERA + "/compressed",
                            action_topic="/cmd_vel")
+    mono = fit_stream_spec([bags["mono8"]], small, image_topic=CAMERA, action_topic="/cmd_vel")
     assert jpeg.image_type == "sensor_msgs/msg/CompressedImage"
     assert mono.preprocessing.grey and not colour.preprocessing.grey  # from the camera
     obs = {
@@ -145,8 +153,9 @@ def test_fit_info_plot_policy_need_no_options_again(robot, capsys):
             "--actions", "25", "-o", str(model), *SMALL]
     assert main(argv) == 0
     err = capsys.readouterr().err
-    assert "steps of 1 s (camera period 0.25 s); observations 8x8 colour" in err
-    assert "commands: 0 of 898 farther than" in err  # none far from its code: reported
+    assert "steps of 1 s, offset " in err and "(chosen to keep steps clear of stamps" in err
+    assert "(camera period 0.25 s, images used up to 1 s old); observations 8x8 colour;" in err
+    assert re.search(r"commands: 0 of 89\d farther than", err)  # none far from a code: said
     assert "preset best (" in err
     assert load_model(model).config.normalize_ht_features  # the default preset's
     metadata = read_metadata(model)
@@ -245,7 +254,7 @@ def test_a_bag_without_ground_truth_plots_by_time(robot, tmp_path, capsys):
     ("extra", "message"),
     [
         (["--actions", "0"], "argument --actions: 0 is not positive"),
-        ([], "the commands on '/cmd_vel' are continuous: give --actions K"),
+        (["--image-size", "80"], "is larger than the camera's 40x40: resizing up adds no"),
         (["--actions", "5000"], "are fewer than the 5000 codebook entries"),
         (["--actions", "25", "--step-period", "0.05"], "steps of 0.05 s have a new image"),
         (["--actions", "25", "--action-topic", "/odom"], "topic '/odom' of bag"),
@@ -284,7 +293,9 @@ def test_grid_options_need_a_step_period_and_a_corrupt_jpeg_is_named(tmp_path, c
         ["fit", str(tmp_path / "none"), "--image-size", "8", "-o", str(tmp_path / "x.npz")], capsys
     )
     assert code != 0 and "--image-size need --step-period" in err
-    spec = fit_stream_spec([broken], options(actions=4), image_topic=topic, action_topic="/cmd_vel")
+    spec = fit_stream_spec(
+        [broken], options(actions=4, step_offset=0.15), image_topic=topic, action_topic="/cmd_vel"
+    )
     with pytest.raises(MessageError, match=rf"topic '{topic}', message 8: corrupt jpeg image"):
         read_stream_trajectory([broken], spec)
     with pytest.raises(DataError, match="model's camera topic carries"):

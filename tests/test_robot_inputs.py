@@ -4,6 +4,7 @@ vectorised, and online, one message at a time, giving the same steps)."""
 
 from __future__ import annotations
 
+import dataclasses
 import io
 
 import numpy as np
@@ -14,7 +15,13 @@ from tpsr_ros.core.codebook import ActionCodebook, fit_codebook, sim_codebook
 from tpsr_ros.core.episodes import images_to_observations
 from tpsr_ros.core.errors import ConfigError, DataError, EncodingError, MessageError
 from tpsr_ros.core.images import LUMA, Preprocessing, area_weights, preprocess_images
-from tpsr_ros.core.resample import GridConfig, GridStepper, resample_grid
+from tpsr_ros.core.resample import (
+    GridConfig,
+    GridStepper,
+    choose_phase,
+    grid_times,
+    resample_grid,
+)
 from tpsr_ros.io.images import COMPRESSED_IMAGE_TYPE, IMAGE_TYPE, decode_image
 from tpsr_ros.io.messages import jazzy_typestore
 
@@ -159,13 +166,16 @@ def test_area_averaging_equals_block_means_of_an_upsampled_image():
 def test_the_fast_row_pass_equals_the_weight_matrices(shape, size, dtype):
     top = np.iinfo(dtype).max
     images = np.random.default_rng(4).integers(0, top, shape, dtype=dtype, endpoint=True)
-    literal = np.einsum(
-        "ih,thwc,jw->tijc",
-        area_weights(shape[1], size[0]),
-        images.astype(np.float64),
-        area_weights(shape[2], size[1]),
-        optimize=True,  # the same sums, contracted one axis at a time (5 s -> 0.1 s at 1080p)
-    ).reshape(shape[0], -1) / top
+    literal = (
+        np.einsum(
+            "ih,thwc,jw->tijc",
+            area_weights(shape[1], size[0]),
+            images.astype(np.float64),
+            area_weights(shape[2], size[1]),
+            optimize=True,  # the same sums, contracted one axis at a time (5 s -> 0.1 s at 1080p)
+        ).reshape(shape[0], -1)
+        / top
+    )
     got = preprocess_images(images, Preprocessing(*size, grey=shape[3] == 1))
     np.testing.assert_allclose(got, literal, rtol=0, atol=1e-13)
 
@@ -193,7 +203,7 @@ def test_grey_is_luma_and_a_grey_camera_cannot_give_colour():
     assert preprocess_images(mono, Preprocessing(4, 4, grey=True)).shape == (1, 16)
     with pytest.raises(MessageError, match="grey image cannot give colour"):
         preprocess_images(mono, Preprocessing(4, 4))
-    deep = (mono.astype(np.uint16) * 257)
+    deep = mono.astype(np.uint16) * 257
     np.testing.assert_allclose(
         preprocess_images(deep, Preprocessing(4, 4, grey=True)),
         preprocess_images(mono, Preprocessing(4, 4, grey=True)),
@@ -254,30 +264,115 @@ def test_grid_takes_the_latest_image_and_the_command_in_force():
     assert (steps.stale_image, steps.no_command) == (1, 0)
 
 
-def test_online_stepper_equals_offline_resampling():
-    rng = np.random.default_rng(5)
+def _jittery_streams(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Camera at ~4 Hz with stamp jitter and a silence; commands at random times with a gap."""
+    rng = np.random.default_rng(seed)
     frames = np.cumsum(rng.uniform(0.2, 0.3, 400)) * S
     frames[150:] += 3 * S  # a camera silence
     images = (frames + rng.integers(5 * MS, 40 * MS, 400)).astype(np.int64)
     images = np.maximum.accumulate(images) + np.arange(400)  # strictly increasing
     commands = np.sort(rng.uniform(0, images[-1], 150)).astype(np.int64)
     commands = np.delete(commands, np.s_[60:80])  # a command silence
-    offline = resample_grid(images, commands, GRID)
-    stepper = GridStepper(GRID)
-    online = []
+    return images, commands
+
+
+def _run_online(stepper: GridStepper, events: list[tuple[int, int, int]]) -> list:
+    steps = []
+    for t, kind, i in events:
+        steps += stepper.add_command(t, i) if kind == 1 else stepper.add_image(t, i)
+    return steps + stepper.flush()
+
+
+@pytest.mark.parametrize("phase_ns", [None, 0, 370 * MS])
+def test_online_stepper_equals_offline_resampling(phase_ns):
+    images, commands = _jittery_streams(5)
+    grid = dataclasses.replace(GRID, phase_ns=phase_ns)
+    offline = resample_grid(images, commands, grid)
+    stepper = GridStepper(grid)
     events = sorted(
         [(t, 0, i) for i, t in enumerate(images)] + [(t, 1, i) for i, t in enumerate(commands)]
     )
-    for t, kind, i in events:
-        if kind == 1:
-            stepper.add_command(t, i)
-        else:
-            online += stepper.add_image(t, i)
+    online = _run_online(stepper, events)
     assert [s.stamp for s in online] == offline.stamps.tolist()
     assert [s.image for s in online] == offline.image_index.tolist()
     assert [s.command for s in online] == offline.command_index.tolist()
     assert stepper.camera_gaps == offline.stale_image > 0
     assert stepper.command_gaps == offline.no_command > 0
+    assert stepper.late == 0
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_any_interleaving_within_the_latency_bound_gives_the_offline_steps(seed):
+    """Each stream in its own order, delivered with independent delays below the bound."""
+    images, commands = _jittery_streams(seed)
+    grid = dataclasses.replace(GRID, phase_ns=123 * MS)
+    rng = np.random.default_rng(100 + seed)
+    latency = 800 * MS
+    image_arrival = images + np.maximum.accumulate(rng.integers(0, latency // 2, images.size))
+    command_arrival = commands + np.maximum.accumulate(rng.integers(0, latency // 2, commands.size))
+    events = sorted(
+        [(a, t, 0, i) for i, (t, a) in enumerate(zip(images, image_arrival, strict=True))]
+        + [(a, t, 1, i) for i, (t, a) in enumerate(zip(commands, command_arrival, strict=True))]
+    )
+    stepper = GridStepper(grid, max_latency_ns=latency)
+    online = _run_online(stepper, [(t, kind, i) for _, t, kind, i in events])
+    offline = resample_grid(images, commands, grid)
+    assert [s.stamp for s in online] == offline.stamps.tolist()
+    assert [s.image for s in online] == offline.image_index.tolist()
+    assert [s.command for s in online] == offline.command_index.tolist()
+
+
+def test_a_silent_command_stream_delays_steps_by_the_latency_bound_only():
+    grid = dataclasses.replace(GRID, phase_ns=500 * MS)  # steps at 0.5 s, 1.5 s, ...
+    stepper = GridStepper(grid, max_latency_ns=2 * S)
+    stepper.add_command(0, "go")  # in force for 2 s, then the commands stop
+    closed_by = {}
+    for k in range(1, 40):  # images every 0.25 s up to 9.75 s
+        for step in stepper.add_image(k * 250 * MS, k):
+            closed_by[step.stamp] = k * 250 * MS
+    assert closed_by == {500 * MS: 2500 * MS, 1500 * MS: 3500 * MS}  # 2 s late, no more
+    assert stepper.command_gaps == 6  # 2.5 s ... 7.5 s closed as gaps
+    assert stepper.flush() == [] and stepper.command_gaps == 8  # 8.5 s, 9.5 s
+
+
+def test_a_command_older_than_a_closed_step_is_counted_late():
+    grid = dataclasses.replace(GRID, phase_ns=500 * MS)
+    stepper = GridStepper(grid)
+    stepper.add_command(0, "a")
+    for k in range(1, 5):
+        stepper.add_image(k * 250 * MS, k)
+    assert [s.stamp for s in stepper.add_command(1200 * MS, "b")] == [500 * MS]
+    stepper.add_command(400 * MS, "c")  # before the step at 0.5 s, which has closed
+    assert stepper.late == 1
+
+
+def test_choose_phase_keeps_steps_away_from_every_event():
+    rng = np.random.default_rng(2)
+    period = 100 * MS
+    # images 30-50 ms past each period, commands 55-65 ms: the wide free span is 65-130 ms
+    base = np.arange(500) * period
+    images = base + 40 * MS + rng.integers(-10 * MS, 10 * MS, 500)
+    commands = base + 60 * MS + rng.integers(-5 * MS, 5 * MS, 500)
+    phase = choose_phase(np.concatenate([images, commands]), period)
+    middle = 97.5 * MS
+    assert min(abs(phase - middle), period - abs(phase - middle)) <= 5 * MS
+    assert choose_phase(np.array([], dtype=np.int64), period) == 0
+
+
+def test_grid_times_are_absolute_and_lie_between_the_first_and_last_image():
+    grid = dataclasses.replace(GRID, phase_ns=300 * MS)
+    times = grid_times(1_250 * MS, 4_400 * MS, grid)
+    assert times.tolist() == [1300 * MS, 2300 * MS, 3300 * MS, 4300 * MS]
+    assert grid_times(1_300 * MS, 4_300 * MS, grid).tolist() == [2300 * MS, 3300 * MS]
+
+
+def test_grid_phase_round_trips_through_model_metadata():
+    grid = dataclasses.replace(GRID, phase_ns=370 * MS)
+    assert GridConfig.from_dict(grid.as_dict()) == grid
+    assert GridConfig.from_dict(GRID.as_dict()) == GRID  # models without a phase
+    bad = {**grid.as_dict(), "phase_s": 1.5}
+    with pytest.raises(ConfigError, match="phase_s"):
+        GridConfig.from_dict(bad)
 
 
 def test_online_stepper_keeps_only_the_latest_commands():
@@ -288,3 +383,46 @@ def test_online_stepper_keeps_only_the_latest_commands():
     assert stepper.commands == 10
     assert stepper._command_at(9 * MS) == 9
     assert stepper._command_at(3 * MS) is None  # dropped with the oldest
+
+
+def test_choose_phase_keeps_steps_out_of_the_spans_of_undated_commands():
+    """A command logged just before an image it may or may not precede is uncertain over
+    the span to the next image: the chosen phase lies outside every such span."""
+    period = 1000 * MS
+    base = np.arange(300) * period
+    images = np.concatenate([base + 20 * MS, base + 270 * MS, base + 520 * MS, base + 770 * MS])
+    commands = base + 10 * MS  # dated by the image at 20 ms, or (later) by the one at 270 ms
+    starts = np.concatenate([images, commands])
+    spans = np.concatenate([np.zeros(images.size), np.where(np.arange(300) % 4 == 0, 260, 10) * MS])
+    phase = choose_phase(starts, period, spans)
+    assert not 10 * MS <= phase <= 270 * MS  # inside some command's span
+    assert choose_phase(starts, period) < 270 * MS  # blind to the spans: between 20 and 270 ms
+
+
+def test_a_codebook_whose_codes_are_never_in_force_is_refused_or_reduced():
+    """Three clusters of commands, one of which is always replaced before a step comes:
+    three actions are refused naming the two the data support; the default K reduces."""
+    from types import SimpleNamespace
+
+    from tpsr_ros.io.stream_defaults import supported_codebook
+
+    rng = np.random.default_rng(4)
+    steps = np.arange(1, 201) * S  # images each second; steps half a second later
+    command_times, commands = [], []
+    for k, t in enumerate(steps):
+        command_times.append(t + 100 * MS)  # in force at the step t + 0.5 s
+        commands.append([0.0, 0.0] if k % 2 else [5.0, 5.0])
+        if k % 20 == 0:  # an outlier, replaced 10 ms later: never in force at a step
+            command_times.append(t + 600 * MS)
+            commands.append([2.5, 12.0])
+            command_times.append(t + 610 * MS)
+            commands.append(commands[-2])
+    commands = np.array(commands) + rng.normal(0, 0.05, (len(commands), 2))
+    bag = SimpleNamespace(
+        image_times=steps, command_times=np.array(command_times), commands=commands
+    )
+    grid = GridConfig(S, S, S, 2 * S, phase_ns=500 * MS)
+    args = ([bag], grid, ("linear.x", "linear.y"), [0, 1], 3, 0)
+    with pytest.raises(DataError, match=r"3 actions: .* the data support 2 \(give --actions 2"):
+        supported_codebook(*args, reduce=False)
+    assert len(supported_codebook(*args, reduce=True)) == 2

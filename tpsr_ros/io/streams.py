@@ -34,13 +34,12 @@ from tpsr_ros.core.actions import NUM_ACTIONS
 from tpsr_ros.core.codebook import (
     COMPONENTS,
     DEFAULT_COMPONENTS,
-    fit_codebook,
     sim_codebook,
 )
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError, DataError, MessageError
 from tpsr_ros.core.images import Preprocessing
-from tpsr_ros.core.resample import GridConfig, resample_grid
+from tpsr_ros.core.resample import GridConfig, choose_phase, resample_grid
 from tpsr_ros.core.units import NS_PER_S
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.bag_streams import (
@@ -58,7 +57,14 @@ from tpsr_ros.io.images import image_observations as _observations
 from tpsr_ros.io.messages import (
     deserialize,
 )
-from tpsr_ros.io.stream_spec import COMMAND_TYPES, StreamSpec
+from tpsr_ros.io.stream_defaults import (
+    check_image_size,
+    default_action_count,
+    default_image_size,
+    grid_step_count,
+    supported_codebook,
+)
+from tpsr_ros.io.stream_spec import COMMAND_TYPES, TWIST_TYPE, StreamSpec
 
 __all__ = [
     "COMMAND_TYPES",
@@ -76,6 +82,9 @@ __all__ = [
 MIN_FRESH_FRACTION = 0.5
 """Fewer grid steps with a new image than this fraction: the step period is refused."""
 CHUNK_IMAGES = 512
+TIMEOUT_PERCENTILE = 95
+"""The default image and command timeouts are at least twice this percentile of the
+camera's and the commands' intervals: a jittery stream's long intervals are not silences."""
 
 
 @dataclass(frozen=True)
@@ -84,16 +93,21 @@ class FitOptions:
 
     step_period: float = field(metadata={"help": "s between steps"})
     image_size: tuple[int, int] | None = None
-    """(height, width) of the observations; None keeps the camera's size."""
+    """(height, width) of the observations; None: 16 px on the camera's longer side."""
     grey: bool | None = None
     """Grey observations; None: grey for a grey camera, colour otherwise."""
     components: tuple[str, ...] = DEFAULT_COMPONENTS
     actions: int | None = None
-    """K of the k-means codebook; None: the simulator's 25 pairs (simulator bags only)."""
+    """K of the k-means codebook; None: the simulator's 25 pairs for simulator bags, else one
+    action per 60 steps (2 to 25) that the data support."""
     image_timeout: float | None = None
-    """s; default: one step period."""
+    """s; default: one step period, or twice the camera's 95th-percentile frame interval if
+    longer (a jittery camera's long intervals are not silences)."""
     command_timeout: float | None = None
-    """s; default: two step periods."""
+    """s; default: two step periods, or twice the commands' 95th-percentile interval if
+    longer."""
+    step_offset: float | None = None
+    """s; step times are ``step_offset + k * step_period``; None: chosen from the data."""
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -107,6 +121,8 @@ class FitOptions:
             raise ConfigError(f"command components {list(self.components)} are empty or repeat")
         if self.actions is not None and not 1 <= self.actions <= 10_000:
             raise ConfigError(f"--actions must be 1..10000, not {self.actions}")
+        if self.step_offset is not None and not np.isfinite(self.step_offset):
+            raise ConfigError(f"--step-offset must be a finite number of s, not {self.step_offset}")
 
 
 def _check_given(
@@ -221,7 +237,8 @@ def fit_stream_spec(
     action_topic: str,
     streams: Sequence[BagStreams] | None = None,
 ) -> StreamSpec:
-    """The spec learned from the training bags: camera period, components and codebook.
+    """The spec learned from the training bags: camera period, grid phase, components,
+    codebook and observation size (defaults sized to the data: :mod:`.stream_defaults`).
 
     ``streams``: the bags' streams already read with ``options.components`` (else read here).
     """
@@ -239,11 +256,24 @@ def fit_stream_spec(
     if gaps.size == 0:
         raise DataError(f"the bags hold fewer than two images on {image_topic!r}")
     step_ns = round(options.step_period * NS_PER_S)
+    if options.step_offset is None:
+        phase = _phase_from_data(streams, step_ns)
+    else:
+        phase = round(options.step_offset * NS_PER_S) % step_ns
     grid = GridConfig(
         step_ns=step_ns,
         camera_period_ns=int(np.median(gaps)),
-        image_timeout_ns=round((options.image_timeout or options.step_period) * NS_PER_S),
-        command_timeout_ns=round((options.command_timeout or 2 * options.step_period) * NS_PER_S),
+        image_timeout_ns=(
+            round(options.image_timeout * NS_PER_S)
+            if options.image_timeout is not None
+            else max(step_ns, 2 * _interval_percentile([s.image_times for s in streams]))
+        ),
+        command_timeout_ns=(
+            round(options.command_timeout * NS_PER_S)
+            if options.command_timeout is not None
+            else max(2 * step_ns, 2 * _interval_percentile([s.command_times for s in streams]))
+        ),
+        phase_ns=phase,
     )
     commands = np.concatenate([s.commands for s in streams])
     varying = tuple(c for i, c in enumerate(options.components) if np.ptp(commands[:, i]) > 0)
@@ -254,19 +284,26 @@ def fit_stream_spec(
         )
     columns = [options.components.index(c) for c in varying]
     environment = {s.environment for s in streams}
-    if options.actions is None:
-        if environment == {None} or None in environment:
-            raise DataError(
-                f"the commands on {action_topic!r} are continuous: give --actions K to learn "
-                "a codebook of K actions (only simulator bags have the 25 fixed pairs)"
-            )
+    if options.actions is None and None not in environment:
         codebook = sim_codebook()
     else:
-        codebook = fit_codebook(commands[:, columns], varying, options.actions, options.seed)
+        default = options.actions is None
+        count = (
+            default_action_count(grid_step_count(streams, grid))
+            if options.actions is None
+            else options.actions
+        )
+        codebook = supported_codebook(
+            streams, grid, varying, columns, count, options.seed, reduce=default
+        )
     first = streams[0]
     shape = _first_pixels(first, image_topic).shape
     grey = shape[2] == 1 if options.grey is None else options.grey
-    height, width = options.image_size or shape[:2]
+    if options.image_size is None:
+        height, width = default_image_size(shape[:2])
+    else:
+        check_image_size(options.image_size, shape[:2])
+        height, width = options.image_size
     return StreamSpec(
         image_topic=image_topic,
         image_type=first.image_type,
@@ -276,6 +313,26 @@ def fit_stream_spec(
         codebook=codebook,
         grid=grid,
     )
+
+
+def _interval_percentile(times: Sequence[np.ndarray]) -> int:
+    """The :data:`TIMEOUT_PERCENTILE` of the intervals of each bag's ``times`` (0 if none)."""
+    gaps = np.concatenate([np.diff(t) for t in times])
+    return int(np.percentile(gaps, TIMEOUT_PERCENTILE)) if gaps.size else 0
+
+
+def _phase_from_data(streams: Sequence[BagStreams], step_ns: int) -> int:
+    """:func:`~tpsr_ros.core.resample.choose_phase` over image stamps and command times; an
+    unstamped command spans from its log time to the image that dates it."""
+    starts, spans = [], []
+    for bag in streams:
+        starts.append(bag.image_times)
+        spans.append(np.zeros(bag.image_times.size))
+        unstamped = bag.action_type == TWIST_TYPE
+        logs = bag.command_log_times if unstamped else bag.command_times
+        starts.append(np.minimum(logs, bag.command_times))
+        spans.append(np.abs(bag.command_times - logs).astype(np.float64))
+    return choose_phase(np.concatenate(starts), step_ns, np.concatenate(spans))
 
 
 def _first_pixels(streams: BagStreams, topic: str) -> np.ndarray:
@@ -370,9 +427,7 @@ def read_stream_trajectory(
             raise DataError(
                 f"bag {str(path)!r}: the poses on {pose_topic!r} cover none of the steps"
             )
-        rewards = _step_rewards(
-            bag.reward_times, bag.rewards, steps.stamps, spec.grid.step_ns
-        )
+        rewards = _step_rewards(bag.reward_times, bag.rewards, steps.stamps, spec.grid.step_ns)
         breaks = np.diff(steps.stamps) != spec.grid.step_ns
         segments = segment_offset + np.concatenate([[0], np.cumsum(breaks)])
         segment_offset = int(segments[-1]) + 1

@@ -1,0 +1,93 @@
+"""A phone-like robot's bag (a jittery ~14 Hz JPEG camera, unstamped commands logged at the
+frame stamps) fits with only its topics and a step period, and its replay through the
+filter node gives exactly `learner track`'s states, first step included, on both backends
+at 0.5, 1 and 4 times its speed, with no image counted lost."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from graph_support import BACKENDS, LOOPBACK, fresh_domain
+
+from learner.cli import main as learner_main
+from sim_node.robot_bag import COMPRESSED_TOPIC, RobotBagConfig, write_robot_bag
+from tpsr_ros.io import messages as m
+from tpsr_ros.runtime import Node, NodeOptions
+
+STEP = "0.075"
+
+
+@pytest.fixture(scope="module")
+def phone(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("phone")
+    bag, model, states = tmp / "phone", tmp / "phone.npz", tmp / "states.npz"
+    write_robot_bag(bag, RobotBagConfig(steps=30, seed=3, timeline="phone"))
+    topics = ["--image-topic", COMPRESSED_TOPIC, "--action-topic", "/cmd_vel"]
+    assert learner_main(["fit", str(bag), *topics, "--step-period", STEP, "-o", str(model)]) == 0
+    assert learner_main(["track", str(model), str(bag), "-o", str(states)]) == 0
+    with np.load(states, allow_pickle=False) as data:
+        expected = dict(zip(data["stamp_ns"].tolist(), data["states"], strict=True))
+    return {"bag": bag, "model": model, "expected": expected}
+
+
+def test_the_phone_bag_is_tracked_in_one_segment_from_its_first_step(phone):
+    from tpsr_ros.io.bag import BagReader
+    from tpsr_ros.io.model_io import model_stream_spec, read_metadata
+
+    spec = model_stream_spec(phone["model"], read_metadata(phone["model"]))
+    with BagReader(phone["bag"]) as reader:
+        first = min(m.stamp_of(x.decode()) for x in reader.messages([COMPRESSED_TOPIC]))
+    stamps = sorted(phone["expected"])
+    assert stamps[0] - first < spec.grid.step_ns  # the first grid step is tracked
+    assert np.all(np.diff(stamps) == spec.grid.step_ns)  # no gap: the jitter is not silence
+    assert (spec.preprocessing.width, spec.preprocessing.height) == (16, 6)  # 256x96 kept
+
+
+def _replay(phone, rate: str, tmp_path) -> tuple[list, str]:
+    """Play the phone bag at ``rate`` into a filter node; the states it published and its log."""
+    from tpsr_ros.runtime.launcher import Launch
+
+    expected = phone["expected"]
+    probe = Node(NodeOptions(name=f"probe_{rate.replace('.', '_')}"))
+    states: list = []
+    state_sub = probe.create_subscription(
+        "/tpsr/state", m.STATE_TYPE,
+        lambda x: states.append((m.stamp_of(x), m.state_to_array(x))),
+    )  # fmt: skip
+    try:
+        with Launch(tmp_path / rate, spin=probe.spin_once, timeout_s=60) as launch:
+            node = launch.start(
+                "filter", "tpsr_ros.filter_node", ["--ros-args", "-p", f"model:={phone['model']}"]
+            )
+            launch.wait("the filter's subscriptions", lambda: "steps of" in node.text())
+            launch.wait("the state publisher", lambda: state_sub.get_publisher_count() > 0)
+            player = launch.start("play", "tpsr_ros.play", [
+                str(phone["bag"]), "--rate", rate, "--topics", COMPRESSED_TOPIC, "/cmd_vel",
+                "--wait-for-subscribers", "1", "--no-clock",
+            ])  # fmt: skip
+            deadline = time.monotonic() + 60
+            while len(states) < len(expected) and time.monotonic() < deadline:
+                probe.spin_once(0.05)
+            assert player.wait(30) == 0, player.text()
+            assert node.stop() == 0, node.text()
+    finally:
+        probe.close()
+    return states, node.text()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_replay_at_any_rate_gives_learner_tracks_states(phone, backend, tmp_path, monkeypatch):
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain(41)))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
+    monkeypatch.setenv("TPSR_TRANSPORT", backend)
+    expected = phone["expected"]
+    for rate in ("0.5", "1", "4"):
+        states, log = _replay(phone, rate, tmp_path)
+        assert [s for s, _ in states] == sorted(expected), (rate, log)
+        for stamp, state in states:
+            assert np.array_equal(state, expected[stamp]), (rate, stamp)
+        assert f"tracked {len(expected)} steps" in log and "lost_images" not in log, log
