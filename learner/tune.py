@@ -412,8 +412,8 @@ def register(subparsers: Any) -> None:
     add_topic_options(parser.add_argument_group("topics"))
     add_stream_options(
         parser.add_argument_group(
-            "robot bags (give learner fit --config the same options): camera and commands "
-            "resampled onto a step grid"
+            "robot bags (written into CONFIG, which learner fit --config reads): camera and "
+            "commands resampled onto a step grid"
         )
     )
     parser.set_defaults(run=run)
@@ -426,7 +426,12 @@ def _say(line: str) -> None:
 def run(args: argparse.Namespace) -> int:
     """Read the bags, tune within the budget, write CONFIG.yaml, print the best."""
     from learner.fit import read_training_bags
-    from learner.inputs import fit_options_from_args, require_given_topics, topics_from_args
+    from learner.inputs import (
+        fit_options_from_args,
+        require_given_topics,
+        stream_inputs,
+        topics_from_args,
+    )
     from learner.options import preset_from_args
 
     start = time.perf_counter()
@@ -449,15 +454,30 @@ def run(args: argparse.Namespace) -> int:
         f"learner tune {' '.join(map(str, args.bags))} (seed {args.seed}, budget "
         f"{args.budget:g} s)\n"
         "TPSR fit parameters chosen by the held-out predictive criterion (docs/results.md, "
-        "'Tuning');\nuse with: learner fit BAG... --config THIS_FILE -o MODEL"
-    )
-    write_fit_config(
-        args.output, result.best.config, tune_record(result), header=header, force=args.force
+        "'Tuning'),\nand the options the bags were read with;\nuse with: learner fit BAG... "
+        "--config THIS_FILE -o MODEL"
     )
     best = result.best
     print(
         f"chosen: {describe(best.config)} (criterion {best.score.value:.4f} ± "
         f"{best.score.se:.4f}; highest {result.top.score.value:.4f})"
+    )
+    if not best.score.value > 0:
+        held = round(len(trajectory) * result.criterion.holdout)
+        _say(
+            f"warning: the best criterion {best.score.value:.3g} is not above 0 (no candidate "
+            f"predicted the held-out observations better than their mean): {held} held-out "
+            f"steps over {trajectory.n_actions} actions are too few for the criterion's "
+            "per-action regressions, or the data carry no state these settings learn; the "
+            "choice is unsupported (record more steps or give fewer --actions)"
+        )
+    write_fit_config(
+        args.output,
+        best.config,
+        tune_record(result),
+        inputs=stream_inputs(args, spec),
+        header=header,
+        force=args.force,
     )
     print(
         f"{len(result.trials)} candidate(s) in {time.perf_counter() - start:.1f} s; "
