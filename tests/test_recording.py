@@ -70,3 +70,16 @@ def test_the_ledger_counts_every_kind_of_loss_per_topic() -> None:
     assert ledger.diagnostics_values()["/camera missing by stamps"] == 2
     assert json.loads(ledger.custom_data()["recorder.by_topic"])["/cmd_vel"]["rejected"] == 1
     assert ledger.index("/camera") == 21
+
+
+def test_only_sensor_streams_are_judged_by_their_stamps() -> None:
+    """A camera's missing frames are losses; a step the filter node skipped (a grid gap on
+    /tpsr/state) or a command not sent is not."""
+    from tpsr_ros.io.recording import judged_by_stamps
+
+    for sensor in ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage",
+                   "nav_msgs/msg/Odometry", "sensor_msgs/msg/Imu"):  # fmt: skip
+        assert judged_by_stamps(sensor)
+    for derived in ("sensor_msgs/msg/JointState", "geometry_msgs/msg/TwistStamped",
+                    "diagnostic_msgs/msg/DiagnosticArray", "std_msgs/msg/Header"):  # fmt: skip
+        assert not judged_by_stamps(derived)

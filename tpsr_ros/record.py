@@ -36,8 +36,10 @@ dropped at a full cache are counted per topic and logged; messages the recorder 
 truncated data, rows shorter than width x bytes per pixel) are logged with their index
 and counted. Where the middleware cannot say (Cyclone DDS raises no status for samples a
 keep-last writer dropped before the recorder had them; a camera driver drops frames
-itself), topics with a steady cadence of header stamps show it: messages missing from the
-cadence are counted apart (:class:`~tpsr_ros.core.cadence.CadenceGaps`), whoever lost them.
+itself), sensor topics with a steady cadence of header stamps show it: messages missing
+from the cadence are counted apart (:class:`~tpsr_ros.core.cadence.CadenceGaps`), whoever
+lost them. Streams a node derives per step (``/tpsr/state``, commands, rewards) are not
+judged (:data:`~tpsr_ros.io.recording.SENSOR_TYPES`): a skipped step is not a lost message.
 The counts go to ``/diagnostics`` every second, to the bag's ``custom_data``
 (``recorder.lost_messages``, ``recorder.dropped_messages``, ``recorder.rejected_messages``,
 ``recorder.missing_by_stamps`` and per topic ``recorder.by_topic``) and to the end-of-run
@@ -59,9 +61,8 @@ from tpsr_ros.io.messages import (
     deserialize,
     image_problem,
     peek_stamp,
-    starts_with_header,
 )
-from tpsr_ros.io.recording import LossLedger, SubscriptionPlanner
+from tpsr_ros.io.recording import LossLedger, SubscriptionPlanner, judged_by_stamps
 from tpsr_ros.runtime import Node, NodeOptions, Subscription, run_node
 from tpsr_ros.runtime.diagnostics import (
     DIAGNOSTICS_TYPE,
@@ -212,7 +213,7 @@ class RecorderNode(Node):
         max_size = self.max_message_size
         is_image = msgtype == IMAGE_TYPE
         own_reports = topic == DIAGNOSTICS_TOPIC and msgtype == DIAGNOSTICS_TYPE
-        cadence = ledger.add_topic(topic, starts_with_header(msgtype) and not own_reports)
+        cadence = ledger.add_topic(topic, judged_by_stamps(msgtype))
 
         def on_message(data: bytes) -> None:
             received = time.time_ns()

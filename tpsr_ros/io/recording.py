@@ -127,6 +127,30 @@ class SubscriptionPlanner:
         return planned, warnings
 
 
+SENSOR_TYPES = frozenset(
+    {
+        "sensor_msgs/msg/Image",
+        "sensor_msgs/msg/CompressedImage",
+        "sensor_msgs/msg/CameraInfo",
+        "sensor_msgs/msg/Imu",
+        "sensor_msgs/msg/LaserScan",
+        "sensor_msgs/msg/PointCloud2",
+        "sensor_msgs/msg/NavSatFix",
+        "sensor_msgs/msg/Range",
+        "sensor_msgs/msg/MagneticField",
+        "nav_msgs/msg/Odometry",
+    }
+)
+"""Types whose header stamps follow a sensor's clock, judged for missing messages. Streams
+a node derives per step (``/tpsr/state``, commands, rewards) are not: a step the node
+skipped (a grid gap) is a gap, not a lost message."""
+
+
+def judged_by_stamps(msgtype: str) -> bool:
+    """Whether messages missing from ``msgtype``'s stamp cadence are counted."""
+    return msgtype in SENSOR_TYPES
+
+
 class LossLedger:
     """Per topic: recorded, lost, dropped, rejected and missing-by-stamps messages."""
 
