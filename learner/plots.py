@@ -22,10 +22,34 @@ from tpsr_ros.core.episodes import track_trajectory
 from tpsr_ros.core.errors import DataError
 from tpsr_ros.io.model_io import check_output_path, open_model
 
-__all__ = ["affine_r2", "neighbour_position_error", "plot_states", "register", "run"]
+__all__ = [
+    "affine_r2",
+    "neighbour_position_error",
+    "plot_states",
+    "register",
+    "robust_limits",
+    "run",
+]
 
 NEIGHBOURS = 10
 """States whose positions are averaged by :func:`neighbour_position_error`."""
+AXIS_QUANTILE = 0.005
+"""Axes span the states between this quantile and its complement (padded); states beyond
+are drawn on the edge and counted, so a few outliers cannot squash the rest into a dot."""
+RECOVERY = (
+    "recovery: a step whose predicted observation probability was not positive, so the "
+    "state restarted from b_* (the normaliser guard of the state update, guide 3.3)"
+)
+
+
+def robust_limits(values: np.ndarray) -> tuple[float, float]:
+    """Axis limits covering the values between the :data:`AXIS_QUANTILE` quantiles, padded."""
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return -1.0, 1.0
+    low, high = np.quantile(finite, [AXIS_QUANTILE, 1 - AXIS_QUANTILE])
+    pad = 0.05 * (high - low) if high > low else max(abs(float(low)), 1.0) * 0.05
+    return float(low - pad), float(high + pad)
 
 
 def affine_r2(states: np.ndarray, targets: np.ndarray) -> np.ndarray:
@@ -87,11 +111,13 @@ def plot_states(
     *,
     max_pairs: int = 3,
     title: str = "",
+    footnote: str = "",
 ) -> None:
     """Scatter dimension pairs of ``states (T, r)`` coloured by reward, x and y; write a PNG.
 
     Colourings without data (no reward, no ground truth) are left out; with neither, the
-    states are coloured by time (step number).
+    states are coloured by time (step number). Axes follow :func:`robust_limits`: states
+    beyond them are drawn on the edge as crosses and counted in the panel's title.
     """
     import matplotlib
 
@@ -118,26 +144,36 @@ def plot_states(
         len(pairs), len(colourings), figsize=(4 * len(colourings), 4 * len(pairs)), squeeze=False
     )
     for row, (i, j) in enumerate(pairs):
-        xs = steps if i < 0 else states[:, i]
+        xs = steps.astype(np.float64) if i < 0 else states[:, i]
+        (x0, x1), (y0, y1) = robust_limits(xs), robust_limits(states[:, j])
+        outside = (xs < x0) | (xs > x1) | (states[:, j] < y0) | (states[:, j] > y1)
+        x_drawn, y_drawn = np.clip(xs, x0, x1), np.clip(states[:, j], y0, y1)
         for col, (name, colour, norm) in enumerate(colourings):
             ax = axes[row, col]
             sc = ax.scatter(
-                xs,
-                states[:, j],
-                c=colour,
-                s=2,
-                cmap="coolwarm",
-                norm=norm,
-                rasterized=True,
-                linewidths=0,
-            )
+                x_drawn[~outside], y_drawn[~outside], c=colour[~outside], s=2, cmap="coolwarm",
+                norm=norm, rasterized=True, linewidths=0,
+            )  # fmt: skip
+            if outside.any():
+                ax.scatter(
+                    x_drawn[outside], y_drawn[outside], c="black", s=8, marker="x",
+                    linewidths=0.6, rasterized=True,
+                )  # fmt: skip
+            ax.set_xlim(x0, x1)
+            ax.set_ylim(y0, y1)
+            ax.ticklabel_format(style="sci", scilimits=(-3, 4), useOffset=False)
             ax.set_xlabel("step" if i < 0 else f"state dim {i}")
             ax.set_ylabel(f"state dim {j}")
-            ax.set_title(f"coloured by {name}")
+            count = int(outside.sum())
+            beyond = f"\n{count} outlying states on the edge (x)" if count else ""
+            ax.set_title(f"coloured by {name}{beyond}", fontsize=10)
             fig.colorbar(sc, ax=ax, shrink=0.8)
     if title:
         fig.suptitle(title)
     fig.tight_layout()
+    if footnote:
+        fig.subplots_adjust(bottom=fig.subplotpars.bottom + 0.25 / (4 * len(pairs)))
+        fig.text(0.01, 0.005, footnote, fontsize=8, ha="left", va="bottom")
     fig.savefig(output, dpi=80)
     plt.close(fig)
 
@@ -182,8 +218,12 @@ def run(args: argparse.Namespace) -> int:
         trajectory.rewards,
         output,
         title=f"{model.method} states over {len(trajectory)} steps{fit_line}",
+        footnote=f"{int(tracked.recovered.sum())} recoveries; {RECOVERY}",
     )
-    print(f"wrote {output}: {len(trajectory)} steps, {int(tracked.recovered.sum())} recoveries")
+    print(
+        f"wrote {output}: {len(trajectory)} steps, {int(tracked.recovered.sum())} recoveries "
+        "(steps whose predicted observation probability was not positive: restarted from b_*)"
+    )
     if r2 is None:
         print("no ground-truth pose in the bag(s): states coloured by time, no R^2")
     else:
