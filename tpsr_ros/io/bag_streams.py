@@ -3,8 +3,11 @@
 :func:`read_bag_streams` reads a bag's camera, command, ground-truth and reward topics in
 one pass, without decoding pixels: images are placed in time by their header stamps (or
 log times where the stamp is zero) and decoded later, only where a step uses them
-(:mod:`tpsr_ros.io.streams`). Commands are read whole (``Twist``: log time, when it was
-commanded; ``TwistStamped``: header stamp, or log time where zero).
+(:mod:`tpsr_ros.io.streams`). Commands are read whole; a ``TwistStamped``'s time is its
+header stamp, an unstamped command's (``Twist``, or a zero stamp) the stamp of the next
+image in the bag's order (:mod:`tpsr_ros.core.resample`), which the filter node reproduces
+from the publishers' send order. Commands after the last image have no date and are left
+out.
 """
 
 from __future__ import annotations

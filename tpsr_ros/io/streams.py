@@ -9,8 +9,8 @@ take it from the model; a bag or stream that does not fit it is refused with the
 
 :func:`read_stream_trajectory` reads bags with a spec: images (``Image`` in any supported
 encoding or ``CompressedImage``; time = header stamp, or log time where the stamp is zero),
-commands (``Twist``: log time, when it was commanded; ``TwistStamped``: header stamp, or
-log time where zero), optional ground truth (``PoseStamped``, ``Odometry``,
+commands (``TwistStamped``: header stamp; unstamped: the stamp of the next image in the
+bag's order), optional ground truth (``PoseStamped``, ``Odometry``,
 ``TransformStamped``, ``PoseWithCovarianceStamped``, or ``tf2_msgs/TFMessage`` (``/tf``:
 the transforms whose child frame is ``pose_frame``); interpolated at the step times) and
 reward (``JointState`` as the simulator writes it: the reward of a step is the last one

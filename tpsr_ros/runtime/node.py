@@ -231,8 +231,7 @@ class Subscription:
 
     @property
     def source_ns(self) -> int | None:
-        """Inside the callback: when the message was published (publisher's clock, ns), or
-        None where the middleware does not say (:class:`~.transport.SubscriptionHandle`)."""
+        """In the callback: the message's publish time (see ``SubscriptionHandle``), or None."""
         return self._handle.source_ns if self._handle is not None else None
 
     def destroy(self) -> None:
@@ -563,9 +562,7 @@ def _install_signal_handlers(node: Node) -> None:
     signal.signal(signal.SIGTERM, handler)
 
 
-def run_node(
-    node_cls: type[Node], *, prog: str, argv: Sequence[str] | None = None
-) -> NoReturn:
+def run_node(node_cls: type[Node], *, prog: str, argv: Sequence[str] | None = None) -> NoReturn:
     """Parse the command line, run the node until SIGINT/SIGTERM, close it and exit."""
     argv = list(sys.argv[1:] if argv is None else argv)
     try:
