@@ -4,14 +4,16 @@ colcon (which sets ``COLCON=1``) gets what an ament_python package installs besi
 Python packages: the ament resource marker, package.xml, and the node executables
 ``lib/tpsr_ros/{sim_node,filter_node,record,play}`` (setup.cfg puts scripts there), which
 ``ros2 run tpsr_ros <node>`` starts, and ``share/tpsr_ros/launch/*.launch.xml`` for
-``ros2 launch tpsr_ros <file>``. pip installs get no console scripts: the nodes run
+``ros2 launch tpsr_ros <file>``; also under ``colcon build --symlink-install``, which runs
+this file without pyproject.toml. pip installs get no console scripts: the nodes run
 with ``python -m``, and names like ``record`` and ``play`` do not belong in a venv's bin/.
 """
 
 import os
+import re
 from pathlib import Path
 
-from setuptools import setup
+from setuptools import find_packages, setup
 from setuptools.dist import Distribution
 
 PACKAGE = "tpsr_ros"
@@ -49,5 +51,18 @@ if os.environ.get("COLCON") == "1":
         ],
         "entry_points": {"console_scripts": [f"{k} = {v}" for k, v in NODES.items()]},
     }
+
+if os.environ.get("COLCON") == "1" and not Path("pyproject.toml").exists():
+    # colcon build --symlink-install runs this file from a build directory of links to
+    # setup.py, setup.cfg and the packages, without pyproject.toml: take the name and
+    # version from the source's pyproject.toml and name the packages (no auto-discovery
+    # of the build directory's launch/, resource/ and prefix_override/).
+    source = (Path(__file__).resolve().parent / "pyproject.toml").read_text(encoding="utf-8")
+    fields = dict(re.findall(r'^(name|version) = "([^"]+)"$', source, re.MULTILINE))
+    extra.update(
+        name=fields["name"],
+        version=fields["version"],
+        packages=find_packages(include=["tpsr_ros*", "sim_node*", "learner*"]),
+    )
 
 setup(**extra)

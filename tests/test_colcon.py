@@ -112,3 +112,41 @@ def test_colcon_build_installs_runnable_node_executables(tmp_path):
         )
         assert result.returncode == 0, (node, result.stderr)
         assert needle in result.stdout, (node, result.stdout)
+
+
+@pytest.mark.slow
+def test_a_symlink_install_builds_and_its_nodes_name_themselves_as_ros2_run(tmp_path):
+    """``colcon build --symlink-install`` (what most workspaces use) links setup.py and
+    setup.cfg into the build directory without pyproject.toml; the build must still name
+    its packages, and the executables run the checkout's code."""
+    colcon = _colcon()
+    if colcon is None:
+        pytest.skip("colcon is not installed (pip install colcon-common-extensions)")
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        pytest.skip("needs the git checkout to copy the repository's files")
+    workspace = tmp_path / "ws"
+    _copy_tracked_files(workspace / "src" / "tpsr-ros")
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    build = subprocess.run(
+        [colcon, "build", "--symlink-install", "--merge-install",
+         "--event-handlers", "console_direct-"],
+        cwd=workspace, capture_output=True, text=True, timeout=300, env=env,
+    )  # fmt: skip
+    assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
+    # what `source install/setup.bash` sets: a develop install's build directory (colcon's
+    # pythonpath_develop hook) and site-packages on PYTHONPATH
+    (site,) = (workspace / "install").glob("lib/python3*/site-packages")
+    path = [str(workspace / "build" / "tpsr_ros"), str(site)]
+    run_env = {**env, "TPSR_TRANSPORT": "inproc", "PYTHONPATH": os.pathsep.join(path)}
+    exe = workspace / "install" / "lib" / "tpsr_ros" / "sim_node"
+    result = subprocess.run(
+        [str(exe), "--help"], capture_output=True, text=True, env=run_env, timeout=120,
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("usage: ros2 run tpsr_ros sim_node"), result.stdout
+    bad = subprocess.run(
+        [str(exe), "--ros-args", "-p", "rate:=-1"], capture_output=True, text=True,
+        env=run_env, timeout=120, cwd=tmp_path,
+    )  # fmt: skip
+    assert bad.returncode == 2 and bad.stderr.startswith("ros2 run tpsr_ros sim_node: error:")

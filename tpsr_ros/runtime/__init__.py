@@ -16,6 +16,7 @@ from tpsr_ros.io.qos import (
     QoSProfile,
     Reliability,
 )
+from tpsr_ros.runtime.entry import parse_node_args, run_node
 from tpsr_ros.runtime.launcher import Launch, LaunchError, NodeProcess
 from tpsr_ros.runtime.node import (
     EndpointInfo,
@@ -25,8 +26,6 @@ from tpsr_ros.runtime.node import (
     Publisher,
     Subscription,
     Timer,
-    parse_node_args,
-    run_node,
 )
 from tpsr_ros.runtime.params import NoParameters, ParamSpec, param, param_specs
 from tpsr_ros.runtime.ros_args import RosArgs, UsageError, parse_ros_args

@@ -1,4 +1,4 @@
-"""The node base class and the ``python -m <node>`` boilerplate shared by every node.
+"""The node base class shared by every node.
 
 A node subclasses :class:`Node`, names its parameter dataclass in ``Params`` and creates
 its publishers, subscriptions and timers in :meth:`Node.setup`::
@@ -14,23 +14,19 @@ its publishers, subscriptions and timers in :meth:`Node.setup`::
     if __name__ == "__main__":
         run_node(Talker, prog="python -m talker")
 
-:func:`run_node` parses ROS 2's command line (``--ros-args -p/-r/--params-file/
---log-level``; ``--help`` lists the parameters), opens the transport chosen by
-``TPSR_TRANSPORT``, installs SIGINT/SIGTERM handlers that stop :meth:`Node.spin`
-gracefully, and closes the node (which waits for reliable data to be acknowledged).
-Usage errors exit with status 2, runtime errors with 1, each as one line on stderr.
+:func:`~tpsr_ros.runtime.entry.run_node` is the ``python -m`` boilerplate (command line,
+transport, signals, exit status).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import signal
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar, NoReturn, TextIO
+from typing import Any, ClassVar, TextIO
 
 from tpsr_ros.cli import ArgumentParser
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
@@ -41,7 +37,6 @@ from tpsr_ros.runtime.backend import choose_backend, open_transport
 from tpsr_ros.runtime.params import (
     NoParameters,
     coerce,
-    format_parameter_help,
     format_value,
     param_specs,
     resolve_parameters,
@@ -50,8 +45,6 @@ from tpsr_ros.runtime.ros_args import (
     LOG_LEVELS,
     RosArgs,
     UsageError,
-    parse_ros_args,
-    split_ros_args,
 )
 from tpsr_ros.runtime.transport import PublisherHandle, SubscriptionHandle, Transport
 
@@ -63,23 +56,9 @@ __all__ = [
     "Publisher",
     "Subscription",
     "Timer",
-    "parse_node_args",
-    "run_node",
 ]
 
 _MAX_WAIT_S = 0.1  # bound on one blocking wait, so signals are handled promptly
-
-ROS_ARGS_HELP = """\
-ROS arguments (after --ros-args):
-  -p NAME:=VALUE          set a parameter (YAML value: 3, 3.0, true, text, [1, 2])
-  --params-file FILE      ROS 2 parameters file (node_name: ros__parameters: {...})
-  -r FROM:=TO             remap a topic; -r __node:=NAME renames the node,
-                          -r __ns:=/NS sets its namespace
-  --log-level LEVEL       debug, info, warn, error or fatal (or LOGGER:=LEVEL)
-Middleware: TPSR_TRANSPORT=rclpy|dds|inproc (default: rclpy if importable, else dds);
-ROS_DOMAIN_ID selects the DDS domain.
-"""
-
 
 class Logger:
     """ROS-style console logger: ``[INFO] [1700000000.123456789] [node]: message``."""
@@ -521,79 +500,3 @@ class Node:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def _help_text(node_cls: type[Node], parser: ArgumentParser) -> str:
-    return (
-        parser.format_help().rstrip()
-        + "\n\n"
-        + format_parameter_help(node_cls.Params)
-        + "\n"
-        + ROS_ARGS_HELP
-    )
-
-
-def parse_node_args(
-    node_cls: type[Node], argv: Sequence[str], prog: str
-) -> NodeOptions | None:
-    """Parse a node's command line; None after printing ``--help``.
-
-    Raises UsageError for a bad ``--ros-args`` section or parameter; the node's own
-    options are parsed by its ``argument_parser`` (which exits 2 on errors).
-    """
-    own, ros_tokens, _ = split_ros_args(argv)
-    parser = node_cls.argument_parser(prog)
-    if "-h" in own or "--help" in own:
-        sys.stdout.write(_help_text(node_cls, parser))
-        return None
-    args = parser.parse_args(own)
-    ros_args = parse_ros_args(ros_tokens)
-    return NodeOptions.for_node(node_cls, ros_args, args=args)
-
-
-def _install_signal_handlers(node: Node) -> None:
-    def handler(signum: int, frame: object) -> None:
-        name = signal.Signals(signum).name
-        if not node.ok():  # second signal: stop waiting for a graceful exit
-            raise KeyboardInterrupt
-        node.request_shutdown(f"{name} received")
-
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
-
-
-def run_node(node_cls: type[Node], *, prog: str, argv: Sequence[str] | None = None) -> NoReturn:
-    """Parse the command line, run the node until SIGINT/SIGTERM, close it and exit."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    try:
-        options = parse_node_args(node_cls, argv, prog)
-    except UsageError as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        sys.exit(2)
-    if options is None:
-        sys.exit(0)
-    node: Node | None = None
-    try:
-        prepared = node_cls.preflight(options)
-        node = node_cls(options, prepared=prepared)
-        _install_signal_handlers(node)
-        node.logger.debug(f"{node.transport.kind} transport ready; spinning until SIGINT/SIGTERM")
-        node.spin()
-        code = getattr(node, "exit_code", 0)
-    except UsageError as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        code = 2
-    except TpsrError as exc:
-        print(f"{prog}: error: {exc}", file=sys.stderr)
-        code = 1
-    except KeyboardInterrupt:
-        print(f"{prog}: interrupted", file=sys.stderr)
-        code = 130
-    finally:
-        if node is not None:
-            try:
-                node.close()
-            except TpsrError as exc:
-                print(f"{prog}: error: {exc}", file=sys.stderr)
-                code = 1
-    sys.exit(code)
