@@ -52,25 +52,32 @@ class SimNodeParams:
         "camera of the guide's chapter 4: full (300 deg), partial (60 deg) or distractors",
         choices=tuple(e.value for e in Environment),
     )
-    seed: int = param(0, "seed of every random stream (start, actions, noise, distractors)")
+    seed: int = param(
+        0, "seed of every random stream (start, actions, noise, distractors)", minimum=0
+    )
     mode: str = param(
         "explore",
         "explore: a uniformly random action every 1/rate s; command: one step per /cmd_vel",
         choices=("explore", "command"),
     )
-    rate: float = param(10.0, "explore mode: steps per second of wall-clock time")
-    steps: int = param(0, "explore mode: stop stepping after this many steps (0 = never)")
+    rate: float = param(10.0, "explore mode: steps per second of wall-clock time", positive=True)
+    steps: int = param(
+        0, "explore mode: stop stepping after this many steps (0 = never)", minimum=0
+    )
     wait_for_subscribers: int = param(
         0,
         "before the first reset, wait until every published topic has this many subscriptions",
+        minimum=0,
     )
     command_tolerance: float = param(
         3.0,
         "command mode: reject a /cmd_vel component farther than this (m/s) from 0, ±3, ±6",
+        positive=True,
     )
     episode_steps: int = param(
         0,
         "command mode: ignore /cmd_vel after this many steps since the last reset (0 = never)",
+        minimum=0,
     )
 
     def __post_init__(self) -> None:
@@ -122,8 +129,20 @@ class SimNode(Node):
             self._wait_timer = self.create_timer(0.01, self._check_subscribers)
         else:
             self._begin()
+        self._explore_timer = None
         if p.mode == "explore":
-            self.create_timer(1.0 / p.rate, self._explore_tick)
+            self._explore_timer = self.create_timer(1.0 / p.rate, self._explore_tick)
+
+    def on_parameter_change(self, name: str, value: Any) -> str | None:
+        """``ros2 param set /sim_node rate R``: explore at the new rate from now on; every
+        other parameter is fixed at start-up."""
+        if name != "rate":
+            return super().on_parameter_change(name, value)
+        if self._explore_timer is not None:
+            self._explore_timer.cancel()
+            self._explore_timer = self.create_timer(1.0 / float(value), self._explore_tick)
+        self.logger.info(f"rate set to {value} steps per second")
+        return None
 
     # -- time ------------------------------------------------------------------------
 

@@ -199,7 +199,7 @@ def test_a_real_rclpy_client_gets_parameters_and_sets_are_checked_like_at_start_
         )
         for parameter, reason in (
             (Parameter("environment", value="moon"), "moon is not one of full, partial"),
-            (Parameter("rate", value=0.0), "rate must be a positive number of Hz"),
+            (Parameter("rate", value=0.0), "parameter 'rate' (set): 0.0 must be > 0"),
             (Parameter("seed", value="x"), "type"),  # rclpy's own type check
             (Parameter("environment", value="partial"),
              "fixed at start-up; restart the node with -p environment:=partial"),
@@ -209,6 +209,14 @@ def test_a_real_rclpy_client_gets_parameters_and_sets_are_checked_like_at_start_
         assert sim.params.environment == "full" and sim.params.seed == 4
         got = call(client.get_parameters(["environment"])).values
         assert got[0].string_value == "full"
+        # an integer for a double, as `ros2 param set /sim_node rate 20` sends it
+        (result,) = call(client.set_parameters([Parameter("rate", value=20)])).results
+        assert result.successful and sim.params.rate == 20.0, result.reason
+        # the constraints the node enforces are in the descriptors (ros2 param describe)
+        described = call(client.describe_parameters(["environment", "rate", "seed"])).descriptors
+        assert [d.additional_constraints for d in described] == [
+            "one of: full, partial, distractors", "> 0", ">= 0"
+        ]
     finally:
         caller.close()
         sim.close()

@@ -194,7 +194,7 @@ def test_help_lists_parameters():
     [
         (["--ros-args", "-p", "bogus:=1"], "unknown parameter 'bogus'"),
         (["--ros-args", "-p", "seed:=abc"], "expects an integer"),
-        (["--ros-args", "-p", "rate:=0"], "rate must be a positive"),
+        (["--ros-args", "-p", "rate:=0"], "parameter 'rate' (-p): 0.0 must be > 0"),
         (["--ros-args", "-p", "environment:=moon"], "moon is not one of full"),
         (["--ros-args", "--frobnicate"], "unknown ROS argument"),
         (["--ros-args", "-p", "seed"], "not of the form name:=value"),

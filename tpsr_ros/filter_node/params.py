@@ -46,13 +46,19 @@ class FilterNodeParams:
         "", "policy file written by `learner policy` for this model; empty: a pure filter"
     )
     queue_size: int = param(
-        10, "incomplete steps (image or action alone) buffered for pairing; the oldest go first"
+        10,
+        "incomplete steps (image or action alone) buffered for pairing; the oldest go first",
+        minimum=1,
     )
     step_period: float = param(
-        1.0, "s between consecutive steps; a step not one period after the last starts from b_*"
+        1.0,
+        "s between consecutive steps; a step not one period after the last starts from b_*",
+        positive=True,
     )
     jump_threshold: float = param(
-        5.0, "s; a stamp earlier than the last step by more than this is a backwards time jump"
+        5.0,
+        "s; a stamp earlier than the last step by more than this is a backwards time jump",
+        minimum=0.0,
     )
     image_frame: str = param("camera", "required frame_id of images (empty: any)")
     action_frame: str = param("base_link", "required frame_id of actions (empty: any)")
@@ -66,16 +72,20 @@ class FilterNodeParams:
         True, "refuse a model trained on other image/action topics than the node subscribes"
     )
     wait_for_subscribers: int = param(
-        0, "hold the first command until /cmd_vel and /tpsr/state each have this many subscriptions"
+        0,
+        "hold the first command until /cmd_vel and /tpsr/state each have this many subscriptions",
+        minimum=0,
     )
-    diagnostics_period: float = param(1.0, "s between /diagnostics reports")
+    diagnostics_period: float = param(1.0, "s between /diagnostics reports", positive=True)
     command_type: str = param(
         "twist",
         "type of the /cmd_vel commands: twist (geometry_msgs/Twist) or twist_stamped",
         choices=tuple(COMMAND_TYPES),
     )
     input_timeout: float = param(
-        3.0, "s; an input silent for longer makes /diagnostics WARN, all inputs silent STALE"
+        3.0,
+        "s; an input silent for longer makes /diagnostics WARN, all inputs silent STALE",
+        positive=True,
     )
     far_commands_warn: float = param(
         0.5,
@@ -83,12 +93,15 @@ class FilterNodeParams:
         "codes' spacing, normal for continuous teleoperation) are counted, and make "
         "/diagnostics WARN only when more than this fraction of the commands since the last "
         "report were far",
+        minimum=0.0,
+        maximum=1.0,
     )
     max_latency: float = param(
         1.0,
         "s (step-grid models); a step closes once both inputs passed its time, or once one "
         "input is this far past it (the other late or silent); both silent this long: the "
         "steps before the newest image close",
+        positive=True,
     )
 
     def __post_init__(self) -> None:

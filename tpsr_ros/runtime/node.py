@@ -287,11 +287,9 @@ class Node:
         transport.set_log_level(self.options.log_level)
         transport.set_warning_sink(self.logger.warning)
         try:
+            specs = param_specs(type(self.params))
             self.transport.declare_parameters(
-                [
-                    (spec.name, getattr(self.params, spec.name), spec.help)
-                    for spec in param_specs(type(self.params))
-                ],
+                [(spec, getattr(self.params, spec.name)) for spec in specs],
                 self._check_parameter_change,
             )
             self.setup()

@@ -54,6 +54,38 @@ class ParamSpec:
     default: Any
     help: str
     choices: tuple[Any, ...] | None = None
+    range: tuple[float | None, float | None] | None = None  # inclusive; None: open
+    positive: bool = False
+
+    @property
+    def constraints(self) -> str:
+        """The allowed values in words (help, ROS ``additional_constraints``); "" if any."""
+        if self.choices is not None:
+            return "one of: " + ", ".join(format_value(c) for c in self.choices)
+        low, high = self.range or (None, None)
+        words = ["> 0"] if self.positive else []
+        if low is not None and high is not None:
+            words.append(f"from {format_value(low)} to {format_value(high)}")
+        elif low is not None:
+            words.append(f">= {format_value(low)}")
+        elif high is not None:
+            words.append(f"<= {format_value(high)}")
+        return ", ".join(words)
+
+    def violation(self, value: Any) -> str | None:
+        """Why ``value`` (of the right type) is not allowed, or None."""
+        if self.choices is not None:
+            allowed = ", ".join(format_value(c) for c in self.choices)
+            return None if value in self.choices else f"is not one of {allowed}"
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            low, high = self.range or (None, None)
+            if (
+                (self.positive and not value > 0)
+                or (low is not None and not value >= low)
+                or (high is not None and not value <= high)
+            ):
+                return "must be " + self.constraints
+        return None
 
     @property
     def element_type(self) -> type | None:
@@ -113,6 +145,8 @@ def param_specs(cls: type) -> tuple[ParamSpec, ...]:
                 f.default,
                 f.metadata.get("help", ""),
                 f.metadata.get("choices"),
+                f.metadata.get("range"),
+                bool(f.metadata.get("positive", False)),
             )
         )
     return tuple(specs)
@@ -165,11 +199,8 @@ def coerce(spec: ParamSpec, value: Any, source: str) -> Any:
         result = _coerce_scalar(spec.py_type, value)
         if result is None:
             raise mismatch(f"{_type_word(value)} {format_value(value)}")
-    if spec.choices is not None and result not in spec.choices:
-        choices = ", ".join(format_value(c) for c in spec.choices)
-        raise UsageError(
-            f"parameter {spec.name!r} ({source}): {format_value(result)} is not one of {choices}"
-        )
+    if (reason := spec.violation(result)) is not None:
+        raise UsageError(f"parameter {spec.name!r} ({source}): {format_value(result)} {reason}")
     return result
 
 
@@ -284,9 +315,7 @@ def format_parameter_help(cls: type) -> str:
     lines = ["Parameters (--ros-args -p name:=value):"]
     width = max(len(s.name) for s in specs)
     for s in specs:
-        extra = ""
-        if s.choices is not None:
-            extra = " (one of: " + ", ".join(format_value(c) for c in s.choices) + ")"
+        extra = f" ({s.constraints})" if s.constraints else ""
         lines.append(
             f"  {s.name:<{width}}  {s.ros_type:<8} default {s.format_default():<10} "
             f"{s.help}{extra}"

@@ -26,6 +26,7 @@ from tpsr_ros.io.messages import deserialize, serialize
 from tpsr_ros.io.qos import Durability, History, QoSProfile, Reliability
 from tpsr_ros.runtime.allocator import tune_allocator
 from tpsr_ros.runtime.fastdds_tuning import tune_fastdds
+from tpsr_ros.runtime.params import ParamSpec
 from tpsr_ros.runtime.transport import (
     BytesCallback,
     ParameterCheck,
@@ -282,24 +283,53 @@ class RclpyTransport(Transport):
         return found
 
     def declare_parameters(
-        self, params: list[tuple[str, object, str]], check: ParameterCheck | None = None
+        self, params: list[tuple[ParamSpec, object]], check: ParameterCheck | None = None
     ) -> None:
-        """Declare the parameters; ``ros2 param set`` goes through ``check``.
+        """Declare the parameters, their constraints in the descriptors; ``ros2 param set``
+        goes through ``check``. Without ``check`` they are read-only.
 
-        Without ``check`` they are read-only. rclpy itself refuses a value of another type.
+        rclpy refuses a value of another type; an integer for a double is first made a
+        double (as ``-p rate:=20`` is), by a pre-set callback.
         """
-        from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+        from rcl_interfaces.msg import (
+            FloatingPointRange,
+            IntegerRange,
+            ParameterDescriptor,
+            SetParametersResult,
+        )
+        from rclpy.parameter import Parameter
 
-        for name, value, description in params:
+        doubles = set()
+        for spec, value in params:
             if isinstance(value, tuple):
                 value = list(value)
-            self.node.declare_parameter(
-                name,
-                value,
-                ParameterDescriptor(description=description, read_only=check is None),
+            descriptor = ParameterDescriptor(
+                description=spec.help,
+                read_only=check is None,
+                additional_constraints=spec.constraints,
             )
+            low, high = spec.range or (None, None)
+            if low is not None and high is not None and spec.ros_type == "double":
+                descriptor.floating_point_range = [
+                    FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)
+                ]
+            elif low is not None and high is not None and spec.ros_type == "integer":
+                descriptor.integer_range = [
+                    IntegerRange(from_value=int(low), to_value=int(high), step=0)
+                ]
+            if spec.ros_type == "double":
+                doubles.add(spec.name)
+            self.node.declare_parameter(spec.name, value, descriptor)
         if check is None:
             return
+
+        def to_double(parameters: list[Any]) -> list[Any]:
+            return [
+                Parameter(p.name, Parameter.Type.DOUBLE, float(p.value))
+                if p.name in doubles and p.type_ == Parameter.Type.INTEGER
+                else p
+                for p in parameters
+            ]
 
         def on_set(parameters: list[Any]) -> Any:
             for parameter in parameters:
@@ -310,6 +340,7 @@ class RclpyTransport(Transport):
             return SetParametersResult(successful=True)
 
         # added after declaring: rclpy also runs these callbacks for declarations
+        self.node.add_pre_set_parameters_callback(to_double)
         self.node.add_on_set_parameters_callback(on_set)
 
     def log(self, level: str, message: str) -> bool:

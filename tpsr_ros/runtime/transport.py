@@ -14,9 +14,12 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 from tpsr_ros.io.qos import QoSProfile
+
+if TYPE_CHECKING:
+    from tpsr_ros.runtime.params import ParamSpec
 
 __all__ = [
     "PublisherHandle",
@@ -131,9 +134,9 @@ class Transport(ABC):
         """Every publisher currently visible in the graph (remote and local)."""
 
     def declare_parameters(  # noqa: B027
-        self, params: list[tuple[str, object, str]], check: ParameterCheck | None = None
+        self, params: list[tuple[ParamSpec, object]], check: ParameterCheck | None = None
     ) -> None:
-        """Expose ``(name, value, description)`` triples to the middleware.
+        """Expose the parameters (declaration and current value) to the middleware.
 
         rclpy declares them and serves ROS 2's parameter services; a set request is
         answered by ``check`` (refused, with its reason, unless it returns None). Other
