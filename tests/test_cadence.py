@@ -72,3 +72,28 @@ def test_nothing_is_counted_before_the_cadence_is_known():
     stamps = _camera(20, jitter=0.0, seed=7)
     gaps = _feed(np.delete(stamps, [3, 4, 5]))  # the hole comes before 8 intervals
     assert gaps.missing == 0
+
+
+def test_stamps_a_simulator_skips_at_a_reset_are_not_losses_in_either_order():
+    """sim_node's reset takes a step's stamp (on /sim/episode_start), so the camera leaves
+    it out; told before or after the frame that follows it, nothing is missing."""
+    stamps = _camera(400, jitter=0.0, seed=11)
+    resets = [100, 201, 305]
+    before, after = CadenceGaps(), CadenceGaps()
+    for k, stamp in enumerate(stamps):
+        if k in resets:
+            before.skip(int(stamp))
+            continue
+        before.add(int(stamp))
+        after.add(int(stamp))
+        if k - 3 in resets:
+            after.skip(int(stamps[k - 3]))  # the reset arrived after the next two frames
+    assert before.missing == after.missing == 0 and before.period_ns is not None
+    assert before.gaps == after.gaps == 0
+    real = CadenceGaps()
+    for k, stamp in enumerate(stamps):
+        if k in resets:
+            real.skip(int(stamp))
+        elif k not in (250, 251):  # two frames really lost
+            real.add(int(stamp))
+    assert real.missing == 2

@@ -138,12 +138,16 @@ def test_closed_loop_equals_the_headless_evaluation_and_the_recorded_states_offl
             state = msg.decode()
             published[m.stamp_of(state)] = m.state_to_array(state)
         commands = sum(1 for _ in reader.messages(["/cmd_vel"]))
+        # ten resets each take a step stamp no camera frame carries: none is a loss
+        missing = reader.custom_data["recorder.missing_by_stamps"]
+        by_topic = reader.custom_data["recorder.by_topic"]
     assert len(trajectory) == len(published) == 500 and len(trajectory.segment_bounds()) == 10
     worst = max(
         np.abs(published[int(s)] - offline.states[i]).max() for i, s in enumerate(trajectory.stamps)
     )
     assert worst <= 1e-9
     assert commands == 510  # 50 per trial and the ignored 51st
+    assert missing == "0", by_topic
     assert trajectory.rewards.reshape(10, 50).sum(axis=1).mean() == float(lines[-1].split()[1])
 
 

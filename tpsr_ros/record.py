@@ -39,7 +39,8 @@ keep-last writer dropped before the recorder had them; a camera driver drops fra
 itself), sensor topics with a steady cadence of header stamps show it: messages missing
 from the cadence are counted apart (:class:`~tpsr_ros.core.cadence.CadenceGaps`), whoever
 lost them. Streams a node derives per step (``/tpsr/state``, commands, rewards) are not
-judged (:data:`~tpsr_ros.io.recording.SENSOR_TYPES`): a skipped step is not a lost message.
+judged (:data:`~tpsr_ros.io.recording.SENSOR_TYPES`): a skipped step is not a lost message;
+nor is the step stamp a simulator reset takes (recorded on ``/sim/episode_start``).
 The counts go to ``/diagnostics`` every second, to the bag's ``custom_data``
 (``recorder.lost_messages``, ``recorder.dropped_messages``, ``recorder.rejected_messages``,
 ``recorder.missing_by_stamps`` and per topic ``recorder.by_topic``) and to the end-of-run
@@ -62,7 +63,12 @@ from tpsr_ros.io.messages import (
     image_problem,
     peek_stamp,
 )
-from tpsr_ros.io.recording import LossLedger, SubscriptionPlanner, judged_by_stamps
+from tpsr_ros.io.recording import (
+    LossLedger,
+    SubscriptionPlanner,
+    is_episode_start,
+    judged_by_stamps,
+)
 from tpsr_ros.runtime import Node, NodeOptions, Subscription, run_node
 from tpsr_ros.runtime.diagnostics import (
     DIAGNOSTICS_TYPE,
@@ -214,6 +220,7 @@ class RecorderNode(Node):
         is_image = msgtype == IMAGE_TYPE
         own_reports = topic == DIAGNOSTICS_TOPIC and msgtype == DIAGNOSTICS_TYPE
         cadence = ledger.add_topic(topic, judged_by_stamps(msgtype))
+        episode_starts = is_episode_start(topic, msgtype)
 
         def on_message(data: bytes) -> None:
             received = time.time_ns()
@@ -221,6 +228,8 @@ class RecorderNode(Node):
                 return
             if cadence is not None and (stamp := peek_stamp(data)) is not None:
                 cadence.add(stamp)  # every message that arrived, recorded or not
+            if episode_starts and (stamp := peek_stamp(data)) is not None:
+                ledger.skip_stamp(stamp)  # a reset's step: no camera frame carries it
             problem = None
             if len(data) > max_size:
                 problem = f"{len(data)} bytes is over --max-message-size {max_size}"

@@ -43,9 +43,27 @@ class CadenceGaps:
     _last: int | None = field(default=None, init=False, repr=False)
     _intervals: deque[float] = field(init=False, repr=False)
     _since_estimate: int = field(default=0, init=False, repr=False)
+    _skips: deque[int] = field(init=False, repr=False)
+    _gaps: deque[list[int]] = field(init=False, repr=False)  # [start, end, lost] of gaps
 
     def __post_init__(self) -> None:
         self._intervals = deque(maxlen=self.window)
+        self._skips = deque(maxlen=16)
+        self._gaps = deque(maxlen=16)
+
+    def skip(self, stamp_ns: int) -> None:
+        """A stamp the stream leaves out on purpose (a simulator's reset takes a step's
+        stamp): not a loss, whether it is told before or after the messages that follow it."""
+        stamp_ns = int(stamp_ns)
+        if self._last is not None and stamp_ns < self._last:  # told late
+            for gap in self._gaps:
+                if gap[0] < stamp_ns < gap[1] and gap[2] > 0:  # counted: take it back
+                    gap[2] -= 1
+                    self.missing -= 1
+                    self.gaps -= int(gap[2] == 0)
+                    return
+            return
+        self._skips.append(stamp_ns)
 
     def add(self, stamp_ns: int) -> int:
         """The next message's stamp; returns how many messages are missing just before it."""
@@ -62,11 +80,17 @@ class CadenceGaps:
             return 0
         lost = 0
         period = self.period_ns
+        skipped = sum(1 for s in self._skips if last < s < stamp_ns)
         if period is not None and interval >= 1.5 * period:
-            lost = round(interval / period) - 1
+            periods = round(interval / period)
+            lost = max(0, periods - 1 - skipped)
             self.missing += lost
-            self.gaps += 1
-            interval /= lost + 1
+            self.gaps += int(lost > 0)
+            interval /= periods
+        elif skipped:  # the cadence is not known yet: the skipped stamps stand in
+            interval /= skipped + 1
+        if lost:
+            self._gaps.append([last, stamp_ns, lost])
         self._intervals.append(interval)
         self._since_estimate += 1
         if self._since_estimate >= self.min_intervals or (

@@ -151,6 +151,12 @@ def judged_by_stamps(msgtype: str) -> bool:
     return msgtype in SENSOR_TYPES
 
 
+def is_episode_start(topic: str, msgtype: str) -> bool:
+    """``sim_node``'s ``sim/episode_start`` (in any namespace): its stamps are step stamps
+    the simulator's sensors leave out on purpose."""
+    return topic.endswith("/sim/episode_start") and msgtype == "geometry_msgs/msg/PoseStamped"
+
+
 class LossLedger:
     """Per topic: recorded, lost, dropped, rejected and missing-by-stamps messages."""
 
@@ -170,6 +176,11 @@ class LossLedger:
             self.cadence[topic] = CadenceGaps()
             return self.cadence[topic]
         return None
+
+    def skip_stamp(self, stamp_ns: int) -> None:
+        """A step stamp no sensor message carries on purpose (a reset): not a loss anywhere."""
+        for cadence in self.cadence.values():
+            cadence.skip(stamp_ns)
 
     def index(self, topic: str) -> int:
         """The index of the next message on ``topic`` (recorded or not)."""
