@@ -208,3 +208,19 @@ def test_when_a_node_fails_the_others_are_stopped_and_the_launcher_exits_1(tmp_p
     # summary if it was up, else as interrupted while starting (the filter can fail first)
     stopped = ("steps and 1 resets", "[sim_node] python -m sim_node: interrupted")
     assert "[sim_node] " in out and any(line in out for line in stopped), out
+
+
+def test_on_exit_shutdown_is_read_and_a_taken_bag_is_refused_before_any_node(tmp_path):
+    from tpsr_ros.launch import _check_outputs
+
+    nodes = parse_launch(ROOT / "launch" / "closed_loop.launch.xml",
+                         {"model": "m.npz", "policy": "p.npz", "bag": str(tmp_path / "bag")})
+    assert {n.on_exit for n in nodes} == {"shutdown"}  # any node's exit stops the loop
+    _check_outputs(nodes)  # a new bag: fine
+    (tmp_path / "bag").mkdir()
+    with pytest.raises(LaunchError, match="output bag .* already exists"):
+        _check_outputs(nodes)
+    bad = tmp_path / "bad.launch.xml"
+    bad.write_text("<launch><node pkg='tpsr_ros' exec='sim_node' on_exit='restart'/></launch>")
+    with pytest.raises(LaunchError, match="only 'shutdown' is read"):
+        parse_launch(bad, {})

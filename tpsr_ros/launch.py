@@ -5,8 +5,9 @@ subset of ROS 2's XML launch format our launch files use, and refuses anything e
 one-line error:
 
 - ``<launch>`` holding ``<arg name= default= description=>`` and ``<node>`` elements;
-- ``<node pkg="tpsr_ros" exec= name= namespace= args= ros_args= output=>`` with
-  ``<param name= value=>`` and ``<remap from= to=>`` children;
+- ``<node pkg="tpsr_ros" exec= name= namespace= args= ros_args= output= on_exit=>`` with
+  ``<param name= value=>`` and ``<remap from= to=>`` children (``on_exit="shutdown"``: when
+  the node exits, for any reason, every node is stopped);
 - ``$(var NAME)`` in any attribute value.
 
 Each node runs as ``python -m MODULE ARGS --ros-args -r __node:=NAME [-r __ns:=NS]
@@ -14,7 +15,8 @@ Each node runs as ``python -m MODULE ARGS --ros-args -r __node:=NAME [-r __ns:=N
 :data:`EXECUTABLES`), started by :class:`tpsr_ros.runtime.launcher.Launch` (so a node gets
 SIGTERM if the launcher dies). Output is prefixed with ``[name]``. Ctrl-C (SIGINT) or
 SIGTERM stops every node with SIGINT, in reverse order of start; when one node exits with
-an error, the others are stopped and the launcher exits with status 1.
+an error, the others are stopped and the launcher exits with status 1. A recorder's
+output bag that already exists is refused before any node starts.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ EXECUTABLES = {
 """Executables of the colcon package (``lib/tpsr_ros/<exec>``) and the module each runs."""
 
 _VAR = re.compile(r"\$\(var ([A-Za-z_][A-Za-z0-9_]*)\)")
-_NODE_ATTRS = {"pkg", "exec", "name", "namespace", "args", "ros_args", "output"}
+_NODE_ATTRS = {"pkg", "exec", "name", "namespace", "args", "ros_args", "output", "on_exit"}
 
 
 class LaunchError(TpsrError):
@@ -63,6 +65,7 @@ class LaunchedNode:
     params: tuple[tuple[str, str], ...]
     remaps: tuple[tuple[str, str], ...]
     ros_args: tuple[str, ...]
+    on_exit: str = ""
 
     @property
     def module(self) -> str:
@@ -128,6 +131,8 @@ def parse_launch(path: Path | str, overrides: dict[str, str] | None = None) -> l
         elif element.tag == "node":
             _attrs(element, _NODE_ATTRS, {"pkg", "exec"}, where)
             a = {k: sub(v, where) for k, v in element.attrib.items()}
+            if a.get("on_exit", "shutdown") != "shutdown":
+                raise LaunchError(f"{where}: on_exit {a['on_exit']!r}: only 'shutdown' is read")
             if a["pkg"] != PACKAGE or a["exec"] not in EXECUTABLES:
                 raise LaunchError(
                     f"{where}: {a['pkg']}/{a['exec']} is not one of this package's executables "
@@ -154,6 +159,7 @@ def parse_launch(path: Path | str, overrides: dict[str, str] | None = None) -> l
                     params=tuple(params),
                     remaps=tuple(remaps),
                     ros_args=tuple(a.get("ros_args", "").split()),
+                    on_exit=a.get("on_exit", ""),
                 )
             )
         else:
@@ -165,6 +171,21 @@ def parse_launch(path: Path | str, overrides: dict[str, str] | None = None) -> l
             f"{', '.join(sorted(declared)) or 'none'}"
         )
     return nodes
+
+
+def _check_outputs(nodes: Sequence[LaunchedNode]) -> None:
+    """Refuse a recorder output bag that exists, before any node starts (a half-started
+    loop would wait for a recorder that never records)."""
+    for node in nodes:
+        if node.executable != "record":
+            continue
+        args = list(node.args)
+        for flag in ("-o", "--output"):
+            if flag in args[:-1] and Path(args[args.index(flag) + 1]).exists():
+                raise LaunchError(
+                    f"{node.name}: output bag {args[args.index(flag) + 1]!r} already exists; "
+                    "remove it or give another (bag:=NEW_DIR)"
+                )
 
 
 def _start_nodes(nodes: Sequence[LaunchedNode]) -> Launch:
@@ -204,6 +225,7 @@ def main(argv: list[str] | None = None) -> None:
         overrides[key] = value
     try:
         nodes = parse_launch(args.file, overrides)
+        _check_outputs(nodes)
     except LaunchError as exc:
         parser.exit(2, f"{PROG}: error: {exc}\n")
     stop = threading.Event()
@@ -214,6 +236,7 @@ def main(argv: list[str] | None = None) -> None:
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
     launch = _start_nodes(nodes)
+    shutdown_on_exit = {n.name for n in nodes if n.on_exit == "shutdown"}
     code = 0
     try:
         while not stop.wait(0.1):
@@ -222,6 +245,9 @@ def main(argv: list[str] | None = None) -> None:
             if failed is not None:
                 print(f"[{PROG}] {failed[0]} exited with status {failed[1]}; stopping", flush=True)
                 code = 1
+                break
+            if ended := sorted(set(exited) & shutdown_on_exit):
+                print(f"[{PROG}] {ended[0]} exited (on_exit shutdown); stopping", flush=True)
                 break
             if len(exited) == len(launch.processes):
                 break

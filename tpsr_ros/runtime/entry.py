@@ -65,15 +65,34 @@ def parse_node_args(
     return NodeOptions.for_node(node_cls, ros_args, args=args)
 
 
-def _install_signal_handlers(node: Node) -> None:
-    def handler(signum: int, frame: object) -> None:
-        name = signal.Signals(signum).name
-        if not node.ok():  # second signal: stop waiting for a graceful exit
-            raise KeyboardInterrupt
-        node.request_shutdown(f"{name} received")
+class _Signals:
+    """SIGINT/SIGTERM: the first asks the node to shut down gracefully, a second one while it
+    still spins stops waiting (KeyboardInterrupt); once the node is closing, further
+    signals are ignored, as closing is bounded (a terminal's Ctrl-C under ``ros2 launch``
+    arrives twice, from the terminal and from launch)."""
 
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
+    def __init__(self) -> None:
+        self.node: Node | None = None
+        self.closing = False
+
+    def install(self, node: Node) -> None:
+        self.node = node
+        signal.signal(signal.SIGINT, self.handle)
+        signal.signal(signal.SIGTERM, self.handle)
+
+    def close(self) -> None:
+        """The node is closing: later signals are ignored, SIGINT even while Python exits
+        (Python puts back the default handler of its own, which would kill the process)."""
+        self.closing = True
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    def handle(self, signum: int, frame: object) -> None:
+        if self.closing or self.node is None:
+            return
+        if not self.node.ok():  # second signal: stop waiting for a graceful exit
+            self.closing = True  # and ignore the ones after it
+            raise KeyboardInterrupt
+        self.node.request_shutdown(f"{signal.Signals(signum).name} received")
 
 
 def program_name(default: str, argv0: str) -> str:
@@ -99,11 +118,12 @@ def run_node(node_cls: type[Node], *, prog: str, argv: Sequence[str] | None = No
         sys.exit(2)
     if options is None:
         sys.exit(0)
+    signals = _Signals()
     node: Node | None = None
     try:
         prepared = node_cls.preflight(options)
         node = node_cls(options, prepared=prepared)
-        _install_signal_handlers(node)
+        signals.install(node)
         node.logger.debug(f"{node.transport.kind} transport ready; spinning until SIGINT/SIGTERM")
         node.spin()
         code = getattr(node, "exit_code", 0)
@@ -117,10 +137,13 @@ def run_node(node_cls: type[Node], *, prog: str, argv: Sequence[str] | None = No
         print(f"{prog}: interrupted", file=sys.stderr)
         code = 130
     finally:
+        signals.close()
         if node is not None:
             try:
                 node.close()
             except TpsrError as exc:
                 print(f"{prog}: error: {exc}", file=sys.stderr)
                 code = 1
+            except KeyboardInterrupt:  # a signal before the handlers were installed
+                code = 130
     sys.exit(code)

@@ -1,0 +1,49 @@
+"""Three SIGINTs within 100 ms (a terminal's Ctrl-C under ``ros2 launch`` sends two) stop a
+node without a traceback, on both real backends."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import pytest
+from graph_support import BACKENDS, LOOPBACK, fresh_domain
+
+from tpsr_ros.runtime.launcher import NodeProcess
+
+NODES = [
+    ("sim_node", ["--ros-args", "-p", "rate:=50"], "episode starts at"),
+    ("tpsr_ros.record", ["-o", "{tmp}/bag", "/camera/image_raw"], "recording /camera"),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize(("module", "args", "ready"), NODES, ids=["sim_node", "record"])
+def test_repeated_sigint_stops_a_node_without_a_traceback(
+    backend, module, args, ready, tmp_path
+):
+    env = {
+        **os.environ,
+        "TPSR_TRANSPORT": backend,
+        "ROS_DOMAIN_ID": str(fresh_domain(53)),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "CYCLONEDDS_URI": LOOPBACK,
+    }
+    argv = [a.format(tmp=tmp_path) for a in args]
+    node = NodeProcess(module, module, argv, log_path=tmp_path / "node.log", env=env)
+    try:
+        deadline = time.monotonic() + 60
+        while ready not in node.text() and node.alive() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert ready in node.text(), node.text()
+        for _ in range(3):
+            os.kill(node.pid, signal.SIGINT)
+            time.sleep(0.03)
+        code = node.wait(30)
+    finally:
+        node.kill()
+    text = node.text()
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text, text
+    assert code in (0, 130), (code, text)
