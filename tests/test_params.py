@@ -74,7 +74,7 @@ def test_bad_parameters_are_one_line_usage_errors(tokens, fragment):
 def test_params_file_sections_in_ros2_format(tmp_path):
     path = tmp_path / "params.yaml"
     path.write_text(
-        "/**:\n  ros__parameters:\n    rate: 5.0\n    other_nodes_param: 1\n"
+        "/**:\n  ros__parameters:\n    rate: 5.0\n    use_sim_time: true\n"
         "example:\n  ros__parameters:\n    seed: 3\n"
         "/robot:\n  example:\n    ros__parameters:\n      seed: 9\n"
         "someone_else:\n  ros__parameters:\n    seed: 100\n"
@@ -84,6 +84,15 @@ def test_params_file_sections_in_ros2_format(tmp_path):
     # command-line order decides: a later -p beats the file, an earlier one does not
     assert _resolve("--params-file", str(path), "-p", "seed:=4").seed == 4
     assert _resolve("-p", "seed:=4", "--params-file", str(path)).seed == 3
+
+
+def test_a_misspelt_name_in_a_wildcard_section_is_refused_as_with_p(tmp_path):
+    """ros2 launch writes a node's <param> tags into a /** section: a typo there must not
+    pass silently."""
+    path = tmp_path / "launch_params.yaml"
+    path.write_text("/**:\n  ros__parameters:\n    stpes: 5\n")
+    with pytest.raises(UsageError, match="unknown parameter 'stpes'.* parameters: name, "):
+        _resolve("--params-file", str(path))
 
 
 def test_params_file_errors(tmp_path):

@@ -49,7 +49,6 @@ line.
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Any
 
@@ -223,7 +222,7 @@ class RecorderNode(Node):
         episode_starts = is_episode_start(topic, msgtype)
 
         def on_message(data: bytes) -> None:
-            received = time.time_ns()
+            received = self.now_ns()  # the bag's log time: /clock with use_sim_time
             if own_reports and self._is_own_report(data):
                 return
             if cadence is not None and (stamp := peek_stamp(data)) is not None:
@@ -295,7 +294,7 @@ class RecorderNode(Node):
         level = WARN if self.ledger.any_loss() else OK
         message = f"recorded {self.ledger.totals()[0]}; {self.ledger.losses()}"
         status = diagnostic_status(level, self._status_name, message, values)
-        self.diagnostics.publish(diagnostic_array(time.time_ns(), [status]))
+        self.diagnostics.publish(diagnostic_array(self.now_ns(), [status]))
 
     def on_shutdown(self) -> None:
         """Write what has already arrived, then close the bag (it stays readable)."""

@@ -451,7 +451,7 @@ class FilterNode(Node):
         else:  # the code itself: never outside the codebook
             twist = m.twist_from_components(self.spec.codebook.command(action))
         if self.params.command_type == "twist_stamped":
-            msg = m.stamped_twist(stamp if stamp is not None else time.time_ns(), twist)
+            msg = m.stamped_twist(stamp if stamp is not None else self.now_ns(), twist)
         else:
             msg = twist
         self.cmd_pub.publish(msg)
@@ -534,7 +534,7 @@ class FilterNode(Node):
         status = diagnostic_status(
             level, f"{self.name}: state tracking", message, values, hardware_id="tpsr"
         )
-        self.diagnostics_pub.publish(diagnostic_array(time.time_ns(), [status]))
+        self.diagnostics_pub.publish(diagnostic_array(self.now_ns(), [status]))
         self._report_done()
 
     def _report_done(self) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 import os
+from collections.abc import Sequence
 
 from tpsr_ros.core.errors import ConfigError, TpsrError
 from tpsr_ros.runtime.transport import Transport
@@ -50,9 +51,16 @@ def choose_backend(requested: str | None = None) -> tuple[str, str | None]:
 
 
 def open_transport(
-    backend: str, node_name: str, namespace: str, *, enclave: str = "/"
+    backend: str,
+    node_name: str,
+    namespace: str,
+    *,
+    enclave: str = "/",
+    ros_args: Sequence[str] = (),
+    use_sim_time: bool = False,
 ) -> Transport:
-    """Create the transport of one node."""
+    """Create the transport of one node; ``ros_args`` (the ``--ros-args`` tokens) reach rcl
+    and ``use_sim_time`` rclpy's own parameter on the rclpy backend."""
     fqn = namespace.rstrip("/") + "/" + node_name
     if backend == "inproc":
         from tpsr_ros.runtime.inproc import InprocTransport
@@ -65,5 +73,7 @@ def open_transport(
     if backend == "rclpy":
         from tpsr_ros.runtime.rclpy_backend import RclpyTransport
 
-        return RclpyTransport(node_name, namespace)
+        return RclpyTransport(
+            node_name, namespace, ros_args=ros_args, use_sim_time=use_sim_time
+        )
     raise ConfigError(f"unknown transport {backend!r}; choose one of {', '.join(BACKENDS)}")

@@ -31,15 +31,17 @@ from typing import Any, ClassVar, TextIO
 from tpsr_ros.cli import ArgumentParser
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.units import NS_PER_S as _NS
-from tpsr_ros.io.messages import deserialize, serialize
+from tpsr_ros.io.messages import CLOCK_TYPE, deserialize, serialize, stamp_of
 from tpsr_ros.io.qos import DEFAULT_QOS, QoSProfile
 from tpsr_ros.runtime.backend import choose_backend, open_transport
 from tpsr_ros.runtime.params import (
+    USE_SIM_TIME,
     NoParameters,
     coerce,
     format_value,
     param_specs,
     resolve_parameters,
+    resolve_standard_parameters,
 )
 from tpsr_ros.runtime.ros_args import (
     LOG_LEVELS,
@@ -139,6 +141,7 @@ class NodeOptions:
     log_level: str = "info"
     transport: str | None = None
     args: argparse.Namespace | None = None
+    use_sim_time: bool = False
 
     @classmethod
     def for_node(
@@ -156,6 +159,7 @@ class NodeOptions:
         namespace = ros_args.namespace(name)
         fqn = namespace.rstrip("/") + "/" + name
         values = resolve_parameters(node_cls.Params, ros_args, fqn)
+        standard = resolve_standard_parameters(node_cls.Params, ros_args, fqn)
         if params:
             values = dataclasses.replace(values, **params)
         logger = fqn.strip("/").replace("/", ".")
@@ -167,6 +171,7 @@ class NodeOptions:
             log_level=ros_args.log_level(logger),
             transport=transport,
             args=args,
+            use_sim_time=bool(standard["use_sim_time"]),
         )
 
 
@@ -273,9 +278,11 @@ class Node:
         self._closed = False
         if transport is None:
             backend, note = choose_backend(self.options.transport)
+            ros_args = self.options.ros_args
             transport = open_transport(
-                backend, self.name, self.namespace, enclave=self.options.ros_args.enclave or "/"
-            )
+                backend, self.name, self.namespace, enclave=ros_args.enclave or "/",
+                ros_args=ros_args.tokens, use_sim_time=self.options.use_sim_time,
+            )  # fmt: skip
             if note:
                 self.logger.info(note)
             if backend == "inproc":
@@ -287,6 +294,9 @@ class Node:
         transport.set_log_level(self.options.log_level)
         transport.set_warning_sink(self.logger.warning)
         try:
+            self._sim_time: int | None = None  # the newest /clock (use_sim_time)
+            self._clock_sub: Subscription | None = None
+            self._follow_clock(self.options.use_sim_time)
             specs = param_specs(type(self.params))
             self.transport.declare_parameters(
                 [(spec, getattr(self.params, spec.name)) for spec in specs],
@@ -316,8 +326,37 @@ class Node:
             f"-p {name}:={format_value(value)}"
         )
 
+    @property
+    def use_sim_time(self) -> bool:
+        """Whether :meth:`now_ns` follows ``/clock`` (parameter ``use_sim_time``)."""
+        return self._clock_sub is not None
+
+    def now_ns(self) -> int:
+        """The node's time: the newest ``/clock`` with ``use_sim_time`` (0 before the first,
+        as in ROS 2), else the system clock."""
+        if self._clock_sub is None:
+            return time.time_ns()
+        return self._sim_time or 0
+
+    def _follow_clock(self, enabled: bool) -> None:
+        if enabled and self._clock_sub is None:
+
+            def on_clock(msg: Any) -> None:
+                self._sim_time = stamp_of(msg)
+
+            self._clock_sub = self.create_subscription("/clock", CLOCK_TYPE, on_clock)
+        elif not enabled and self._clock_sub is not None:
+            self._clock_sub.destroy()
+            self._clock_sub = None
+
     def _check_parameter_change(self, name: str, value: object) -> str | None:
         """A runtime set (``ros2 param set``): validated as at start-up, then the node's call."""
+        if name == USE_SIM_TIME.name:
+            try:
+                self._follow_clock(bool(coerce(USE_SIM_TIME, value, "set")))
+            except UsageError as exc:
+                return str(exc)
+            return None
         specs = {s.name: s for s in param_specs(type(self.params))}
         if name not in specs:
             return f"unknown parameter {name!r}"

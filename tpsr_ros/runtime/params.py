@@ -26,6 +26,8 @@ from tpsr_ros.io.safe_yaml import YamlInputError, load_yaml
 from tpsr_ros.runtime.ros_args import ParamOverride, ParamsFile, RosArgs, UsageError
 
 __all__ = [
+    "STANDARD_PARAMETERS",
+    "USE_SIM_TIME",
     "NoParameters",
     "ParamSpec",
     "format_parameter_help",
@@ -33,6 +35,7 @@ __all__ = [
     "param",
     "param_specs",
     "resolve_parameters",
+    "resolve_standard_parameters",
 ]
 
 _ROS_TYPES = {bool: "bool", int: "integer", float: "double", str: "string"}
@@ -271,40 +274,64 @@ def load_params_file(path: Path, node_fqn: str) -> list[tuple[bool, dict[str, An
     ]
 
 
-def resolve_parameters(cls: type, ros_args: RosArgs, node_fqn: str) -> Any:
-    """Instance of parameter dataclass ``cls`` from defaults, params files and ``-p``.
+USE_SIM_TIME = ParamSpec(
+    "use_sim_time", bool, False, "take the time from /clock (a simulator or a bag replay)"
+)
+STANDARD_PARAMETERS = {USE_SIM_TIME.name: USE_SIM_TIME}
+"""Parameters every ROS 2 node has, besides its own."""
 
-    Sources apply in command-line order (a later one wins). An unknown name in ``-p`` or
-    in a params-file section naming this node is an error; wildcard sections (``/**``)
-    may carry parameters of other nodes and their unknown names are ignored.
-    """
-    specs = {s.name: s for s in param_specs(cls)}
+
+def _given_values(
+    specs: dict[str, ParamSpec], ros_args: RosArgs, node_fqn: str
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(node parameters, standard parameters) from params files and ``-p`` in command-line
+    order; any other name is an error naming the node's parameters."""
     values: dict[str, Any] = {}
+    standard: dict[str, Any] = {}
 
-    def known(name: str, source: str) -> ParamSpec:
-        if name not in specs:
-            listed = ", ".join(specs) or "none"
+    def put(name: str, value: Any, source: str) -> None:
+        if name in STANDARD_PARAMETERS:
+            standard[name] = coerce(STANDARD_PARAMETERS[name], value, source)
+        elif name in specs:
+            values[name] = coerce(specs[name], value, source)
+        else:
+            listed = ", ".join([*specs, *STANDARD_PARAMETERS])
             raise UsageError(
                 f"unknown parameter {name!r} ({source}); this node's parameters: {listed}"
             )
-        return specs[name]
 
     for item in ros_args.parameters:
         if isinstance(item, ParamOverride):
-            spec = known(item.name, "-p")
-            values[spec.name] = coerce(spec, item.value, "-p")
+            put(item.name, item.value, "-p")
         elif isinstance(item, ParamsFile):
             source = f"--params-file {item.path.name}"
-            for wildcard, section in load_params_file(item.path, node_fqn):
+            for _, section in load_params_file(item.path, node_fqn):
                 for name, value in section.items():
-                    if wildcard and name not in specs:
-                        continue
-                    spec = known(name, source)
-                    values[name] = coerce(spec, value, source)
+                    put(name, value, source)
+    return values, standard
+
+
+def resolve_parameters(cls: type, ros_args: RosArgs, node_fqn: str) -> Any:
+    """Instance of parameter dataclass ``cls`` from defaults, params files and ``-p``.
+
+    Sources apply in command-line order (a later one wins). An unknown name is an error,
+    in ``-p`` and in every params-file section that applies to this node, wildcard ones
+    (``/**``, which ``ros2 launch`` writes for a node's ``<param>`` tags) included: a
+    misspelt parameter never passes silently. The standard parameters
+    (:data:`STANDARD_PARAMETERS`) are read by :func:`resolve_standard_parameters`.
+    """
+    values, _ = _given_values({s.name: s for s in param_specs(cls)}, ros_args, node_fqn)
     try:
         return cls(**values)
     except ConfigError as exc:
         raise UsageError(f"invalid parameters: {exc}") from None
+
+
+def resolve_standard_parameters(cls: type, ros_args: RosArgs, node_fqn: str) -> dict[str, Any]:
+    """The standard parameters (``use_sim_time``) given to a node of parameters ``cls``,
+    defaults for the others."""
+    _, standard = _given_values({s.name: s for s in param_specs(cls)}, ros_args, node_fqn)
+    return {name: standard.get(name, spec.default) for name, spec in STANDARD_PARAMETERS.items()}
 
 
 def format_parameter_help(cls: type) -> str:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import importlib
 import threading
+from collections.abc import Sequence
 from typing import Any, ClassVar
 
 from tpsr_ros.core.errors import MessageError, TpsrError
@@ -196,7 +197,14 @@ class RclpyTransport(Transport):
 
     kind: ClassVar[str] = "rclpy"
 
-    def __init__(self, node_name: str, namespace: str = "/") -> None:
+    def __init__(
+        self,
+        node_name: str,
+        namespace: str = "/",
+        *,
+        ros_args: Sequence[str] = (),
+        use_sim_time: bool = False,
+    ) -> None:
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.signals import SignalHandlerOptions
@@ -206,14 +214,20 @@ class RclpyTransport(Transport):
         tune_fastdds()  # before the process's first participant; the user's settings win
         self.context = rclpy.Context()
         try:
+            # rcl gets the ROS arguments (logging flags and levels, params files); the node
+            # does not apply them again (use_global_arguments=False): ours are checked first
+            args = ["tpsr_ros", "--ros-args", *ros_args] if ros_args else []
             rclpy.init(
-                args=[], context=self.context, signal_handler_options=SignalHandlerOptions.NO
+                args=args, context=self.context, signal_handler_options=SignalHandlerOptions.NO
             )
+            from rclpy.parameter import Parameter
+
             self.node = rclpy.create_node(
                 node_name,
                 namespace=namespace,
                 context=self.context,
                 use_global_arguments=False,
+                parameter_overrides=[Parameter("use_sim_time", value=use_sim_time)],
             )
         except Exception as exc:
             self.context.try_shutdown()

@@ -95,6 +95,8 @@ class RosArgs:
     log_levels: tuple[tuple[str | None, str], ...] = ()
     enclave: str | None = None
     flags: frozenset[str] = field(default_factory=frozenset)
+    tokens: tuple[str, ...] = ()
+    """The tokens as given, for rcl (logging flags, params files) on the rclpy backend."""
 
     def node_name(self, default: str) -> str:
         """Node name after ``-r __node:=name`` (the last one wins)."""
@@ -259,4 +261,6 @@ def parse_ros_args(tokens: Sequence[str]) -> RosArgs:
             i += 1
         else:
             raise UsageError(f"unknown ROS argument {token!r} after --ros-args")
-    return RosArgs(tuple(parameters), tuple(remaps), tuple(levels), enclave, frozenset(flags))
+    return RosArgs(
+        tuple(parameters), tuple(remaps), tuple(levels), enclave, frozenset(flags), tuple(tokens)
+    )
