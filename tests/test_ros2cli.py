@@ -1,12 +1,14 @@
 """The package under the real ROS 2 tools: ``colcon build --symlink-install``, ``ros2 run``,
 ``ros2 param set/get/describe`` and ``ros2 launch`` of the closed loop.
 
-Runs where a real ``ros2`` command with ``launch_ros`` is on PATH and importable, e.g. the
-Jazzy tools built from source by ``../shared/tools/ros2cli-from-source.sh`` into a venv
-holding this package's dependencies::
+Runs where a real ``ros2`` command with ``launch_ros`` is on PATH and importable: a sourced
+ROS 2 Jazzy, or the Jazzy command-line tools (ros2cli, launch, launch_ros, osrf_pycommon,
+rosidl_runtime_py; all pure Python) installed from source into a venv that has the PyPI
+rclpy wheels and this package's dependencies::
 
-    bash ros2cli-from-source.sh MIRROR VENV && VENV/bin/pip install -e '.[dds,test]'
-    source VENV/ros2cli-env.sh && VENV/bin/python -m pytest -m ros2cli tests/test_ros2cli.py
+    VENV/bin/pip install -e '.[dds,test,ros]'   # plus the tools' sources, then
+    PATH=VENV/bin:$PATH AMENT_PREFIX_PATH=VENV VENV/bin/python -m pytest -m ros2cli \
+        tests/test_ros2cli.py
 
 and is skipped (saying why) elsewhere: `make test` has no ROS 2 command-line tools.
 """
