@@ -110,7 +110,8 @@ def test_the_readme_robot_bag_commands_run(tmp_path) -> None:
         assert done.returncode == 0, (command, done.stderr[-2000:])
         outputs.append(done.stdout + done.stderr)
     # 900 steps: at most 15 actions (one per 60 steps), fewer if a code is never in force
-    assert re.search(r"1[0-5] actions over linear.x, linear.y \(kmeans\) \(default sized", outputs[1])
+    said = r"1[0-5] actions over linear.x, linear.y \(kmeans\) \(default sized"
+    assert re.search(said, outputs[1])
     assert "R^2 of true position from states" in outputs[2]
     for name in ("robot_bag", "robot_model.npz", "robot_states.png", "robot_policy.npz"):
         assert (tmp_path / name).exists(), name
