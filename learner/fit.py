@@ -450,21 +450,25 @@ def _write(
 def _spec_line(spec: StreamSpec, options: FitOptions | None = None) -> str:
     """The spec in one line; with ``options``, which values are defaults sized to the data."""
     prep, grid = spec.preprocessing, spec.grid.as_dict()
-    chosen = options is not None
     phase = grid.get("phase_s")
+    kmeans = spec.codebook.kind == "kmeans"
+    defaults = {
+        "phase": options is not None and options.step_offset is None,
+        "image": options is not None and options.image_size is None,
+        "actions": options is not None and options.actions is None and kmeans,
+    }
     return (
         f"steps of {grid['step_period_s']:g} s"
         + ("" if phase is None else f", offset {phase:.3f} s")
         + (" (chosen to keep steps clear of stamps; --step-offset to set)"
-           if chosen and options.step_offset is None else "")
+           if defaults["phase"] else "")
         + f" (camera period {grid['camera_period_s']:.3g} s, images used up to "
         f"{grid['image_timeout_s']:.3g} s old); "
         f"observations {prep.width}x{prep.height} {'grey' if prep.grey else 'colour'}"
-        + (" (default; --image-size to set)" if chosen and options.image_size is None else "")
+        + (" (default; --image-size to set)" if defaults["image"] else "")
         + f"; {len(spec.codebook)} actions over {', '.join(spec.codebook.components)} "
         f"({spec.codebook.kind})"
-        + (" (default sized to the steps; --actions to set)"
-           if chosen and options.actions is None and spec.codebook.kind == "kmeans" else "")
+        + (" (default sized to the steps; --actions to set)" if defaults["actions"] else "")
     )  # fmt: skip
 
 

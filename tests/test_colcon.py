@@ -53,8 +53,9 @@ def _copy_tracked_files(dest: Path) -> None:
             shutil.copy2(source, dest / name)
 
 
-@pytest.mark.slow
-def test_colcon_build_installs_runnable_node_executables(tmp_path):
+def _build(tmp_path: Path, *options: str) -> tuple[Path, dict[str, str]]:
+    """A colcon workspace holding a copy of the repository, built with ``options``; its
+    path and the environment the build ran in."""
     colcon = _colcon()
     if colcon is None:
         pytest.skip("colcon is not installed (pip install colcon-common-extensions)")
@@ -64,11 +65,17 @@ def test_colcon_build_installs_runnable_node_executables(tmp_path):
     _copy_tracked_files(workspace / "src" / "tpsr-ros")
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     build = subprocess.run(
-        [colcon, "build", "--merge-install", "--event-handlers", "console_direct-"],
+        [colcon, "build", *options, "--merge-install", "--event-handlers", "console_direct-"],
         cwd=workspace, capture_output=True, text=True, timeout=300, env=env,
-    )
+    )  # fmt: skip
     assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
     assert "1 package finished" in build.stdout + build.stderr
+    return workspace, env
+
+
+@pytest.mark.slow
+def test_colcon_build_installs_runnable_node_executables(tmp_path):
+    workspace, env = _build(tmp_path)
 
     install = workspace / "install"
     for node in NODES:
@@ -119,20 +126,7 @@ def test_a_symlink_install_builds_and_its_nodes_name_themselves_as_ros2_run(tmp_
     """``colcon build --symlink-install`` (what most workspaces use) links setup.py and
     setup.cfg into the build directory without pyproject.toml; the build must still name
     its packages, and the executables run the checkout's code."""
-    colcon = _colcon()
-    if colcon is None:
-        pytest.skip("colcon is not installed (pip install colcon-common-extensions)")
-    if shutil.which("git") is None or not (ROOT / ".git").exists():
-        pytest.skip("needs the git checkout to copy the repository's files")
-    workspace = tmp_path / "ws"
-    _copy_tracked_files(workspace / "src" / "tpsr-ros")
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
-    build = subprocess.run(
-        [colcon, "build", "--symlink-install", "--merge-install",
-         "--event-handlers", "console_direct-"],
-        cwd=workspace, capture_output=True, text=True, timeout=300, env=env,
-    )  # fmt: skip
-    assert build.returncode == 0, build.stdout[-3000:] + build.stderr[-3000:]
+    workspace, env = _build(tmp_path, "--symlink-install")
     # what `source install/setup.bash` sets: a develop install's build directory (colcon's
     # pythonpath_develop hook) and site-packages on PYTHONPATH
     (site,) = (workspace / "install").glob("lib/python3*/site-packages")

@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 from graph_support import fresh_domain, rclpy_available
+from replay_support import replay_states
 from test_filter_node import Harness
 
 from learner.cli import main as learner_main
@@ -314,38 +315,14 @@ def test_lost_simulator_steps_are_counted_from_stamp_gaps(tmp_path):
 @pytest.mark.rclpy
 @pytest.mark.skipif(not rclpy_available(), reason="rclpy (ROS 2) not importable")
 def test_the_node_tracks_a_play_replay_over_rclpy_like_offline(robot, tmp_path, monkeypatch):
-    from tpsr_ros.runtime.launcher import Launch
-
     monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain(16)))
     monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     monkeypatch.setenv("TPSR_TRANSPORT", "rclpy")
     monkeypatch.setenv("PYTHONUNBUFFERED", "1")
     expected = offline(robot)
-    probe = Node(NodeOptions(name="probe"))  # rclpy, from TPSR_TRANSPORT
-    states: list = []
-    state_sub = probe.create_subscription(
-        "/tpsr/state", m.STATE_TYPE,
-        lambda x: states.append((m.stamp_of(x), m.state_to_array(x))),
+    states, _ = replay_states(
+        robot["model"], robot["feed"], [CAMERA, "/cmd_vel"], "8", len(expected), tmp_path
     )
-    try:
-        with Launch(tmp_path, spin=probe.spin_once, timeout_s=60) as launch:
-            node = launch.start(
-                "filter", "tpsr_ros.filter_node", ["--ros-args", "-p", f"model:={robot['model']}"]
-            )
-            launch.wait("the filter's subscriptions", lambda: "steps of 1 s from" in node.text())
-            # the probe must have matched the state publisher before the first state is sent
-            launch.wait("the filter's state publisher", lambda: state_sub.get_publisher_count() > 0)
-            player = launch.start("play", "tpsr_ros.play", [
-                str(robot["feed"]), "--rate", "8", "--topics", CAMERA, "/cmd_vel",
-                "--wait-for-subscribers", "1", "--no-clock",
-            ])
-            deadline = time.monotonic() + 60
-            while len(states) < len(expected) and time.monotonic() < deadline:
-                probe.spin_once(0.05)
-            assert player.wait(30) == 0, player.text()
-            assert node.stop() == 0, node.text()
-    finally:
-        probe.close()
     assert [s for s, _ in states] == sorted(expected)
     for stamp, state in states:
         assert np.array_equal(state, expected[stamp]), stamp

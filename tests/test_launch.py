@@ -218,7 +218,7 @@ def test_on_exit_shutdown_is_read_and_a_taken_bag_is_refused_before_any_node(tmp
     assert {n.on_exit for n in nodes} == {"shutdown"}  # any node's exit stops the loop
     _check_outputs(nodes)  # a new bag: fine
     (tmp_path / "bag").mkdir()
-    with pytest.raises(LaunchError, match="output bag .* already exists"):
+    with pytest.raises(LaunchError, match=r"output bag .* already exists"):
         _check_outputs(nodes)
     bad = tmp_path / "bad.launch.xml"
     bad.write_text("<launch><node pkg='tpsr_ros' exec='sim_node' on_exit='restart'/></launch>")

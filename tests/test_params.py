@@ -91,7 +91,7 @@ def test_a_misspelt_name_in_a_wildcard_section_is_refused_as_with_p(tmp_path):
     pass silently."""
     path = tmp_path / "launch_params.yaml"
     path.write_text("/**:\n  ros__parameters:\n    stpes: 5\n")
-    with pytest.raises(UsageError, match="unknown parameter 'stpes'.* parameters: name, "):
+    with pytest.raises(UsageError, match=r"unknown parameter 'stpes'.* parameters: name, "):
         _resolve("--params-file", str(path))
 
 

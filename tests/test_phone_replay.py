@@ -5,16 +5,14 @@ at 0.5, 1 and 4 times its speed, with no image counted lost."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 from graph_support import BACKENDS, LOOPBACK, fresh_domain
+from replay_support import replay_states
 
 from learner.cli import main as learner_main
 from sim_node.robot_bag import COMPRESSED_TOPIC, RobotBagConfig, write_robot_bag
 from tpsr_ros.io import messages as m
-from tpsr_ros.runtime import Node, NodeOptions
 
 STEP = "0.075"
 
@@ -45,38 +43,6 @@ def test_the_phone_bag_is_tracked_in_one_segment_from_its_first_step(phone):
     assert (spec.preprocessing.width, spec.preprocessing.height) == (16, 6)  # 256x96 kept
 
 
-def _replay(phone, rate: str, tmp_path) -> tuple[list, str]:
-    """Play the phone bag at ``rate`` into a filter node; the states it published and its log."""
-    from tpsr_ros.runtime.launcher import Launch
-
-    expected = phone["expected"]
-    probe = Node(NodeOptions(name=f"probe_{rate.replace('.', '_')}"))
-    states: list = []
-    state_sub = probe.create_subscription(
-        "/tpsr/state", m.STATE_TYPE,
-        lambda x: states.append((m.stamp_of(x), m.state_to_array(x))),
-    )  # fmt: skip
-    try:
-        with Launch(tmp_path / rate, spin=probe.spin_once, timeout_s=60) as launch:
-            node = launch.start(
-                "filter", "tpsr_ros.filter_node", ["--ros-args", "-p", f"model:={phone['model']}"]
-            )
-            launch.wait("the filter's subscriptions", lambda: "steps of" in node.text())
-            launch.wait("the state publisher", lambda: state_sub.get_publisher_count() > 0)
-            player = launch.start("play", "tpsr_ros.play", [
-                str(phone["bag"]), "--rate", rate, "--topics", COMPRESSED_TOPIC, "/cmd_vel",
-                "--wait-for-subscribers", "1", "--no-clock",
-            ])  # fmt: skip
-            deadline = time.monotonic() + 60
-            while len(states) < len(expected) and time.monotonic() < deadline:
-                probe.spin_once(0.05)
-            assert player.wait(30) == 0, player.text()
-            assert node.stop() == 0, node.text()
-    finally:
-        probe.close()
-    return states, node.text()
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_a_replay_at_any_rate_gives_learner_tracks_states(phone, backend, tmp_path, monkeypatch):
@@ -86,7 +52,10 @@ def test_a_replay_at_any_rate_gives_learner_tracks_states(phone, backend, tmp_pa
     monkeypatch.setenv("TPSR_TRANSPORT", backend)
     expected = phone["expected"]
     for rate in ("0.5", "1", "4"):
-        states, log = _replay(phone, rate, tmp_path)
+        states, log = replay_states(
+            phone["model"], phone["bag"], [COMPRESSED_TOPIC, "/cmd_vel"], rate, len(expected),
+            tmp_path / rate,
+        )
         assert [s for s, _ in states] == sorted(expected), (rate, log)
         for stamp, state in states:
             assert np.array_equal(state, expected[stamp]), (rate, stamp)

@@ -75,7 +75,7 @@ from tpsr_ros.core.tpsr_stages import (
     top_singular_triplets,
     truncated_svd,
 )
-from tpsr_ros.core.whitened import ActionSums, Centres, WhitenedRows, Whitenings
+from tpsr_ros.core.whitened import ActionSums, Centres, EpisodeRows, WhitenedRows, Whitenings
 from tpsr_ros.core.whitening import check_finite_matrix
 
 __all__ = [
@@ -443,23 +443,12 @@ def fit_tpsr(
     return run_fit(engine, config, progress=progress, sizing=sizing, action_codes=action_codes)
 
 
-class EpisodeArrays(Protocol):
-    """What :func:`fit_tpsr_episodes` reads (e.g. :class:`tpsr_ros.core.episodes.Episodes`)."""
+class EpisodeArrays(EpisodeRows, Protocol):
+    """What :func:`fit_tpsr_episodes` reads (e.g. :class:`tpsr_ros.core.episodes.Episodes`):
+    the rows the whitening reads, and the number of actions."""
 
     @property
-    def history(self) -> np.ndarray: ...
-    @property
-    def observation(self) -> np.ndarray: ...
-    @property
-    def action(self) -> np.ndarray: ...
-    @property
-    def test(self) -> np.ndarray: ...
-    @property
     def n_actions(self) -> int: ...
-    @property
-    def history_actions(self) -> np.ndarray: ...
-    @property
-    def test_actions(self) -> np.ndarray: ...
 
 
 def fit_tpsr_episodes(
