@@ -172,6 +172,7 @@ def test_a_crashed_node_stops_the_run_and_leaves_no_process(trained, tmp_path):
     assert _children_of_this_process() == []
 
 
+@pytest.mark.slow
 def test_timeouts_and_refusals_leave_no_process(trained, tmp_path):
     said: list[str] = []
     with pytest.raises(ClosedLoopError, match=r"timed out after 0\.01 s"):

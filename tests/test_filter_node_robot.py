@@ -312,6 +312,7 @@ def test_lost_simulator_steps_are_counted_from_stamp_gaps(tmp_path):
         h.close()
 
 
+@pytest.mark.slow
 @pytest.mark.rclpy
 @pytest.mark.skipif(not rclpy_available(), reason="rclpy (ROS 2) not importable")
 def test_the_node_tracks_a_play_replay_over_rclpy_like_offline(robot, tmp_path, monkeypatch):

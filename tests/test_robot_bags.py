@@ -112,7 +112,7 @@ def test_resampled_steps_are_the_simulator_steps(robot):
     assert np.array_equal(trajectory.rewards, run.rewards[steps - 1])  # stamped within step k
 
 
-def test_jpeg_and_grey_cameras_give_nearly_the_same_observations(tmp_path, robot):
+def test_jpeg_and_grey_cameras_give_nearly_the_same_observations(tmp_path):
     bags = {}
     for encoding in ("bgr8", "jpeg", "mono8"):
         bags[encoding] = tmp_path / encoding
@@ -146,6 +146,7 @@ def dataclass_replace_grey(spec):
 # -- the learner end to end -----------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_fit_info_plot_policy_need_no_options_again(robot, capsys):
     tmp, bag = robot["tmp"], robot["bag"]
     model = tmp / "m.npz"

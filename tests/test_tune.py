@@ -409,6 +409,7 @@ def test_missing_config_file_is_one_line(tmp_path):
         read_fit_config(tmp_path / "absent.yaml")
 
 
+@pytest.mark.slow
 def test_experiment_tunes_each_run_on_its_own_training_data(tmp_path):
     out = tmp_path / "results"
     grid = ["experiment", "--environment", "full", "--episodes", "300", "--repetitions", "1",
