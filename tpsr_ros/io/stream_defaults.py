@@ -111,20 +111,28 @@ def supported_codebook(
         raise DataError("no grid step has a command in force: check --step-period and topics")
     if reduce:
         k = min(k, np.unique(commands, axis=0).shape[0])
-    supported = None
-    for count in range(k, 0, -1):
+
+    def covering(count: int) -> ActionCodebook | None:
         codebook = fit_codebook(commands, components, count, seed)
         occurring = np.unique(codebook.assign(in_force)[0]).size
-        if occurring == count:
-            if count == k:
-                return codebook
-            supported = count
-            if reduce:
-                return codebook
-            break
+        return codebook if occurring == count else None
+
+    if (codebook := covering(k)) is not None:
+        return codebook
+    # the largest count whose codes all occur, by bisection (a few k-means fits, not k);
+    # one code always occurs, as some step has a command in force
+    low, high, best = 1, k - 1, covering(1)
+    while low < high:
+        middle = (low + high + 1) // 2
+        if (found := covering(middle)) is not None:
+            low, best = middle, found
+        else:
+            high = middle - 1
+    if reduce and best is not None:
+        return best
     raise DataError(
         f"{k} actions: some code is never the command in force at a step; the data support "
-        f"{supported or 1} (give --actions {supported or 1} or record more varied commands)"
+        f"{low} (give --actions {low} or record more varied commands)"
     )
 
 
