@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from learner.jobs import Job
-from learner.results_page import all_jobs, write_page
+from learner.results_page import all_jobs, write_page, write_readme_table
 from learner.tables import Row, read_csv
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.errors import ConfigError
@@ -76,6 +76,11 @@ def run(args: argparse.Namespace) -> int:
     jobs = all_jobs()
     if not args.reuse:
         run_jobs(jobs, args.results, rerun=args.rerun, workers=args.workers)
-    page = write_page(_read(jobs, args.results), args.docs)
-    print(f"wrote {page}", file=sys.stderr)
+    data = _read(jobs, args.results)
+    page = write_page(data, args.docs)
+    readme = args.docs.parent / "README.md"
+    if readme.exists():  # the README's results table, from the same CSVs
+        write_readme_table(data, readme)
+    print(f"wrote {page}" + (f" and the results table of {readme}" if readme.exists() else ""),
+          file=sys.stderr)
     return 0

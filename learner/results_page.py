@@ -22,10 +22,18 @@ from learner.floors import CONSTANT, FLOORS, RANDOM
 from learner.jobs import ENVIRONMENTS, HEADLINE_SEEDS, SELECTION_SEEDS, Job, experiment_job
 from learner.tables import Row, difference_in_sems, summarise
 from learner.verdicts import DIFFERENCE_SEMS, FLOOR_SEMS, GUIDE_RESULTS, Table, judge
+from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.presets import DEFAULT_PRESET, PRESETS
 from tpsr_ros.io.policy import TRUE_POSITION
 
-__all__ = ["HEADLINE", "all_jobs", "render", "write_page"]
+__all__ = [
+    "HEADLINE",
+    "all_jobs",
+    "readme_table",
+    "render",
+    "write_page",
+    "write_readme_table",
+]
 
 HEADLINE: Mapping[str, tuple[Job, ...]] = {
     "defaults": tuple(experiment_job("defaults", env, *HEADLINE_SEEDS) for env in ENVIRONMENTS),
@@ -355,6 +363,48 @@ def render(data: Data) -> list[str]:
     for section in SECTIONS:
         lines += section.lines(data)
     return lines
+
+
+README_BEGIN = "<!-- results: written by python -m learner report -->"
+README_END = "<!-- end of results -->"
+README_EPISODES = 8000
+
+
+def readme_table(data: Data) -> list[str]:
+    """The README's results table: each environment at :data:`README_EPISODES` episodes."""
+    best, guide = _tables(data, "defaults"), _tables(data, "guide")
+
+    def at(table: Table, method: str) -> str:
+        entry = _entry(table, method, README_EPISODES)
+        return "-" if entry is None else f"{entry['mean']:.1f} / {entry['sem']:.1f}"
+
+    lines = [
+        "| environment | TPSR, defaults | TPSR, `--preset guide` | PCA, same planner | best "
+        "floor | ceiling (true position) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for env in ENVIRONMENTS:
+        floors = [
+            e for m in FLOORS if (e := _entry(best[env], m, README_EPISODES)) is not None
+        ]
+        floor = max(floors, key=lambda e: e["mean"], default=None)
+        floor_cell = "-" if floor is None else f"{floor['mean']:.1f} / {floor['sem']:.1f}"
+        lines.append(
+            f"| `{env}` | {at(best[env], 'tpsr')} | {at(guide[env], 'tpsr')} | "
+            f"{at(best[env], 'pca')} | {floor_cell} | {at(best[env], TRUE_POSITION)} |"
+        )
+    return lines
+
+
+def write_readme_table(data: Data, readme: Path) -> None:
+    """Replace the lines between :data:`README_BEGIN` and :data:`README_END` in ``readme``."""
+    text = readme.read_text(encoding="utf-8")
+    if README_BEGIN not in text or README_END not in text:
+        raise ConfigError(f"{readme} has no results block ({README_BEGIN} ... {README_END})")
+    head, rest = text.split(README_BEGIN, 1)
+    _, tail = rest.split(README_END, 1)
+    block = "\n".join([README_BEGIN, *readme_table(data), README_END])
+    readme.write_text(head + block + tail, encoding="utf-8")
 
 
 def write_page(data: Data, docs: Path) -> Path:

@@ -154,9 +154,14 @@ def test_report_reuse_names_the_command_of_a_missing_csv(fake_results, tmp_path)
 
 @pytest.mark.slow
 def test_the_committed_page_is_what_the_committed_csvs_give(tmp_path):
-    """A fresh clone's ``learner report --reuse`` rewrites docs/results.md byte for byte."""
+    """A fresh clone's ``learner report --reuse`` rewrites docs/results.md and the README's
+    results table byte for byte."""
     docs = tmp_path / "docs"
     docs.mkdir()
+    (tmp_path / "README.md").write_text(
+        "before\n<!-- results: written by python -m learner report -->\nold\n"
+        "<!-- end of results -->\nafter\n"
+    )
     result = subprocess.run(
         [sys.executable, "-m", "learner", "report", "--reuse", "--results",
          str(REPOSITORY / "results"), "--docs", str(docs)],
@@ -164,6 +169,9 @@ def test_the_committed_page_is_what_the_committed_csvs_give(tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert (docs / "results.md").read_text() == (REPOSITORY / "docs" / "results.md").read_text()
+    block = (tmp_path / "README.md").read_text().split("\n")[1:-2]
+    readme = (REPOSITORY / "README.md").read_text()
+    assert "\n".join(block) in readme and "old" not in block and len(block) == 7
 
 
 def test_csvs_written_before_new_columns_still_read(tmp_path):
