@@ -100,7 +100,7 @@ def add_preset_option(parser: Group, what: str = "fit and fitted-Q") -> None:
         choices=sorted(PRESETS),
         default=DEFAULT_PRESET,
         help=f"named {what} settings the other options change: "
-        + "; ".join(f"{p.name}: {p.summary}" for p in PRESETS.values())
+        + "; ".join(f"{p.name}: {p.summary}" for p in PRESETS.values()).replace("%", "%%")
         + " (default: %(default)s)",
     )
 

@@ -190,6 +190,23 @@ def test_python_dash_m_entry_point(tmp_path):
     )
 
 
+def _subcommands() -> list[str]:
+    import argparse
+
+    (commands,) = (a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return sorted(commands.choices)
+
+
+@pytest.mark.parametrize("command", _subcommands())
+def test_every_subcommand_prints_its_help(command, capsys):
+    """argparse expands ``%`` in help strings: a stray one breaks ``--help`` of a command."""
+    with pytest.raises(SystemExit) as exit_info:
+        main([command, "--help"])
+    assert exit_info.value.code == 0
+    usage = capsys.readouterr().out.splitlines()[0]
+    assert usage.startswith("usage: ") and command in usage
+
+
 # --- the full environment (guide figure 4.5 settings) -------------------------------------
 
 
