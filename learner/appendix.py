@@ -96,6 +96,8 @@ def _comparison(entry: Mapping[str, Any], base: Mapping[str, Any]) -> tuple[floa
 def _judged(difference: float, sems: float) -> str:
     if not math.isfinite(difference):
         return "not measured"
+    if not math.isfinite(sems):  # every run of both scored alike
+        return f"{difference:+.1f} (no spread between runs)"
     noise = "within the noise" if abs(sems) <= DIFFERENCE_SEMS else "outside the noise"
     return f"{difference:+.1f} ({sems:+.1f} SEM, {noise})"
 

@@ -106,12 +106,14 @@ def summarise(rows: Sequence[Row]) -> list[dict[str, Any]]:
 def difference_in_sems(a: dict[str, Any], b: dict[str, Any]) -> float:
     """``(mean_a - mean_b) / sqrt(SEM_a^2 + SEM_b^2)`` of two summary entries.
 
-    A missing SEM (one run) counts as 0; with both 0 the result is +-inf (or nan when the
-    means are equal).
+    A missing SEM (one run) counts as 0; with both 0 (up to rounding) the result is +-inf
+    (or nan when the means are equal).
     """
     spread = float(np.hypot(np.nan_to_num(a["sem"]), np.nan_to_num(b["sem"])))
     difference = a["mean"] - b["mean"]
-    return difference / spread if spread > 0 else float(np.sign(difference) * np.inf)
+    if spread > 1e-9 * max(1.0, abs(a["mean"]), abs(b["mean"])):  # not rounding noise
+        return difference / spread
+    return float("nan") if difference == 0 else float(np.copysign(np.inf, difference))
 
 
 def margin_text(entry: dict[str, Any]) -> str:
