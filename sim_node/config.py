@@ -7,14 +7,39 @@ the north-east (top right) corner.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from enum import Enum
 
 from tpsr_ros.core.errors import ConfigError
 
-__all__ = ["DistractorConfig", "Environment", "SimConfig"]
+__all__ = [
+    "DEFAULT_VERTICAL_HALF_EXTENT",
+    "MAX_VERTICAL_HALF_EXTENT",
+    "DistractorConfig",
+    "Environment",
+    "SimConfig",
+    "check_vertical_half_extent",
+]
 
 STEP_SECONDS = 1.0
+DEFAULT_VERTICAL_HALF_EXTENT = 0.2
+"""The camera's vertical half-extent (tangent of the half-angle, ±11.3°) of every environment."""
+MAX_VERTICAL_HALF_EXTENT = 5.0
+"""Largest vertical half-extent accepted: ±78.7°; the rows are even in tangent, so a view
+near ±90° would spend almost every row on the floor and the sky."""
+
+
+def check_vertical_half_extent(value: float) -> float:
+    """``value`` if it is a vertical half-extent the camera can render, else ``ConfigError``."""
+    if isinstance(value, bool) or not (isinstance(value, (int, float)) and math.isfinite(value)):
+        raise ConfigError(f"vertical_half_extent must be a number, got {value!r}")
+    if not 0 < value <= MAX_VERTICAL_HALF_EXTENT:
+        raise ConfigError(
+            "vertical_half_extent (the tangent of the camera's half vertical field of view) "
+            f"must be in (0, {MAX_VERTICAL_HALF_EXTENT:g}], got {value:g}"
+        )
+    return float(value)
 
 
 class Environment(str, Enum):
@@ -82,7 +107,7 @@ class SimConfig:
     robot_height: float = 2.0
     image_size: int = 16
     field_of_view_deg: float | None = None
-    vertical_half_extent: float = 0.2
+    vertical_half_extent: float = DEFAULT_VERTICAL_HALF_EXTENT
     rays_per_column: int = 8
     noise_fraction: float = 0.1
     goal_radius: float = 15.0
@@ -102,8 +127,9 @@ class SimConfig:
             raise ConfigError("image_size, rays_per_column and physics_substeps must be >= 1")
         if not 0 < self.fov_deg <= 360:
             raise ConfigError(f"field of view {self.fov_deg} deg must be in (0, 360]")
-        if self.vertical_half_extent <= 0 or self.noise_fraction < 0 or self.goal_radius <= 0:
-            raise ConfigError("vertical_half_extent and goal_radius > 0, noise_fraction >= 0")
+        check_vertical_half_extent(self.vertical_half_extent)
+        if self.noise_fraction < 0 or self.goal_radius <= 0:
+            raise ConfigError("goal_radius must be > 0 and noise_fraction >= 0")
         if self.start_time_ns < 0:
             raise ConfigError("start_time_ns must be >= 0")
 

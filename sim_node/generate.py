@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from sim_node.batch_cdr import chunk_payloads
 from sim_node.config import Environment, SimConfig
+from sim_node.options import add_vertical_half_extent_option
 from sim_node.rollout import Rollout, iter_random_rollout
 from sim_node.topics import SimTopics
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
@@ -79,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         choices=[e.value for e in Environment],
         help="full (300 deg camera), partial (60 deg) or distractors",
     )
+    add_vertical_half_extent_option(parser)
     parser.add_argument("--steps", required=True, type=positive_int, help="number of steps")
     parser.add_argument("--seed", type=int, default=0, help="seed of every random stream")
     parser.add_argument("-o", "--output", required=True, type=Path, help="new bag directory")
@@ -86,7 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.seed < 0:
         parser.error(f"argument --seed: {args.seed} is negative")
-    config = SimConfig(environment=args.environment)
+    config = SimConfig(
+        environment=args.environment, vertical_half_extent=args.vertical_half_extent
+    )
     start = time.perf_counter()
     count = generate_bag(
         args.output, config, args.steps, args.seed, progress=not args.quiet

@@ -23,7 +23,13 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from sim_node.config import Environment, SimConfig
+from sim_node.config import (
+    DEFAULT_VERTICAL_HALF_EXTENT,
+    MAX_VERTICAL_HALF_EXTENT,
+    Environment,
+    SimConfig,
+    check_vertical_half_extent,
+)
 from sim_node.env import RobotEnv
 from sim_node.topics import CMD_IGNORED_TOPIC, SimTopics, step_messages
 from tpsr_ros.core.actions import action_index
@@ -51,6 +57,13 @@ class SimNodeParams:
         "full",
         "camera of the guide's chapter 4: full (300 deg), partial (60 deg) or distractors",
         choices=tuple(e.value for e in Environment),
+    )
+    vertical_half_extent: float = param(
+        DEFAULT_VERTICAL_HALF_EXTENT,
+        "camera: tangent of the half vertical field of view (0.2: ±11.3°, a wall farther than "
+        "10 m shows its top and the floor; 0.03: the wall fills every row across the room)",
+        positive=True,
+        maximum=MAX_VERTICAL_HALF_EXTENT,
     )
     seed: int = param(
         0, "seed of every random stream (start, actions, noise, distractors)", minimum=0
@@ -83,6 +96,7 @@ class SimNodeParams:
     def __post_init__(self) -> None:
         if self.seed < 0:
             raise ConfigError(f"seed must be >= 0, got {self.seed}")
+        check_vertical_half_extent(self.vertical_half_extent)
         if not (math.isfinite(self.rate) and self.rate > 0):
             raise ConfigError(f"rate must be a positive number of Hz, got {self.rate}")
         if self.steps < 0 or self.wait_for_subscribers < 0 or self.episode_steps < 0:
@@ -101,7 +115,9 @@ class SimNode(Node):
     def setup(self) -> None:
         """Create the environment, publishers, subscriptions and the explore timer."""
         p: SimNodeParams = self.params
-        self.config = SimConfig(environment=p.environment)
+        self.config = SimConfig(
+            environment=p.environment, vertical_half_extent=p.vertical_half_extent
+        )
         self.env = RobotEnv(self.config, seed=p.seed)
         self.topics = SimTopics().relative()
         self.step_publishers = {

@@ -41,7 +41,8 @@ from typing import Any
 import numpy as np
 
 from sim_node.camera import Camera
-from sim_node.config import SimConfig
+from sim_node.config import DEFAULT_VERTICAL_HALF_EXTENT, SimConfig
+from sim_node.options import add_vertical_half_extent_option
 from sim_node.rollout import random_rollout
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
 from tpsr_ros.core.errors import ConfigError
@@ -87,6 +88,7 @@ class RobotBagConfig:
     image_size: int = 40
     camera_rate: float = 4.0
     environment: str = "full"
+    vertical_half_extent: float = DEFAULT_VERTICAL_HALF_EXTENT
     command_jitter: float = 0.6
     jpeg_quality: int = 90
     command_topic: str = "/cmd_vel"
@@ -101,6 +103,14 @@ class RobotBagConfig:
             raise ConfigError(f"encoding {self.encoding!r} is not one of {ENCODINGS}")
         if self.steps < 3 or self.image_size < 1 or self.camera_rate not in (1.0, 2.0, 4.0, 5.0):
             raise ConfigError("steps >= 3, image_size >= 1 and camera_rate 1, 2, 4 or 5 Hz")
+
+    def sim_config(self, image_size: int = 16) -> SimConfig:
+        """The simulator the bag shows, rendering ``image_size`` pixels square."""
+        return SimConfig(
+            environment=self.environment,
+            image_size=image_size,
+            vertical_half_extent=self.vertical_half_extent,
+        )
 
     @property
     def image_topic(self) -> str:
@@ -245,10 +255,9 @@ def _odometry(stamp: int, x: float, y: float) -> Any:
 def _render(config: RobotBagConfig, positions: np.ndarray) -> np.ndarray:
     """The frames ``(F, H, W, 3)`` uint8 (the phone's: a square render widened)."""
     if config.timeline != "phone":
-        sim = SimConfig(environment=config.environment, image_size=config.image_size)
-        return Camera(sim).render(positions)
+        return Camera(config.sim_config(config.image_size)).render(positions)
     height, width = PHONE_CAMERA
-    square = Camera(SimConfig(environment=config.environment, image_size=height))
+    square = Camera(config.sim_config(height))
     columns = np.arange(width) * height // width  # nearest source column
     return np.ascontiguousarray(square.render(positions)[:, :, columns])
 
@@ -257,7 +266,7 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
     """Simulate and write the bag; returns the number of messages written."""
     output = check_bag_path_free(Path(output))
     rng = np.random.default_rng(config.seed + 1)
-    run = random_rollout(SimConfig(environment=config.environment), config.steps, config.seed)
+    run = random_rollout(config.sim_config(), config.steps, config.seed)
     n = config.steps
     sec = NS_PER_S
     start = START_S * sec
@@ -329,6 +338,7 @@ def main(argv: list[str] | None = None) -> int:
         help="camera encoding (default: jpeg for the phone, bgr8 otherwise)",
     )
     parser.add_argument("--image-size", type=positive_int, default=40, help="camera pixels")
+    add_vertical_half_extent_option(parser)
     parser.add_argument("-o", "--output", required=True, type=Path, help="new bag directory")
     args = parser.parse_args(argv)
     if args.seed < 0:
@@ -339,6 +349,7 @@ def main(argv: list[str] | None = None) -> int:
         encoding=args.encoding,
         image_size=args.image_size,
         timeline=args.timeline,
+        vertical_half_extent=args.vertical_half_extent,
     )
     count = write_robot_bag(args.output, config)
     print(f"wrote {args.output}: {args.steps} steps, {count} messages", file=sys.stderr)
