@@ -48,8 +48,10 @@ from typing import Any
 import numpy as np
 
 from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, Evaluation, Trial
-from learner.inputs import require_simulator_model
+from learner.inputs import require_camera, require_simulator_model
 from sim_node import Environment
+from sim_node.config import DEFAULT_VERTICAL_HALF_EXTENT
+from sim_node.options import add_vertical_half_extent_option
 from sim_node.topics import CMD_IGNORED_TOPIC
 from tpsr_ros.core.errors import ModelFormatError, TpsrError
 from tpsr_ros.core.units import NS_PER_S as _NS
@@ -272,7 +274,10 @@ def _run_trial(
 
 
 def _check_inputs(
-    policy_path: Path | str, environment: str, model_path: Path | str | None
+    policy_path: Path | str,
+    environment: str,
+    model_path: Path | str | None,
+    vertical_half_extent: float = DEFAULT_VERTICAL_HALF_EXTENT,
 ) -> tuple[Path, Path]:
     """Refuse what the filter node would refuse, before any process starts.
 
@@ -289,6 +294,7 @@ def _check_inputs(
     model = policy.model_path(model_path).resolve()
     model_file = open_model(model)  # once: the filter node opens it again in its process
     require_simulator_model(model_file)
+    require_camera(model_file, vertical_half_extent)
     filter_inputs(model_file, (policy, str(policy_path)))
     return policy_path, model
 
@@ -324,6 +330,7 @@ def _start_simulator(
     driver: _Driver,
     *,
     environment: str,
+    vertical_half_extent: float,
     seed: int,
     steps: int,
     record: Path | None,
@@ -344,6 +351,8 @@ def _start_simulator(
         "mode:=command",
         "-p",
         f"environment:={environment}",
+        "-p",
+        f"vertical_half_extent:={float(vertical_half_extent)!r}",
         "-p",
         f"seed:={seed}",
         "-p",
@@ -397,6 +406,7 @@ def run_closed_loop(
     policy_path: Path | str,
     environment: Environment | str,
     *,
+    vertical_half_extent: float = DEFAULT_VERTICAL_HALF_EXTENT,
     model_path: Path | str | None = None,
     record: Path | str | None = None,
     log_dir: Path | str | None = None,
@@ -429,7 +439,9 @@ def run_closed_loop(
             "not inproc"
         )
     environment = Environment(environment).value
-    policy_path, model_path = _check_inputs(policy_path, environment, model_path)
+    policy_path, model_path = _check_inputs(
+        policy_path, environment, model_path, vertical_half_extent
+    )
     if record is not None:
         record = Path(record).resolve()
         check_bag_path_free(record)
@@ -454,7 +466,14 @@ def run_closed_loop(
         launch = Launch(logs, env=env, spin=driver.node.spin_once, timeout_s=timeout_s)
         say(f"{backend} transport, ROS_DOMAIN_ID {domain}; node logs in {logs}")
         _start_simulator(
-            launch, driver, environment=environment, seed=seed, steps=steps, record=record, say=say
+            launch,
+            driver,
+            environment=environment,
+            vertical_half_extent=vertical_half_extent,
+            seed=seed,
+            steps=steps,
+            record=record,
+            say=say,
         )
         filter_args = _filter_args(model_path, policy_path, record)
 
@@ -506,6 +525,7 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("policy", type=Path, metavar="POLICY")
     parser.add_argument("--environment", required=True, choices=[e.value for e in Environment])
+    add_vertical_half_extent_option(parser, "sim_node's camera (the model's must match)")
     parser.add_argument(
         "--model",
         type=Path,
@@ -565,6 +585,7 @@ def run(args: argparse.Namespace) -> int:
     result = run_closed_loop(
         args.policy,
         args.environment,
+        vertical_half_extent=args.vertical_half_extent,
         model_path=args.model,
         record=args.record,
         log_dir=args.logs,

@@ -37,6 +37,7 @@ from learner.options import add_preset_option
 from learner.representations import load_tracker
 from sim_node import Environment, SimConfig
 from sim_node.generate import generate_bag
+from sim_node.options import add_vertical_half_extent_option
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagReader
@@ -120,6 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         default="full",
         help="camera (default: %(default)s)",
     )
+    add_vertical_half_extent_option(parser)
     parser.add_argument(
         "--train-steps",
         type=positive_int,
@@ -148,14 +150,15 @@ def main(argv: list[str] | None = None) -> int:
         shutil.rmtree(out)
     (out / "bags").mkdir(parents=True)
     env = args.environment
+    sim = SimConfig(environment=env, vertical_half_extent=args.vertical_half_extent)
     rl_steps = args.rl_steps or RL_STEPS[env]
     train, rl, closed = out / "bags" / "train", out / "bags" / "rl", out / "bags" / "closed_loop"
     model, policy = out / "model.npz", out / "policy.npz"
 
     _stage(1, f"simulating the training run: {args.train_steps} random steps ({env}) -> {train}")
-    generate_bag(train, SimConfig(environment=env), args.train_steps, seed=0, progress=True)
+    generate_bag(train, sim, args.train_steps, seed=0, progress=True)
     _stage(2, f"simulating the RL run: {rl_steps} random steps ({env}) -> {rl}")
-    generate_bag(rl, SimConfig(environment=env), rl_steps, seed=1, progress=True)
+    generate_bag(rl, sim, rl_steps, seed=1, progress=True)
 
     preset = ["--preset", args.preset]
     _stage(3, f"learner fit {train} -o {model} --preset {args.preset}")
@@ -164,13 +167,13 @@ def main(argv: list[str] | None = None) -> int:
     learner_main(["policy", str(model), str(rl), "-o", str(policy), *preset])
 
     _stage(5, f"learner evaluate {policy} --environment {env}  (headless; floors, ceiling)")
-    headless = evaluate(load_policy(policy), load_tracker(model), env)
+    headless = evaluate(load_policy(policy), load_tracker(model), sim)
     ceiling_policy = out / "policy_true_position.npz"
     learner_main(["policy", TRUE_POSITION, str(rl), "-o", str(ceiling_policy), *preset])
     bounds = Bounds(
         constant_floor(env),
         random_floor(env, policy_seed=0).score,
-        evaluate(load_policy(ceiling_policy), load_tracker(TRUE_POSITION), env).score,
+        evaluate(load_policy(ceiling_policy), load_tracker(TRUE_POSITION), sim).score,
     )
 
     _stage(
@@ -182,6 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         result = run_closed_loop(
             policy,
             env,
+            vertical_half_extent=args.vertical_half_extent,
             model_path=model,
             record=closed,
             log_dir=out / "logs",
@@ -192,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     _stage(7, "plots")
     states_png, paths_png = out / "states.png", out / "trajectories.png"
     learner_main(["plot", str(model), str(rl), "-o", str(states_png)])
-    plot_trajectories(closed, paths_png, SimConfig(environment=env))
+    plot_trajectories(closed, paths_png, sim)
 
     _summary(out, headless, result, bounds, time.perf_counter() - began)
     return 0

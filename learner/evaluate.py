@@ -20,9 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from learner.inputs import require_simulator_model
+from learner.inputs import require_camera, require_simulator_model
 from learner.representations import Tracker, load_tracker
 from sim_node import Environment, RobotEnv, SimConfig
+from sim_node.options import add_vertical_half_extent_option
 from tpsr_ros.core.errors import ModelFormatError
 from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.policy import TRUE_POSITION, Policy, load_policy
@@ -78,7 +79,7 @@ class Evaluation:
 
 
 def evaluate(
-    policy: Policy, tracker: Tracker, environment: Environment | str, **protocol: Any
+    policy: Policy, tracker: Tracker, environment: Environment | str | SimConfig, **protocol: Any
 ) -> Evaluation:
     """Run the standard protocol with ``policy`` choosing from ``tracker``'s states.
 
@@ -92,7 +93,7 @@ def evaluate(
 def run_protocol(
     choose: Callable[[np.ndarray], int],
     tracker: Tracker,
-    environment: Environment | str,
+    environment: Environment | str | SimConfig,
     *,
     seed: int = EVALUATION_SEED,
     starts: Sequence[tuple[float, float]] = START_POSITIONS,
@@ -102,9 +103,13 @@ def run_protocol(
     """The standard protocol for any controller ``choose(state) -> action index``.
 
     :func:`evaluate` runs it for a fitted-Q policy, the floor baselines
-    (:mod:`learner.floors`) for state-blind controllers.
+    (:mod:`learner.floors`) for state-blind controllers. ``environment`` is a name (the
+    default camera) or the simulator's whole configuration.
     """
-    env = RobotEnv(SimConfig(environment=environment), seed=seed)
+    config = (
+        environment if isinstance(environment, SimConfig) else SimConfig(environment=environment)
+    )
+    env = RobotEnv(config, seed=seed)
     env.reset()  # the start-up reset of a freshly started sim_node
     trials = []
     for index, start in enumerate(starts):
@@ -134,6 +139,7 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("policy", type=Path, metavar="POLICY")
     parser.add_argument("--environment", required=True, choices=[e.value for e in Environment])
+    add_vertical_half_extent_option(parser, "the simulator's camera (the model's must match)")
     parser.add_argument(
         "--model",
         default=None,
@@ -146,11 +152,12 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(run=run)
 
 
-def _tracker_for(policy: Policy, model: str | None) -> Tracker:
+def _tracker_for(policy: Policy, model: str | None, vertical_half_extent: float) -> Tracker:
     if policy.representation == TRUE_POSITION:
         return load_tracker(TRUE_POSITION)
     model_file = open_model(policy.model_path(model))
     require_simulator_model(model_file)
+    require_camera(model_file, vertical_half_extent)
     return load_tracker(model_file)
 
 
@@ -160,7 +167,10 @@ def run(args: argparse.Namespace) -> int:
         raise ModelFormatError(f"--seed must be >= 0, got {args.seed}")
     policy = load_policy(args.policy)
     policy.check_environment(args.environment)
-    tracker = _tracker_for(policy, args.model)
+    tracker = _tracker_for(policy, args.model, args.vertical_half_extent)
+    sim = SimConfig(
+        environment=args.environment, vertical_half_extent=args.vertical_half_extent
+    )
 
     def show(index: int, trial: Trial) -> None:
         goal = (
@@ -172,6 +182,6 @@ def run(args: argparse.Namespace) -> int:
             flush=True,
         )
 
-    result = evaluate(policy, tracker, args.environment, seed=args.seed, on_trial=show)
+    result = evaluate(policy, tracker, sim, seed=args.seed, on_trial=show)
     print(f"score: {result.score:.1f}")
     return 0

@@ -43,9 +43,9 @@ from learner.overrides import apply_overrides
 from learner.planning import fit_q_on, ridge_ladder
 from learner.plots import affine_r2, neighbour_position_error
 from learner.representations import ModelTracker, Tracker, TruePositionTracker
-from learner.simulated import random_trajectory
+from learner.simulated import SimSettings, random_trajectory
 from learner.tables import METHODS, Row, format_table, plot_summary, summarise, write_csv
-from sim_node import Environment
+from sim_node import Environment, SimConfig
 from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError, DivergenceError, TpsrError
@@ -88,6 +88,8 @@ class ExperimentConfig:
     tpsr: TPSRConfig = field(default_factory=TPSRConfig)
     pca: PCAConfig = field(default_factory=PCAConfig)
     fqi: FQIConfig = field(default_factory=FQIConfig)
+    sim: SimSettings = field(default_factory=SimSettings)
+    """The simulator's settings (the camera's vertical extent) for training, RL and scoring."""
     tune_budget: float | None = None
     """Seconds of ``learner tune`` on each run's own training data (None: no tuning)."""
     tune_candidates: int | None = None
@@ -127,6 +129,10 @@ class ExperimentConfig:
         """Seed of the training trajectory of one (data size, repetition) cell."""
         sequence = np.random.SeedSequence([self.seed, episodes, repetition])
         return int(sequence.generate_state(1)[0])
+
+    def sim_config(self) -> SimConfig:
+        """The simulator every run of the grid learns in and is scored in."""
+        return self.sim.config(self.environment)
 
     def steps_for(self, episodes: int) -> int:
         """Training steps for ``episodes`` non-overlapping episodes (guide: 3 x episodes)."""
@@ -171,7 +177,7 @@ def experiment_command(config: ExperimentConfig, episodes: Sequence[int] | None 
     for name in ("repetitions", "first_repetition", "seed", "rl_seed", "rl_steps"):
         if getattr(config, name) != getattr(reference, name):
             parts.append(f"--{name.replace('_', '-')} {getattr(config, name)}")
-    for group in ("tpsr", "pca", "fqi"):
+    for group in ("sim", "tpsr", "pca", "fqi"):
         changed = departures(getattr(config, group), getattr(reference, group))
         parts += [f"--set {group}.{k}={_setting(v)}" for k, v in changed.items()]
     if config.tune_budget is not None:
@@ -194,14 +200,14 @@ def _plan_and_score(
     except DivergenceError:
         return float("nan"), "", ridge_ladder(config.fqi.ridge)[-1], "fitted-q-diverged"
     policy = Policy(q, tracker.representation, tracker.fingerprint, config.environment)
-    result = evaluate(policy, tracker, config.environment)
+    result = evaluate(policy, tracker, config.sim_config())
     return result.score, _trials(result), fqi.ridge, "ok"
 
 
 @lru_cache(maxsize=1)
-def _rl_trajectory(environment: str, steps: int, seed: int) -> Trajectory:
+def _rl_trajectory(environment: str, steps: int, seed: int, sim: SimSettings) -> Trajectory:
     """The RL trajectory shared by every run of an environment (built once per process)."""
-    return random_trajectory(environment, steps, seed)
+    return random_trajectory(environment, steps, seed, sim)
 
 
 def _parameters(config: ExperimentConfig, method: str, extra: dict[str, Any]) -> str:
@@ -209,6 +215,7 @@ def _parameters(config: ExperimentConfig, method: str, extra: dict[str, Any]) ->
     values: dict[str, Any] = {"rl_steps": config.rl_steps, **extra}
     if method in ("tpsr", "pca"):
         values[method] = dataclasses.asdict(getattr(config, method))
+        values["sim"] = dataclasses.asdict(config.sim)  # what the camera shows them
     if method not in FLOORS:
         values["fqi"] = dataclasses.asdict(config.fqi)
     return json.dumps(values, sort_keys=True)
@@ -299,8 +306,10 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
     learned = [m for m in config.methods if m not in FLOORS]
     if not learned:
         return rows
-    rl = _rl_trajectory(config.environment, config.rl_steps, config.rl_seed)
-    train = random_trajectory(config.environment, config.steps_for(episodes), train_seed)
+    rl = _rl_trajectory(config.environment, config.rl_steps, config.rl_seed, config.sim)
+    train = random_trajectory(
+        config.environment, config.steps_for(episodes), train_seed, config.sim
+    )
     for method in learned:
         start = time.perf_counter()
         run_config, extra = config, {}
@@ -317,7 +326,9 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 run_config = dataclasses.replace(run_config, tpsr=tracker.model.config)
             r2 = affine_r2(states, rl.positions)
             position_error = neighbour_position_error(states, rl.positions)
-            memory = memory_of(tracker) if config.memory else (float("nan"), float("nan"))
+            memory = (
+                memory_of(tracker, config.sim) if config.memory else (float("nan"), float("nan"))
+            )
             criterion = (
                 criterion_of(run_config.tpsr, train)
                 if config.criterion and method == "tpsr"
@@ -412,9 +423,9 @@ def add_grid_options(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="NAME=VALUE",
         dest="assignments",
-        help="set a fit or fitted-Q parameter for every run (repeatable): tpsr.<field> "
-        "(e.g. rank, sigma_ht, ht_centers), pca.dim, fqi.<field> (e.g. ridge, centers); a "
-        "bare name where unambiguous",
+        help="set a fit, fitted-Q or simulator parameter for every run (repeatable): "
+        "tpsr.<field> (e.g. rank, sigma_ht, ht_centers), pca.dim, fqi.<field> (e.g. ridge, "
+        "centers), sim.vertical_half_extent (the camera's); a bare name where unambiguous",
     )
     parser.add_argument(
         "--rl-steps",
@@ -512,7 +523,7 @@ def config_from_args(
     tpsr = base.tpsr
     if args.p_th_tests is not None:
         tpsr = dataclasses.replace(tpsr, p_th_tests=args.p_th_tests)
-    configs = {"tpsr": tpsr, "pca": base.pca, "fqi": base.fqi}
+    configs = {"tpsr": tpsr, "pca": base.pca, "fqi": base.fqi, "sim": base.sim}
     overrides.update(apply_overrides(configs, assignments))
     if args.episodes:
         overrides["episodes"] = tuple(args.episodes)

@@ -345,9 +345,10 @@ def _run_streamed(
         _say(f"checking {len(args.bags)} bag(s) agree (image size, action type)")
         surveys = survey_bags(args.bags, topics)
         environment = common_value(s.environment for s in surveys)
+        vertical_half_extent = common_value(s.vertical_half_extent for s in surveys)
         image_shape = list(surveys[0].image_size)
     else:  # robot bags: the spec reads every bag's commands; then each bag is read whole
-        environment = None
+        environment = vertical_half_extent = None
         image_shape = [spec.preprocessing.height, spec.preprocessing.width]
         recorded["pose_frame"] = pose_frame  # as the in-memory fit records it
     reader = BagChunks(
@@ -396,6 +397,7 @@ def _run_streamed(
         "segments": info["segments"],
         "stamps_ns": info["stamps_ns"],
         "environment": environment,
+        "vertical_half_extent": vertical_half_extent,
         "image_shape": image_shape,
         "episodes": episodes,
         "max_episodes": args.episodes,

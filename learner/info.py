@@ -60,6 +60,15 @@ def _preset_line(record: Any) -> str:
     return f"preset: {name}; changed by options: {what}"
 
 
+def _camera(training: dict[str, Any]) -> str:
+    """`` (camera vertical half-extent T)`` when the training bags record the simulated
+    camera's (``sim_node.generate``), else nothing."""
+    value = training.get("vertical_half_extent")
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return ""
+    return f" (camera vertical half-extent {value:g})"
+
+
 def info_lines(
     path: Path, metadata: dict[str, Any], spec: StreamSpec | None = None
 ) -> list[str]:
@@ -82,7 +91,8 @@ def info_lines(
         lines.append(
             f"training data: {training.get('steps')} steps, {training.get('segments')} "
             f"segment(s), {training.get('episodes')} episodes, environment "
-            f"{training.get('environment')}, stamps {training.get('stamps_ns')} ns"
+            f"{training.get('environment')}{_camera(training)}, stamps "
+            f"{training.get('stamps_ns')} ns"
         )
         lines.append(f"bags: {', '.join(map(str, paths))}")
     if spec is not None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,7 @@ __all__ = [
     "image_size",
     "read_for_model",
     "recorded_topic",
+    "require_camera",
     "require_given_topics",
     "require_simulator_model",
     "stream_inputs",
@@ -302,4 +304,20 @@ def require_simulator_model(model_file: ModelFile) -> None:
             f"model {str(model_file.path)!r} was learned from robot bags ({len(spec.codebook)} "
             f"{spec.codebook.kind} actions over {', '.join(spec.codebook.components)}); the "
             "simulator's protocol needs a model of its own 25 actions"
+        )
+
+
+def require_camera(model_file: ModelFile, vertical_half_extent: float) -> None:
+    """Refuse to score a model in a simulator whose camera differs from its training bags'.
+
+    A model learned from images of one vertical extent sees other images in another; its
+    states (and any policy on them) would be silently wrong. Models whose bags record no
+    camera (robot bags, older models) are not checked.
+    """
+    learned = model_file.vertical_half_extent
+    if learned is not None and not math.isclose(learned, vertical_half_extent, rel_tol=1e-9):
+        raise ConfigError(
+            f"model {str(model_file.path)!r} was learned from bags whose camera has vertical "
+            f"half-extent {learned:g}, not {vertical_half_extent:g}; pass "
+            f"--vertical-half-extent {learned:g}"
         )

@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from learner.representations import ModelTracker, Tracker
+from learner.simulated import SimSettings
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.tpsr import TPSRConfig
 
@@ -51,15 +52,16 @@ def criterion_of(tpsr: TPSRConfig, train: Trajectory) -> float:
     return float(score.value)
 
 
-def memory_of(tracker: Tracker) -> tuple[float, float]:
-    """Steps a learned model remembers in ``partial`` and the ``paths`` variant's distance at
-    its first identical step (:mod:`learner.memory`); NaN for the true position."""
+def memory_of(tracker: Tracker, sim: SimSettings | None = None) -> tuple[float, float]:
+    """Steps a learned model remembers in ``partial`` (camera: ``sim``) and the ``paths``
+    variant's distance at its first identical step (:mod:`learner.memory`); NaN for the true
+    position."""
     if not isinstance(tracker, ModelTracker):
         return float("nan"), float("nan")
     from learner.memory import EXPERIMENTS, measure, state_spread
 
-    spread = state_spread(tracker.model, "partial")
-    results = [measure(tracker.model, e, "partial", spread) for e in EXPERIMENTS]
+    spread = state_spread(tracker.model, "partial", sim=sim)
+    results = [measure(tracker.model, e, "partial", spread, sim=sim) for e in EXPERIMENTS]
     paths = results[0]
     return (
         float(min(r.memory for r in results)),

@@ -42,8 +42,9 @@ from typing import Any
 
 import numpy as np
 
-from learner.simulated import random_trajectory
-from sim_node import Environment, RobotEnv, SimConfig, action_index
+from learner.simulated import SimSettings, random_trajectory
+from sim_node import Environment, RobotEnv, action_index
+from sim_node.options import add_vertical_half_extent_option
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.episodes import images_to_observations
 from tpsr_ros.core.errors import ConfigError, DataError
@@ -131,9 +132,12 @@ class MemoryResult:
         return f"{self.experiment.name}: memory {bound}{self.memory} steps"
 
 
-def simulate(experiment: MemoryExperiment, environment: str) -> tuple[Run, Run]:
-    """Both runs of ``experiment`` in ``environment`` without execution noise."""
-    config = SimConfig(environment=environment, noise_fraction=0.0)
+def simulate(
+    experiment: MemoryExperiment, environment: str, sim: SimSettings | None = None
+) -> tuple[Run, Run]:
+    """Both runs of ``experiment`` in ``environment`` (camera: ``sim``) without execution
+    noise."""
+    config = (sim or SimSettings()).config(environment, noise_fraction=0.0)
     runs = []
     for which in (0, 1):
         env = RobotEnv(config, seed=0)
@@ -184,13 +188,19 @@ def memory_steps(
     return int(closed[0]), False
 
 
-def state_spread(model: StateModel, environment: str, steps: int = 3000, seed: int = 7) -> float:
+def state_spread(
+    model: StateModel,
+    environment: str,
+    steps: int = 3000,
+    seed: int = 7,
+    sim: SimSettings | None = None,
+) -> float:
     """Root mean square distance of the model's states from their mean over a random run.
 
     The first 10 % of the run is dropped so the spread describes the states the filter
     settles into, not its start-up.
     """
-    trajectory = random_trajectory(environment, steps, seed)
+    trajectory = random_trajectory(environment, steps, seed, sim)
     states = model.track(trajectory.actions, trajectory.observations).states[steps // 10 :]
     spread = float(np.sqrt(np.mean(np.sum((states - states.mean(axis=0)) ** 2, axis=1))))
     if not np.isfinite(spread) or spread <= 0:
@@ -211,12 +221,13 @@ def measure(
     environment: str,
     spread: float,
     threshold: float = THRESHOLD,
+    sim: SimSettings | None = None,
 ) -> MemoryResult:
     """Run ``experiment``, track both runs with ``model`` and measure its memory.
 
     The count stops at the first filter restart of either run (see the module docstring).
     """
-    runs = simulate(experiment, environment)
+    runs = simulate(experiment, environment, sim)
     (first, restarts_0), (second, restarts_1) = _track(model, runs[0]), _track(model, runs[1])
     relative = np.linalg.norm(first - second, axis=1) / spread
     start = identical_from(*runs)
@@ -290,6 +301,7 @@ def register(subparsers: Any) -> None:
         choices=[e.value for e in Environment],
         help="(default: %(default)s)",
     )
+    add_vertical_half_extent_option(parser, "the camera the model was learned with")
     parser.add_argument(
         "--threshold",
         type=float,
@@ -311,8 +323,11 @@ def run(args: argparse.Namespace) -> int:
     if not (np.isfinite(args.threshold) and args.threshold > 0):
         raise ConfigError(f"--threshold must be a positive number, got {args.threshold}")
     model = load_model(args.model)
-    spread = state_spread(model, args.environment, args.spread_steps)
-    results = [measure(model, e, args.environment, spread, args.threshold) for e in EXPERIMENTS]
+    sim = SimSettings(args.vertical_half_extent)
+    spread = state_spread(model, args.environment, args.spread_steps, sim=sim)
+    results = [
+        measure(model, e, args.environment, spread, args.threshold, sim) for e in EXPERIMENTS
+    ]
     for result in results:
         distances = " ".join(f"{d:.3g}" for d in result.relative_distance)
         restart = "" if result.restart is None else f"; filter restart at step {result.restart}"

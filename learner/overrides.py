@@ -1,9 +1,10 @@
 """``--set NAME=VALUE``: any fit or fitted-Q parameter of an experiment, by name.
 
 Names are the fields of :class:`~tpsr_ros.core.tpsr.TPSRConfig`,
-:class:`~tpsr_ros.core.pca_baseline.PCAConfig` and :class:`~tpsr_ros.core.fqi.FQIConfig`,
-qualified as ``tpsr.rank``, ``pca.dim`` or ``fqi.ridge``; a bare name (``rank``,
-``sigma_ht``) is enough where only one of the three has it, and ``-`` may stand for ``_``
+:class:`~tpsr_ros.core.pca_baseline.PCAConfig`, :class:`~tpsr_ros.core.fqi.FQIConfig` and
+the simulator's :class:`~learner.simulated.SimSettings`, qualified as ``tpsr.rank``,
+``pca.dim``, ``fqi.ridge`` or ``sim.vertical_half_extent``; a bare name (``rank``,
+``sigma_ht``) is enough where only one of them has it, and ``-`` may stand for ``_``
 (``ht-centers`` as in ``learner fit --ht-centers``). Values are converted to the field's
 type (integer, number, ``true``/``false``, one of the field's choices) and then validated
 by the config itself, so a ``--set`` value obeys the same rules as the command-line option
@@ -16,6 +17,7 @@ import typing
 from collections.abc import Iterable, Mapping
 from typing import Any
 
+from learner.simulated import SimSettings
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.pca_baseline import PCAConfig
@@ -30,7 +32,12 @@ __all__ = [
     "resolve",
 ]
 
-CONFIG_CLASSES: Mapping[str, type] = {"tpsr": TPSRConfig, "pca": PCAConfig, "fqi": FQIConfig}
+CONFIG_CLASSES: Mapping[str, type] = {
+    "tpsr": TPSRConfig,
+    "pca": PCAConfig,
+    "fqi": FQIConfig,
+    "sim": SimSettings,
+}
 _BOOLEANS = {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}
 
 
@@ -95,7 +102,8 @@ def convert(name: str, text: str) -> Any:
 
 
 def apply_overrides(configs: Mapping[str, Any], assignments: Iterable[str]) -> dict[str, Any]:
-    """New ``{"tpsr": ..., "pca": ..., "fqi": ...}`` configs with every ``NAME=VALUE`` applied.
+    """New ``{"tpsr": ..., "pca": ..., "fqi": ..., "sim": ...}`` configs with every
+    ``NAME=VALUE`` applied.
 
     Later assignments of the same name win. The configs validate the result; their
     ``ConfigError`` is prefixed with the assignment that caused it.

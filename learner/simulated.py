@@ -3,22 +3,61 @@
 Experiments generate hundreds of random runs; writing each to a bag and reading it back
 would only add time. A run from :func:`sim_node.random_rollout` carries exactly what a
 generated bag would hold, so it converts directly.
+
+:class:`SimSettings` holds what an experiment may change about the simulator
+(``--set sim.vertical_half_extent=0.03``): the camera's vertical extent.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import numpy as np
 
 from sim_node import SimConfig, random_rollout
+from sim_node.config import (
+    DEFAULT_VERTICAL_HALF_EXTENT,
+    MAX_VERTICAL_HALF_EXTENT,
+    Environment,
+    check_vertical_half_extent,
+)
 from tpsr_ros.core.actions import NUM_ACTIONS
 from tpsr_ros.core.episodes import Trajectory, images_to_observations
+from tpsr_ros.core.fields import option
 
-__all__ = ["random_trajectory"]
+__all__ = ["SimSettings", "random_trajectory"]
 
 
-def random_trajectory(environment: str, steps: int, seed: int) -> Trajectory:
+@dataclass(frozen=True)
+class SimSettings:
+    """The simulator settings an experiment varies; the defaults are every environment's."""
+
+    vertical_half_extent: float = option(
+        DEFAULT_VERTICAL_HALF_EXTENT,
+        "camera: tangent of the half vertical field of view",
+        positive=True,
+        maximum=MAX_VERTICAL_HALF_EXTENT,
+    )
+
+    def __post_init__(self) -> None:
+        check_vertical_half_extent(self.vertical_half_extent)
+
+    def config(self, environment: Environment | str, **fields: Any) -> SimConfig:
+        """The simulator of ``environment`` with these settings (and ``fields``)."""
+        return SimConfig(
+            environment=Environment.parse(environment),
+            vertical_half_extent=self.vertical_half_extent,
+            **fields,
+        )
+
+
+def random_trajectory(
+    environment: str, steps: int, seed: int, sim: SimSettings | None = None
+) -> Trajectory:
     """A uniformly random run of ``steps`` steps as one gap-free trajectory."""
-    config = SimConfig(environment=environment)
+    sim = sim or SimSettings()
+    config = sim.config(environment)
     run = random_rollout(config, steps, seed)
     return Trajectory(
         stamps=run.stamps_ns,
@@ -30,5 +69,13 @@ def random_trajectory(environment: str, steps: int, seed: int) -> Trajectory:
         segments=np.zeros(steps, dtype=np.int64),
         image_shape=(config.image_size, config.image_size),
         n_actions=NUM_ACTIONS,
-        sources=[{"simulated": True, "environment": environment, "seed": seed, "steps": steps}],
+        sources=[
+            {
+                "simulated": True,
+                "environment": environment,
+                "seed": seed,
+                "steps": steps,
+                "vertical_half_extent": sim.vertical_half_extent,
+            }
+        ],
     )

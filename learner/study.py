@@ -1,9 +1,10 @@
 """``learner study --environment E --vary NAME=V1,V2,...``: a parameter study (guide 4.3).
 
-One :mod:`learner.experiment` grid per value of one fit or fitted-Q parameter (any
-``--set`` name), everything else held fixed: the learned method the parameter belongs to
-(``tpsr.*`` and ``fqi.*``: the TPSR; ``pca.*``: PCA; ``--methods`` for others, e.g. PCA
-under each fitted-Q setting too) at every value, and once beside them
+One :mod:`learner.experiment` grid per value of one fit, fitted-Q or simulator parameter
+(any ``--set`` name), everything else held fixed: the learned method the parameter belongs
+to (``tpsr.*`` and ``fqi.*``: the TPSR; ``pca.*``: PCA; ``sim.*``, the camera: both;
+``--methods`` for others, e.g. PCA under each fitted-Q setting too) at every value, and
+once beside them
 the floors (best constant action, random actions) and the ceiling (true position; at every
 value when the parameter is a fitted-Q one, since the ceiling plans with it too). Writes
 ``study_<env>_<name>.csv`` (every run, its parameters as JSON) and ``.png`` (score and the
@@ -55,7 +56,8 @@ def run_study(
 ) -> tuple[list[Any], list[StudyPoint]]:
     """Floors (and the ceiling) once, then the parameter's method at every value."""
     group = name.split(".", 1)[0]
-    learned = list(args.methods or (["pca"] if group == "pca" else ["tpsr"]))
+    default = {"pca": ["pca"], "sim": ["tpsr", "pca"]}.get(group, ["tpsr"])
+    learned = list(args.methods or default)
     once = [CONSTANT, RANDOM] if group == "fqi" else [CONSTANT, RANDOM, TRUE_POSITION]
     if group == "fqi" and TRUE_POSITION not in learned:
         learned.append(TRUE_POSITION)
@@ -152,7 +154,7 @@ def plot_study(
 
 def register(subparsers: Any) -> None:
     """Add the ``study`` subcommand."""
-    doc = "vary one fit or fitted-Q parameter over experiment grids (guide 4.3)"
+    doc = "vary one fit, fitted-Q or simulator parameter over experiment grids (guide 4.3)"
     parser = subparsers.add_parser(
         "study", help=doc, description=doc[0].upper() + doc[1:] + ". " + __doc__.split("\n\n")[1]
     )
@@ -169,7 +171,7 @@ def register(subparsers: Any) -> None:
         choices=("tpsr", "pca"),
         default=None,
         help="learned representations run at every value (default: the one the parameter "
-        "belongs to, the TPSR for fitted-Q parameters)",
+        "belongs to, the TPSR for fitted-Q parameters, both for the simulator's)",
     )
     parser.add_argument(
         "-o", "--output", type=Path, default=Path("results"),

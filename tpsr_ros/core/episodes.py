@@ -211,6 +211,9 @@ class Trajectory:
             "segments": len(self.segment_bounds()),
             "stamps_ns": [int(self.stamps[0]), int(self.stamps[-1])] if len(self) else [],
             "environment": common_value(s.get("environment") for s in self.sources),
+            "vertical_half_extent": common_value(
+                s.get("vertical_half_extent") for s in self.sources
+            ),
             "image_shape": list(self.image_shape),
         }
 

@@ -24,7 +24,13 @@ from tpsr_ros.core.errors import BagError, ConfigError
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.stream_spec import StreamSpec
 from tpsr_ros.io.streams import DEFAULT_POSE_FRAME, read_stream_trajectory
-from tpsr_ros.io.trajectory import DEFAULT_CHUNK_STEPS, Topics, iter_trajectory_chunks
+from tpsr_ros.io.trajectory import (
+    DEFAULT_CHUNK_STEPS,
+    Topics,
+    bag_custom_data,
+    generated_vertical_half_extent,
+    iter_trajectory_chunks,
+)
 
 __all__ = ["DEFAULT_CHUNK_STEPS", "BagChunks", "BagSurvey", "survey_bags"]
 
@@ -93,6 +99,8 @@ class BagSurvey:
     image_encoding: str
     action_type: str
     environment: str | None = None
+    vertical_half_extent: float | None = None
+    """The simulated camera's, from the generator's settings (None: not a generated bag)."""
 
     def differences(self, other: BagSurvey) -> list[str]:
         """Human-readable differences from ``other``."""
@@ -120,13 +128,15 @@ def _survey(path: Path, topics: Topics) -> BagSurvey:
                     f"{sorted(available)})"
                 )
         first = next(iter(reader.messages([topics.image]))).decode()
+        environment, generator = bag_custom_data(reader)
         return BagSurvey(
             path=str(path),
             image_type=types[topics.image],
             image_size=(int(first.height), int(first.width)),
             image_encoding=str(first.encoding),
             action_type=types[topics.action],
-            environment=reader.custom_data.get("tpsr_ros.environment"),
+            environment=environment,
+            vertical_half_extent=generated_vertical_half_extent(generator),
         )
 
 

@@ -255,6 +255,15 @@ class ModelFile:
         environment = self.training.get("environment")
         return environment if isinstance(environment, str) else None
 
+    @property
+    def vertical_half_extent(self) -> float | None:
+        """The simulated camera's vertical half-extent of the training bags, when they were
+        generated with one (models written before it was recorded: None)."""
+        value = self.training.get("vertical_half_extent")
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return None
+        return float(value)
+
 
 def open_model(path: Path | str) -> ModelFile:
     """Read and validate a model file written by :func:`save_model`, once."""

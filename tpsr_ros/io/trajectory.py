@@ -101,7 +101,7 @@ class Topics:
         }
 
 
-def _bag_custom_data(reader: BagReader) -> tuple[str | None, Any]:
+def bag_custom_data(reader: BagReader) -> tuple[str | None, Any]:
     """Environment name and generator settings that ``sim_node.generate`` stores in a bag."""
     custom = getattr(reader, "custom_data", None)
     if not isinstance(custom, dict):
@@ -117,6 +117,16 @@ def _bag_custom_data(reader: BagReader) -> tuple[str | None, Any]:
             "to be the generator's settings"
         ) from None
     return (str(env) if env else None), generator
+
+
+def generated_vertical_half_extent(generator: Any) -> float | None:
+    """The camera's vertical half-extent that a generated bag's settings record (None when
+    the bag records none: a robot's bag, or settings not from ``sim_node.generate``)."""
+    config = generator.get("config") if isinstance(generator, dict) else None
+    value = config.get("vertical_half_extent") if isinstance(config, dict) else None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    return float(value) if np.isfinite(value) and value > 0 else None
 
 
 @dataclass(frozen=True)
@@ -241,7 +251,7 @@ class _BagSteps:
                 final = heapq.heappop(heap)
                 if (chunk := self._finish(final, pending.pop(final))) is not None:
                     yield chunk
-            environment, generator = _bag_custom_data(reader)
+            environment, generator = bag_custom_data(reader)
         if not self.buffer:
             raise DataError(
                 f"bag {str(self.path)!r} has no image and action with the same stamp "
@@ -255,6 +265,7 @@ class _BagSteps:
             "unpaired_messages": counts[_IMAGE] + counts[_ACTION] - 2 * self.steps,
             "stamps_ns": [self.first_stamp, int(last.stamps[-1])],
             "environment": environment,
+            "vertical_half_extent": generated_vertical_half_extent(generator),
             "generator": generator,
             "topics": {
                 "image": topics.image,
