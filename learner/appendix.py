@@ -10,19 +10,30 @@ standard errors of the difference; anything closer is within the noise.
 
 from __future__ import annotations
 
-import json
 import math
 from collections import Counter
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 from scipy.stats import spearmanr
 
+from learner.camera_study import CAMERA_SECTION
 from learner.jobs import ENVIRONMENTS, SELECTION_SEEDS, Job, experiment_job, study_job
 from learner.overrides import convert
-from learner.tables import Row, difference_in_sems, summarise
+from learner.sections import (
+    SELECTION_EPISODES,
+    Data,
+    Section,
+    cell,
+    comparison,
+    judged,
+    median_text,
+    row_parameters,
+    study_entries,
+    varied,
+)
+from learner.tables import Row, summarise
 from learner.verdicts import DIFFERENCE_SEMS
 from tpsr_ros.core.presets import DEFAULT_PRESET, PRESETS, departures
 from tpsr_ros.core.tpsr import TPSRConfig
@@ -30,85 +41,8 @@ from tpsr_ros.io.policy import TRUE_POSITION
 
 __all__ = ["SECTIONS", "SELECTION_EPISODES", "Section", "cell"]
 
-SELECTION_EPISODES = {"full": 2000, "partial": 8000, "distractors": 8000}
-"""Data size of every study: the smallest of the headline in ``full`` (at 8000 episodes every
-setting is at the ceiling there), the largest elsewhere."""
-
-Data = Mapping[Job, list[Row]]
-
-
-@dataclass(frozen=True)
-class Section:
-    """One study: its question, the jobs that write its CSVs, and how it is rendered."""
-
-    key: str
-    title: str
-    question: str
-    jobs: tuple[Job, ...]
-    render: Callable[[Section, Data], list[str]]
-    commands: str = ""
-    """What to say instead of listing the commands (when they are another section's)."""
-
-    def lines(self, data: Data) -> list[str]:
-        """The section as markdown: title, question, commands, table and verdict."""
-        commands = self.commands or "\n".join(
-            ["**Commands** (selection seeds):", "", "```sh", *(j.command for j in self.jobs), "```"]
-        )
-        return [
-            f"### {self.title}",
-            "",
-            f"**Question.** {self.question}",
-            "",
-            commands,
-            "",
-            *self.render(self, data),
-            "",
-        ]
-
-
-def cell(entry: Mapping[str, Any] | None) -> str:
-    """``mean / median / SEM`` of a summary entry (and its failed runs), ``-`` when absent."""
-    if entry is None or not math.isfinite(entry["mean"]):
-        return "-"
-    text = f"{entry['mean']:.1f} / {entry['median']:.1f} / {entry['sem']:.1f}"
-    return text + (f" ({entry['failed']} failed)" if entry["failed"] else "")
-
-
-def _parameters(row: Row) -> dict[str, Any]:
-    return json.loads(row.parameters) if row.parameters else {}
-
-
-def _mean(values: Sequence[float], fmt: str) -> str:
-    finite = [v for v in values if math.isfinite(v)]
-    return format(float(np.mean(finite)), fmt) if finite else "-"
-
-
-def _median(values: Sequence[float], fmt: str) -> str:
-    finite = [v for v in values if math.isfinite(v)]
-    return format(float(np.median(finite)), fmt) if finite else "-"
-
-
-def _comparison(entry: Mapping[str, Any], base: Mapping[str, Any]) -> tuple[float, float]:
-    """``(mean difference, its size in SEMs of the difference)`` of two summary entries."""
-    return entry["mean"] - base["mean"], difference_in_sems(dict(entry), dict(base))
-
-
-def _judged(difference: float, sems: float) -> str:
-    if not math.isfinite(difference):
-        return "not measured"
-    if not math.isfinite(sems):  # every run of both scored alike
-        return f"{difference:+.1f} (no spread between runs)"
-    noise = "within the noise" if abs(sems) <= DIFFERENCE_SEMS else "outside the noise"
-    return f"{difference:+.1f} ({sems:+.1f} SEM, {noise})"
-
 
 # -- one-parameter studies (learner study) -------------------------------------------------
-
-
-def _vary(job: Job) -> tuple[str, list[str]]:
-    text = job.argv[job.argv.index("--vary") + 1]
-    name, values = text.split("=", 1)
-    return name, values.split(",")
 
 
 def _default_value(name: str) -> Any:
@@ -118,29 +52,10 @@ def _default_value(name: str) -> Any:
     return getattr(config, field)
 
 
-def _study_entries(
-    job: Job, rows: list[Row]
-) -> tuple[list[dict[str, Any]], dict[tuple[str, str], dict[str, Any]]]:
-    """Reference entries (floors, ceiling run once) and ``{(value, method): entry}``."""
-    name, values = _vary(job)
-    group, field = name.split(".", 1)
-    typed = {value: convert(name, value) for value in values}
-    by_value: dict[tuple[str, str], dict[str, Any]] = {}
-    reference = [r for r in rows if field not in _parameters(r).get(group, {})]
-    for value, parsed in typed.items():
-        mine = [r for r in rows if _parameters(r).get(group, {}).get(field, None) == parsed]
-        for entry in summarise(mine):
-            runs = [r for r in mine if r.method == entry["method"]]
-            entry["r2"] = (
-                _mean([r.r2_x for r in runs], ".2f") + " / " + _mean([r.r2_y for r in runs], ".2f")
-            )
-            entry["position_error"] = _median([r.position_error for r in runs], ".2f")
-            by_value[(value, entry["method"])] = entry
-    return summarise(reference), by_value
 
 
 def _render_study(section: Section, data: Data) -> list[str]:
-    name, values = _vary(section.jobs[0])
+    name, values = varied(section.jobs[0])
     default = _default_value(name)
     default_text = next((v for v in values if convert(name, v) == default), None)
     lines = [
@@ -158,7 +73,7 @@ def _render_study(section: Section, data: Data) -> list[str]:
     for job in section.jobs:
         environment = job.argv[job.argv.index("--environment") + 1]
         size = SELECTION_EPISODES[environment]
-        reference, entries = _study_entries(job, data[job])
+        reference, entries = study_entries(job, data[job])
         for entry in reference:
             lines.append(
                 f"| `{environment}` ({size}) | - | {entry['method']} | {cell(entry)} | | | |"
@@ -171,7 +86,7 @@ def _render_study(section: Section, data: Data) -> list[str]:
                 if entry is None:
                     continue
                 versus = "the default" if value == default_text or base is None else (
-                    _judged(*_comparison(entry, base))
+                    judged(*comparison(entry, base))
                 )
                 lines.append(
                     f"| `{environment}` ({size}) | `{value}` | {method} | {cell(entry)} | "
@@ -201,12 +116,12 @@ def _study_verdict(
         if not others:
             return f"- `{environment}`, {method}: only the default was measured."
         runner, second = max(others, key=lambda item: item[1]["mean"])
-        difference, sems = _comparison(base, second)
+        difference, sems = comparison(base, second)
         return (
             f"- `{environment}`, {method}: the default `{default}` scores highest; the next, "
             f"`{runner}`, {difference:.1f} below it ({sems:.1f} SEM)."
         )
-    difference, sems = _comparison(best, base)
+    difference, sems = comparison(best, base)
     if sems > DIFFERENCE_SEMS:
         return (
             f"- `{environment}`, {method}: **`{best_value}` beats the default `{default}`** by "
@@ -252,7 +167,7 @@ def _tuned_changes(rows: list[Row]) -> str:
     preset = PRESETS[DEFAULT_PRESET].tpsr_config()
     counts: Counter[str] = Counter()
     for row in rows:
-        values = _parameters(row).get("tpsr")
+        values = row_parameters(row).get("tpsr")
         if not isinstance(values, dict):
             continue
         chosen = TPSRConfig.from_dict(values)
@@ -276,13 +191,13 @@ def _render_tuning(section: Section, data: Data) -> list[str]:
         base = summarise(data[preset_job])[0]
         tuned_rows = data[tuned_job]
         tuned = summarise(tuned_rows)[0]
-        records = [_parameters(r).get("tune", {}) for r in tuned_rows]
-        candidates = _median([float(t.get("candidates", math.nan)) for t in records], ".0f")
-        seconds = _median([float(t.get("seconds", math.nan)) for t in records], ".0f")
-        difference, sems = _comparison(tuned, base)
+        records = [row_parameters(r).get("tune", {}) for r in tuned_rows]
+        candidates = median_text([float(t.get("candidates", math.nan)) for t in records], ".0f")
+        seconds = median_text([float(t.get("seconds", math.nan)) for t in records], ".0f")
+        difference, sems = comparison(tuned, base)
         lines.append(
             f"| `{environment}` ({SELECTION_EPISODES[environment]}) | {cell(base)} | "
-            f"{cell(tuned)} | {_judged(difference, sems)} | {candidates} | {seconds} s | "
+            f"{cell(tuned)} | {judged(difference, sems)} | {candidates} | {seconds} s | "
             f"{_tuned_changes(tuned_rows)} |"
         )
         verdicts.append(
@@ -309,7 +224,7 @@ def _spearman(a: Sequence[float], b: Sequence[float]) -> tuple[float, float]:
 
 def _configuration_label(row: Row, field: str) -> str:
     """``the default`` or ``field=value`` for a TPSR run of a fit-switch study."""
-    values = _parameters(row)["tpsr"]
+    values = row_parameters(row)["tpsr"]
     changed = departures(TPSRConfig.from_dict(values), PRESETS[DEFAULT_PRESET].tpsr_config())
     changed.pop("obs_dim", None)  # the fit records the d^O that obs_variance chose
     return "the default" if not changed else f"{field}={values[field]}"
@@ -334,7 +249,7 @@ def _render_criterion(section: Section, data: Data) -> list[str]:
         for job in section.jobs:
             if job.argv[job.argv.index("--environment") + 1] != environment:
                 continue
-            name, _ = _vary(job)
+            name, _ = varied(job)
             field = name.split(".", 1)[1]
             for row in data[job]:
                 if row.method != "tpsr" or not math.isfinite(row.criterion):
@@ -390,8 +305,8 @@ def _render_memory(section: Section, data: Data) -> list[str]:
             distance = [r.memory_distance for r in mine]
             most = max([most, *memory])
             lines.append(
-                f"| {preset} | {entry['method']} | {len(mine)} | {_median(memory, '.0f')}, "
-                f"{max(memory, default=math.nan):.0f} | {_median(distance, '.3f')}, "
+                f"| {preset} | {entry['method']} | {len(mine)} | {median_text(memory, '.0f')}, "
+                f"{max(memory, default=math.nan):.0f} | {median_text(distance, '.3f')}, "
                 f"{max(distance, default=math.nan):.3f} | {cell(entry)} |"
             )
     verdict = (
@@ -514,5 +429,6 @@ SECTIONS: tuple[Section, ...] = (
         _memory_jobs(),
         _render_memory,
     ),
+    CAMERA_SECTION,
 )
 """Every section of the appendix, in page order."""
