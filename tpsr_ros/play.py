@@ -14,7 +14,8 @@ time is later than the last clock sent: the message's ``header.stamp`` when its 
 starts with a ``std_msgs/Header``, else its log time (``--no-clock`` disables this).
 
 ``--wait-for-subscribers N`` holds playback until every played topic has N matched
-subscriptions (e.g. a recorder), so nothing is published into the void. Playback ends
+subscriptions (e.g. a recorder), and then ``MATCH_SETTLE_S`` more for the subscribers' side
+of the match, so nothing is published into the void. Playback ends
 at the end of the bag (or on SIGINT/SIGTERM); the player then waits, up to 2 s, for
 reliable subscribers to acknowledge everything, and exits.
 
@@ -47,6 +48,9 @@ __all__ = ["PlayerNode", "ReadAhead", "main"]
 
 PROG = "python -m tpsr_ros.play"
 CLOCK_TOPIC = "/clock"
+MATCH_SETTLE_S = 0.3
+"""Seconds playback waits, once every publisher has matched, for the subscribers' side of the
+match (DDS discovery completes on each side on its own)."""
 
 
 _END = object()
@@ -180,6 +184,9 @@ class PlayerNode(Node):
         self.logger.info(f"waiting for {needed} subscription(s) on every played topic")
         pubs = list(self.publishers.values())
         self.spin(until=lambda: all(p.get_subscription_count() >= needed for p in pubs))
+        # the publisher's side of a match completes first; until the subscriber's side does,
+        # a reliable keep-last writer may drop unacknowledged samples it had to overwrite
+        self.spin(timeout_s=MATCH_SETTLE_S)
 
     def _play_once(self) -> None:
         ahead = ReadAhead(self.reader.messages(self.played))
