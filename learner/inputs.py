@@ -307,17 +307,21 @@ def require_simulator_model(model_file: ModelFile) -> None:
         )
 
 
-def require_camera(model_file: ModelFile, vertical_half_extent: float) -> None:
-    """Refuse to score a model in a simulator whose camera differs from its training bags'.
+def require_camera(
+    model_file: ModelFile, vertical_half_extent: float, where: str = "the simulator's"
+) -> None:
+    """Refuse images from a camera other than the one of the model's training bags.
 
     A model learned from images of one vertical extent sees other images in another; its
     states (and any policy on them) would be silently wrong. Models whose bags record no
-    camera (robot bags, older models) are not checked.
+    camera (robot bags, older models) are not checked. ``where`` names the other camera
+    (the simulator's: the option that fixes it is added).
     """
     learned = model_file.vertical_half_extent
-    if learned is not None and not math.isclose(learned, vertical_half_extent, rel_tol=1e-9):
-        raise ConfigError(
-            f"model {str(model_file.path)!r} was learned from bags whose camera has vertical "
-            f"half-extent {learned:g}, not {vertical_half_extent:g}; pass "
-            f"--vertical-half-extent {learned:g}"
-        )
+    if learned is None or math.isclose(learned, vertical_half_extent, rel_tol=1e-9):
+        return
+    fix = f"; pass --vertical-half-extent {learned:g}" if where == "the simulator's" else ""
+    raise ConfigError(
+        f"model {str(model_file.path)!r} was learned from bags whose camera has vertical "
+        f"half-extent {learned:g}, but {where} has {vertical_half_extent:g}{fix}"
+    )

@@ -19,7 +19,7 @@ import numpy as np
 
 from learner.criterion import CriterionConfig, ObservationFeatures, future_targets
 from learner.fit import add_topic_options, topics_from_args
-from learner.inputs import read_for_model, require_given_topics
+from learner.inputs import read_for_model, require_camera, require_given_topics
 from learner.options import (
     add_config_options,
     add_preset_option,
@@ -201,6 +201,10 @@ def run(args: argparse.Namespace) -> int:
         tracker = load_tracker(model_file)
         read = read_for_model(model_file, args.bags, args)
     trajectory = _first_steps(read, args.steps)
+    if str(args.model) != TRUE_POSITION:  # the RL bags must show the model's camera
+        camera = trajectory.summary()["vertical_half_extent"]
+        if isinstance(camera, float):
+            require_camera(model_file, camera, "the RL bags' camera")
     environment = trajectory.summary()["environment"]
     if not isinstance(environment, str):
         environment = None  # unknown or mixed: evaluation will not check it

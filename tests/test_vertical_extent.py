@@ -110,6 +110,10 @@ def test_generated_bag_fit_info_and_evaluate_carry_the_camera(tmp_path, capsys):
     assert open_model(model).vertical_half_extent == 0.05
     assert learner_main(["info", str(model)]) == 0
     assert "camera vertical half-extent 0.05" in capsys.readouterr().out
+    default_rl = tmp_path / "default_rl"
+    generate_bag(default_rl, SimConfig(environment="partial"), 300, seed=3)
+    with pytest.raises(ConfigError, match=r"the RL bags' camera has 0\.2"):
+        learner_main(["policy", str(model), str(default_rl), "-o", str(policy)])
     assert learner_main(["policy", str(model), str(rl), "-o", str(policy)]) == 0
     # scored in the default camera: refused with the option that fixes it
     with pytest.raises(ConfigError, match=r"--vertical-half-extent 0\.05"):
