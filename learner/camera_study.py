@@ -38,7 +38,7 @@ from sim_node import SimConfig
 from tpsr_ros.core.presets import PRESETS, departures
 from tpsr_ros.io.policy import TRUE_POSITION
 
-__all__ = ["CAMERA_SECTION", "EXTENTS", "GAP", "wall_fills_up_to"]
+__all__ = ["CAMERA_SECTION", "EXTENTS", "GAP", "narrowest_camera", "wall_fills_up_to"]
 
 EXTENTS = ("0.03", "0.05", "0.1", "0.2")
 """The vertical half-extents studied: the default 0.2 down to a strip the wall fills across
@@ -178,6 +178,25 @@ def _verdict(pca_means: dict[str, dict[str, float]], ceilings: dict[str, float])
             f"{gap:.1f} at {value}."
         )
     return bullets
+
+
+def narrowest_camera(data: Data) -> str:
+    """One sentence: PCA and the TPSR in ``partial`` with the narrowest strip studied."""
+    job = CAMERA_SECTION.jobs[0]
+    if job not in data:
+        return ""
+    reference, entries = study_entries(job, data[job])
+    narrowest = min(EXTENTS, key=float)
+    pca, tpsr = entries.get((narrowest, "pca")), entries.get((narrowest, "tpsr"))
+    ceiling = next((e for e in reference if e["method"] == TRUE_POSITION), None)
+    if pca is None or tpsr is None or ceiling is None:
+        return ""
+    return (
+        f"With a strip the wall fills across the room (vertical half-extent {narrowest}, "
+        f"8000 episodes, selection seeds) PCA scores {pca['mean']:.1f} "
+        f"({pca['mean'] / ceiling['mean']:.0%} of the ceiling) and the TPSR {tpsr['mean']:.1f} "
+        "(appendix, Camera)."
+    )
 
 
 CAMERA_SECTION = Section(

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from learner.appendix import SECTIONS, Data, cell
+from learner.camera_study import narrowest_camera
 from learner.floors import CONSTANT, FLOORS, RANDOM
 from learner.jobs import ENVIRONMENTS, HEADLINE_SEEDS, SELECTION_SEEDS, Job, experiment_job
 from learner.tables import Row, difference_in_sems, summarise
@@ -219,7 +220,7 @@ def _not_reproduced(data: Data, best: Mapping[str, Table], guide: Mapping[str, T
         "shows the floor and the top of any wall farther than 10 m, so the wall's height in "
         "the image tells its distance, and a reactive policy solves the task. A representation "
         "can then beat PCA only by precision, not by memory. The same holds with distractors, "
-        "which change only the red channel.",
+        "which change only the red channel." + _sentence(narrowest_camera(data)),
         "- **Our TPSRs do not remember.** The guide's memory of 3-4 steps (section 4.4) is not "
         "measured with either preset (appendix, Memory): the states of two runs that saw "
         "different pasts merge at the first identical step.",
@@ -229,6 +230,10 @@ def _not_reproduced(data: Data, best: Mapping[str, Table], guide: Mapping[str, T
         "pooling them (appendix, Fit: pooled action operators) is the largest single gain of "
         "the defaults.",
     ]
+
+
+def _sentence(text: str) -> str:
+    return f" {text}" if text else ""
 
 
 def _recommended() -> list[str]:
