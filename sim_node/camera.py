@@ -57,7 +57,7 @@ class Camera:
         fraction = (np.arange(size * rays) + 0.5) / (size * rays)  # left to right
         azimuth = (_HEADING + fov / 2 - fraction * fov).reshape(size, rays)
         self._ux, self._uy = np.cos(azimuth), np.sin(azimuth)  # (W, S)
-        extent = config.vertical_half_extent
+        extent = config.vertical_extent
         edges = extent * (1.0 - 2.0 * np.arange(size + 1) / size)  # top edge first
         self._row_top = edges[:-1, None].astype(np.float32)  # (H, 1)
         self._row_bottom = edges[1:, None].astype(np.float32)

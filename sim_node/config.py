@@ -16,6 +16,7 @@ from tpsr_ros.core.errors import ConfigError
 __all__ = [
     "DEFAULT_VERTICAL_HALF_EXTENT",
     "MAX_VERTICAL_HALF_EXTENT",
+    "STRIP_VERTICAL_HALF_EXTENT",
     "DistractorConfig",
     "Environment",
     "SimConfig",
@@ -24,7 +25,11 @@ __all__ = [
 
 STEP_SECONDS = 1.0
 DEFAULT_VERTICAL_HALF_EXTENT = 0.2
-"""The camera's vertical half-extent (tangent of the half-angle, ±11.3°) of every environment."""
+"""The camera's vertical half-extent (tangent of the half-angle, ±11.3°) of the guide's
+environments: a wall farther than 10 m shows its top and the floor."""
+STRIP_VERTICAL_HALF_EXTENT = 0.1
+"""``partial-strip``'s (±5.7°): a wall fills every row within 20 m, so most views of a wall
+no longer tell the distance to it."""
 MAX_VERTICAL_HALF_EXTENT = 5.0
 """Largest vertical half-extent accepted: ±78.7°; the rows are even in tangent, so a view
 near ±90° would spend almost every row on the floor and the sky."""
@@ -43,11 +48,26 @@ def check_vertical_half_extent(value: float) -> float:
 
 
 class Environment(str, Enum):
-    """The three environments of the guide's chapter 4."""
+    """The three environments of the guide's chapter 4, and ``partial-strip``: ``partial``'s
+    60 degree camera with a vertical extent that hides the walls' distance (the results
+    appendix's camera study: there a reactive policy stops solving the task)."""
 
     FULL = "full"
     PARTIAL = "partial"
     DISTRACTORS = "distractors"
+    PARTIAL_STRIP = "partial-strip"
+
+    @property
+    def narrow(self) -> bool:
+        """Whether the camera sees 60 degrees (``partial``, ``partial-strip``), not 300."""
+        return self in (Environment.PARTIAL, Environment.PARTIAL_STRIP)
+
+    @property
+    def vertical_half_extent(self) -> float:
+        """The camera's vertical half-extent unless one is given."""
+        if self is Environment.PARTIAL_STRIP:
+            return STRIP_VERTICAL_HALF_EXTENT
+        return DEFAULT_VERTICAL_HALF_EXTENT
 
     @classmethod
     def parse(cls, name: str | Environment) -> Environment:
@@ -93,8 +113,9 @@ class DistractorConfig:
 class SimConfig:
     """Everything that defines a simulated environment; validated on construction.
 
-    ``vertical_half_extent`` is the tangent of the camera's half vertical field of view:
-    0.2 (±11.3°) makes a panoramic strip in which the walls fill most rows. With a tall
+    ``vertical_half_extent`` is the tangent of the camera's half vertical field of view
+    (None: the environment's, :attr:`vertical_extent`): 0.2 (±11.3°) makes a panoramic
+    strip in which the walls fill most rows. With a tall
     view (±45°) the looming of a near wall dominates the image variance and folds the
     principal components of the room (PCA then fails even in ``full``, unlike guide
     figure 4.5 d-f); with the strip, PCA maps x and y orthogonally as in the guide.
@@ -107,7 +128,7 @@ class SimConfig:
     robot_height: float = 2.0
     image_size: int = 16
     field_of_view_deg: float | None = None
-    vertical_half_extent: float = DEFAULT_VERTICAL_HALF_EXTENT
+    vertical_half_extent: float | None = None
     rays_per_column: int = 8
     noise_fraction: float = 0.1
     goal_radius: float = 15.0
@@ -127,7 +148,8 @@ class SimConfig:
             raise ConfigError("image_size, rays_per_column and physics_substeps must be >= 1")
         if not 0 < self.fov_deg <= 360:
             raise ConfigError(f"field of view {self.fov_deg} deg must be in (0, 360]")
-        check_vertical_half_extent(self.vertical_half_extent)
+        if self.vertical_half_extent is not None:
+            check_vertical_half_extent(self.vertical_half_extent)
         if self.noise_fraction < 0 or self.goal_radius <= 0:
             raise ConfigError("goal_radius must be > 0 and noise_fraction >= 0")
         if self.start_time_ns < 0:
@@ -135,10 +157,18 @@ class SimConfig:
 
     @property
     def fov_deg(self) -> float:
-        """Horizontal field of view: 300 deg (full, distractors) or 60 deg (partial)."""
+        """Horizontal field of view: 300 deg (full, distractors) or 60 deg (partial,
+        partial-strip)."""
         if self.field_of_view_deg is not None:
             return float(self.field_of_view_deg)
-        return 60.0 if self.environment is Environment.PARTIAL else 300.0
+        return 60.0 if self.environment.narrow else 300.0
+
+    @property
+    def vertical_extent(self) -> float:
+        """The camera's vertical half-extent: the one given, else the environment's."""
+        if self.vertical_half_extent is not None:
+            return float(self.vertical_half_extent)
+        return self.environment.vertical_half_extent
 
     @property
     def has_distractors(self) -> bool:

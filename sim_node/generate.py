@@ -56,7 +56,11 @@ def generate_bag(
             "environment": config.environment.value,
             "seed": seed,
             "steps": steps,
-            "config": dataclasses.asdict(config),
+            # the camera as rendered: an environment's own extent, when none was given
+            "config": {
+                **dataclasses.asdict(config),
+                "vertical_half_extent": config.vertical_extent,
+            },
         }
         writer.set_custom_data("tpsr_ros.generator", json.dumps(settings, default=str))
         writer.set_custom_data("tpsr_ros.environment", config.environment.value)

@@ -24,7 +24,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from sim_node.config import (
-    DEFAULT_VERTICAL_HALF_EXTENT,
     MAX_VERTICAL_HALF_EXTENT,
     Environment,
     SimConfig,
@@ -55,14 +54,15 @@ class SimNodeParams:
 
     environment: str = param(
         "full",
-        "camera of the guide's chapter 4: full (300 deg), partial (60 deg) or distractors",
+        "camera of the guide's chapter 4: full (300 deg), partial (60 deg) or distractors; "
+        "partial-strip: partial's with a vertical extent that hides the walls' distance",
         choices=tuple(e.value for e in Environment),
     )
     vertical_half_extent: float = param(
-        DEFAULT_VERTICAL_HALF_EXTENT,
-        "camera: tangent of the half vertical field of view (0.2: ±11.3°, a wall farther than "
-        "10 m shows its top and the floor; 0.03: the wall fills every row across the room)",
-        positive=True,
+        0.0,
+        "camera: tangent of the half vertical field of view; 0: the environment's (0.2, "
+        "±11.3°: a wall farther than 10 m shows its top and the floor; partial-strip 0.1)",
+        minimum=0.0,
         maximum=MAX_VERTICAL_HALF_EXTENT,
     )
     seed: int = param(
@@ -96,7 +96,8 @@ class SimNodeParams:
     def __post_init__(self) -> None:
         if self.seed < 0:
             raise ConfigError(f"seed must be >= 0, got {self.seed}")
-        check_vertical_half_extent(self.vertical_half_extent)
+        if self.vertical_half_extent != 0:
+            check_vertical_half_extent(self.vertical_half_extent)
         if not (math.isfinite(self.rate) and self.rate > 0):
             raise ConfigError(f"rate must be a positive number of Hz, got {self.rate}")
         if self.steps < 0 or self.wait_for_subscribers < 0 or self.episode_steps < 0:
@@ -116,7 +117,7 @@ class SimNode(Node):
         """Create the environment, publishers, subscriptions and the explore timer."""
         p: SimNodeParams = self.params
         self.config = SimConfig(
-            environment=p.environment, vertical_half_extent=p.vertical_half_extent
+            environment=p.environment, vertical_half_extent=p.vertical_half_extent or None
         )
         self.env = RobotEnv(self.config, seed=p.seed)
         self.topics = SimTopics().relative()

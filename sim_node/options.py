@@ -8,6 +8,7 @@ from typing import Any
 from sim_node.config import (
     DEFAULT_VERTICAL_HALF_EXTENT,
     MAX_VERTICAL_HALF_EXTENT,
+    STRIP_VERTICAL_HALF_EXTENT,
     check_vertical_half_extent,
 )
 from tpsr_ros.core.errors import ConfigError
@@ -32,9 +33,11 @@ def add_vertical_half_extent_option(parser: Any, what: str = "the simulator's ca
     parser.add_argument(
         "--vertical-half-extent",
         type=vertical_half_extent,
-        default=DEFAULT_VERTICAL_HALF_EXTENT,
+        default=None,
         metavar="T",
         help=f"{what}: tangent of the half vertical field of view, in (0, "
-        f"{MAX_VERTICAL_HALF_EXTENT:g}] (default: %(default)s, ±11.3°; 0.03 makes the walls "
-        "fill every image row at any distance in the room)",
+        f"{MAX_VERTICAL_HALF_EXTENT:g}] (default: the environment's, "
+        f"{DEFAULT_VERTICAL_HALF_EXTENT:g} or ±11.3°, partial-strip "
+        f"{STRIP_VERTICAL_HALF_EXTENT:g}; 0.03 makes the walls fill every image row at any "
+        "distance in the room)",
     )

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from sim_node.camera import Camera
-from sim_node.config import DEFAULT_VERTICAL_HALF_EXTENT, SimConfig
+from sim_node.config import SimConfig
 from sim_node.options import add_vertical_half_extent_option
 from sim_node.rollout import random_rollout
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
@@ -88,7 +88,7 @@ class RobotBagConfig:
     image_size: int = 40
     camera_rate: float = 4.0
     environment: str = "full"
-    vertical_half_extent: float = DEFAULT_VERTICAL_HALF_EXTENT
+    vertical_half_extent: float | None = None
     command_jitter: float = 0.6
     jpeg_quality: int = 90
     command_topic: str = "/cmd_vel"

@@ -54,7 +54,7 @@ def test_a_nearer_wall_looks_taller(environment):
         return float(shares[1].sum())
 
     config = SimConfig(environment=environment)
-    row = 2.0 * config.vertical_half_extent / config.image_size  # rows are even in tan
+    row = 2.0 * config.vertical_extent / config.image_size  # rows are even in tan
     # beyond the distance at which the wall fills the whole column
     heights = [north_wall_rows(y) for y in (3.0, 10.0, 20.0, 25.0, 33.0)]
     assert all(a < b for a, b in itertools.pairwise(heights)), heights
