@@ -19,7 +19,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from learner.camera_study import CAMERA_SECTION
-from learner.jobs import ENVIRONMENTS, SELECTION_SEEDS, Job, experiment_job, study_job
+from learner.jobs import GUIDE_ENVIRONMENTS, SELECTION_SEEDS, Job, experiment_job, study_job
 from learner.overrides import convert
 from learner.sections import (
     SELECTION_EPISODES,
@@ -139,7 +139,7 @@ def _study(key: str, title: str, question: str, vary: str, *options: str) -> Sec
             "studies", env, vary, "--episodes", str(SELECTION_EPISODES[env]), *SELECTION_SEEDS,
             *options,
         )
-        for env in ENVIRONMENTS
+        for env in GUIDE_ENVIRONMENTS
     )
     return Section(key, title, question, jobs, _render_study)
 
@@ -158,7 +158,7 @@ def _tuning_jobs(kind: str) -> tuple[Job, ...]:
             f"tuning/{kind}", env, "--episodes", str(SELECTION_EPISODES[env]), "--methods",
             "tpsr", *SELECTION_SEEDS, *options,
         )
-        for env in ENVIRONMENTS
+        for env in GUIDE_ENVIRONMENTS
     )
 
 
@@ -242,7 +242,7 @@ def _render_criterion(section: Section, data: Data) -> list[str]:
         "highest criterion | its score | highest score |",
         "|---|---:|---:|---:|---|---|---|---|",
     ]
-    for environment in ENVIRONMENTS:
+    for environment in GUIDE_ENVIRONMENTS:
         configurations: dict[str, list[Row]] = {}
         labels: dict[str, str] = {}
         seen: set[tuple[str, int]] = set()

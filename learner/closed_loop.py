@@ -49,8 +49,7 @@ import numpy as np
 
 from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, Evaluation, Trial
 from learner.inputs import require_camera, require_simulator_model
-from sim_node import Environment
-from sim_node.config import DEFAULT_VERTICAL_HALF_EXTENT
+from sim_node import Environment, SimConfig
 from sim_node.options import add_vertical_half_extent_option
 from sim_node.topics import CMD_IGNORED_TOPIC
 from tpsr_ros.core.errors import ModelFormatError, TpsrError
@@ -277,7 +276,7 @@ def _check_inputs(
     policy_path: Path | str,
     environment: str,
     model_path: Path | str | None,
-    vertical_half_extent: float = DEFAULT_VERTICAL_HALF_EXTENT,
+    vertical_half_extent: float | None = None,
 ) -> tuple[Path, Path]:
     """Refuse what the filter node would refuse, before any process starts.
 
@@ -294,7 +293,8 @@ def _check_inputs(
     model = policy.model_path(model_path).resolve()
     model_file = open_model(model)  # once: the filter node opens it again in its process
     require_simulator_model(model_file)
-    require_camera(model_file, vertical_half_extent)
+    camera = SimConfig(environment=environment, vertical_half_extent=vertical_half_extent)
+    require_camera(model_file, camera.vertical_extent)
     filter_inputs(model_file, (policy, str(policy_path)))
     return policy_path, model
 
@@ -330,7 +330,7 @@ def _start_simulator(
     driver: _Driver,
     *,
     environment: str,
-    vertical_half_extent: float,
+    vertical_half_extent: float | None,
     seed: int,
     steps: int,
     record: Path | None,
@@ -352,14 +352,14 @@ def _start_simulator(
         "-p",
         f"environment:={environment}",
         "-p",
-        f"vertical_half_extent:={float(vertical_half_extent)!r}",
-        "-p",
         f"seed:={seed}",
         "-p",
         f"episode_steps:={steps}",
         "--log-level",
         "debug",
     ]
+    if vertical_half_extent is not None:  # else the environment's
+        sim_args[1:1] = ["-p", f"vertical_half_extent:={float(vertical_half_extent)!r}"]
     if record is not None:  # the recorder gets everything, the start-up reset included
         sim_args[1:1] = ["-p", "wait_for_subscribers:=2"]
     say("starting " + " ".join(["python -m sim_node", *sim_args]))
@@ -406,7 +406,7 @@ def run_closed_loop(
     policy_path: Path | str,
     environment: Environment | str,
     *,
-    vertical_half_extent: float = DEFAULT_VERTICAL_HALF_EXTENT,
+    vertical_half_extent: float | None = None,
     model_path: Path | str | None = None,
     record: Path | str | None = None,
     log_dir: Path | str | None = None,

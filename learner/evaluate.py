@@ -167,10 +167,10 @@ def run(args: argparse.Namespace) -> int:
         raise ModelFormatError(f"--seed must be >= 0, got {args.seed}")
     policy = load_policy(args.policy)
     policy.check_environment(args.environment)
-    tracker = _tracker_for(policy, args.model, args.vertical_half_extent)
     sim = SimConfig(
         environment=args.environment, vertical_half_extent=args.vertical_half_extent
     )
+    tracker = _tracker_for(policy, args.model, sim.vertical_extent)
 
     def show(index: int, trial: Trial) -> None:
         goal = (

@@ -69,8 +69,9 @@ __all__ = [
     "run_experiment",
 ]
 
-RL_STEPS = {"full": 15000, "partial": 20000, "distractors": 20000}
-PCA_DIM = {"full": 2, "partial": 3, "distractors": 3}  # guide figure 4.5 / appendix A.2-A.3
+RL_STEPS = {"full": 15000, "partial": 20000, "distractors": 20000, "partial-strip": 20000}
+# guide figure 4.5 / appendix A.2-A.3; partial-strip as partial
+PCA_DIM = {"full": 2, "partial": 3, "distractors": 3, "partial-strip": 3}
 
 
 @dataclass(frozen=True)
@@ -104,11 +105,12 @@ class ExperimentConfig:
     its own training data (:mod:`learner.criterion`; no reward, no ground truth)."""
 
     def __post_init__(self) -> None:
-        Environment.parse(self.environment)
+        environment = Environment.parse(self.environment)
         get_preset(self.preset)
-        if self.memory and self.environment != "partial":
+        if self.memory and not environment.narrow:
             raise ConfigError(
-                "--memory needs --environment partial: only there do two places look alike"
+                "--memory needs --environment partial or partial-strip: only there do two "
+                "places look alike"
             )
         if self.tune_budget is not None and not self.tune_budget > 0:
             raise ConfigError(f"the tuning budget must be positive, not {self.tune_budget!r}")
@@ -327,7 +329,9 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             r2 = affine_r2(states, rl.positions)
             position_error = neighbour_position_error(states, rl.positions)
             memory = (
-                memory_of(tracker, config.sim) if config.memory else (float("nan"), float("nan"))
+                memory_of(tracker, config.environment, config.sim)
+                if config.memory
+                else (float("nan"), float("nan"))
             )
             criterion = (
                 criterion_of(run_config.tpsr, train)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 __all__ = [
     "ENVIRONMENTS",
+    "GUIDE_ENVIRONMENTS",
     "HEADLINE_SEEDS",
     "SELECTION_SEEDS",
     "Job",
@@ -19,7 +20,10 @@ __all__ = [
     "study_job",
 ]
 
-ENVIRONMENTS = ("full", "partial", "distractors")
+GUIDE_ENVIRONMENTS = ("full", "partial", "distractors")
+"""The guide's environments: the appendix's studies run in them."""
+ENVIRONMENTS = (*GUIDE_ENVIRONMENTS, "partial-strip")
+"""Every environment of the headline."""
 
 SELECTION_SEEDS = ("--seed", "0", "--rl-seed", "100")
 """Training and RL seeds the default configuration was chosen on (the studies use them)."""

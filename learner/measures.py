@@ -52,16 +52,18 @@ def criterion_of(tpsr: TPSRConfig, train: Trajectory) -> float:
     return float(score.value)
 
 
-def memory_of(tracker: Tracker, sim: SimSettings | None = None) -> tuple[float, float]:
-    """Steps a learned model remembers in ``partial`` (camera: ``sim``) and the ``paths``
+def memory_of(
+    tracker: Tracker, environment: str = "partial", sim: SimSettings | None = None
+) -> tuple[float, float]:
+    """Steps a learned model remembers in ``environment`` (camera: ``sim``) and the ``paths``
     variant's distance at its first identical step (:mod:`learner.memory`); NaN for the true
     position."""
     if not isinstance(tracker, ModelTracker):
         return float("nan"), float("nan")
     from learner.memory import EXPERIMENTS, measure, state_spread
 
-    spread = state_spread(tracker.model, "partial", sim=sim)
-    results = [measure(tracker.model, e, "partial", spread, sim=sim) for e in EXPERIMENTS]
+    spread = state_spread(tracker.model, environment, sim=sim)
+    results = [measure(tracker.model, e, environment, spread, sim=sim) for e in EXPERIMENTS]
     paths = results[0]
     return (
         float(min(r.memory for r in results)),

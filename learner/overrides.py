@@ -13,6 +13,7 @@ of the same name. """
 from __future__ import annotations
 
 import dataclasses
+import types
 import typing
 from collections.abc import Iterable, Mapping
 from typing import Any
@@ -77,6 +78,8 @@ def _convert(group: str, field: str, text: str) -> Any:
     """``text`` as a value of the field's type, or a ``ConfigError`` naming that type."""
     cls = CONFIG_CLASSES[group]
     kind = typing.get_type_hints(cls)[field]
+    if isinstance(kind, types.UnionType):  # ``float | None``: None is the field's default
+        kind = next(k for k in typing.get_args(kind) if k is not type(None))
     if typing.get_origin(kind) is typing.Literal:
         choices = typing.get_args(kind)
         if text not in choices:

@@ -16,12 +16,7 @@ from typing import Any
 import numpy as np
 
 from sim_node import SimConfig, random_rollout
-from sim_node.config import (
-    DEFAULT_VERTICAL_HALF_EXTENT,
-    MAX_VERTICAL_HALF_EXTENT,
-    Environment,
-    check_vertical_half_extent,
-)
+from sim_node.config import MAX_VERTICAL_HALF_EXTENT, Environment, check_vertical_half_extent
 from tpsr_ros.core.actions import NUM_ACTIONS
 from tpsr_ros.core.episodes import Trajectory, images_to_observations
 from tpsr_ros.core.fields import option
@@ -31,17 +26,18 @@ __all__ = ["SimSettings", "random_trajectory"]
 
 @dataclass(frozen=True)
 class SimSettings:
-    """The simulator settings an experiment varies; the defaults are every environment's."""
+    """The simulator settings an experiment varies; None: the environment's own."""
 
-    vertical_half_extent: float = option(
-        DEFAULT_VERTICAL_HALF_EXTENT,
-        "camera: tangent of the half vertical field of view",
+    vertical_half_extent: float | None = option(
+        None,
+        "camera: tangent of the half vertical field of view (default: the environment's)",
         positive=True,
         maximum=MAX_VERTICAL_HALF_EXTENT,
     )
 
     def __post_init__(self) -> None:
-        check_vertical_half_extent(self.vertical_half_extent)
+        if self.vertical_half_extent is not None:
+            check_vertical_half_extent(self.vertical_half_extent)
 
     def config(self, environment: Environment | str, **fields: Any) -> SimConfig:
         """The simulator of ``environment`` with these settings (and ``fields``)."""
@@ -75,7 +71,7 @@ def random_trajectory(
                 "environment": environment,
                 "seed": seed,
                 "steps": steps,
-                "vertical_half_extent": sim.vertical_half_extent,
+                "vertical_half_extent": config.vertical_extent,
             }
         ],
     )

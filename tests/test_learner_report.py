@@ -13,13 +13,12 @@ import numpy as np
 import pytest
 
 from learner.appendix import SECTIONS
-from learner.jobs import Job
+from learner.jobs import ENVIRONMENTS, Job
 from learner.overrides import convert
 from learner.results_page import HEADLINE, all_jobs
 from learner.tables import Row, read_csv, summarise, write_csv
 from learner.verdicts import BETTER, NOT_REPRODUCED, REPRODUCED, judge
 
-ENVIRONMENTS = ("full", "partial", "distractors")
 REPOSITORY = Path(__file__).resolve().parents[1]
 
 
@@ -98,7 +97,8 @@ def _fake_rows(job: Job, rng: np.random.Generator) -> list[Row]:
     for value in values.split(","):
         parameters = json.dumps({group: {field: convert(name, value)}})
         learned = {m: rng.normal(420, 20, 3) for m in methods[:2] if m in ("tpsr", "pca")}
-        learned = learned or {"tpsr": rng.normal(420, 20, 3)}
+        default = ("tpsr", "pca") if group == "sim" else ("tpsr",)  # what learner study runs
+        learned = learned or {m: rng.normal(420, 20, 3) for m in default}
         rows += _rows(environment, learned, sizes, parameters=parameters, criterion=0.3)
     return rows
 
@@ -134,7 +134,7 @@ def test_report_reuse_renders_every_job_and_is_reproducible(fake_results, tmp_pa
         assert f"### {section.title}" in page
     for env in ENVIRONMENTS:
         assert f"### `{env}`" in page and f"![{env}](results_{env}.png)" in page
-    assert page.count("| random actions (floor) |") == 3 and "(ceiling)" in page
+    assert page.count("| random actions (floor) |") == len(ENVIRONMENTS) and "(ceiling)" in page
     assert "session" not in page.lower() and "issue" not in page.lower()
 
 

@@ -141,3 +141,17 @@ def test_the_commands_refuse_a_bad_extent_in_one_line(command, tmp_path):
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
     assert "vertical_half_extent" in result.stderr or "vertical-half-extent" in result.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_partial_strip_is_partial_seen_through_the_strip(tmp_path):
+    strip = SimConfig(environment="partial-strip")
+    assert (strip.fov_deg, strip.vertical_extent) == (60.0, 0.1)
+    assert SimConfig(environment="partial-strip", vertical_half_extent=0.2).vertical_extent == 0.2
+    named = random_trajectory("partial-strip", 200, seed=5)
+    spelled = random_trajectory("partial", 200, seed=5, sim=SimSettings(0.1))
+    np.testing.assert_array_equal(named.observations, spelled.observations)
+    generate_bag(tmp_path / "strip", strip, 30, seed=1)  # the extent as rendered is recorded
+    from tpsr_ros.io.bag_chunks import survey_bags
+
+    (survey,) = survey_bags([tmp_path / "strip"])
+    assert (survey.environment, survey.vertical_half_extent) == ("partial-strip", 0.1)
