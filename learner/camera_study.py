@@ -35,6 +35,7 @@ from learner.sections import (
 )
 from learner.verdicts import NEAR_CEILING
 from sim_node import SimConfig
+from sim_node.config import STRIP_VERTICAL_HALF_EXTENT
 from tpsr_ros.core.presets import PRESETS, departures
 from tpsr_ros.io.policy import TRUE_POSITION
 
@@ -141,7 +142,25 @@ def _render(section: Section, data: Data) -> list[str]:
                 f"{judged(*comparison(tpsr, pca))} |"
             )
         lines.append("")
-    return [*lines, "**Verdict.**", "", *_verdict(pca_means, ceilings)]
+    memory = [
+        r.memory
+        for job in section.jobs
+        for r in data[job]
+        if r.method == "tpsr" and math.isfinite(r.memory)
+    ]
+    if not memory:
+        remembered = "- Memory: not measured."
+    else:
+        longest = max(memory)
+        remembered = (
+            f"- Memory (`partial`, every extent, both fits): at most {longest:.0f} step(s); "
+            + (
+                "hiding the range cue does not make the TPSR remember (the guide: 3-4 steps)."
+                if longest < 3
+                else "the TPSR remembers where the range cue is hidden."
+            )
+        )
+    return [*lines, "**Verdict.**", "", *_verdict(pca_means, ceilings), remembered]
 
 
 def _verdict(pca_means: dict[str, dict[str, float]], ceilings: dict[str, float]) -> list[str]:
@@ -165,10 +184,15 @@ def _verdict(pca_means: dict[str, dict[str, float]], ceilings: dict[str, float])
     candidates = [(v, gap) for v, gap in gaps.items() if gap >= GAP and v in full_solved]
     if candidates:
         value, gap = max(candidates, key=lambda item: item[1])
+        named = (
+            " It is the environment `partial-strip` (headline above)."
+            if float(value) == STRIP_VERTICAL_HALF_EXTENT
+            else ""
+        )
         bullets.append(
             f"- **A camera of vertical half-extent {value} opens a gap of {gap:.1f} points** "
-            f"between PCA and the ceiling in `partial` while PCA still solves `full`: the "
-            "setting in which a state must remember to score."
+            f"between PCA and the ceiling in `partial` while PCA still solves `full`: there a "
+            f"reactive policy no longer solves the task.{named}"
         )
     else:
         value, gap = max(gaps.items(), key=lambda item: item[1])
