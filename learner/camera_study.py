@@ -115,7 +115,10 @@ def _render(section: Section, data: Data) -> list[str]:
         reference, best = study_entries(best_job, data[best_job])
         _, guide = study_entries(guide_job, data[guide_job])
         _, values = varied(best_job)
-        ceiling = next(e for e in reference if e["method"] == TRUE_POSITION)
+        ceiling = next((e for e in reference if e["method"] == TRUE_POSITION), None)
+        if ceiling is None:  # a study run without the ceiling: nothing to measure against
+            lines += [f"**`{environment}`**: no true-position ceiling in its CSV.", ""]
+            continue
         floors = [e for e in reference if e["method"] != TRUE_POSITION]
         lines += [
             f"**`{environment}`** (ceiling, true position: {cell(ceiling)}; floors: "

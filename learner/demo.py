@@ -123,6 +123,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_vertical_half_extent_option(parser)
     parser.add_argument(
+        "--domain-id",
+        type=int,
+        default=None,
+        metavar="N",
+        help="ROS_DOMAIN_ID of the closed loop (default: a free one in 1..101 at random)",
+    )
+    parser.add_argument(
         "--train-steps",
         type=positive_int,
         default=24_000,
@@ -186,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
             policy,
             env,
             vertical_half_extent=args.vertical_half_extent,
+            domain_id=args.domain_id,
             model_path=model,
             record=closed,
             log_dir=out / "logs",

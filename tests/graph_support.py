@@ -48,19 +48,30 @@ def fresh_domain(salt: int = 0) -> int:
 
     Cyclone keeps one configuration per domain and process: in a domain an earlier test
     opened (say without the loopback URI, or with other discovery variables), a probe
-    would not discover the children and the new variables would never be read. Runs of
-    different processes start from different places (the pid), so parallel test runs on
-    one machine rarely meet.
+    would not discover the children and the new variables would never be read. The
+    workers of one ``pytest -n N`` run draw from disjoint residues (domain - 1 mod N), so
+    their tests never share a graph; separate runs start from different places (the pid),
+    so they rarely meet.
     """
     from tpsr_ros.runtime import dds_discovery
 
     span = dds_discovery.LAST_SAFE_DOMAIN_ID
+    index, workers = _xdist_worker()
     seed = os.getpid() * 7 + 31 * salt + 3 * next(_COUNTER)
     for k in range(span):
         candidate = (seed + k) % span + 1
-        if candidate not in dds_discovery._DOMAINS:
+        # the workers of one run share the domains out: never two tests' graphs in one
+        if (candidate - 1) % workers == index and candidate not in dds_discovery._DOMAINS:
             return candidate
-    raise RuntimeError(f"this test process has configured all {span} test domains")
+    raise RuntimeError(f"this test process has configured all its {span // workers} domains")
+
+
+def _xdist_worker() -> tuple[int, int]:
+    """``(index, count)`` of this pytest-xdist worker; ``(0, 1)`` without workers."""
+    name = os.environ.get("PYTEST_XDIST_WORKER", "")  # gw0, gw1, ...
+    count = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+    index = int(name[2:]) if name.startswith("gw") and name[2:].isdigit() else 0
+    return index % max(count, 1), max(count, 1)
 
 
 def hold_discovery_port(monkeypatch: pytest.MonkeyPatch, domain_id: int) -> socket.socket | None:

@@ -116,6 +116,8 @@ def test_closed_loop_equals_the_headless_evaluation_and_the_recorded_states_offl
             str(bag),
             "--transport",
             backend,
+            "--domain-id",
+            str(fresh_domain()),
         ],
         capture_output=True,
         text=True,
@@ -164,6 +166,7 @@ def test_a_crashed_node_stops_the_run_and_leaves_no_process(trained, tmp_path):
             "full",
             model_path=trained / "model.npz",
             log_dir=tmp_path / "logs",
+            domain_id=fresh_domain(),
             on_trial=kill_filter,
             timeout_s=60,
         )
@@ -181,6 +184,7 @@ def test_timeouts_and_refusals_leave_no_process(trained, tmp_path):
             "full",
             model_path=trained / "model.npz",
             log_dir=tmp_path / "logs",  # a failed run keeps its logs: here, not in /tmp
+            domain_id=fresh_domain(),
             timeout_s=0.01,
             say=said.append,
         )

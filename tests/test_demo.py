@@ -8,7 +8,7 @@ import subprocess
 import sys
 
 import pytest
-from graph_support import LOOPBACK
+from graph_support import LOOPBACK, fresh_domain
 
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.messages import stamp_of
@@ -22,7 +22,8 @@ def test_the_demo_runs_end_to_end(tmp_path):
     out.mkdir()
     (out / "stale.txt").write_text("from an earlier run")  # the directory is recreated
     proc = subprocess.run(
-        [sys.executable, "-m", "learner.demo", "--output", str(out)],
+        [sys.executable, "-m", "learner.demo", "--output", str(out),
+         "--domain-id", str(fresh_domain())],
         capture_output=True,
         text=True,
         timeout=280,

@@ -171,7 +171,7 @@ def test_the_committed_page_is_what_the_committed_csvs_give(tmp_path):
     assert (docs / "results.md").read_text() == (REPOSITORY / "docs" / "results.md").read_text()
     block = (tmp_path / "README.md").read_text().split("\n")[1:-2]
     readme = (REPOSITORY / "README.md").read_text()
-    assert "\n".join(block) in readme and "old" not in block and len(block) == 7
+    assert "\n".join(block) in readme and "old" not in block and len(block) == 4 + len(ENVIRONMENTS)
 
 
 def test_csvs_written_before_new_columns_still_read(tmp_path):
