@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from learner.appendix import SECTIONS, Data, cell
+from learner.appendix import SECTIONS
 from learner.camera_study import narrowest_camera
 from learner.floors import CONSTANT, FLOORS, RANDOM
 from learner.jobs import (
@@ -28,6 +28,7 @@ from learner.jobs import (
     Job,
     experiment_job,
 )
+from learner.sections import Data, cell
 from learner.tables import Row, difference_in_sems, summarise
 from learner.verdicts import (
     DIFFERENCE_SEMS,
