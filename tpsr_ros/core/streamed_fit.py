@@ -34,7 +34,6 @@ sums reduced as a tree). The per-block arithmetic is the in-memory fit's own
 
 from __future__ import annotations
 
-import dataclasses
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Mapping
@@ -68,8 +67,15 @@ from tpsr_ros.core.tpsr_stages import (
     ht_features,
     obs_features,
     projected_outer,
+    training_start,
 )
-from tpsr_ros.core.whitened import ActionSums, Centres, WhitenedRows, Whitenings
+from tpsr_ros.core.whitened import (
+    WHITENED_FIELDS,
+    ActionSums,
+    Centres,
+    WhitenedRows,
+    Whitenings,
+)
 from tpsr_ros.core.whitening import Whitening
 
 __all__ = [
@@ -101,9 +107,6 @@ ChunkSource = Callable[[], Iterable[Trajectory]]
 
 BLOCK_BYTES = 64 * 2**20
 """Target size of one block's feature matrix; blocks hold 512 to 8192 rows."""
-
-WHITENED_FIELDS = tuple(f.name for f in dataclasses.fields(WhitenedRows))
-
 
 def block_rows(n_features: int) -> int:
     """Rows per block so that a ``(rows, n_features)`` float64 matrix is ~:data:`BLOCK_BYTES`."""
@@ -389,7 +392,6 @@ class StreamedFit:
         self.scratch_dir = scratch_dir
         self._moments: EpisodeMoments | None = None
         self._store: WhitenedStore | None = None
-        self._cfg: TPSRConfig | None = None
 
     @property
     def store(self) -> WhitenedStore:
@@ -421,10 +423,8 @@ class StreamedFit:
         assert self._moments is not None
         n_episodes = self._moments.episodes
         first = cfg.center_selection == "first"
-        start = max(cfg.ht_centers, cfg.obs_centers) if first else 0
-        stored = start if first and self.passes.keeps_rows else n_episodes  # k-means: all
+        stored = training_start(cfg) if first and self.passes.keeps_rows else n_episodes
         self._store = WhitenedStore(stored, whitenings.widths(cfg), self.scratch_dir)
-        self._cfg = cfg
         self.passes.whiten(whitenings, cfg, self.max_episodes, self._store)
 
     def centre_rows(self) -> WhitenedRows:
@@ -459,10 +459,9 @@ class StreamedFit:
         """The blocked per-action sums."""
         return self.passes.parameter_sums(self.store, start, centres, svd, cfg, n_actions)
 
-    def box_data(self, indices: np.ndarray) -> BoxData:
+    def box_data(self, indices: np.ndarray, cfg: TPSRConfig) -> BoxData:
         """The state box's episodes, read a third time."""
-        assert self._cfg is not None
-        return self.passes.box_data(indices, self._cfg, self.max_episodes)
+        return self.passes.box_data(indices, cfg, self.max_episodes)
 
     def info(self) -> dict[str, Any]:
         """What ran the passes and how much scratch space the rows took."""

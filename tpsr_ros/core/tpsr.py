@@ -73,6 +73,7 @@ from tpsr_ros.core.tpsr_stages import (
     projected_outer,
     start_and_normaliser,
     top_singular_triplets,
+    training_start,
     truncated_svd,
 )
 from tpsr_ros.core.whitened import ActionSums, Centres, EpisodeRows, WhitenedRows, Whitenings
@@ -154,7 +155,7 @@ class FitEngine(Protocol):
     ) -> ActionSums:
         """The per-action sums of eqs. 3.3 and 3.7 over the rows ``start:``."""
 
-    def box_data(self, indices: np.ndarray) -> BoxData:
+    def box_data(self, indices: np.ndarray, cfg: TPSRConfig) -> BoxData:
         """The raw episodes ``indices`` (sorted), for the state box."""
 
     def info(self) -> dict[str, Any]:
@@ -194,8 +195,7 @@ def run_fit(
     watch.stage("kernel centres")
     rows = engine.centre_rows()
     centres = Centres(*kernel_centres(rows.history, rows.test, rows.observation, cfg))
-    # 'first' centres are the first episodes, which then do not train (t = |E| - max l)
-    start = max(cfg.ht_centers, cfg.obs_centers) if cfg.center_selection == "first" else 0
+    start = training_start(cfg)
     check_action_counts(engine.action_counts(start, n_actions))
     if engine.stages.get("features"):
         watch.stage(str(engine.stages["features"]))
@@ -236,7 +236,7 @@ def run_fit(
     watch = Stopwatch(progress)
     watch.stage("state box")
     history, history_actions, action, observation = engine.box_data(
-        box_episodes(survey.episodes)
+        box_episodes(survey.episodes), cfg
     )
     states = episode_states(model, history, history_actions, action, observation)
     box = state_box(states, cfg.state_clip_quantile)
@@ -363,7 +363,7 @@ class MemoryEngine:
         self._features = ()
         return sums
 
-    def box_data(self, indices: np.ndarray) -> BoxData:
+    def box_data(self, indices: np.ndarray, cfg: TPSRConfig) -> BoxData:
         """The episodes ``indices`` from the arrays."""
         data = self._data
         assert data.history_actions is not None  # checked by the survey

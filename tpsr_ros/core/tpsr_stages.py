@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
@@ -27,7 +26,6 @@ __all__ = [
     "DENSE_SVD_LIMIT",
     "EXTRA_SINGULAR_VALUES",
     "Progress",
-    "StepActions",
     "Stopwatch",
     "action_operators",
     "action_sums",
@@ -38,10 +36,12 @@ __all__ = [
     "kernel_centres",
     "obs_features",
     "p_th_test_window",
+    "p_th_window_actions",
     "pool_actions",
     "projected_outer",
     "start_and_normaliser",
     "top_singular_triplets",
+    "training_start",
     "truncated_svd",
     "whiten_test_window",
 ]
@@ -119,25 +119,14 @@ class Stopwatch:
             self._stage = None
 
 
-@dataclass(frozen=True)
-class StepActions:
-    """The actions of the history and test steps, for action-aware features.
-
-    ``history`` ``(E, m)`` and ``test`` ``(E, n)`` action indices (each step's action led to
-    its observation), ``current`` ``(E,)`` and ``codes`` ``(n_actions, d)`` standardised
-    action codes (:func:`tpsr_ros.core.action_features.standardised_codes`).
-    """
-
-    history: np.ndarray | None
-    test: np.ndarray | None
-    current: np.ndarray
-    codes: np.ndarray
-
-    def test_window(self, test_length: int) -> np.ndarray | None:
-        """Actions of Boots et al.'s ``P_TH`` test: the current one and ``n - 1`` test steps."""
-        if self.test is None:
-            return None
-        return np.concatenate([self.current[:, None], self.test[:, : test_length - 1]], axis=1)
+def p_th_window_actions(
+    current: np.ndarray, test: np.ndarray | None, test_length: int
+) -> np.ndarray | None:
+    """Actions of Boots et al.'s ``P_TH`` test: the current one and ``n - 1`` test steps
+    (None without the test steps' actions)."""
+    if test is None:
+        return None
+    return np.concatenate([current[:, None], test[:, : test_length - 1]], axis=1)
 
 
 def p_th_test_window(observation: np.ndarray, test: np.ndarray, test_length: int) -> np.ndarray:
@@ -171,11 +160,16 @@ def whiten_test_window(
     return white
 
 
+def training_start(cfg: TPSRConfig) -> int:
+    """The first training episode: 'first' kernel centres are the first episodes, which then
+    do not train (t = |E| - max l); k-means centres are not taken out of the data."""
+    return max(cfg.ht_centers, cfg.obs_centers) if cfg.center_selection == "first" else 0
+
+
 def check_enough_episodes(n_episodes: int, cfg: TPSRConfig) -> None:
     """Refuse fewer episodes than the kernel centres (and, for 'first' ones, the rank) need."""
     n_centres = max(cfg.ht_centers, cfg.obs_centers)
-    # 'first' centres are taken out of the data (t = |E| - max l); k-means centres are not.
-    needed = n_centres + cfg.rank if cfg.center_selection == "first" else n_centres
+    needed = training_start(cfg) + cfg.rank if cfg.center_selection == "first" else n_centres
     if n_episodes < needed:
         raise DataError(
             f"{n_episodes} episodes are too few for {n_centres} kernel centres: "

@@ -22,10 +22,17 @@ import numpy as np
 from tpsr_ros.core.action_features import join_actions
 from tpsr_ros.core.moments import Moments
 from tpsr_ros.core.tpsr_config import TPSRConfig
-from tpsr_ros.core.tpsr_stages import whiten_test_window
+from tpsr_ros.core.tpsr_stages import p_th_window_actions, whiten_test_window
 from tpsr_ros.core.whitening import Whitening
 
-__all__ = ["ActionSums", "Centres", "EpisodeRows", "WhitenedRows", "Whitenings"]
+__all__ = [
+    "WHITENED_FIELDS",
+    "ActionSums",
+    "Centres",
+    "EpisodeRows",
+    "WhitenedRows",
+    "Whitenings",
+]
 
 
 class EpisodeRows(Protocol):
@@ -65,7 +72,7 @@ class WhitenedRows:
         return cls(**{
             name: None if getattr(parts[0], name) is None
             else np.concatenate([getattr(part, name) for part in parts])
-            for name in _FIELDS
+            for name in WHITENED_FIELDS
         })  # fmt: skip
 
     def rows(self, start: int, stop: int) -> WhitenedRows:
@@ -80,11 +87,12 @@ class WhitenedRows:
         """``function`` of every array (a missing ``test0`` stays missing)."""
         return WhitenedRows(**{
             name: None if (array := getattr(self, name)) is None else function(array)
-            for name in _FIELDS
+            for name in WHITENED_FIELDS
         })  # fmt: skip
 
 
-_FIELDS = tuple(f.name for f in dataclasses.fields(WhitenedRows))
+WHITENED_FIELDS = tuple(f.name for f in dataclasses.fields(WhitenedRows))
+"""The arrays of :class:`WhitenedRows`, in order."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -161,13 +169,9 @@ class Whitenings:
             codes, w_h, w_t = self.codes, cfg.history_action_weight, cfg.test_action_weight
             h_white = join_actions(h_white, episodes.history_actions, codes, w_h, "history")
             t_white = join_actions(t_white, episodes.test_actions, codes, w_t, "test")
-            if t0_white is not None and episodes.test_actions is not None:
-                window = np.concatenate(
-                    [action[:, None], episodes.test_actions[:, : cfg.test_length - 1]], axis=1
-                )
+            if t0_white is not None:
+                window = p_th_window_actions(action, episodes.test_actions, cfg.test_length)
                 t0_white = join_actions(t0_white, window, codes, w_t, "test")
-            elif t0_white is not None:
-                t0_white = join_actions(t0_white, None, codes, w_t, "test")
         return WhitenedRows(h_white, t_white, o_white, t0_white, action)
 
     def widths(self, cfg: TPSRConfig) -> dict[str, int]:
