@@ -7,6 +7,7 @@ import pytest
 from graph_support import rclpy_available
 
 from tpsr_ros.io import messages as m
+from tpsr_ros.io.qos import DEFAULT_QOS, SENSOR_DATA_QOS
 from tpsr_ros.record import RecorderNode
 from tpsr_ros.runtime import Node, NodeOptions, parse_ros_args
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
@@ -21,10 +22,14 @@ def _recorder(tmp_path, bus, *ros) -> RecorderNode:
     return RecorderNode(options, transport=InprocTransport("/tpsr_recorder", bus))
 
 
-def test_a_node_with_use_sim_time_follows_clock_and_can_be_switched(tmp_path):
+@pytest.mark.parametrize(
+    "clock_qos", [DEFAULT_QOS, SENSOR_DATA_QOS], ids=["reliable", "best-effort"]
+)
+def test_a_node_with_use_sim_time_follows_clock_and_can_be_switched(tmp_path, clock_qos):
+    """A best-effort /clock (rosbag2's player) is followed as well as a reliable one."""
     bus = InprocBus()
     source = Node(NodeOptions(name="source"), transport=InprocTransport("/source", bus))
-    clock = source.create_publisher("/clock", m.CLOCK_TYPE)
+    clock = source.create_publisher("/clock", m.CLOCK_TYPE, clock_qos)
     params = tmp_path / "p.yaml"
     params.write_text("/**:\n  ros__parameters:\n    use_sim_time: true\n")
     node = _recorder(tmp_path, bus, "--params-file", str(params))

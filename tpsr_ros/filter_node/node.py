@@ -41,6 +41,7 @@ from tpsr_ros.io import messages as m
 from tpsr_ros.io.filter_inputs import FilterInputs, check_policy, filter_inputs, input_topics
 from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.policy import load_policy
+from tpsr_ros.io.qos import CLOCK_QOS
 from tpsr_ros.runtime import (
     DEFAULT_QOS,
     LATCHED_QOS,
@@ -63,8 +64,6 @@ from tpsr_ros.runtime.diagnostics import (
 __all__ = ["FilterNode", "load_inputs", "main"]
 
 PROG = "python -m tpsr_ros.filter_node"
-CLOCK_QOS = QoSProfile(Reliability.BEST_EFFORT, Durability.VOLATILE, History.KEEP_LAST, 10)
-"""Best effort, so /clock from any publisher matches (rosbag2 publishes it best-effort)."""
 WARN_PERIOD_S = 5.0
 """At most one warning per topic and kind (rejection, drop, duplicate...) in this many seconds."""
 SETTLE_S = 0.25

@@ -27,6 +27,7 @@ from rosbags.interfaces import (
 from tpsr_ros.core.errors import ConfigError
 
 __all__ = [
+    "CLOCK_QOS",
     "DEFAULT_QOS",
     "LATCHED_QOS",
     "SENSOR_DATA_QOS",
@@ -94,6 +95,10 @@ SENSOR_DATA_QOS = QoSProfile(Reliability.BEST_EFFORT, Durability.VOLATILE, Histo
 
 LATCHED_QOS = QoSProfile(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, History.KEEP_LAST, 1)
 """Reliable, transient-local, depth 1: late joiners get the last sample."""
+
+CLOCK_QOS = QoSProfile(Reliability.BEST_EFFORT, Durability.VOLATILE, History.KEEP_LAST, 10)
+"""What ``/clock`` is read with: best effort, so /clock from any publisher matches (rosbag2
+publishes it best-effort)."""
 
 _TEXT = re.compile(
     r"^\s*(?P<rel>reliable|best_effort)\s*,\s*(?P<dur>volatile|transient_local)\s*,\s*"

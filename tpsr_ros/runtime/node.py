@@ -32,7 +32,7 @@ from tpsr_ros.cli import ArgumentParser
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io.messages import CLOCK_TYPE, deserialize, serialize, stamp_of
-from tpsr_ros.io.qos import DEFAULT_QOS, QoSProfile
+from tpsr_ros.io.qos import CLOCK_QOS, DEFAULT_QOS, QoSProfile
 from tpsr_ros.runtime.backend import choose_backend, open_transport
 from tpsr_ros.runtime.params import (
     USE_SIM_TIME,
@@ -344,7 +344,7 @@ class Node:
             def on_clock(msg: Any) -> None:
                 self._sim_time = stamp_of(msg)
 
-            self._clock_sub = self.create_subscription("/clock", CLOCK_TYPE, on_clock)
+            self._clock_sub = self.create_subscription("/clock", CLOCK_TYPE, on_clock, CLOCK_QOS)
         elif not enabled and self._clock_sub is not None:
             self._clock_sub.destroy()
             self._clock_sub = None
