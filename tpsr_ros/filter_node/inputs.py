@@ -99,10 +99,9 @@ def robot_command(msg: Any, codebook: ActionCodebook) -> tuple[int, float, np.nd
 class Frame:
     """A robot camera image as a step holds it: decoded to its observation on first use.
 
-    Steps mostly take images older than the one that closes them, so a new image is
-    decoded after the steps it closed were published: its decoding adds nothing to their
-    latency. The message is dropped once decoded, so the node keeps observations, not the
-    camera's megabytes.
+    Only the images a step takes are decoded (one per step, as offline): a camera faster
+    than the step grid costs no decoding for the frames in between, which the step grid
+    drops undecoded. The message is dropped once decoded.
     """
 
     __slots__ = ("_msg", "_msgtype", "_preprocessing", "detail", "observation", "reason")

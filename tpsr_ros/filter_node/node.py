@@ -339,7 +339,6 @@ class FilterNode(Node):
         if added.jumped:
             self._reinit(f"camera time jumped back to {stamp / _NS:.3f} s")
         self._grid_steps(added.steps, start)
-        frame.reduce()  # decoded now, after the steps it closed: it adds nothing to them
 
     def _grid_steps(self, steps: list[Step], start: float) -> None:
         """Process closed steps, each with its image decoded (or rejected with the reason)."""
