@@ -71,7 +71,7 @@ def _render_study(section: Section, data: Data) -> list[str]:
     ]
     verdicts: list[str] = []
     for job in section.jobs:
-        environment = job.argv[job.argv.index("--environment") + 1]
+        environment = job.environment
         size = SELECTION_EPISODES[environment]
         reference, entries = study_entries(job, data[job])
         for entry in reference:
@@ -162,19 +162,23 @@ def _tuning_jobs(kind: str) -> tuple[Job, ...]:
     )
 
 
+def _changes_from_default(values: dict[str, Any]) -> dict[str, Any]:
+    """The TPSR settings of a run's parameters that depart from the default preset's."""
+    changed = departures(TPSRConfig.from_dict(values), PRESETS[DEFAULT_PRESET].tpsr_config())
+    changed.pop("obs_dim", None)  # the fit records the d^O that obs_variance chose
+    return changed
+
+
 def _tuned_changes(rows: list[Row]) -> str:
     """The changes the tuner made to the default most often, with how many runs made each."""
-    preset = PRESETS[DEFAULT_PRESET].tpsr_config()
     counts: Counter[str] = Counter()
     for row in rows:
         values = row_parameters(row).get("tpsr")
         if not isinstance(values, dict):
             continue
-        chosen = TPSRConfig.from_dict(values)
-        for name, value in departures(chosen, preset).items():
-            if name != "obs_dim":  # the fit records the d^O that obs_variance chose
-                shown = f"{value:.3g}" if isinstance(value, float) else str(value)
-                counts[f"{name}={shown}"] += 1
+        for name, value in _changes_from_default(values).items():
+            shown = f"{value:.3g}" if isinstance(value, float) else str(value)
+            counts[f"{name}={shown}"] += 1
     return ", ".join(f"`{text}` ({n})" for text, n in counts.most_common(4)) or "nothing"
 
 
@@ -187,7 +191,7 @@ def _render_tuning(section: Section, data: Data) -> list[str]:
     ]
     verdicts = []
     for preset_job, tuned_job in zip(section.jobs[:half], section.jobs[half:], strict=True):
-        environment = preset_job.argv[preset_job.argv.index("--environment") + 1]
+        environment = preset_job.environment
         base = summarise(data[preset_job])[0]
         tuned_rows = data[tuned_job]
         tuned = summarise(tuned_rows)[0]
@@ -225,9 +229,7 @@ def _spearman(a: Sequence[float], b: Sequence[float]) -> tuple[float, float]:
 def _configuration_label(row: Row, field: str) -> str:
     """``the default`` or ``field=value`` for a TPSR run of a fit-switch study."""
     values = row_parameters(row)["tpsr"]
-    changed = departures(TPSRConfig.from_dict(values), PRESETS[DEFAULT_PRESET].tpsr_config())
-    changed.pop("obs_dim", None)  # the fit records the d^O that obs_variance chose
-    return "the default" if not changed else f"{field}={values[field]}"
+    return "the default" if not _changes_from_default(values) else f"{field}={values[field]}"
 
 
 def _render_criterion(section: Section, data: Data) -> list[str]:
@@ -247,7 +249,7 @@ def _render_criterion(section: Section, data: Data) -> list[str]:
         labels: dict[str, str] = {}
         seen: set[tuple[str, int]] = set()
         for job in section.jobs:
-            if job.argv[job.argv.index("--environment") + 1] != environment:
+            if job.environment != environment:
                 continue
             name, _ = varied(job)
             field = name.split(".", 1)[1]
@@ -295,9 +297,7 @@ def _render_memory(section: Section, data: Data) -> list[str]:
     ]
     most = 0.0
     for job in section.jobs:
-        preset = job.argv[job.argv.index("--preset") + 1] if "--preset" in job.argv else (
-            DEFAULT_PRESET
-        )
+        preset = job.option("--preset", DEFAULT_PRESET)
         rows = data[job]
         for entry in summarise(rows):
             mine = [r for r in rows if r.method == entry["method"] and math.isfinite(r.memory)]

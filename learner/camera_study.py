@@ -83,10 +83,6 @@ def _jobs() -> tuple[Job, ...]:
     return tuple(jobs)
 
 
-def _environment(job: Job) -> str:
-    return job.argv[job.argv.index("--environment") + 1]
-
-
 def _memory_text(rows: list[Any], value: str, method: str) -> str:
     memory = [
         r.memory
@@ -111,7 +107,7 @@ def _render(section: Section, data: Data) -> list[str]:
     pca_means: dict[str, dict[str, float]] = {}
     ceilings: dict[str, float] = {}
     for best_job, guide_job in zip(section.jobs[::2], section.jobs[1::2], strict=True):
-        environment = _environment(best_job)
+        environment = best_job.environment
         reference, best = study_entries(best_job, data[best_job])
         _, guide = study_entries(guide_job, data[guide_job])
         _, values = varied(best_job)

@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, Evaluation, Trial
-from learner.inputs import require_camera, require_simulator_model
+from learner.inputs import open_simulator_model
 from sim_node import Environment, SimConfig
 from sim_node.options import add_vertical_half_extent_option
 from sim_node.topics import CMD_IGNORED_TOPIC
@@ -57,7 +57,6 @@ from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import check_bag_path_free
 from tpsr_ros.io.filter_inputs import filter_inputs
-from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.policy import TRUE_POSITION, load_policy
 from tpsr_ros.runtime import (
     LATCHED_QOS,
@@ -291,10 +290,9 @@ def _check_inputs(
         )
     policy.check_environment(environment)
     model = policy.model_path(model_path).resolve()
-    model_file = open_model(model)  # once: the filter node opens it again in its process
-    require_simulator_model(model_file)
     camera = SimConfig(environment=environment, vertical_half_extent=vertical_half_extent)
-    require_camera(model_file, camera.vertical_extent)
+    # once: the filter node opens it again in its process
+    model_file = open_simulator_model(model, camera.vertical_extent)
     filter_inputs(model_file, (policy, str(policy_path)))
     return policy_path, model
 

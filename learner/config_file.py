@@ -32,6 +32,7 @@ __all__ = [
     "changed_parameters",
     "describe",
     "read_fit_config",
+    "read_fit_file",
     "read_fit_inputs",
     "write_fit_config",
 ]
@@ -84,9 +85,16 @@ def _load(path: Path) -> dict[str, Any]:
     return content
 
 
-def read_fit_config(path: Path) -> dict[str, Any]:
-    """The ``tpsr`` values of the config file at ``path``, validated (a ``ConfigError`` else)."""
-    values = _load(path).get("tpsr")
+def read_fit_file(path: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(tpsr values, input values)`` of the config file at ``path``, read once."""
+    content = _load(path)
+    return read_fit_config(path, content), read_fit_inputs(path, content)
+
+
+def read_fit_config(path: Path, content: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The ``tpsr`` values of the config file at ``path`` (or of its ``content``, when read
+    already), validated (a ``ConfigError`` else)."""
+    values = (_load(path) if content is None else content).get("tpsr")
     if not isinstance(values, dict) or not values:
         raise ConfigError(f"config file {str(path)!r}: 'tpsr' must be a mapping of parameters")
     known = {f.name for f in dataclasses.fields(TPSRConfig)}
@@ -124,10 +132,10 @@ def _valid_input(key: str, value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool) and 0 < value <= 10_000
 
 
-def read_fit_inputs(path: Path) -> dict[str, Any]:
+def read_fit_inputs(path: Path, content: dict[str, Any] | None = None) -> dict[str, Any]:
     """The ``input`` values of the config file (empty without the section), types checked;
     ``learner fit`` validates them further as it validates its options."""
-    section = _load(path).get("input", {})
+    section = (_load(path) if content is None else content).get("input", {})
     if not isinstance(section, dict):
         raise ConfigError(f"config file {str(path)!r}: 'input' must be a mapping")
     if unknown := sorted(map(str, set(section) - set(INPUT_KEYS))):

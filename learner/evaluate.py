@@ -20,12 +20,11 @@ from typing import Any
 
 import numpy as np
 
-from learner.inputs import require_camera, require_simulator_model
+from learner.inputs import open_simulator_model
 from learner.representations import Tracker, load_tracker
 from sim_node import Environment, RobotEnv, SimConfig
 from sim_node.options import add_vertical_half_extent_option
 from tpsr_ros.core.errors import ModelFormatError
-from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.policy import TRUE_POSITION, Policy, load_policy
 
 __all__ = [
@@ -155,10 +154,7 @@ def register(subparsers: Any) -> None:
 def _tracker_for(policy: Policy, model: str | None, vertical_half_extent: float) -> Tracker:
     if policy.representation == TRUE_POSITION:
         return load_tracker(TRUE_POSITION)
-    model_file = open_model(policy.model_path(model))
-    require_simulator_model(model_file)
-    require_camera(model_file, vertical_half_extent)
-    return load_tracker(model_file)
+    return load_tracker(open_simulator_model(policy.model_path(model), vertical_half_extent))
 
 
 def run(args: argparse.Namespace) -> int:

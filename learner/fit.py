@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from learner.config_file import describe, read_fit_config, read_fit_inputs
+from learner.config_file import describe, read_fit_file
 from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible, dask_client
 from learner.inputs import (
     add_stream_options,
@@ -199,13 +199,14 @@ def _say(message: str) -> None:
 def run(args: argparse.Namespace) -> int:
     """Read bags, cut episodes, fit, write the model and print a summary."""
     output = check_output_path(args.output, force=args.force)
+    file_values = None
     if args.config is not None:
-        if taken := apply_config_inputs(args, read_fit_inputs(args.config)):
+        file_values, file_inputs = read_fit_file(args.config)
+        if taken := apply_config_inputs(args, file_inputs):
             _say(f"options from {args.config}: {', '.join(taken)}")
     require_given_topics(args.bags, args)
     stream_options = fit_options_from_args(args)
     robot_bags = stream_options is not None
-    file_values = None if args.config is None else read_fit_config(args.config)
     preset = preset_from_args(args)
     preset_config = preset.tpsr_config(robot=robot_bags)
     tpsr_config = config_from_args(TPSRConfig, args, preset_config, file_values)

@@ -16,13 +16,14 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from learner.config_file import TOPIC_KEYS
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.codebook import COMPONENTS, DEFAULT_COMPONENTS
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.units import NS_PER_S
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.io.model_io import ModelFile, metadata_field
+from tpsr_ros.io.model_io import ModelFile, metadata_field, open_model
 from tpsr_ros.io.stream_spec import StreamSpec
 from tpsr_ros.io.streams import DEFAULT_POSE_FRAME, FitOptions, read_stream_trajectory
 from tpsr_ros.io.trajectory import Topics, read_trajectory
@@ -32,6 +33,7 @@ __all__ = [
     "apply_config_inputs",
     "fit_options_from_args",
     "image_size",
+    "open_simulator_model",
     "read_for_model",
     "recorded_topic",
     "require_camera",
@@ -194,7 +196,7 @@ def stream_inputs(args: argparse.Namespace, spec: StreamSpec | None) -> dict[str
     spec's resolved options, so that ``learner fit --config`` reads the data the same way."""
     values: dict[str, Any] = {
         key: getattr(args, key)
-        for key in ("image_topic", "action_topic", "pose_topic", "reward_topic", "pose_frame")
+        for key in TOPIC_KEYS
         if getattr(args, key, None) is not None
     }
     if spec is None:
@@ -325,3 +327,12 @@ def require_camera(
         f"model {str(model_file.path)!r} was learned from bags whose camera has vertical "
         f"half-extent {learned:g}, but {where} has {vertical_half_extent:g}{fix}"
     )
+
+
+def open_simulator_model(path: Path | str, vertical_half_extent: float) -> ModelFile:
+    """The model file at ``path``, refused unless the simulator with this camera can drive
+    it (:func:`require_simulator_model`, :func:`require_camera`)."""
+    model_file = open_model(path)
+    require_simulator_model(model_file)
+    require_camera(model_file, vertical_half_extent)
+    return model_file

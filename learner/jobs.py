@@ -40,6 +40,15 @@ class Job:
     argv: tuple[str, ...]
     csv: str
 
+    def option(self, flag: str, default: str | None = None) -> str | None:
+        """The value the job's command gives ``flag`` (e.g. ``--environment``), or ``default``."""
+        return self.argv[self.argv.index(flag) + 1] if flag in self.argv else default
+
+    @property
+    def environment(self) -> str:
+        """The job's ``--environment``."""
+        return str(self.option("--environment"))
+
     @property
     def command(self) -> str:
         """The command as a user types it (run from the repository's root)."""

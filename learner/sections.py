@@ -112,7 +112,7 @@ def judged(difference: float, sems: float) -> str:
 
 def varied(job: Job) -> tuple[str, list[str]]:
     """The parameter a ``learner study`` job varies and its values, as written."""
-    text = job.argv[job.argv.index("--vary") + 1]
+    text = str(job.option("--vary"))
     name, values = text.split("=", 1)
     return name, values.split(",")
 
