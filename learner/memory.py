@@ -37,6 +37,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +47,7 @@ from learner.simulated import SimSettings, random_trajectory
 from sim_node import Environment, RobotEnv, action_index
 from sim_node.options import add_vertical_half_extent_option
 from tpsr_ros.cli import positive_int
-from tpsr_ros.core.episodes import images_to_observations
+from tpsr_ros.core.episodes import Trajectory, images_to_observations
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.io.model_io import load_model
@@ -188,6 +189,12 @@ def memory_steps(
     return int(closed[0]), False
 
 
+@lru_cache(maxsize=2)
+def _random_run(environment: str, steps: int, seed: int, sim: SimSettings | None) -> Trajectory:
+    """The random run of :func:`state_spread`: the same for every model of an experiment."""
+    return random_trajectory(environment, steps, seed, sim)
+
+
 def state_spread(
     model: StateModel,
     environment: str,
@@ -200,7 +207,7 @@ def state_spread(
     The first 10 % of the run is dropped so the spread describes the states the filter
     settles into, not its start-up.
     """
-    trajectory = random_trajectory(environment, steps, seed, sim)
+    trajectory = _random_run(environment, steps, seed, sim)
     states = model.track(trajectory.actions, trajectory.observations).states[steps // 10 :]
     spread = float(np.sqrt(np.mean(np.sum((states - states.mean(axis=0)) ** 2, axis=1))))
     if not np.isfinite(spread) or spread <= 0:
