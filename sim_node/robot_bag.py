@@ -31,6 +31,7 @@ starts 100 s into the bag's clock. Everything is seeded. The bag carries no
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import sys
@@ -138,39 +139,31 @@ class Timeline:
     odom_s: np.ndarray
 
 
-def _moving(config: RobotBagConfig, run: Any) -> Timeline:
+def _one_second_steps(config: RobotBagConfig, run: Any, *, at_step_start: bool) -> Timeline:
+    """Steps of 1 s, frames at the camera's rate, two commands per step k = 2..N.
+
+    ``moving``: frames from 1 s to N s show the robot where it is at the frame's time,
+    commands 0.4 and 0.9 s into their step, odometry at 10 Hz. ``step-start``: the frames
+    of a step (1 s to before N s) all show the scene at the step's start, commands at its
+    start and half a second later, odometry at the camera's 4 Hz.
+    """
     n, per_step = config.steps, round(config.camera_rate)
-    # camera frames at 1/rate s from 1 s (the end of step 1) to N s
-    frame_s = 1.0 + np.arange((n - 1) * per_step + 1) / config.camera_rate
-    # two commands per step k = 2..N, 0.4 and 0.9 s into it
+    frames = (n - 1) * per_step + (0 if at_step_start else 1)
+    frame_s = 1.0 + np.arange(frames) / config.camera_rate
     step_k = np.repeat(np.arange(2, n + 1), 2)
-    command_s = step_k - 1 + np.tile([0.4, 0.9], n - 1)
+    command_s = step_k - 1 + np.tile([0.0, 0.5] if at_step_start else [0.4, 0.9], n - 1)
+    odom_rate = 4 if at_step_start else 10
     return Timeline(
         frame_s=frame_s,
-        frame_positions=_interpolated(run.positions, frame_s),
+        frame_positions=_interpolated(
+            run.positions, np.floor(frame_s) if at_step_start else frame_s
+        ),
         stamp_delay_ns=(5_000_000, 40_000_000),
         command_s=command_s,
         command_delay_ns=20_000_000,
         command_steps=step_k,
         components=("linear.x", "linear.y"),
-        odom_s=1.0 + np.arange((n - 1) * 10 + 1) / 10.0,
-    )
-
-
-def _step_start(config: RobotBagConfig, run: Any) -> Timeline:
-    n, per_step = config.steps, round(config.camera_rate)
-    frame_s = 1.0 + np.arange((n - 1) * per_step) / config.camera_rate  # [1, N)
-    step_k = np.repeat(np.arange(2, n + 1), 2)
-    command_s = step_k - 1 + np.tile([0.0, 0.5], n - 1)
-    return Timeline(
-        frame_s=frame_s,
-        frame_positions=_interpolated(run.positions, np.floor(frame_s)),  # the step's start
-        stamp_delay_ns=(5_000_000, 40_000_000),
-        command_s=command_s,
-        command_delay_ns=20_000_000,
-        command_steps=step_k,
-        components=("linear.x", "linear.y"),
-        odom_s=1.0 + np.arange((n - 1) * 4 + 1) / 4.0,
+        odom_s=1.0 + np.arange((n - 1) * odom_rate + 1) / odom_rate,
     )
 
 
@@ -197,7 +190,11 @@ def _phone(config: RobotBagConfig, run: Any) -> Timeline:
     )
 
 
-_TIMELINES = {"moving": _moving, "step-start": _step_start, "phone": _phone}
+_TIMELINES = {
+    "moving": functools.partial(_one_second_steps, at_step_start=False),
+    "step-start": functools.partial(_one_second_steps, at_step_start=True),
+    "phone": _phone,
+}
 
 
 def _t(name: str) -> Any:
