@@ -151,7 +151,10 @@ def test_timers_fire_periodically_and_can_be_cancelled(bus):
     count = len(ticks)
     node.spin(timeout_s=0.05)
     assert len(ticks) == count
-    assert np.all(np.diff(ticks) > 0)  # the period's precision is a benchmark's, not a test's
+    # ticks are never early nor bunched: each takes a grid point later than the last tick
+    # (so n ticks span more than n - 2 periods, however loaded the machine; the period's
+    # precision is a benchmark's)
+    assert ticks[-1] - ticks[0] > (len(ticks) - 3) * 0.01
 
 
 def test_request_shutdown_from_another_thread_stops_spin(bus):
