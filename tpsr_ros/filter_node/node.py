@@ -10,6 +10,7 @@ indices, a step source of :mod:`~tpsr_ros.filter_node.stepping` turns those into
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -78,18 +79,32 @@ def load_inputs(
 ) -> FilterInputs:
     """Open the model (once), load the policy and check them for a node subscribing the
     given topics (default: the model's own, or the simulator's, in ``namespace``)."""
+    prefix = namespace.rstrip("/")
+    return _open_inputs(
+        params, lambda name: f"{prefix}/{name}", namespace, image_topic, action_topic
+    )
+
+
+def _open_inputs(
+    params: FilterNodeParams,
+    resolve: Callable[[str], str],
+    namespace: str,
+    image_topic: str | None = None,
+    action_topic: str | None = None,
+) -> FilterInputs:
+    """The model opened once and the policy loaded, checked for the input topics: the
+    given ones, else the model's (or the simulator's) names as ``resolve`` maps them."""
     if not params.model:
         raise ConfigError("no model given: pass -p model:=MODEL (a file from `learner fit`)")
     model_file = open_model(params.model)
     image, action = input_topics(model_file) or (IMAGE_TOPIC, ACTION_TOPIC)
-    prefix = namespace.rstrip("/")
     policy = (load_policy(params.policy), params.policy) if params.policy else None
     return filter_inputs(
         model_file,
         policy,
         check_topics=params.check_topics,
-        image_topic=image_topic or f"{prefix}/{image}",
-        action_topic=action_topic or f"{prefix}/{action}",
+        image_topic=image_topic or resolve(image),
+        action_topic=action_topic or resolve(action),
         namespace=namespace,
     )
 
@@ -108,24 +123,11 @@ class FilterNode(Node):
     def preflight(cls, options: NodeOptions) -> FilterInputs:
         """Open and check the model and policy before joining the graph (once: the node's
         :meth:`setup` takes what this opened)."""
-        params: FilterNodeParams = options.params
-        if not params.model:
-            raise ConfigError("no model given: pass -p model:=MODEL (a file from `learner fit`)")
-        model_file = open_model(params.model)
         # Node.resolve_topic needs only the options, name and namespace: use it unbound
         # so the check sees exactly the names setup() will subscribe.
         probe = object.__new__(cls)
         probe.options, probe.name, probe.namespace = options, options.name, options.namespace
-        image, action = input_topics(model_file) or (IMAGE_TOPIC, ACTION_TOPIC)
-        policy = (load_policy(params.policy), params.policy) if params.policy else None
-        return filter_inputs(
-            model_file,
-            policy,
-            check_topics=params.check_topics,
-            image_topic=probe.resolve_topic(image),
-            action_topic=probe.resolve_topic(action),
-            namespace=options.namespace,
-        )
+        return _open_inputs(options.params, probe.resolve_topic, options.namespace)
 
     def setup(self) -> None:
         """Take the checked model and policy; create the endpoints and timers."""
