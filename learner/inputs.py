@@ -121,7 +121,7 @@ def add_stream_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup
     parser.add_argument(
         "--components",
         type=_components,
-        default=DEFAULT_COMPONENTS,
+        default=None,
         metavar="C,C...",
         help="command components of the actions; constant ones drop out (default: "
         f"{','.join(DEFAULT_COMPONENTS)})",
@@ -170,7 +170,7 @@ def fit_options_from_args(args: argparse.Namespace) -> FitOptions | None:
         step_period=args.step_period,
         image_size=args.image_size,
         grey=args.grey,
-        components=tuple(args.components),
+        components=tuple(args.components or DEFAULT_COMPONENTS),
         actions=args.actions,
         image_timeout=args.image_timeout,
         command_timeout=args.command_timeout,
@@ -185,7 +185,7 @@ def apply_config_inputs(args: argparse.Namespace, values: dict[str, Any]) -> lis
     taken = []
     for key, value in values.items():
         current = getattr(args, key, None)
-        if current is None or (key == "components" and tuple(current) == DEFAULT_COMPONENTS):
+        if current is None:
             setattr(args, key, value)
             taken.append(key)
     return taken

@@ -433,3 +433,20 @@ def test_the_first_stage_tries_the_observation_dimensions_by_variance():
     name, propose = _stages({"sigma_obs": 1.0, "sigma_ht": 2.0}, episodes=5000)[0]
     assert name == "observation dimensions" and 0.0 in OBS_VARIANCE
     assert propose(RIGHT) == [dataclasses.replace(RIGHT, obs_variance=v) for v in OBS_VARIANCE]
+
+
+def test_options_given_on_the_command_line_win_over_the_config_file():
+    """Even one spelled as its default: given is given."""
+    from learner.cli import build_parser
+    from learner.inputs import apply_config_inputs
+    from tpsr_ros.core.codebook import DEFAULT_COMPONENTS
+
+    file_inputs = {"components": ("linear.x", "linear.y"), "image_topic": "/cam"}
+    given = build_parser().parse_args(
+        ["fit", "bag", "--components", ",".join(DEFAULT_COMPONENTS), "-o", "m.npz"]
+    )
+    assert apply_config_inputs(given, dict(file_inputs)) == ["image_topic"]
+    assert tuple(given.components) == DEFAULT_COMPONENTS
+    silent = build_parser().parse_args(["fit", "bag", "-o", "m.npz"])
+    assert apply_config_inputs(silent, dict(file_inputs)) == ["components", "image_topic"]
+    assert silent.components == ("linear.x", "linear.y")
