@@ -4,7 +4,9 @@ Protocol, fixed and documented so that every score is comparable and the closed 
 the nodes reproduces it exactly: one simulator seeded with ``EVALUATION_SEED``; its
 start-up reset (a random start, as ``sim_node`` does); then for each of the ten
 ``START_POSITIONS`` a reset to that position and ``STEPS`` greedy steps, the state
-starting from the representation's initial state (``b_*`` for a TPSR). A trial's reward
+starting from the representation's initial state (``b_*`` for a TPSR); in ``drive`` each
+start also has a heading (``START_HEADINGS_DEG``: east, north, west, south in turn). A
+trial's reward
 is the sum over its steps; the score is the mean over the ten trials (at most about 470:
 no start lies in the goal zone). Execution noise continues from trial to trial, exactly
 as in a ``sim_node`` that is reset ten times.
@@ -29,6 +31,7 @@ from tpsr_ros.io.policy import TRUE_POSITION, Policy, load_policy
 
 __all__ = [
     "EVALUATION_SEED",
+    "START_HEADINGS_DEG",
     "START_POSITIONS",
     "STEPS",
     "Evaluation",
@@ -53,6 +56,17 @@ START_POSITIONS: tuple[tuple[float, float], ...] = (
     (22.5, 22.5),
     (28.0, 28.0),
 )
+START_HEADINGS_DEG: tuple[float, ...] = tuple(90.0 * (i % 4) for i in range(len(START_POSITIONS)))
+"""The heading of each start in ``drive`` (degrees from east, counter-clockwise)."""
+
+
+def start_options(config: SimConfig, index: int, start: tuple[float, float]) -> dict[str, Any]:
+    """The reset options of trial ``index`` from ``start``: its position, and in ``drive``
+    its heading from :data:`START_HEADINGS_DEG`."""
+    options: dict[str, Any] = {"position": start}
+    if config.drives:
+        options["heading"] = float(np.radians(START_HEADINGS_DEG[index % len(START_HEADINGS_DEG)]))
+    return options
 
 
 @dataclass(frozen=True)
@@ -112,8 +126,8 @@ def run_protocol(
     env.reset()  # the start-up reset of a freshly started sim_node
     trials = []
     for index, start in enumerate(starts):
-        image, info = env.reset(options={"position": start})
-        state = tracker.start(image, info["position"])
+        image, info = env.reset(options=start_options(config, index, start))
+        state = tracker.start(image, info["pose"])
         total, goal_step, contacts = 0.0, None, 0
         for k in range(1, steps + 1):
             action = choose(state)
@@ -122,7 +136,7 @@ def run_protocol(
             contacts += info["wall_contact"]
             if goal_step is None and info["goal_zone"]:
                 goal_step = k
-            state = tracker.step(state, action, image, info["position"])
+            state = tracker.step(state, action, image, info["pose"])
         trial = Trial(tuple(start), total, goal_step, contacts)
         trials.append(trial)
         if on_trial is not None:

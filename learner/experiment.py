@@ -69,9 +69,17 @@ __all__ = [
     "run_experiment",
 ]
 
-RL_STEPS = {"full": 15000, "partial": 20000, "distractors": 20000, "partial-strip": 20000}
+RL_STEPS = {
+    "full": 15000,
+    "partial": 20000,
+    "distractors": 20000,
+    "partial-strip": 20000,
+    "drive": 20000,
+}
 # guide figure 4.5 / appendix A.2-A.3; partial-strip as partial
-PCA_DIM = {"full": 2, "partial": 3, "distractors": 3, "partial-strip": 3}
+PCA_DIM = {"full": 2, "partial": 3, "distractors": 3, "partial-strip": 3, "drive": 4}
+"""The PCA baseline's dimension: the guide's 2 and 3; ``drive``'s 4 for x, y and the
+heading's cosine and sine."""
 
 
 @dataclass(frozen=True)
@@ -294,7 +302,10 @@ def _learn_states(
         episodes = make_episodes(train, config.tpsr.history_length, config.tpsr.test_length)
         # sizes set with --set stay as set; the preset's follow the data (core.sizing)
         given = departures(config.tpsr, get_preset(config.preset).tpsr_config())
-        model = fit_tpsr_episodes(episodes, config=config.tpsr, sizing=Sizing(given))
+        codes = config.sim_config().actions.codes  # for action-aware features
+        model = fit_tpsr_episodes(
+            episodes, config=config.tpsr, sizing=Sizing(given), action_codes=codes
+        )
     else:
         model = fit_pca(train.observations, n_actions=train.n_actions, config=config.pca)
     track = model.track(rl.actions, rl.observations)
@@ -327,7 +338,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             if method == "tpsr":  # the fit's own record, e.g. the d^O that obs_variance chose
                 run_config = dataclasses.replace(run_config, tpsr=tracker.model.config)
             r2 = affine_r2(states, rl.positions)
-            position_error = neighbour_position_error(states, rl.positions)
+            position_error = neighbour_position_error(states, rl.positions[:, :2])
             memory = (
                 memory_of(tracker, config.environment, config.sim)
                 if config.memory

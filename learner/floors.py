@@ -4,8 +4,8 @@ A learned representation is worth something only where its policy beats every po
 that ignores the state. Two floors run the standard protocol (:mod:`learner.evaluate`)
 without looking at what the robot sees:
 
-- ``constant``: the best of the 25 constant actions (the best state-blind policy that
-  does not randomise). It is deterministic: the protocol's seed fixes the execution noise,
+- ``constant``: the best of the constant actions (25, or ``drive``'s 9: the best
+  state-blind policy that does not randomise). It is deterministic: the protocol's seed fixes the execution noise,
   so every repetition of an experiment scores the same and its SEM is 0.
 - ``random``: uniformly random actions from a seeded generator (one seed per run).
 """
@@ -18,7 +18,7 @@ from functools import lru_cache
 import numpy as np
 
 from learner.evaluate import EVALUATION_SEED, Evaluation, run_protocol
-from tpsr_ros.core.actions import ACTIONS, NUM_ACTIONS
+from sim_node import SimConfig
 from tpsr_ros.core.episodes import Trajectory
 
 __all__ = [
@@ -65,30 +65,29 @@ class ConstantFloor:
 
     action: int
     evaluation: Evaluation
-
-    @property
-    def velocity(self) -> tuple[float, float]:
-        """The commanded ``(vx, vy)`` of the action in m/s."""
-        vx, vy = ACTIONS[self.action]
-        return float(vx), float(vy)
+    velocity: tuple[float, float]
+    """The action's command: ``(vx, vy)`` in m/s, or ``drive``'s (speed, turn rate)."""
 
 
 @lru_cache(maxsize=4)
 def constant_floor(environment: str, seed: int = EVALUATION_SEED) -> ConstantFloor:
-    """Evaluate all 25 constant actions; the best (lowest index on a tie) is the floor."""
+    """Evaluate every constant action; the best (lowest index on a tie) is the floor."""
+    grid = SimConfig(environment=environment).actions
     results = [
         run_protocol(lambda _state, a=action: a, BlindTracker(), environment, seed=seed)
-        for action in range(NUM_ACTIONS)
+        for action in range(len(grid))
     ]
     best = int(np.argmax([r.score for r in results]))
-    return ConstantFloor(best, results[best])
+    first, second = grid.codes[best]
+    return ConstantFloor(best, results[best], (float(first), float(second)))
 
 
 def random_floor(environment: str, policy_seed: int, seed: int = EVALUATION_SEED) -> Evaluation:
     """Uniformly random actions drawn from ``policy_seed`` under the standard protocol."""
     rng = np.random.default_rng(policy_seed)
+    count = len(SimConfig(environment=environment).actions)
 
     def choose(_state: np.ndarray) -> int:
-        return int(rng.integers(NUM_ACTIONS))
+        return int(rng.integers(count))
 
     return run_protocol(choose, BlindTracker(), environment, seed=seed)

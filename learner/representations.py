@@ -71,19 +71,20 @@ class ModelTracker:
 
 @dataclass(frozen=True)
 class TruePositionTracker:
-    """The true ``(x, y)`` position as the state: the upper bound of the RL step."""
+    """The true pose as the state: the upper bound of the RL step. The pose is ``(x, y)``,
+    or in ``drive`` ``(x, y, cos, sin)`` of the heading (``sim_node.env.pose_of``)."""
 
     representation: str = TRUE_POSITION
     fingerprint: str = TRUE_POSITION
 
     def start(self, image: np.ndarray, position: np.ndarray) -> np.ndarray:
-        """The true start position."""
+        """The true start pose."""
         return np.asarray(position, dtype=np.float64).copy()
 
     def step(
         self, state: np.ndarray, action: int, image: np.ndarray, position: np.ndarray
     ) -> np.ndarray:
-        """The true position after the step."""
+        """The true pose after the step."""
         return np.asarray(position, dtype=np.float64).copy()
 
     def track(self, trajectory: Trajectory) -> np.ndarray:

@@ -17,7 +17,6 @@ import numpy as np
 
 from sim_node import SimConfig, random_rollout
 from sim_node.config import MAX_VERTICAL_HALF_EXTENT, Environment, check_vertical_half_extent
-from tpsr_ros.core.actions import NUM_ACTIONS
 from tpsr_ros.core.episodes import Trajectory, images_to_observations
 from tpsr_ros.core.fields import option
 
@@ -51,7 +50,8 @@ class SimSettings:
 def random_trajectory(
     environment: str, steps: int, seed: int, sim: SimSettings | None = None
 ) -> Trajectory:
-    """A uniformly random run of ``steps`` steps as one gap-free trajectory."""
+    """A uniformly random run of ``steps`` steps as one gap-free trajectory (its positions:
+    ``(x, y)``, or ``(x, y, cos, sin)`` of the heading in ``drive``)."""
     sim = sim or SimSettings()
     config = sim.config(environment)
     run = random_rollout(config, steps, seed)
@@ -60,11 +60,11 @@ def random_trajectory(
         observations=images_to_observations(run.images),
         actions=run.actions.astype(np.int64),
         velocities=run.commands,
-        positions=run.positions,
+        positions=run.poses,
         rewards=run.rewards,
         segments=np.zeros(steps, dtype=np.int64),
         image_shape=(config.image_size, config.image_size),
-        n_actions=NUM_ACTIONS,
+        n_actions=len(config.actions),
         sources=[
             {
                 "simulated": True,

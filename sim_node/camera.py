@@ -1,7 +1,7 @@
 """Panoramic RGB camera: vectorised ray casting in a square room (no per-pixel loops).
 
-Geometry. The camera sits on top of the robot (height ``robot_height``) and always faces
-north (+y). Columns split the horizontal field of view evenly from left to right; each
+Geometry. The camera sits on top of the robot (height ``robot_height``) and faces the
+robot's heading: north (+y) for the planar robot, which never turns. Columns split the horizontal field of view evenly from left to right; each
 column averages ``rays_per_column`` horizontal rays. Rows are evenly spaced in the tangent
 of the elevation angle, from ``+vertical_half_extent`` (top row) to its negative, as in
 a cylindrical panorama. A ray at horizontal distance ``d`` from the wall it meets sees
@@ -36,7 +36,7 @@ WALL_COLOURS = np.array(
 FLOOR_COLOUR = np.array([0.35, 0.35, 0.35])
 SKY_COLOUR = np.array([0.85, 0.85, 0.90])
 _SOUTH, _EAST, _NORTH, _WEST = range(4)
-_HEADING = np.pi / 2  # north
+_NORTH_HEADING = np.pi / 2
 
 
 def _distractor_red(red: np.ndarray | float) -> np.ndarray:
@@ -55,7 +55,8 @@ class Camera:
         size, rays = config.image_size, config.rays_per_column
         fov = np.deg2rad(config.fov_deg)
         fraction = (np.arange(size * rays) + 0.5) / (size * rays)  # left to right
-        azimuth = (_HEADING + fov / 2 - fraction * fov).reshape(size, rays)
+        self._offset = (fov / 2 - fraction * fov).reshape(size, rays)  # from the heading
+        azimuth = _NORTH_HEADING + self._offset
         self._ux, self._uy = np.cos(azimuth), np.sin(azimuth)  # (W, S)
         extent = config.vertical_extent
         edges = extent * (1.0 - 2.0 * np.arange(size + 1) / size)  # top edge first
@@ -81,11 +82,19 @@ class Camera:
         cover *= self._inv_row_height
         return cover
 
-    def _cast(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _directions(self, headings: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Unit ray directions: ``(W, S)`` facing north, or ``(N, W, S)`` for ``headings``."""
+        if headings is None:
+            return self._ux, self._uy
+        azimuth = np.asarray(headings, dtype=np.float64).reshape(-1, 1, 1) + self._offset
+        return np.cos(azimuth), np.sin(azimuth)
+
+    def _cast(
+        self, positions: np.ndarray, ux: np.ndarray, uy: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Distance, wall index and coordinate along that wall for every ray: ``(N, W, S)``."""
         size = self.config.room_size
         px, py = positions[:, 0, None, None], positions[:, 1, None, None]
-        ux, uy = self._ux, self._uy
         with np.errstate(divide="ignore", invalid="ignore"):
             tx = np.where(ux > 0, (size - px) / ux, np.where(ux < 0, -px / ux, np.inf))
             ty = np.where(uy > 0, (size - py) / uy, np.where(uy < 0, -py / uy, np.inf))
@@ -102,15 +111,20 @@ class Camera:
         positions: np.ndarray,
         floor_disks: np.ndarray | None = None,
         wall_patches: np.ndarray | None = None,
+        headings: np.ndarray | None = None,
     ) -> np.ndarray:
         """Images seen from ``positions`` ``(N, 2)``.
 
         ``floor_disks`` ``(N, F, 2)`` are distractor disk centres and ``wall_patches``
         ``(N, 4)`` the distractor centre along each wall (south, east, north, west); both
-        ``None`` renders the plain room. Returns ``(N, H, W, 3)`` uint8.
+        ``None`` renders the plain room. ``headings`` ``(N,)`` (radians from +x) turn the
+        camera; None faces north. Returns ``(N, H, W, 3)`` uint8.
         """
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
-        distance, wall, along = self._cast(positions)
+        if headings is not None and (floor_disks is not None or wall_patches is not None):
+            raise ValueError("the distractors are drawn for the north-facing camera only")
+        ux, uy = self._directions(headings)
+        distance, wall, along = self._cast(positions, ux, uy)
         inv_distance = (1.0 / distance).astype(np.float32)
         wall_low = -self._cam_h * inv_distance
         wall_high = (self._wall_h - self._cam_h) * inv_distance

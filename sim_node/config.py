@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass, field
 from enum import Enum
 
+from tpsr_ros.core.actions import DEFAULT_TURN_RATE_DEG, PLANAR, ActionGrid, drive_grid
 from tpsr_ros.core.errors import ConfigError
 
 __all__ = [
@@ -48,14 +49,17 @@ def check_vertical_half_extent(value: float) -> float:
 
 
 class Environment(str, Enum):
-    """The three environments of the guide's chapter 4, and ``partial-strip``: ``partial``'s
+    """The three environments of the guide's chapter 4; ``partial-strip``: ``partial``'s
     60 degree camera with a vertical extent that hides the walls' distance (the results
-    appendix's camera study: there a reactive policy stops solving the task)."""
+    appendix's camera study: there a reactive policy stops solving the task); ``drive``: a
+    differential-drive robot that turns, its camera turning with it (300 degrees unless
+    given)."""
 
     FULL = "full"
     PARTIAL = "partial"
     DISTRACTORS = "distractors"
     PARTIAL_STRIP = "partial-strip"
+    DRIVE = "drive"
 
     @property
     def narrow(self) -> bool:
@@ -128,6 +132,7 @@ class SimConfig:
     robot_height: float = 2.0
     image_size: int = 16
     field_of_view_deg: float | None = None
+    turn_rate_deg: float = DEFAULT_TURN_RATE_DEG
     vertical_half_extent: float | None = None
     rays_per_column: int = 8
     noise_fraction: float = 0.1
@@ -146,8 +151,12 @@ class SimConfig:
             raise ConfigError("the camera (robot_height) must sit below the top of the walls")
         if self.image_size < 1 or self.rays_per_column < 1 or self.physics_substeps < 1:
             raise ConfigError("image_size, rays_per_column and physics_substeps must be >= 1")
-        if not 0 < self.fov_deg <= 360:
-            raise ConfigError(f"field of view {self.fov_deg} deg must be in (0, 360]")
+        fov = self.field_of_view_deg
+        if fov is not None and (
+            isinstance(fov, bool) or not isinstance(fov, (int, float)) or not 0 < fov <= 360
+        ):
+            raise ConfigError(f"field of view must be in (0, 360] degrees, got {fov!r}")
+        drive_grid(self.turn_rate_deg)  # validates the turn rate
         if self.vertical_half_extent is not None:
             check_vertical_half_extent(self.vertical_half_extent)
         if self.noise_fraction < 0 or self.goal_radius <= 0:
@@ -157,8 +166,8 @@ class SimConfig:
 
     @property
     def fov_deg(self) -> float:
-        """Horizontal field of view: 300 deg (full, distractors) or 60 deg (partial,
-        partial-strip)."""
+        """Horizontal field of view: the one given, else 300 deg (full, distractors, drive)
+        or 60 deg (partial, partial-strip)."""
         if self.field_of_view_deg is not None:
             return float(self.field_of_view_deg)
         return 60.0 if self.environment.narrow else 300.0
@@ -169,6 +178,16 @@ class SimConfig:
         if self.vertical_half_extent is not None:
             return float(self.vertical_half_extent)
         return self.environment.vertical_half_extent
+
+    @property
+    def drives(self) -> bool:
+        """Whether the robot turns (``drive``): it has a heading, the camera turns with it."""
+        return self.environment is Environment.DRIVE
+
+    @property
+    def actions(self) -> ActionGrid:
+        """The commands of the actions: the planar 25 or ``drive``'s 9 (speed, turn rate)."""
+        return drive_grid(self.turn_rate_deg) if self.drives else PLANAR
 
     @property
     def has_distractors(self) -> bool:

@@ -2,7 +2,9 @@
 
 One step: the robot executes action a_k (its commanded velocity plus Gaussian noise with
 a standard deviation of ``noise_fraction`` of each commanded component) for 1 s, then
-the camera sees o_k. Step k is stamped ``start_time_ns + k * 1 s``; reset is step 0.
+the camera sees o_k. In ``drive`` the components are the forward speed and the turn rate,
+and the robot has a heading: random at a random start, north unless given at a placed one.
+Step k is stamped ``start_time_ns + k * 1 s``; reset is step 0.
 
 Reward of a step (guide 4.1: reach the upper right-hand corner "without hitting walls"):
 ``wall_reward`` (-1) when a wall blocked the robot during the step, and nothing else,
@@ -12,9 +14,9 @@ collision overrides the goal reward because otherwise a state-blind push into th
 earns +9 per step, 90 % of the maximum, and the evaluation could not tell a learned
 representation from none (the guide's failing representations score about 0).
 
-Randomness comes from four independent streams spawned from one seed: start position,
-exploration actions, execution noise and distractors. With the same seed and actions
-all three environments therefore follow exactly the same trajectory.
+Randomness comes from four independent streams spawned from one seed: start position
+(and heading), exploration actions, execution noise and distractors. With the same seed
+and actions the guide's environments therefore follow exactly the same trajectory.
 """
 
 from __future__ import annotations
@@ -27,11 +29,10 @@ from sim_node.camera import Camera
 from sim_node.config import SimConfig
 from sim_node.distractors import Distractors
 from sim_node.world import RoomWorld
-from tpsr_ros.core.actions import ACTIONS, NUM_ACTIONS
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.units import NS_PER_S as _NS
 
-__all__ = ["RobotEnv", "Streams", "spawn_streams", "step_reward"]
+__all__ = ["RobotEnv", "Streams", "pose_of", "spawn_streams", "start_pose", "step_reward"]
 
 
 class Streams:
@@ -50,6 +51,27 @@ class Streams:
 def spawn_streams(seed: int) -> Streams:
     """Independent start, action, noise and distractor generators for ``seed``."""
     return Streams(seed)
+
+
+def start_pose(config: SimConfig, rng: np.random.Generator) -> tuple[np.ndarray, float]:
+    """A uniformly random start position, and for ``drive`` a uniformly random heading (the
+    planar robot faces north: its start draws nothing more than it always did)."""
+    low, high = config.robot_radius, config.room_size - config.robot_radius
+    position = rng.uniform(low, high, size=2)
+    heading = float(rng.uniform(0.0, 2 * np.pi)) if config.drives else np.pi / 2
+    return position, heading
+
+
+def pose_of(config: SimConfig, positions: np.ndarray, headings: np.ndarray) -> np.ndarray:
+    """Ground truth as the learner sees it: ``(..., 2)`` positions, or for ``drive``
+    ``(..., 4)`` rows ``(x, y, cos heading, sin heading)``."""
+    positions = np.asarray(positions, dtype=np.float64)
+    if not config.drives:
+        return positions.copy()
+    headings = np.asarray(headings, dtype=np.float64)
+    return np.concatenate(
+        [positions, np.cos(headings)[..., None], np.sin(headings)[..., None]], axis=-1
+    )
 
 
 def step_reward(config: SimConfig, position: np.ndarray, contact: np.ndarray) -> np.ndarray:
@@ -75,6 +97,7 @@ class RobotEnv:
             self.config.room_size, self.config.robot_radius, self.config.physics_substeps
         )
         self._streams = Streams(seed)
+        self._actions = self.config.actions
         self._distractors: Distractors | None = None
         self._step = 0
         self._ready = False
@@ -83,6 +106,21 @@ class RobotEnv:
     def position(self) -> np.ndarray:
         """True robot centre ``(x, y)`` in metres (ground truth, never a learning input)."""
         return self._world.position
+
+    @property
+    def heading(self) -> float:
+        """True heading in radians from +x (north, pi/2, for the planar robot)."""
+        return self._world.heading
+
+    @property
+    def pose(self) -> np.ndarray:
+        """The ground truth the learner sees: :func:`pose_of` the position and heading."""
+        return pose_of(self.config, self.position, np.asarray(self.heading))
+
+    @property
+    def num_actions(self) -> int:
+        """How many actions :meth:`step` takes (25 planar, 9 in ``drive``)."""
+        return len(self._actions)
 
     @property
     def step_count(self) -> int:
@@ -96,23 +134,30 @@ class RobotEnv:
 
     def sample_action(self) -> int:
         """A uniformly random action index from the exploration stream."""
-        return int(self._streams.actions.integers(0, NUM_ACTIONS))
+        return int(self._streams.actions.integers(0, self.num_actions))
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """Start a new run; ``seed`` re-seeds every stream, ``options["position"]`` places
-        the robot (otherwise uniformly at random). Returns ``(observation, info)``."""
+        the robot (otherwise uniformly at random) and ``options["heading"]`` (radians)
+        turns it. Returns ``(observation, info)``."""
         if seed is not None:
             self._streams = Streams(seed)
         options = options or {}
-        low, high = self.config.robot_radius, self.config.room_size - self.config.robot_radius
-        start = self._streams.start.uniform(low, high, size=2)
+        start, heading = start_pose(self.config, self._streams.start)
         if "position" in options:
             start = np.asarray(options["position"], dtype=np.float64)
             if start.shape != (2,) or not np.all(np.isfinite(start)):
                 raise ConfigError(f"start position must be two finite numbers, got {start}")
-        self._world.place(*start)
+            heading = np.pi / 2
+        if "heading" in options:
+            heading = float(options["heading"])
+            if not np.isfinite(heading):
+                raise ConfigError(f"start heading must be a finite number, got {heading}")
+            if not self.config.drives and heading != np.pi / 2:
+                raise ConfigError(f"the {self.config.environment.value} robot cannot turn")
+        self._world.place(*start, heading)
         self._distractors = (
             Distractors(self.config, self._streams.distractors)
             if self.config.has_distractors
@@ -120,25 +165,36 @@ class RobotEnv:
         )
         self._step = 0
         self._ready = True
-        info = {"position": self.position, "step": 0, "stamp_ns": self.stamp_ns}
+        info = {
+            "position": self.position,
+            "heading": self.heading,
+            "pose": self.pose,
+            "step": 0,
+            "stamp_ns": self.stamp_ns,
+        }
         return self._observe(), info
 
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        """Execute action ``action`` (0..24) for one step.
+        """Execute action ``action`` (0..24; 0..8 in ``drive``) for one step.
 
         Returns ``(observation, reward, terminated, truncated, info)`` with info keys
-        ``position``, ``command``, ``executed_velocity``, ``wall_contact``,
+        ``position``, ``heading``, ``pose``, ``command``, ``executed_velocity``,
+        ``wall_contact``,
         ``goal_zone``, ``step`` and ``stamp_ns``. The task never terminates; time
         limits belong to the caller.
         """
         if not self._ready:
             raise ConfigError("call reset() before step()")
-        if not (isinstance(action, (int, np.integer)) and 0 <= action < NUM_ACTIONS):
-            raise ConfigError(f"action must be an integer in [0, {NUM_ACTIONS}), got {action!r}")
-        command = ACTIONS[int(action)]
+        count = self.num_actions
+        if not (isinstance(action, (int, np.integer)) and 0 <= action < count):
+            raise ConfigError(f"action must be an integer in [0, {count}), got {action!r}")
+        command = self._actions.codes[int(action)]
         noise = self._streams.noise.standard_normal(2)
         executed = command + self.config.noise_fraction * np.abs(command) * noise
-        contact = self._world.move(executed[0], executed[1], self.config.step_seconds)
+        if self.config.drives:
+            contact = self._world.drive(executed[0], executed[1], self.config.step_seconds)
+        else:
+            contact = self._world.move(executed[0], executed[1], self.config.step_seconds)
         if self._distractors is not None:
             self._distractors.advance()
         self._step += 1
@@ -146,6 +202,8 @@ class RobotEnv:
         reward, goal = step_reward(self.config, position, contact)
         info = {
             "position": position,
+            "heading": self.heading,
+            "pose": self.pose,
             "command": command.copy(),
             "executed_velocity": executed,
             "wall_contact": bool(contact),
@@ -156,6 +214,8 @@ class RobotEnv:
         return self._observe(), float(reward), False, False, info
 
     def _observe(self) -> np.ndarray:
+        if self.config.drives:
+            return self.camera.render(self.position[None], headings=np.array([self.heading]))[0]
         if self._distractors is None:
             return self.camera.render(self.position[None])[0]
         floor, walls = self._distractors.positions()

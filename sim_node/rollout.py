@@ -16,9 +16,8 @@ import numpy as np
 from sim_node.camera import Camera
 from sim_node.config import SimConfig
 from sim_node.distractors import distractor_paths
-from sim_node.env import spawn_streams, step_reward
+from sim_node.env import pose_of, spawn_streams, start_pose, step_reward
 from sim_node.world import RoomWorld
-from tpsr_ros.core.actions import ACTIONS, NUM_ACTIONS
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.units import NS_PER_S as _NS
 
@@ -31,10 +30,12 @@ class Rollout:
 
     first_step: int
     stamps_ns: np.ndarray  # (N,) int64, t_k = start_time_ns + k s
-    actions: np.ndarray  # (N,) int, index into ACTIONS
-    commands: np.ndarray  # (N, 2) commanded velocity, m/s
-    executed: np.ndarray  # (N, 2) executed velocity (with noise), m/s
+    actions: np.ndarray  # (N,) int, index into the environment's action grid
+    commands: np.ndarray  # (N, 2) commanded velocity (drive: speed, turn rate), m/s, rad/s
+    executed: np.ndarray  # (N, 2) executed command (with noise)
     positions: np.ndarray  # (N, 2) true position after the step, m
+    headings: np.ndarray  # (N,) true heading after the step, rad from +x (planar: pi/2)
+    poses: np.ndarray  # (N, 2) positions, or (N, 4) x, y, cos, sin in drive (pose_of)
     wall_contact: np.ndarray  # (N,) bool
     goal_zone: np.ndarray  # (N,) bool
     rewards: np.ndarray  # (N,) float
@@ -58,16 +59,16 @@ def iter_random_rollout(
     if chunk <= 0:
         raise ConfigError("chunk must be positive")
     streams = spawn_streams(seed)
-    low, high = config.robot_radius, config.room_size - config.robot_radius
-    start_xy = streams.start.uniform(low, high, size=2)
+    start_xy, heading = start_pose(config, streams.start)
     if start is not None:
-        start_xy = np.asarray(start, dtype=np.float64)
+        start_xy, heading = np.asarray(start, dtype=np.float64), np.pi / 2
     world = RoomWorld(config.room_size, config.robot_radius, config.physics_substeps)
-    world.place(*start_xy)
+    world.place(*start_xy, heading)
     camera = Camera(config)
-    actions = streams.actions.integers(0, NUM_ACTIONS, size=steps)
+    grid = config.actions
+    actions = streams.actions.integers(0, len(grid), size=steps)
     noise = streams.noise.standard_normal((steps, 2))
-    commands = ACTIONS[actions]
+    commands = grid.codes[actions]
     executed = commands + config.noise_fraction * np.abs(commands) * noise
     floor = walls = None
     if config.has_distractors:
@@ -75,15 +76,19 @@ def iter_random_rollout(
     for begin in range(0, steps, chunk):
         end = min(begin + chunk, steps)
         positions = np.empty((end - begin, 2))
+        headings = np.empty(end - begin)
         contact = np.empty(end - begin, dtype=bool)
-        for i, (vx, vy) in enumerate(executed[begin:end].tolist()):
-            contact[i] = world.move(vx, vy, config.step_seconds)
+        move = world.drive if config.drives else world.move
+        for i, (first, second) in enumerate(executed[begin:end].tolist()):
+            contact[i] = move(first, second, config.step_seconds)
             positions[i] = world.position
+            headings[i] = world.heading
         rewards, goal = step_reward(config, positions, contact)
         images = camera.render(
             positions,
             None if floor is None else floor[begin:end],
             None if walls is None else walls[begin:end],
+            headings=headings if config.drives else None,
         )
         step_index = np.arange(begin + 1, end + 1, dtype=np.int64)
         yield Rollout(
@@ -93,6 +98,8 @@ def iter_random_rollout(
             commands=commands[begin:end],
             executed=executed[begin:end],
             positions=positions,
+            headings=headings,
+            poses=pose_of(config, positions, headings),
             wall_contact=contact,
             goal_zone=goal,
             rewards=rewards,
@@ -110,8 +117,8 @@ def random_rollout(
         **{
             name: np.concatenate([getattr(p, name) for p in parts])
             for name in (
-                "stamps_ns", "actions", "commands", "executed", "positions",
-                "wall_contact", "goal_zone", "rewards", "images",
+                "stamps_ns", "actions", "commands", "executed", "positions", "headings",
+                "poses", "wall_contact", "goal_zone", "rewards", "images",
             )
         },
     )

@@ -1,9 +1,11 @@
 """Robot motion and wall collisions with pymunk.
 
-The robot is a disk of fixed orientation in a square room. A step sets the executed
-velocity once and lets pymunk integrate ``physics_substeps`` substeps: a wall stops the
-velocity component that pushes into it and the robot slides along it (frictionless,
-inelastic). Walls are 5 m thick and a substep moves at most ~0.7 m, so the robot cannot
+The robot is a disk in a square room. A step sets the executed velocity once and lets
+pymunk integrate ``physics_substeps`` substeps: a wall stops the velocity component that
+pushes into it and the robot slides along it (frictionless, inelastic). The planar robot
+never turns; the ``drive`` robot (:meth:`RoomWorld.drive`) has a heading that turns at
+the commanded rate, its velocity set along the heading at every substep (a wall cannot
+turn it: the disk's moment stays infinite and the heading is integrated here). Walls are 5 m thick and a substep moves at most ~0.7 m, so the robot cannot
 tunnel through a wall even at 6 m per step.
 
 A step has *wall contact* when a wall pushed back on the robot during the step (a
@@ -49,6 +51,7 @@ class RoomWorld:
             wall.collision_type, wall.friction, wall.elasticity = _WALL, 0.0, 0.0
             self._space.add(wall)
         self._max_impulse = 0.0
+        self.heading = np.pi / 2  # radians from +x; the planar robot faces north for ever
         self._space.on_collision(_ROBOT, _WALL, post_solve=self._record_impulse)
 
     def _record_impulse(self, arbiter: pymunk.Arbiter, space: pymunk.Space, data: object) -> None:
@@ -59,8 +62,10 @@ class RoomWorld:
         """Robot centre ``(x, y)`` in metres."""
         return np.array(self._body.position)
 
-    def place(self, x: float, y: float) -> None:
-        """Teleport the robot (at rest), clamped so it lies fully inside the room."""
+    def place(self, x: float, y: float, heading: float = np.pi / 2) -> None:
+        """Teleport the robot (at rest, facing ``heading``), clamped so it lies fully inside
+        the room."""
+        self.heading = float(np.mod(heading, 2 * np.pi))
         low, high = self.robot_radius, self.room_size - self.robot_radius
         self._body.position = (float(np.clip(x, low, high)), float(np.clip(y, low, high)))
         self._body.velocity = (0.0, 0.0)
@@ -73,6 +78,27 @@ class RoomWorld:
         dt = duration / self.substeps
         for _ in range(self.substeps):
             self._space.step(dt)
+        return self._settle(dt)
+
+    def drive(self, speed: float, turn_rate: float, duration: float) -> bool:
+        """Drive forward at ``speed`` m/s while turning at ``turn_rate`` rad/s for
+        ``duration`` s; return whether a wall blocked it.
+
+        The heading of each substep is the one at its middle, so a step of constant speed
+        and turn rate follows the arc it commands.
+        """
+        self._max_impulse = 0.0
+        dt = duration / self.substeps
+        heading = self.heading
+        for _ in range(self.substeps):
+            middle = heading + 0.5 * turn_rate * dt
+            self._body.velocity = (speed * np.cos(middle), speed * np.sin(middle))
+            self._space.step(dt)
+            heading += turn_rate * dt
+        self.heading = float(np.mod(heading, 2 * np.pi))
+        return self._settle(dt)
+
+    def _settle(self, dt: float) -> bool:
         # At rest, one more substep lets pymunk push out any overlap left by the last one.
         self._body.velocity = (0.0, 0.0)
         self._space.step(dt)
