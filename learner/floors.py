@@ -5,8 +5,8 @@ that ignores the state. Two floors run the standard protocol (:mod:`learner.eval
 without looking at what the robot sees:
 
 - ``constant``: the best of the constant actions (25, or ``drive``'s 9: the best
-  state-blind policy that does not randomise). It is deterministic: the protocol's seed fixes the execution noise,
-  so every repetition of an experiment scores the same and its SEM is 0.
+  state-blind policy that does not randomise). It is deterministic: the protocol's seed
+  fixes the execution noise, so every repetition of an experiment scores the same and its SEM is 0.
 - ``random``: uniformly random actions from a seeded generator (one seed per run).
 """
 

@@ -63,6 +63,16 @@ def affine_r2(states: np.ndarray, targets: np.ndarray) -> np.ndarray:
     return np.asarray(1.0 - residual / total)
 
 
+POSE_NAMES = ("x", "y", "cos heading", "sin heading")
+"""The ground truth's columns: the position, and for a robot that turns, its heading."""
+
+
+def _r2_text(r2: np.ndarray, separator: str = ", ") -> str:
+    """``x 0.912, y 0.874[, cos heading ..., sin heading ...]``."""
+    pairs = zip(POSE_NAMES, r2, strict=False)
+    return separator.join(f"{name} {value:.3f}" for name, value in pairs)
+
+
 def neighbour_position_error(
     states: np.ndarray, positions: np.ndarray, neighbours: int = NEIGHBOURS
 ) -> float:
@@ -211,7 +221,7 @@ def run(args: argparse.Namespace) -> int:
     tracked = track_trajectory(model, trajectory)
     known = np.isfinite(trajectory.positions).all(axis=1)
     r2 = affine_r2(tracked.states[known], trajectory.positions[known]) if known.sum() > 2 else None
-    fit_line = "" if r2 is None else f" (R^2 of x, y from an affine map: {r2[0]:.3f}, {r2[1]:.3f})"
+    fit_line = "" if r2 is None else f" (R^2 of {_r2_text(r2, ', ')} from an affine map)"
     plot_states(
         tracked.states,
         trajectory.positions,
@@ -228,8 +238,6 @@ def run(args: argparse.Namespace) -> int:
         print("no ground-truth pose in the bag(s): states coloured by time, no R^2")
     else:
         partial = "" if known.all() else f" (over the {int(known.sum())} steps with a pose)"
-        print(
-            f"R^2 of true position from states (affine least squares): x {r2[0]:.3f}, "
-            f"y {r2[1]:.3f}{partial}"
-        )
+        what = "true pose" if r2.size > 2 else "true position"
+        print(f"R^2 of {what} from states (affine least squares): {_r2_text(r2)}{partial}")
     return 0

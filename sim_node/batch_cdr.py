@@ -1,18 +1,20 @@
 """CDR bytes of a whole chunk of simulator steps at once, for the bag generator.
 
-Building five message objects per step and serialising each with rosbags costs about
-200 us a step, most of the generator's time. Yet the messages of one topic differ from
-step to step only in fixed-size fields at fixed places: the stamp, the image pixels, the
-commanded velocity, the position, the reward values. So each topic's message is
-serialised once by rosbags as a template, with sentinel values that locate those fields
-in its bytes, and a chunk's payloads are that template repeated with the fields written
-by numpy. ``tests/test_generate.py`` checks the bytes against rosbags message by message.
+Building five message objects per step and serialising each with rosbags costs about 200 us
+a step, most of the generator's time. Yet the messages of one topic differ from step to step
+only in fixed-size fields at fixed places: the stamp, the image pixels, the commanded
+velocity, the position, the reward values. So each topic's message is serialised once by
+rosbags as a template, with sentinel values that locate those fields in its bytes, and a
+chunk's payloads are that template repeated with the fields written by numpy (in ``drive``
+also the orientation's z and w, which carry the heading). ``tests/test_generate.py`` checks
+the bytes against rosbags message by message.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from sim_node.config import SimConfig
 from sim_node.rollout import Rollout
 from sim_node.topics import SimTopics, step_messages
 from tpsr_ros.core.errors import MessageError
@@ -21,6 +23,7 @@ from tpsr_ros.io import messages as m
 __all__ = ["chunk_payloads"]
 
 _SENTINELS = (1234.5678125, -8765.4321875, 4242.4242)
+_HEADING_SENTINEL = 1.2345678  # its half-angle's sine and cosine locate the quaternion
 _STAMP = slice(4, 12)  # after the encapsulation header: Time{int32 sec, uint32 nanosec}
 
 
@@ -40,8 +43,13 @@ def _put_float64(rows: np.ndarray, offset: int, values: np.ndarray) -> None:
     rows[:, offset : offset + 8] = np.asarray(values, "<f8").reshape(-1, 1).view(np.uint8)
 
 
-def chunk_payloads(topics: SimTopics, part: Rollout) -> dict[str, list[bytes]]:
-    """Per topic, the CDR payload of every step of ``part`` (in step order)."""
+def chunk_payloads(
+    topics: SimTopics, part: Rollout, config: SimConfig | None = None
+) -> dict[str, list[bytes]]:
+    """Per topic, the CDR payload of every step of ``part`` (in step order) of a run of
+    ``config``'s simulator (default: a planar one)."""
+    drives = config is not None and config.drives
+    components = config.actions.components if config is not None else ("linear.x", "linear.y")
     n = len(part)
     sec, nanosec = np.divmod(np.asarray(part.stamps_ns, dtype=np.int64), 1_000_000_000)
     if sec.min() < 0 or sec.max() >= 2**31:
@@ -57,7 +65,11 @@ def chunk_payloads(topics: SimTopics, part: Rollout) -> dict[str, list[bytes]]:
         np.array(_SENTINELS[:2]),
         np.array(_SENTINELS[:2]),
         sentinel,
+        components=components,
+        heading=_HEADING_SENTINEL if drives else None,
     )
+    half = 0.5 * _HEADING_SENTINEL
+    quaternion = (float(np.sin(half)), float(np.cos(half)))
     payloads: dict[str, list[bytes]] = {}
     for topic, msgtype, msg in templates:
         template = m.serialize(msg, msgtype)
@@ -70,6 +82,10 @@ def chunk_payloads(topics: SimTopics, part: Rollout) -> dict[str, list[bytes]]:
             values = part.commands if msgtype == m.ACTION_TYPE else part.positions
             for column, offset in enumerate(_offsets(template, _SENTINELS[:2])):
                 _put_float64(rows, offset, values[:, column])
+            if msgtype == m.POSE_TYPE and drives:
+                z, w = _offsets(template, quaternion)
+                _put_float64(rows, z, np.sin(0.5 * part.headings))
+                _put_float64(rows, w, np.cos(0.5 * part.headings))
         elif msgtype == m.REWARD_TYPE:
             (offset,) = _offsets(template, _SENTINELS[:1])
             _put_float64(rows, offset, part.rewards)

@@ -1,9 +1,10 @@
 """Panoramic RGB camera: vectorised ray casting in a square room (no per-pixel loops).
 
 Geometry. The camera sits on top of the robot (height ``robot_height``) and faces the
-robot's heading: north (+y) for the planar robot, which never turns. Columns split the horizontal field of view evenly from left to right; each
-column averages ``rays_per_column`` horizontal rays. Rows are evenly spaced in the tangent
-of the elevation angle, from ``+vertical_half_extent`` (top row) to its negative, as in
+robot's heading: north (+y) for the planar robot, which never turns. Columns split the
+horizontal field of view evenly from left to right; each column averages
+``rays_per_column`` horizontal rays. Rows are evenly spaced in the tangent of the elevation
+angle, from ``+vertical_half_extent`` (top row) to its negative, as in
 a cylindrical panorama. A ray at horizontal distance ``d`` from the wall it meets sees
 the wall for tangents in ``[-h/d, (H - h)/d]`` (camera height h, wall height H), the
 floor below and the space above the walls above, so a nearer wall looks taller. Each

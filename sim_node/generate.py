@@ -30,9 +30,11 @@ __all__ = ["generate_bag", "main"]
 PROG = "python -m sim_node.generate"
 
 
-def _write_chunk(writer: BagWriter, topics: SimTopics, part: Rollout) -> None:
+def _write_chunk(
+    writer: BagWriter, topics: SimTopics, part: Rollout, config: SimConfig
+) -> None:
     """Write every message of the chunk's steps, in step order (CDR built per chunk)."""
-    payloads = chunk_payloads(topics, part)
+    payloads = chunk_payloads(topics, part, config)
     order = list(topics.types())
     for i, stamp in enumerate(part.stamps_ns.tolist()):
         for topic in order:
@@ -70,7 +72,7 @@ def generate_bag(
             total=steps, unit="step", disable=not progress, desc=config.environment.value
         ) as bar:
             for part in iter_random_rollout(config, steps, seed):
-                _write_chunk(writer, topics, part)
+                _write_chunk(writer, topics, part, config)
                 bar.update(len(part))
         return writer.message_count
 

@@ -7,14 +7,15 @@ t_{k+2}. A step publishes exactly ``sim_node.topics.step_messages`` (image, acti
 ground truth, reward, clock), all stamped t_k; a reset publishes ``/sim/episode_start``
 (latched) and ``/clock``, and no image or action, so images and actions stay paired 1:1.
 
-Modes: ``explore`` takes a uniformly random action every 1/rate s (until ``steps`` steps,
-if set); ``command`` takes one step per ``/cmd_vel`` Twist, snapped to the nearest of
-the 25 actions, and with ``episode_steps`` N > 0 ignores further commands once N steps
-were taken since the last reset (a controller answering the last step of an episode in
-lockstep then takes no extra step). ``/sim/reset`` (PoseStamped, frame ``map``) restarts
-at a position. Every ignored command is announced on ``sim/cmd_ignored`` (a Header stamped
-with the last event's time, ``frame_id`` the reason), so a driver can tell through the graph
-that a command was consumed without a step.
+Modes: ``explore`` takes a uniformly random action every 1/rate s (until ``steps`` steps, if
+set); ``command`` takes one step per ``/cmd_vel`` Twist, snapped to the nearest of the
+environment's actions (``linear.x``, ``linear.y``; ``drive``: ``linear.x``, ``angular.z``),
+and with ``episode_steps`` N > 0 ignores further commands once N steps were taken since the
+last reset (a controller answering the last step of an episode in lockstep then takes no
+extra step). ``/sim/reset`` (PoseStamped, frame ``map``) restarts at a position (``drive``:
+and the orientation's heading). Every ignored command is announced on ``sim/cmd_ignored`` (a
+Header stamped with the last event's time, ``frame_id`` the reason), so a driver can tell
+through the graph that a command was consumed without a step.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from sim_node.config import (
 )
 from sim_node.env import RobotEnv
 from sim_node.topics import CMD_IGNORED_TOPIC, SimTopics, step_messages
-from tpsr_ros.core.actions import action_index
+from tpsr_ros.core.actions import PLANAR
 from tpsr_ros.core.errors import ConfigError, MessageError
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io import messages as m
@@ -55,7 +56,8 @@ class SimNodeParams:
     environment: str = param(
         "full",
         "camera of the guide's chapter 4: full (300 deg), partial (60 deg) or distractors; "
-        "partial-strip: partial's with a vertical extent that hides the walls' distance",
+        "partial-strip: partial's with a vertical extent that hides the walls' distance; "
+        "drive: a differential-drive robot whose 300 deg camera turns with it",
         choices=tuple(e.value for e in Environment),
     )
     vertical_half_extent: float = param(
@@ -84,7 +86,8 @@ class SimNodeParams:
     )
     command_tolerance: float = param(
         3.0,
-        "command mode: reject a /cmd_vel component farther than this (m/s) from 0, ±3, ±6",
+        "command mode: reject a /cmd_vel component farther than this (m/s) from 0, ±3, ±6 "
+        "(drive: as far relative to the spacing of its speeds, 1.5 m/s, and turn rates, 45°)",
         positive=True,
     )
     episode_steps: int = param(
@@ -120,6 +123,8 @@ class SimNode(Node):
             environment=p.environment, vertical_half_extent=p.vertical_half_extent or None
         )
         self.env = RobotEnv(self.config, seed=p.seed)
+        grid = self.config.actions
+        self._command_limits = tuple(p.command_tolerance * grid.spacing() / PLANAR.spacing())
         self.topics = SimTopics().relative()
         self.step_publishers = {
             name: self.create_publisher(name, msgtype)
@@ -187,13 +192,16 @@ class SimNode(Node):
         self.started = True
         self.reset(None)
 
-    def reset(self, position: tuple[float, float] | None) -> None:
+    def reset(self, position: tuple[float, float] | None, heading: float | None = None) -> None:
         """Reset at the next stamp; publish /sim/episode_start and /clock."""
         options: dict[str, Any] = {} if position is None else {"position": position}
+        if heading is not None:
+            options["heading"] = heading
         self.env.reset(options=options)
         stamp = self._next_stamp()
         x, y = (float(v) for v in self.env.position)
-        self.episode_publisher.publish(m.pose_msg(stamp, x, y))
+        heading = self.env.heading if self.config.drives else None
+        self.episode_publisher.publish(m.pose_msg(stamp, x, y, heading=heading))
         self.step_publishers[self.topics.clock].publish(m.clock_msg(stamp))
         self.resets += 1
         self.episode_step_count = 0
@@ -205,7 +213,14 @@ class SimNode(Node):
         stamp = self._next_stamp()
         sample = m.RewardSample(reward, info["wall_contact"], info["goal_zone"])
         for topic, _, msg in step_messages(
-            self.topics, stamp, image, info["command"], info["position"], sample
+            self.topics,
+            stamp,
+            image,
+            info["command"],
+            info["position"],
+            sample,
+            components=self.config.actions.components,
+            heading=info["heading"] if self.config.drives else None,
         ):
             self.step_publishers[topic].publish(msg)
         self.steps_published += 1
@@ -220,7 +235,7 @@ class SimNode(Node):
             self.logger.info(f"explore finished: {self.steps_published} steps published")
 
     def on_cmd_vel(self, msg: Any) -> None:
-        """Command mode: one step per Twist, snapped to the nearest of the 25 actions."""
+        """Command mode: one step per Twist, snapped to the nearest action."""
         if self.params.mode != "command":
             if not self._warned_explore:
                 self._warned_explore = True
@@ -241,8 +256,9 @@ class SimNode(Node):
             self._announce_ignored("episode_steps")
             return
         try:
-            vx, vy = m.twist_to_xy(msg)
-            action = action_index(vx, vy, self.params.command_tolerance)
+            grid = self.config.actions
+            command = m.twist_components(msg, grid.components)
+            action = int(grid.indices(command, self._command_limits)[0])
         except (MessageError, ConfigError) as exc:
             self.logger.warning(f"/cmd_vel rejected: {exc}")
             return
@@ -254,11 +270,14 @@ class SimNode(Node):
         self.ignored_publisher.publish(m.header_msg(0 if stamp is None else stamp, reason))
 
     def on_reset(self, msg: Any) -> None:
-        """Reset to the PoseStamped position (frame ``map``, inside the room)."""
+        """Reset to the PoseStamped position (frame ``map``, inside the room); ``drive``
+        also turns to its orientation's heading."""
         if msg.header.frame_id != "map":
             self.logger.warning(f"reset rejected: frame {msg.header.frame_id!r} is not 'map'")
             return
         x, y = m.pose_to_xy(msg)
+        cos_h, sin_h = m.quaternion_heading(msg.pose.orientation)
+        heading = math.atan2(sin_h, cos_h) if self.config.drives else None
         low = self.config.robot_radius
         high = self.config.room_size - self.config.robot_radius
         if not (math.isfinite(x) and math.isfinite(y) and low <= x <= high and low <= y <= high):
@@ -269,7 +288,7 @@ class SimNode(Node):
         if not self.started:
             self.logger.warning("reset ignored: waiting for subscribers before the start")
             return
-        self.reset((x, y))
+        self.reset((x, y), heading)
 
     def on_shutdown(self) -> None:
         """Log what was published."""

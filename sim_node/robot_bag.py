@@ -23,6 +23,11 @@ velocity commands at their own times, and odometry. Three timelines (``--timelin
   per frame, logged at the frame's stamp (linear.x and angular.z carry the step's pair
   plus ±0.6 jitter); ``/odom`` at 10 Hz.
 
+``--environment drive`` records the differential-drive robot: its 9 (speed, turn rate)
+pairs as linear.x/angular.z on every timeline, the jitter scaled to the grid's spacing
+(a fifth of it, as ±0.6 is of the planar grid's 3 m/s), the camera turning with the robot
+(``--field-of-view``, default 300 degrees), and the heading in ``/odom``'s orientation.
+
 Every timeline adds ``/reward`` (``sensor_msgs/msg/JointState``, the simulator's reward of
 each step, stamped at the step's end). Images are logged 1..3 ms after their stamp. The run
 starts 100 s into the bag's clock. Everything is seeded. The bag carries no
@@ -42,10 +47,11 @@ from typing import Any
 import numpy as np
 
 from sim_node.camera import Camera
-from sim_node.config import SimConfig
-from sim_node.options import add_vertical_half_extent_option
+from sim_node.config import Environment, SimConfig
+from sim_node.options import add_drive_options, add_vertical_half_extent_option
 from sim_node.rollout import random_rollout
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
+from tpsr_ros.core.actions import DEFAULT_TURN_RATE_DEG
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.images import LUMA
 from tpsr_ros.core.units import NS_PER_S
@@ -73,6 +79,7 @@ START_S = 100  # the run starts 100 s into the bag's clock
 PHONE_CAMERA = (96, 256)  # (height, width)
 PHONE_RATE = 18.0  # Hz nominal; about 14 Hz on average with the stretched intervals
 PHONE_STEP_S = 0.3
+RENDER_CHUNK = 512  # frames rendered at once
 
 
 @dataclass(frozen=True)
@@ -90,6 +97,8 @@ class RobotBagConfig:
     camera_rate: float = 4.0
     environment: str = "full"
     vertical_half_extent: float | None = None
+    field_of_view_deg: float | None = None
+    turn_rate_deg: float = DEFAULT_TURN_RATE_DEG
     command_jitter: float = 0.6
     jpeg_quality: int = 90
     command_topic: str = "/cmd_vel"
@@ -104,6 +113,7 @@ class RobotBagConfig:
             raise ConfigError(f"encoding {self.encoding!r} is not one of {ENCODINGS}")
         if self.steps < 3 or self.image_size < 1 or self.camera_rate not in (1.0, 2.0, 4.0, 5.0):
             raise ConfigError("steps >= 3, image_size >= 1 and camera_rate 1, 2, 4 or 5 Hz")
+        self.sim_config()  # validates the environment, camera and turn rate
 
     def sim_config(self, image_size: int = 16) -> SimConfig:
         """The simulator the bag shows, rendering ``image_size`` pixels square."""
@@ -111,6 +121,8 @@ class RobotBagConfig:
             environment=self.environment,
             image_size=image_size,
             vertical_half_extent=self.vertical_half_extent,
+            field_of_view_deg=self.field_of_view_deg,
+            turn_rate_deg=self.turn_rate_deg,
         )
 
     @property
@@ -130,13 +142,19 @@ class Timeline:
     ``k * step_seconds``), and what the camera and odometry see."""
 
     frame_s: np.ndarray  # (F,) frame times
-    frame_positions: np.ndarray  # (F, 2) the positions the frames show
+    frame_poses: np.ndarray  # (F, 3) the x, y and (unwrapped) heading the frames show
     stamp_delay_ns: tuple[int, int]  # header stamp minus frame time: uniform in [lo, hi]
     command_s: np.ndarray  # (C,) when the commands are sent
     command_delay_ns: int  # their log times are up to this much later (uniform)
     command_steps: np.ndarray  # (C,) the step (1-based) each command belongs to
     components: tuple[str, str]  # the Twist components carrying the pair
     odom_s: np.ndarray
+
+
+def _trail(run: Any) -> np.ndarray:
+    """``(N, 3)``: the position and heading after each step, the heading unwrapped so that
+    interpolating between steps turns the short way the robot turned."""
+    return np.column_stack([run.positions, np.unwrap(run.headings)])
 
 
 def _one_second_steps(config: RobotBagConfig, run: Any, *, at_step_start: bool) -> Timeline:
@@ -155,14 +173,12 @@ def _one_second_steps(config: RobotBagConfig, run: Any, *, at_step_start: bool) 
     odom_rate = 4 if at_step_start else 10
     return Timeline(
         frame_s=frame_s,
-        frame_positions=_interpolated(
-            run.positions, np.floor(frame_s) if at_step_start else frame_s
-        ),
+        frame_poses=_interpolated(_trail(run), np.floor(frame_s) if at_step_start else frame_s),
         stamp_delay_ns=(5_000_000, 40_000_000),
         command_s=command_s,
         command_delay_ns=20_000_000,
         command_steps=step_k,
-        components=("linear.x", "linear.y"),
+        components=run_components(config),
         odom_s=1.0 + np.arange((n - 1) * odom_rate + 1) / odom_rate,
     )
 
@@ -180,7 +196,7 @@ def _phone(config: RobotBagConfig, run: Any) -> Timeline:
     command_steps = np.minimum(n, np.floor(frame_s / step_s).astype(np.int64) + 1)
     return Timeline(
         frame_s=frame_s,
-        frame_positions=_interpolated(run.positions, frame_s / step_s),
+        frame_poses=_interpolated(_trail(run), frame_s / step_s),
         stamp_delay_ns=(0, 0),
         command_s=frame_s,
         command_delay_ns=0,
@@ -188,6 +204,13 @@ def _phone(config: RobotBagConfig, run: Any) -> Timeline:
         components=("linear.x", "angular.z"),
         odom_s=step_s + np.arange(int(span * 10) + 1) / 10.0,
     )
+
+
+def run_components(config: RobotBagConfig) -> tuple[str, str]:
+    """The Twist components carrying the run's pairs on the one-second timelines: the
+    simulator's own (``drive``: linear.x, angular.z; else linear.x, linear.y)."""
+    first, second = config.sim_config().actions.components
+    return first, second
 
 
 _TIMELINES = {
@@ -201,10 +224,12 @@ def _t(name: str) -> Any:
     return jazzy_typestore().types[name]
 
 
-def _interpolated(positions: np.ndarray, times: np.ndarray) -> np.ndarray:
-    """Position at ``times`` (s, in [1, N]): step k moves from positions[k-2] to positions[k-1]."""
-    steps = np.arange(1, positions.shape[0] + 1, dtype=np.float64)
-    return np.column_stack([np.interp(times, steps, positions[:, i]) for i in range(2)])
+def _interpolated(values: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Each column at ``times`` (s, in [1, N]): step k moves from values[k-2] to values[k-1]."""
+    steps = np.arange(1, values.shape[0] + 1, dtype=np.float64)
+    return np.column_stack(
+        [np.interp(times, steps, values[:, i]) for i in range(values.shape[1])]
+    )
 
 
 def _image_message(stamp: int, rgb: np.ndarray, encoding: str, quality: int) -> tuple[str, Any]:
@@ -234,10 +259,14 @@ def _image_message(stamp: int, rgb: np.ndarray, encoding: str, quality: int) -> 
     )
 
 
-def _odometry(stamp: int, x: float, y: float) -> Any:
+def _odometry(stamp: int, x: float, y: float, heading: float | None) -> Any:
+    """Odometry at ``(x, y)``, turned by ``heading`` (rad about z; None: the identity)."""
+    half = 0.0 if heading is None else 0.5 * float(heading)
     pose = _t("geometry_msgs/msg/Pose")(
         position=_t("geometry_msgs/msg/Point")(x=float(x), y=float(y), z=0.0),
-        orientation=_t("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation=_t("geometry_msgs/msg/Quaternion")(
+            x=0.0, y=0.0, z=float(np.sin(half)), w=float(np.cos(half))
+        ),
     )
     return _t(ODOM_TYPE)(
         header=header_msg(stamp, "odom"),
@@ -249,14 +278,28 @@ def _odometry(stamp: int, x: float, y: float) -> Any:
     )
 
 
-def _render(config: RobotBagConfig, positions: np.ndarray) -> np.ndarray:
-    """The frames ``(F, H, W, 3)`` uint8 (the phone's: a square render widened)."""
+def _render(config: RobotBagConfig, poses: np.ndarray) -> np.ndarray:
+    """The frames ``(F, H, W, 3)`` uint8 seen from ``poses`` ``(F, 3)`` (the phone's: a
+    square render widened)."""
+    size = config.image_size if config.timeline != "phone" else PHONE_CAMERA[0]
+    sim = config.sim_config(size)
+    camera = Camera(sim)
+    frames = np.concatenate(
+        [
+            camera.render(chunk[:, :2], headings=chunk[:, 2] if sim.drives else None)
+            for chunk in np.array_split(poses, max(1, -(-len(poses) // RENDER_CHUNK)))
+        ]
+    )  # in chunks: the renderer's work arrays grow with frames x pixels x rays
     if config.timeline != "phone":
-        return Camera(config.sim_config(config.image_size)).render(positions)
-    height, width = PHONE_CAMERA
-    square = Camera(config.sim_config(height))
-    columns = np.arange(width) * height // width  # nearest source column
-    return np.ascontiguousarray(square.render(positions)[:, :, columns])
+        return frames
+    columns = np.arange(PHONE_CAMERA[1]) * size // PHONE_CAMERA[1]  # nearest source column
+    return np.ascontiguousarray(frames[:, :, columns])
+
+
+def _jitter_scale(config: RobotBagConfig) -> np.ndarray:
+    """Each component's jitter: ``command_jitter`` per 3 units of its grid spacing (the
+    planar grid's spacing is 3 m/s, so its jitter is ``command_jitter`` itself)."""
+    return config.command_jitter * config.sim_config().actions.spacing() / 3.0
 
 
 def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
@@ -270,7 +313,7 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
     timeline = _TIMELINES[config.timeline](config, run)
     encoding = str(config.encoding)  # resolved by RobotBagConfig
     frame_s = timeline.frame_s
-    images = _render(config, timeline.frame_positions)
+    images = _render(config, timeline.frame_poses)
     image_stamps = start + np.rint(frame_s * sec).astype(np.int64)
     low, high = timeline.stamp_delay_ns
     image_stamps += rng.integers(low, high + 1, size=frame_s.size)
@@ -279,10 +322,11 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
     command_s = timeline.command_s
     command_logs = start + np.rint(command_s * sec).astype(np.int64)
     command_logs += rng.integers(0, timeline.command_delay_ns + 1, size=command_s.size)
-    jitter = rng.uniform(-config.command_jitter, config.command_jitter, size=(command_s.size, 2))
+    jitter = rng.uniform(-1.0, 1.0, size=(command_s.size, 2)) * _jitter_scale(config)
     commands = run.commands[timeline.command_steps - 1] + jitter
     odom_s = timeline.odom_s
-    odom_xy = _interpolated(run.positions, odom_s / config.step_seconds)
+    odom = _interpolated(_trail(run), odom_s / config.step_seconds)
+    turns = config.sim_config().drives
     odom_stamps = start + np.rint(odom_s * sec).astype(np.int64)
 
     image_type, _ = _image_message(0, images[0], encoding, config.jpeg_quality)
@@ -298,7 +342,8 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
             (int(command_logs[i]), 1, config.command_topic, serialize(twist, TWIST_TYPE))
         )
     for i in range(odom_s.size):
-        msg = _odometry(int(odom_stamps[i]), *odom_xy[i])
+        x, y, heading = odom[i]
+        msg = _odometry(int(odom_stamps[i]), x, y, heading if turns else None)
         records.append((int(odom_stamps[i]) + 1_000_000, 2, "/odom", serialize(msg, ODOM_TYPE)))
     for k in range(1, n + 1):
         sample = RewardSample(
@@ -335,7 +380,14 @@ def main(argv: list[str] | None = None) -> int:
         help="camera encoding (default: jpeg for the phone, bgr8 otherwise)",
     )
     parser.add_argument("--image-size", type=positive_int, default=40, help="camera pixels")
+    parser.add_argument(
+        "--environment",
+        choices=[e.value for e in Environment],
+        default="full",
+        help="the simulator recorded (drive: the robot that turns)",
+    )
     add_vertical_half_extent_option(parser)
+    add_drive_options(parser)
     parser.add_argument("-o", "--output", required=True, type=Path, help="new bag directory")
     args = parser.parse_args(argv)
     if args.seed < 0:
@@ -346,7 +398,10 @@ def main(argv: list[str] | None = None) -> int:
         encoding=args.encoding,
         image_size=args.image_size,
         timeline=args.timeline,
+        environment=args.environment,
         vertical_half_extent=args.vertical_half_extent,
+        field_of_view_deg=args.field_of_view,
+        turn_rate_deg=args.turn_rate,
     )
     count = write_robot_bag(args.output, config)
     print(f"wrote {args.output}: {args.steps} steps, {count} messages", file=sys.stderr)

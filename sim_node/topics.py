@@ -57,12 +57,24 @@ def step_messages(
     command: np.ndarray,
     position: np.ndarray,
     reward: m.RewardSample,
+    *,
+    components: tuple[str, ...] = ("linear.x", "linear.y"),
+    heading: float | None = None,
 ) -> list[tuple[str, str, Any]]:
-    """``(topic, type, message)`` for o_k, a_k (as commanded), true pose, r_k and clock."""
+    """``(topic, type, message)`` for o_k, a_k (as commanded), true pose, r_k and clock.
+
+    ``command`` holds the action's ``components`` (``drive``: linear.x and angular.z); the
+    pose carries ``heading`` (rad about z) when the robot turns, else the identity.
+    """
+    twist = m.twist_from_components(dict(zip(components, command, strict=True)))
     return [
         (topics.image, m.IMAGE_TYPE, m.image_msg(stamp_ns, image)),
-        (topics.action, m.ACTION_TYPE, m.twist_stamped_msg(stamp_ns, command[0], command[1])),
-        (topics.pose, m.POSE_TYPE, m.pose_msg(stamp_ns, position[0], position[1])),
+        (topics.action, m.ACTION_TYPE, m.stamped_twist(stamp_ns, twist)),
+        (
+            topics.pose,
+            m.POSE_TYPE,
+            m.pose_msg(stamp_ns, position[0], position[1], heading=heading),
+        ),
         (topics.reward, m.REWARD_TYPE, m.reward_msg(stamp_ns, reward)),
         (topics.clock, m.CLOCK_TYPE, m.clock_msg(stamp_ns)),
     ]

@@ -5,8 +5,9 @@ pymunk integrate ``physics_substeps`` substeps: a wall stops the velocity compon
 pushes into it and the robot slides along it (frictionless, inelastic). The planar robot
 never turns; the ``drive`` robot (:meth:`RoomWorld.drive`) has a heading that turns at
 the commanded rate, its velocity set along the heading at every substep (a wall cannot
-turn it: the disk's moment stays infinite and the heading is integrated here). Walls are 5 m thick and a substep moves at most ~0.7 m, so the robot cannot
-tunnel through a wall even at 6 m per step.
+turn it: the disk's moment stays infinite and the heading is integrated here). Walls are
+5 m thick and a substep moves at most ~0.7 m, so the robot cannot tunnel through a wall
+even at 6 m per step.
 
 A step has *wall contact* when a wall pushed back on the robot during the step (a
 non-zero contact impulse): the commanded motion was blocked. Touching or sliding along a

@@ -33,6 +33,7 @@ __all__ = [
     "action_index",
     "action_indices",
     "drive_grid",
+    "environment_grid",
 ]
 
 
@@ -65,33 +66,41 @@ class ActionGrid:
     def __len__(self) -> int:
         return math.prod(len(v) for v in self.levels)
 
-    def indices(self, commands: np.ndarray, tolerance: float = np.inf) -> np.ndarray:
+    def indices(
+        self, commands: np.ndarray, tolerance: float | tuple[float, ...] = np.inf
+    ) -> np.ndarray:
         """Nearest action of each command row ``(N, len(components))``.
 
         Each component snaps independently to its nearest level. A component farther than
-        ``tolerance`` from every level, or not finite, raises ``ConfigError``.
+        ``tolerance`` (one for all, or one per component) from every level, or not finite,
+        raises ``ConfigError``.
         """
         width = len(self.components)
         commands = np.asarray(commands, dtype=np.float64).reshape(-1, width)
         if not np.all(np.isfinite(commands)):
             raise ConfigError("velocity command is not finite")
+        limits = np.broadcast_to(np.asarray(tolerance, dtype=np.float64), (width,))
         index = np.zeros(commands.shape[0], dtype=np.int64)
-        worst = np.zeros(commands.shape[0])
+        excess = np.zeros(commands.shape[0], dtype=bool)
         for column, values in enumerate(self.levels):
             distance = np.abs(commands[:, column, None] - np.asarray(values)[None, :])
             index = index * len(values) + distance.argmin(axis=1)
-            worst = np.maximum(worst, distance.min(axis=1))
-        if np.any(worst > tolerance):
-            bad = commands[int(np.argmax(worst))]
+            excess |= distance.min(axis=1) > limits[column]
+        if excess.any():
+            bad = commands[int(np.argmax(excess))]
             levels = "; ".join(
-                f"{name} in {{{', '.join(f'{v:g}' for v in values)}}}"
-                for name, values in zip(self.components, self.levels, strict=True)
+                f"{name} in {{{', '.join(f'{v:.4g}' for v in values)}}} ± {limit:.4g}"
+                for name, values, limit in zip(self.components, self.levels, limits, strict=True)
             )
             raise ConfigError(
-                f"command ({', '.join(f'{v:g}' for v in bad)}) is farther than {tolerance:g} "
+                f"command ({', '.join(f'{v:g}' for v in bad)}) is farther than the tolerance "
                 f"from every action ({levels})"
             )
         return index
+
+    def spacing(self) -> np.ndarray:
+        """The smallest gap between two levels of each component (inf for a single level)."""
+        return np.array([min(np.diff(v), default=np.inf) for v in self.levels])
 
     def command(self, action: int) -> dict[str, float]:
         """The command of ``action`` as component name to value."""
@@ -137,3 +146,9 @@ def action_indices(velocities: np.ndarray, tolerance: float = np.inf) -> np.ndar
 def action_index(vx: float, vy: float, tolerance: float = np.inf) -> int:
     """Nearest of the 25 planar actions to the velocity command ``(vx, vy)``."""
     return int(action_indices(np.array([[vx, vy]]), tolerance)[0])
+
+
+def environment_grid(environment: str | None) -> ActionGrid:
+    """The actions of a simulator environment by name: ``drive``'s 9 at the default turn
+    rate, else (any other environment, or None: unknown) the 25 planar pairs."""
+    return drive_grid() if environment == "drive" else PLANAR

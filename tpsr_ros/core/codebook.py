@@ -3,8 +3,9 @@
 An :class:`ActionCodebook` names the command components it uses (``linear.x``,
 ``angular.z``...) and holds one code (a command vector) per action. Two kinds:
 
-- ``sim``: the simulator's 25 ``(linear.x, linear.y)`` pairs (:mod:`tpsr_ros.core.actions`),
-  each component snapped on its own, as every simulator bag has always been read;
+- ``sim``: a simulator's action grid (:mod:`tpsr_ros.core.actions`): the 25 ``(linear.x,
+  linear.y)`` pairs, or ``drive``'s 9 ``(linear.x, angular.z)``; each component snapped
+  on its own, as every simulator bag has always been read;
 - ``kmeans``: codes learned from the training commands by k-means (:func:`fit_codebook`,
   seeded, best of several restarts); a command maps to its nearest code (Euclidean, in the
   commands' own units).
@@ -23,7 +24,7 @@ from typing import Any
 import numpy as np
 from scipy.cluster.vq import vq
 
-from tpsr_ros.core.actions import ACTIONS, action_indices
+from tpsr_ros.core.actions import ActionGrid, environment_grid
 from tpsr_ros.core.errors import ConfigError, DataError
 
 __all__ = [
@@ -52,7 +53,8 @@ class ActionCodebook:
     """Discrete actions as command vectors.
 
     Attributes:
-        kind: ``"sim"`` (the simulator's 25 pairs) or ``"kmeans"``.
+        kind: ``"sim"`` (a simulator's grid: every combination of per-component levels,
+            row-major) or ``"kmeans"``.
         components: the Twist components of each code, e.g. ``("linear.x", "linear.y")``.
         codes: ``(K, len(components))`` float64, the command of each action.
 
@@ -81,6 +83,14 @@ class ActionCodebook:
         codes.setflags(write=False)
         object.__setattr__(self, "components", tuple(self.components))
         object.__setattr__(self, "codes", codes)
+        if self.kind == "sim" and not np.array_equal(self._grid.codes, codes):
+            raise ConfigError("a sim codebook's codes must be a full grid in row-major order")
+
+    @cached_property
+    def _grid(self) -> ActionGrid:
+        """The grid whose levels are each column's values (kind ``sim``)."""
+        levels = tuple(tuple(float(v) for v in np.unique(col)) for col in self.codes.T)
+        return ActionGrid(self.components, levels)
 
     def __len__(self) -> int:
         return int(self.codes.shape[0])
@@ -102,7 +112,7 @@ class ActionCodebook:
         if not np.isfinite(cmd).all():
             raise DataError("a velocity command is not finite")
         if self.kind == "sim":
-            index = action_indices(cmd)
+            index = self._grid.indices(cmd)
         else:
             index, _ = vq(cmd, self.codes, check_finite=False)  # no (N, K, d) temporaries
         distance = np.linalg.norm(cmd - self.codes[index], axis=1)
@@ -137,9 +147,10 @@ class ActionCodebook:
         return cls(str(data.get("kind")), tuple(components), array)
 
 
-def sim_codebook() -> ActionCodebook:
-    """The simulator's 25 velocity pairs."""
-    return ActionCodebook("sim", ("linear.x", "linear.y"), ACTIONS)
+def sim_codebook(environment: str | None = None) -> ActionCodebook:
+    """The actions of a simulator environment: ``drive``'s 9, else the 25 velocity pairs."""
+    grid = environment_grid(environment)
+    return ActionCodebook("sim", grid.components, grid.codes)
 
 
 def _farthest_first(points: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:

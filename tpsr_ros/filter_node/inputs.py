@@ -12,16 +12,13 @@ from typing import Any
 
 import numpy as np
 
+from tpsr_ros.core.actions import PLANAR, ActionGrid
 from tpsr_ros.core.codebook import ActionCodebook
-from tpsr_ros.core.episodes import (
-    DEFAULT_ACTION_TOLERANCE,
-    image_to_observation,
-    velocities_to_actions,
-)
+from tpsr_ros.core.episodes import DEFAULT_ACTION_TOLERANCE, image_to_observation
 from tpsr_ros.core.errors import EncodingError, MessageError, TpsrError
 from tpsr_ros.core.images import Preprocessing, preprocess_images
 from tpsr_ros.io.images import decode_image
-from tpsr_ros.io.message_fields import image_to_array, twist_components, twist_to_xy
+from tpsr_ros.io.message_fields import image_to_array, twist_components
 
 __all__ = [
     "REJECT_REASONS",
@@ -36,7 +33,7 @@ REJECT_REASONS = ("undecodable", "encoding", "size", "data", "frame", "action")
 """Why a message was rejected, one counter each on ``/diagnostics``."""
 
 ACTION_CACHE_SIZE = 1024
-"""Distinct velocities whose action index :func:`simulator_action` remembers."""
+"""Distinct commands whose action index :func:`simulator_action` remembers."""
 
 
 class Rejected(Exception):
@@ -66,20 +63,23 @@ def simulator_image(msg: Any, shape: tuple[int, int], frame: str) -> np.ndarray:
     return image_to_observation(image_to_array(msg, shape=shape))
 
 
-def simulator_action(msg: Any, frame: str, cache: dict[tuple[float, float], int]) -> int:
-    """The action index of an executed action (``TwistStamped``), as offline tracking maps it.
+def simulator_action(
+    msg: Any, frame: str, cache: dict[tuple[float, ...], int], grid: ActionGrid = PLANAR
+) -> int:
+    """The action index of an executed action (``TwistStamped``) on the simulator's
+    ``grid``, as offline tracking maps it.
 
-    ``cache`` remembers the index of up to :data:`ACTION_CACHE_SIZE` velocities.
+    ``cache`` remembers the index of up to :data:`ACTION_CACHE_SIZE` commands.
     """
     if frame and msg.header.frame_id != frame:
         raise Rejected("frame", f"frame {msg.header.frame_id!r} is not {frame!r}")
     try:
-        velocity = twist_to_xy(msg)
-        index = cache.get(velocity)
+        command = tuple(twist_components(msg, grid.components).tolist())
+        index = cache.get(command)
         if index is None:
-            index = int(velocities_to_actions(np.array([velocity]), DEFAULT_ACTION_TOLERANCE)[0])
+            index = int(grid.indices(np.array([command]), DEFAULT_ACTION_TOLERANCE)[0])
             if len(cache) < ACTION_CACHE_SIZE:
-                cache[velocity] = index
+                cache[command] = index
         return index
     except TpsrError as exc:
         raise Rejected("action", str(exc)) from None

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
-from tpsr_ros.core.actions import ACTIONS
+from tpsr_ros.core.actions import environment_grid
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.online import OnlineTracker
 from tpsr_ros.core.units import NS_PER_S as _NS
@@ -145,6 +145,7 @@ class FilterNode(Node):
         self.model = self.inputs.model
         self.policy = self.inputs.policy
         self.spec = self.inputs.spec
+        self.grid = environment_grid(self.inputs.model_file.environment)  # exact pairing's
         jump_ns = round(p.jump_threshold * _NS)
         self.source: ExactPairing | GridStepping
         if self.spec is None:
@@ -297,7 +298,9 @@ class FilterNode(Node):
         if msg is None:
             return
         try:
-            action = simulator_action(msg, self.params.action_frame, self._action_cache)
+            action = simulator_action(
+                msg, self.params.action_frame, self._action_cache, self.grid
+            )
         except Rejected as exc:
             self._reject(self.action_topic, exc.reason, str(exc))
             return
@@ -445,11 +448,9 @@ class FilterNode(Node):
             return
         action, stamp = self._pending_command
         self._pending_command = None
-        if self.spec is None:
-            vx, vy = ACTIONS[action]
-            twist = m.twist_msg(float(vx), float(vy))
-        else:  # the code itself: never outside the codebook
-            twist = m.twist_from_components(self.spec.codebook.command(action))
+        # the action's command itself: never outside the simulator's grid or the codebook
+        codes = self.grid if self.spec is None else self.spec.codebook
+        twist = m.twist_from_components(codes.command(action))
         if self.params.command_type == "twist_stamped":
             msg = m.stamped_twist(stamp if stamp is not None else self.now_ns(), twist)
         else:

@@ -28,6 +28,7 @@ from tpsr_ros.io.messages import (
     TWIST_TYPE,
     deserialize,
     header_stamp_ns,
+    quaternion_heading,
     stamp_of,
     twist_components,
 )
@@ -40,7 +41,7 @@ __all__ = [
     "TRANSFORM_TYPE",
     "BagStreams",
     "fast_time",
-    "pose_xy",
+    "pose_planar",
     "read_bag_streams",
     "where",
 ]
@@ -75,7 +76,7 @@ class BagStreams:
     pose_type: str
     pose_times: np.ndarray  # sorted
     pose_data: list[bytes]  # CDR, decoded only around the step times
-    pose_values: np.ndarray | None  # (P, 2) already decoded (tf: transforms of one frame)
+    pose_values: np.ndarray | None  # (P, 4) already decoded (tf: transforms of one frame)
     reward_times: np.ndarray
     rewards: np.ndarray
     environment: str | None
@@ -88,14 +89,16 @@ def _time(msg: Any, log_time: int) -> int:
     return stamp if stamp > 0 else int(log_time)
 
 
-def pose_xy(msg: Any, msgtype: str) -> tuple[float, float]:
+def pose_planar(msg: Any, msgtype: str) -> tuple[float, float, float, float]:
+    """``(x, y, cos yaw, sin yaw)`` of a pose message: the position in the plane and the
+    heading about z (from the orientation quaternion; a zero quaternion counts as none)."""
     if msgtype == "geometry_msgs/msg/TransformStamped":
-        point = msg.transform.translation
+        point, q = msg.transform.translation, msg.transform.rotation
     elif msgtype == "geometry_msgs/msg/PoseStamped":
-        point = msg.pose.position
+        point, q = msg.pose.position, msg.pose.orientation
     else:
-        point = msg.pose.pose.position
-    return float(point.x), float(point.y)
+        point, q = msg.pose.pose.position, msg.pose.pose.orientation
+    return (float(point.x), float(point.y), *quaternion_heading(q))
 
 
 def where(path: Path, topic: str, index: int) -> str:
@@ -146,7 +149,7 @@ def _read_streams(
         commands: list[np.ndarray] = []
         pose_times: list[int] = []
         pose_data: list[bytes] = []
-        tf_values: list[tuple[float, float]] = []
+        tf_values: list[tuple[float, float, float, float]] = []
         is_tf = bool(pose_topic) and available.get(pose_topic or "") == TF_TYPE
         reward_times: list[int] = []
         rewards: list[float] = []
@@ -161,7 +164,7 @@ def _read_streams(
                     for transform in deserialize(data, TF_TYPE).transforms:
                         if transform.child_frame_id == pose_frame:
                             pose_times.append(_time(transform, log_time))
-                            tf_values.append(pose_xy(transform, TRANSFORM_TYPE))
+                            tf_values.append(pose_planar(transform, TRANSFORM_TYPE))
                 elif topic == pose_topic:
                     pose_times.append(fast_time(data, log_time))
                     pose_data.append(data)
@@ -204,7 +207,7 @@ def _read_streams(
         pose_times=pose_t[pose_order],
         pose_data=[pose_data[i] for i in pose_order.tolist()] if pose_data else [],
         pose_values=(
-            np.array(tf_values, dtype=np.float64).reshape(-1, 2)[pose_order] if is_tf else None
+            np.array(tf_values, dtype=np.float64).reshape(-1, 4)[pose_order] if is_tf else None
         ),
         reward_times=np.array(reward_times, dtype=np.int64),
         rewards=np.array(rewards, dtype=np.float64),

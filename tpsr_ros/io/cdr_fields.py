@@ -9,7 +9,7 @@ fixed offsets with ``struct`` (images: a view of the pixel bytes, copied once pe
 Learning a layout is the safe, slow path: the message is deserialised by rosbags (every
 CDR rule: encapsulation, lengths, string terminators, UTF-8, sizes) and checked by the same
 functions as any decoded message (:func:`~tpsr_ros.io.messages.image_to_array`,
-:func:`~tpsr_ros.io.images.decode_image`, :func:`~tpsr_ros.io.messages.twist_to_xy`,
+:func:`~tpsr_ros.io.images.decode_image`, :func:`~tpsr_ros.io.messages.twist_components`,
 :func:`~tpsr_ros.io.messages.reward_to_sample`);
 a short CDR walk then finds the value offsets (alignment counted from after the 4-byte
 encapsulation header, either byte order), and the values read there must equal rosbags'.
@@ -44,10 +44,12 @@ from tpsr_ros.io.messages import (
     REWARD_TYPE,
     deserialize,
     image_to_array,
+    pose_to_planar,
     pose_to_xy,
+    quaternion_heading,
     reward_to_sample,
     stamp_of,
-    twist_to_xy,
+    twist_components,
 )
 
 __all__ = [
@@ -241,38 +243,68 @@ class ImageDecoder(RawImageDecoder):
         return memoryview(data)[layout.values : layout.values_end]
 
 
+_TWIST_FIELDS = ("linear.x", "linear.y", "linear.z", "angular.x", "angular.y", "angular.z")
+
+
 class TwistDecoder(_Decoder):
-    """``geometry_msgs/msg/TwistStamped``: the planar velocity ``(linear.x, linear.y)``."""
+    """``geometry_msgs/msg/TwistStamped``: two of its components, by default the planar
+    velocity ``(linear.x, linear.y)`` (``drive``: ``(linear.x, angular.z)``); finite."""
 
     msgtype = ACTION_TYPE
 
+    def __init__(self, components: tuple[str, str] = ("linear.x", "linear.y")) -> None:
+        super().__init__()
+        self.components = tuple(components)
+        self._columns = [_TWIST_FIELDS.index(c) for c in self.components]
+
     def _check(self, msg: Any) -> Any:
-        return twist_to_xy(msg)
+        first, second = twist_components(msg, self.components)
+        return float(first), float(second)
 
     def _locate(self, walk: _Walk) -> _Layout:
         walk.string()  # header.frame_id
         walk.align(8)  # twist.linear.x
-        return _Layout.of(walk.data, walk.pos, walk.pos + 6 * 8, "dd")
+        return _Layout.of(walk.data, walk.pos, walk.pos + 6 * 8, "6d")
 
     def _value(self, data: bytes, layout: _Layout, fields: tuple[Any, ...]) -> tuple[float, float]:
-        return _finite_pair(fields, "velocity")
+        first, second = (fields[2 + c] for c in self._columns)
+        if not (math.isfinite(first) and math.isfinite(second)):
+            raise MessageError(f"velocity ({first}, {second}) is not finite")
+        return first, second
 
 
 class PoseDecoder(_Decoder):
-    """``geometry_msgs/msg/PoseStamped``: the planar position ``(x, y)``; finite."""
+    """``geometry_msgs/msg/PoseStamped``: the planar position ``(x, y)``, finite; with
+    ``heading``, also the cosine and sine of its yaw (:func:`pose_to_planar`)."""
 
     msgtype = POSE_TYPE
 
+    def __init__(self, heading: bool = False) -> None:
+        super().__init__()
+        self.heading = heading
+
     def _check(self, msg: Any) -> Any:
-        return pose_to_xy(msg)
+        return pose_to_planar(msg) if self.heading else pose_to_xy(msg)
 
     def _locate(self, walk: _Walk) -> _Layout:
         walk.string()  # header.frame_id
         walk.align(8)  # pose.position.x
-        return _Layout.of(walk.data, walk.pos, walk.pos + 7 * 8, "dd")
+        return _Layout.of(walk.data, walk.pos, walk.pos + 7 * 8, "7d")
 
-    def _value(self, data: bytes, layout: _Layout, fields: tuple[Any, ...]) -> tuple[float, float]:
-        return _finite_pair(fields, "value")
+    def _value(self, data: bytes, layout: _Layout, fields: tuple[Any, ...]) -> tuple[float, ...]:
+        x, y = _finite_pair(fields, "value")
+        if not self.heading:
+            return x, y
+        qx, qy, qz, qw = fields[5:9]
+        return (x, y, *quaternion_heading(_Quaternion(qx, qy, qz, qw)))
+
+
+@dataclass(frozen=True)
+class _Quaternion:
+    x: float
+    y: float
+    z: float
+    w: float
 
 
 class RewardDecoder(_Decoder):

@@ -15,7 +15,15 @@ import numpy as np
 from tpsr_ros.core.errors import MessageError
 from tpsr_ros.core.units import NS_PER_S as _NS
 
-__all__ = ["image_to_array", "pose_to_xy", "stamp_of", "twist_components", "twist_to_xy"]
+__all__ = [
+    "image_to_array",
+    "pose_to_planar",
+    "pose_to_xy",
+    "quaternion_heading",
+    "stamp_of",
+    "twist_components",
+    "twist_to_xy",
+]
 
 
 def stamp_of(msg: Any) -> int:
@@ -72,3 +80,26 @@ def twist_components(msg: Any, components: tuple[str, ...]) -> np.ndarray:
 def pose_to_xy(msg: Any) -> tuple[float, float]:
     """Planar position of a PoseStamped."""
     return float(msg.pose.position.x), float(msg.pose.position.y)
+
+
+def quaternion_heading(q: Any) -> tuple[float, float]:
+    """``(cos, sin)`` of the yaw (heading about z) of a ``geometry_msgs/msg/Quaternion``.
+
+    Computed from the unnormalised rotation matrix entries, so a quaternion of any length
+    gives its angle; a zero or non-finite one counts as no rotation.
+    """
+    w, x, y, z = float(q.w), float(q.x), float(q.y), float(q.z)
+    cos_part = w * w + x * x - y * y - z * z
+    sin_part = 2.0 * (w * z + x * y)
+    norm = float(np.hypot(cos_part, sin_part))
+    if not (norm > 0 and np.isfinite(norm)):
+        return 1.0, 0.0
+    return cos_part / norm, sin_part / norm
+
+
+def pose_to_planar(msg: Any) -> tuple[float, float, float, float]:
+    """``(x, y, cos heading, sin heading)`` of a PoseStamped; non-finite positions refused."""
+    x, y = pose_to_xy(msg)
+    if not (np.isfinite(x) and np.isfinite(y)):
+        raise MessageError(f"value ({x}, {y}) is not finite")
+    return (x, y, *quaternion_heading(msg.pose.orientation))

@@ -25,7 +25,9 @@ from tpsr_ros.core.errors import MessageError
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io.message_fields import (
     image_to_array,
+    pose_to_planar,
     pose_to_xy,
+    quaternion_heading,
     stamp_of,
     twist_components,
     twist_to_xy,
@@ -50,7 +52,9 @@ __all__ = [
     "jazzy_typestore",
     "peek_stamp",
     "pose_msg",
+    "pose_to_planar",
     "pose_to_xy",
+    "quaternion_heading",
     "reward_msg",
     "reward_to_sample",
     "serialize",
@@ -278,11 +282,17 @@ def twist_from_components(values: dict[str, float]) -> Any:
     )
 
 
-def pose_msg(stamp_ns: int, x: float, y: float, frame_id: str = "map") -> Any:
-    """Ground-truth planar position as ``geometry_msgs/msg/PoseStamped`` (fixed heading)."""
+def pose_msg(
+    stamp_ns: int, x: float, y: float, frame_id: str = "map", heading: float | None = None
+) -> Any:
+    """Ground-truth planar position as ``geometry_msgs/msg/PoseStamped``: the identity
+    orientation (the planar robot's heading never changes), or ``heading`` (rad about z)."""
+    half = 0.0 if heading is None else 0.5 * float(heading)
     pose = _t("geometry_msgs/msg/Pose")(
         position=_t("geometry_msgs/msg/Point")(x=float(x), y=float(y), z=0.0),
-        orientation=_t("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation=_t("geometry_msgs/msg/Quaternion")(
+            x=0.0, y=0.0, z=float(np.sin(half)), w=float(np.cos(half))
+        ),
     )
     return _t(POSE_TYPE)(header=_header(stamp_ns, frame_id), pose=pose)
 

@@ -30,7 +30,6 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros.core.actions import NUM_ACTIONS
 from tpsr_ros.core.codebook import (
     COMPONENTS,
     DEFAULT_COMPONENTS,
@@ -47,7 +46,7 @@ from tpsr_ros.io.bag_streams import (
     POSE_TYPES,
     TF_TYPE,
     BagStreams,
-    pose_xy,
+    pose_planar,
     read_bag_streams,
     where,
 )
@@ -142,25 +141,35 @@ def _check_given(
 
 
 def _poses_at(streams: BagStreams, at: np.ndarray) -> np.ndarray:
-    """Ground-truth (x, y) interpolated at ``at``; only the poses around each time are decoded."""
+    """Ground truth ``(x, y, cos yaw, sin yaw)`` interpolated at ``at`` (NaN where none);
+    only the poses around each time are decoded."""
     times = streams.pose_times
-    out = np.full((at.size, 2), np.nan)
     if times.size == 0 or streams.pose_topic is None:
-        return out
+        return np.full((at.size, 4), np.nan)
     if streams.pose_values is not None:
-        return _interpolate(times, streams.pose_values, at)
-    after = np.clip(np.searchsorted(times, at, side="left"), 0, times.size - 1)
-    needed = np.unique(np.concatenate([after, np.maximum(after - 1, 0)]))
-    values = np.empty((needed.size, 2))
-    for row, index in enumerate(needed.tolist()):
-        try:
-            msg = deserialize(streams.pose_data[index], streams.pose_type)
-            values[row] = pose_xy(msg, streams.pose_type)
-        except MessageError as exc:
-            raise MessageError(
-                f"bag {str(streams.path)!r}, topic {streams.pose_topic!r}: {exc}"
-            ) from None
-    return _interpolate(times[needed], values, at)
+        times, values = times, streams.pose_values
+    else:
+        after = np.clip(np.searchsorted(times, at, side="left"), 0, times.size - 1)
+        needed = np.unique(np.concatenate([after, np.maximum(after - 1, 0)]))
+        values = np.empty((needed.size, 4))
+        for row, index in enumerate(needed.tolist()):
+            try:
+                msg = deserialize(streams.pose_data[index], streams.pose_type)
+                values[row] = pose_planar(msg, streams.pose_type)
+            except MessageError as exc:
+                raise MessageError(
+                    f"bag {str(streams.path)!r}, topic {streams.pose_topic!r}: {exc}"
+                ) from None
+        times = times[needed]
+    return _interpolate(times, values, at)
+
+
+def _planar_unless_turning(poses: np.ndarray) -> np.ndarray:
+    """``poses`` ``(T, 4)`` as the learner's positions: ``(x, y)`` alone unless the robot
+    turns (the heading's cosine or sine varies over the steps with a pose)."""
+    known = poses[np.isfinite(poses).all(axis=1)]
+    turns = known.size > 0 and float(np.ptp(known[:, 2:], axis=0).max()) > HEADING_TOLERANCE
+    return poses if turns else poses[:, :2]
 
 
 def _decode_images(
@@ -202,6 +211,10 @@ def _decode_images(
     if batch:
         flush()
     return out[inverse.reshape(-1)]
+
+
+HEADING_TOLERANCE = 1e-6
+"""Spread of a heading's cosine or sine below which the robot never turned."""
 
 
 def _interpolate(times: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -284,8 +297,13 @@ def fit_stream_spec(
         )
     columns = [options.components.index(c) for c in varying]
     environment = {s.environment for s in streams}
+    if len(environment) > 1 and "drive" in environment:
+        raise DataError(
+            f"the bags come from different simulator environments {sorted(map(str, environment))}"
+            ": drive's actions are not the others'"
+        )
     if options.actions is None and None not in environment:
-        codebook = sim_codebook()
+        codebook = sim_codebook(next(iter(environment)))
     else:
         default = options.actions is None
         count = (
@@ -395,7 +413,7 @@ def read_stream_trajectory(
         if codebook.kind == "sim" and bag.environment is None:
             raise DataError(
                 f"bag {str(path)!r} does not come from sim_node, but the model's actions are "
-                "the simulator's 25 pairs"
+                "the simulator's"
             )
         steps = resample_grid(bag.image_times, bag.command_times, spec.grid)
         period = spec.grid.step_ns / NS_PER_S
@@ -467,11 +485,12 @@ def read_stream_trajectory(
             }
         )
     merged = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+    merged["positions"] = _planar_unless_turning(merged["positions"])
     prep = spec.preprocessing
     return Trajectory(
         **merged,
         image_shape=(prep.height, prep.width),
-        n_actions=len(codebook) if codebook.kind == "kmeans" else NUM_ACTIONS,
+        n_actions=len(codebook),
         sources=sources,
     )
 

@@ -32,14 +32,13 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros.core.actions import NUM_ACTIONS, VELOCITIES
+from tpsr_ros.core.actions import environment_grid
 from tpsr_ros.core.episodes import (
     DEFAULT_ACTION_TOLERANCE,
     DEFAULT_IMAGE_SHAPE,
     STEP_NS,
     Trajectory,
     images_to_observations,
-    velocities_to_actions,
 )
 from tpsr_ros.core.errors import BagError, ConfigError, DataError, MessageError
 from tpsr_ros.io.bag import BagReader
@@ -146,11 +145,12 @@ class _Steps:
     stamps: np.ndarray  # (n,) int64
     pixels: np.ndarray  # (n, H, W, 3) uint8
     actions: np.ndarray  # (n,) int64
-    velocities: np.ndarray  # (n, 2)
-    positions: np.ndarray  # (n, 2), NaN where no pose
+    velocities: np.ndarray  # (n, 2): the commands' two grid components
+    positions: np.ndarray  # (n, 2), drive (n, 4) with the heading's cos, sin; NaN: no pose
     rewards: np.ndarray  # (n,), NaN where no reward
     segments: np.ndarray  # (n,) int64, numbered over all bags
     source: dict[str, Any] | None  # the bag's source dict on its last chunk only
+    n_actions: int  # of the bag's action grid
 
     def trajectory(self) -> Trajectory:
         return _trajectory([self])
@@ -164,6 +164,11 @@ def _trajectory(parts: Sequence[_Steps]) -> Trajectory:
         return arrays[0] if len(arrays) == 1 else np.concatenate(arrays)
 
     pixels = joined("pixels")
+    if len({(p.n_actions, p.positions.shape[1]) for p in parts}) > 1:
+        raise DataError(
+            "the bags come from simulators with different actions (drive and a planar "
+            "environment): learn from one kind at a time"
+        )
     return Trajectory(
         stamps=joined("stamps"),
         observations=images_to_observations(pixels),
@@ -173,12 +178,11 @@ def _trajectory(parts: Sequence[_Steps]) -> Trajectory:
         rewards=joined("rewards"),
         segments=joined("segments"),
         image_shape=(int(pixels.shape[1]), int(pixels.shape[2])),
-        n_actions=NUM_ACTIONS,
+        n_actions=parts[0].n_actions,
         sources=[p.source for p in parts if p.source is not None],
     )
 
 
-_NO_POSE = (float("nan"), float("nan"))
 _IMAGE, _ACTION, _POSE, _REWARD = range(4)
 
 
@@ -209,10 +213,14 @@ class _BagSteps:
         topics = self.options.topics
         with BagReader(self.path) as reader:
             present = self._check_topics(reader)
+            environment, generator = bag_custom_data(reader)
+            drives = environment == "drive"  # the robot that turns: its own actions, a heading
+            self.grid = environment_grid(environment)
+            self.pose_width = 4 if drives else 2
             decoders = {
                 topics.image: (_IMAGE, self.images),
-                topics.action: (_ACTION, TwistDecoder()),
-                topics.pose: (_POSE, PoseDecoder()),
+                topics.action: (_ACTION, TwistDecoder(self.grid.components)),
+                topics.pose: (_POSE, PoseDecoder(heading=drives)),
                 topics.reward: (_REWARD, RewardDecoder()),
             }
             window = self.options.reorder_window  # until the image size is known
@@ -251,7 +259,6 @@ class _BagSteps:
                 final = heapq.heappop(heap)
                 if (chunk := self._finish(final, pending.pop(final))) is not None:
                     yield chunk
-            environment, generator = bag_custom_data(reader)
         if not self.buffer:
             raise DataError(
                 f"bag {str(self.path)!r} has no image and action with the same stamp "
@@ -358,9 +365,10 @@ class _BagSteps:
         height, width = self.images.shape
         pixels = np.frombuffer(b"".join(e[_IMAGE] for e in entries), dtype=np.uint8)
         velocities = np.array([e[_ACTION] for e in entries], dtype=np.float64).reshape(count, 2)
+        no_pose = (np.nan,) * self.pose_width
         positions = np.array(
-            [_NO_POSE if e[_POSE] is None else e[_POSE] for e in entries], dtype=np.float64
-        ).reshape(count, 2)
+            [no_pose if e[_POSE] is None else e[_POSE] for e in entries], dtype=np.float64
+        ).reshape(count, self.pose_width)
         rewards = np.array(
             [np.nan if e[_REWARD] is None else e[_REWARD] for e in entries], dtype=np.float64
         )
@@ -370,14 +378,19 @@ class _BagSteps:
         segments = self.segment + np.cumsum(breaks, dtype=np.int64)
         self.segment, self.last_stamp = int(segments[-1]), int(stamps[-1])
         try:
-            actions = velocities_to_actions(velocities, self.options.action_tolerance)
-        except DataError as exc:
+            actions = self.grid.indices(velocities, self.options.action_tolerance)
+        except ConfigError as exc:
             with np.errstate(invalid="ignore"):
-                far = np.abs(velocities[:, :, None] - VELOCITIES).min(axis=2).max(axis=1)
+                far = np.max(
+                    [np.abs(velocities[:, i, None] - np.asarray(v)).min(axis=1)
+                     for i, v in enumerate(self.grid.levels)],
+                    axis=0,
+                )  # fmt: skip
             first = int(np.argmax(~(far <= self.options.action_tolerance)))
             raise DataError(
                 f"bag {str(self.path)!r}, topic {self.options.topics.action!r}, the step at "
-                f"stamp {int(stamps[first])} ns: {exc}"
+                f"stamp {int(stamps[first])} ns: an action cannot be mapped to the simulator's "
+                f"{len(self.grid)} actions: {exc}"
             ) from None
         return _Steps(
             stamps=stamps,
@@ -388,6 +401,7 @@ class _BagSteps:
             rewards=rewards,
             segments=segments,
             source=None,
+            n_actions=len(self.grid),
         )
 
 
