@@ -30,7 +30,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "learner.track",
     "learner.planning",
     "learner.evaluate",
-    "learner.closed_loop",
+    "learner.closed_loop_cli",
     "learner.experiment",
     "learner.study",
     "learner.report",

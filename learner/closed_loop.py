@@ -33,11 +33,9 @@ and Ctrl-C alike; on Linux they also get SIGTERM if this process dies.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import os
 import random
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -47,10 +45,16 @@ from typing import Any
 
 import numpy as np
 
-from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, Evaluation, Trial
+from learner.evaluate import (
+    EVALUATION_SEED,
+    START_POSITIONS,
+    STEPS,
+    Evaluation,
+    Trial,
+    start_heading,
+)
 from learner.inputs import open_simulator_model
 from sim_node import Environment, SimConfig
-from sim_node.options import add_vertical_half_extent_option
 from sim_node.topics import CMD_IGNORED_TOPIC
 from tpsr_ros.core.errors import ModelFormatError, TpsrError
 from tpsr_ros.core.units import NS_PER_S as _NS
@@ -76,8 +80,6 @@ __all__ = [
     "ClosedLoopError",
     "ClosedLoopResult",
     "format_trial",
-    "register",
-    "run",
     "run_closed_loop",
 ]
 
@@ -225,16 +227,18 @@ def _run_trial(
     steps: int,
     on_reset: Callable[[], None] | None,
     on_step: Callable[[int], None] | None,
+    heading: float | None = None,
 ) -> Trial:
     """One trial of the standard protocol (guide 4.1): reset, N lockstep steps, their reward.
 
-    Reset to ``start``, collect the rewards r_1 .. r_N stamped after the reset, wait until
-    the simulator announced on ``/sim/cmd_ignored`` that it ignored the filter's command
-    N+1 (only then can the next reset not be overtaken by it) and for the N states.
+    Reset to ``start`` (turned to ``heading``, if any), collect the rewards r_1 .. r_N
+    stamped after the reset, wait until the simulator announced on ``/sim/cmd_ignored`` that
+    it ignored the filter's command N+1 (only then can the next reset not be overtaken by
+    it) and for the N states.
     """
     name = f"trial {index + 1}"
     before = len(driver.episode_starts)
-    driver.reset_pub.publish(m.pose_msg(0, float(start[0]), float(start[1])))
+    driver.reset_pub.publish(m.pose_msg(0, float(start[0]), float(start[1]), heading=heading))
     launch.wait(f"the episode start of {name}", lambda: len(driver.episode_starts) > before)
     reset_stamp, x, y = driver.episode_starts[-1]
     if abs(x - start[0]) > 1e-9 or abs(y - start[1]) > 1e-9:
@@ -485,7 +489,10 @@ def run_closed_loop(
         trials: list[Trial] = []
         for index, start in enumerate(starts):
             on_reset = start_filter if index == 0 else None
-            trials.append(_run_trial(launch, driver, index, start, steps, on_reset, on_step))
+            heading = start_heading(environment == Environment.DRIVE.value, index)
+            trials.append(
+                _run_trial(launch, driver, index, start, steps, on_reset, on_step, heading)
+            )
             if on_trial is not None:
                 on_trial(index, trials[-1])
         evaluation = Evaluation(tuple(trials))
@@ -504,95 +511,3 @@ def run_closed_loop(
     return ClosedLoopResult(
         evaluation, states, record, logs if keep_logs else None, time.monotonic() - started
     )
-
-
-# -- command line -------------------------------------------------------------------------
-
-
-def register(subparsers: Any) -> None:
-    """Add the ``closed-loop`` subcommand."""
-    doc = (
-        "score a policy with the standard protocol over the nodes: sim_node and the filter "
-        "node as separate processes in lockstep over ROS 2 (rclpy or the DDS backend)"
-    )
-    parser = subparsers.add_parser(
-        "closed-loop",
-        help=doc,
-        description=doc[0].upper() + doc[1:] + ". Prints each trial, then `score: X`, "
-        "exactly as `learner evaluate` does for the same policy.",
-    )
-    parser.add_argument("policy", type=Path, metavar="POLICY")
-    parser.add_argument("--environment", required=True, choices=[e.value for e in Environment])
-    add_vertical_half_extent_option(parser, "sim_node's camera (the model's must match)")
-    parser.add_argument(
-        "--model",
-        type=Path,
-        default=None,
-        metavar="MODEL",
-        help="the policy's model file (default: the path recorded in the policy)",
-    )
-    parser.add_argument(
-        "--record",
-        type=Path,
-        default=None,
-        metavar="BAG",
-        help="also record every topic of the run into a new bag",
-    )
-    parser.add_argument(
-        "--logs",
-        type=Path,
-        default=None,
-        metavar="DIR",
-        help="keep the nodes' logs in DIR (default: only when a run fails)",
-    )
-    parser.add_argument(
-        "--seed", type=int, default=EVALUATION_SEED, help="simulator seed (default: %(default)s)"
-    )
-    parser.add_argument(
-        "--timeout",
-        type=float,
-        default=60.0,
-        metavar="S",
-        help="longest wait for any one stage (default: %(default)s s)",
-    )
-    parser.add_argument(
-        "--domain-id",
-        type=int,
-        default=None,
-        metavar="N",
-        help="ROS_DOMAIN_ID to use (default: a free one in 1..101 at random)",
-    )
-    parser.add_argument(
-        "--transport",
-        choices=("rclpy", "dds"),
-        default=None,
-        help="middleware of the nodes (default: TPSR_TRANSPORT, else rclpy if importable, "
-        "else dds)",
-    )
-    parser.set_defaults(run=run)
-
-
-def run(args: argparse.Namespace) -> int:
-    """Run the closed loop; print each trial, then ``score: <mean>`` as the last line."""
-    if args.seed < 0:
-        raise ModelFormatError(f"--seed must be >= 0, got {args.seed}")
-
-    def show(index: int, trial: Trial) -> None:
-        print(format_trial(index, trial), flush=True)
-
-    result = run_closed_loop(
-        args.policy,
-        args.environment,
-        vertical_half_extent=args.vertical_half_extent,
-        model_path=args.model,
-        record=args.record,
-        log_dir=args.logs,
-        seed=args.seed,
-        timeout_s=args.timeout,
-        domain_id=args.domain_id,
-        transport=args.transport,
-        on_trial=show,
-        say=lambda text: print(f"learner closed-loop: {text}", file=sys.stderr, flush=True),
-    )
-    print(f"score: {result.evaluation.score:.1f}")
-    return 0

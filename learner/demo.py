@@ -3,7 +3,7 @@
 Everything goes to ``demo_output/`` (recreated on every run):
 
 1. a random training run (24000 steps) and a separate random RL run (15000 steps; 20000
-   in ``partial`` and ``distractors``, as in the guide) of the simulator, written as bags
+   in the other environments, as in the guide's ``partial``) of the simulator, written as bags
    (``python -m sim_node.generate``);
 2. a TPSR (``learner fit``) and a fitted-Q policy on the states tracked over the RL run
    (``learner policy``), both with the default preset (``best``; ``--preset guide`` for the
@@ -139,8 +139,8 @@ def main(argv: list[str] | None = None) -> int:
         "--rl-steps",
         type=positive_int,
         default=None,
-        help="steps of the random RL run (default: the guide's, 15000 in full and 20000 in "
-        "partial and distractors)",
+        help="steps of the random RL run (default: the guide's, 15000 in full and 20000 "
+        "otherwise)",
     )
     add_preset_option(parser, "fit and fitted-Q (learner fit and learner policy)")
     parser.add_argument(
@@ -236,9 +236,9 @@ def _summary(out: Path, headless: Any, result: Any, bounds: Bounds, seconds: flo
         f"score over the nodes (closed loop): {closed:.1f}; headless (learner evaluate): "
         f"{head:.1f} ({same})"
     )
-    vx, vy = bounds.constant.velocity
+    first, second = bounds.constant.velocity
     print(
-        f"same protocol, floors: best constant action ({vx:+.0f}, {vy:+.0f}) "
+        f"same protocol, floors: best constant action ({first:+.3g}, {second:+.3g}) "
         f"{bounds.constant.evaluation.score:.1f}, random actions {bounds.random:.1f}; "
         f"ceiling: true position {bounds.true_position:.1f}"
     )

@@ -40,6 +40,7 @@ __all__ = [
     "register",
     "run",
     "run_protocol",
+    "start_heading",
 ]
 
 EVALUATION_SEED = 2026
@@ -60,13 +61,18 @@ START_HEADINGS_DEG: tuple[float, ...] = tuple(90.0 * (i % 4) for i in range(len(
 """The heading of each start in ``drive`` (degrees from east, counter-clockwise)."""
 
 
+def start_heading(drives: bool, index: int) -> float | None:
+    """The heading (rad) of start ``index`` for a robot that turns, else None."""
+    if not drives:
+        return None
+    return float(np.radians(START_HEADINGS_DEG[index % len(START_HEADINGS_DEG)]))
+
+
 def start_options(config: SimConfig, index: int, start: tuple[float, float]) -> dict[str, Any]:
     """The reset options of trial ``index`` from ``start``: its position, and in ``drive``
     its heading from :data:`START_HEADINGS_DEG`."""
-    options: dict[str, Any] = {"position": start}
-    if config.drives:
-        options["heading"] = float(np.radians(START_HEADINGS_DEG[index % len(START_HEADINGS_DEG)]))
-    return options
+    heading = start_heading(config.drives, index)
+    return {"position": start} | ({} if heading is None else {"heading": heading})
 
 
 @dataclass(frozen=True)

@@ -51,7 +51,7 @@ from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError, DivergenceError, TpsrError
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.pca_baseline import PCAConfig, fit_pca
-from tpsr_ros.core.presets import DEFAULT_PRESET, departures, get_preset
+from tpsr_ros.core.presets import DEFAULT_PRESET, departures, get_preset, turns
 from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
 from tpsr_ros.io.model_io import model_fingerprint
@@ -149,17 +149,24 @@ class ExperimentConfig:
         return episodes * (self.tpsr.history_length + 1 + self.tpsr.test_length)
 
 
+def preset_tpsr(preset: str, environment: str) -> TPSRConfig:
+    """The fit ``preset`` gives in ``environment``: with the turning robot's changes where the
+    actions turn the robot (``drive``)."""
+    components = SimConfig(environment=environment).actions.components
+    return get_preset(preset).tpsr_config(turning=turns(components))
+
+
 def default_config(
     environment: str, preset: str = DEFAULT_PRESET, **overrides: Any
 ) -> ExperimentConfig:
     """The guide's protocol for ``environment`` (RL steps, PCA dimension) with the fit and
-    planner of ``preset``, then ``overrides``."""
+    planner of ``preset`` (its turning robot's fit in ``drive``), then ``overrides``."""
     chosen = get_preset(preset)
     values: dict[str, Any] = {
         "environment": environment,
         "rl_steps": RL_STEPS[environment],
         "pca": PCAConfig(dim=PCA_DIM[environment]),
-        "tpsr": chosen.tpsr_config(),
+        "tpsr": preset_tpsr(chosen.name, environment),
         "fqi": chosen.fqi_config(),
         "preset": chosen.name,
     }
@@ -301,7 +308,7 @@ def _learn_states(
     if method == "tpsr":
         episodes = make_episodes(train, config.tpsr.history_length, config.tpsr.test_length)
         # sizes set with --set stay as set; the preset's follow the data (core.sizing)
-        given = departures(config.tpsr, get_preset(config.preset).tpsr_config())
+        given = departures(config.tpsr, preset_tpsr(config.preset, config.environment))
         codes = config.sim_config().actions.codes  # for action-aware features
         model = fit_tpsr_episodes(
             episodes, config=config.tpsr, sizing=Sizing(given), action_codes=codes

@@ -33,6 +33,7 @@ from learner.inputs import (
     apply_config_inputs,
     fit_options_from_args,
     require_given_topics,
+    robot_turns,
     topics_from_args,
 )
 from learner.options import (
@@ -206,29 +207,23 @@ def run(args: argparse.Namespace) -> int:
             _say(f"options from {args.config}: {', '.join(taken)}")
     require_given_topics(args.bags, args)
     stream_options = fit_options_from_args(args)
-    robot_bags = stream_options is not None
-    preset = preset_from_args(args)
-    preset_config = preset.tpsr_config(robot=robot_bags)
-    tpsr_config = config_from_args(TPSRConfig, args, preset_config, file_values)
-    if file_values is not None:
-        _say(f"TPSR parameters from {args.config}: {describe(tpsr_config)}")
-    record = None
-    if args.method == "tpsr":
-        _say_preset(preset, preset_config, tpsr_config, robot_bags)
-        record = {"name": preset.name, "changed": departures(tpsr_config, preset_config)}
+    # the options are checked before any bag is read (the preset's changes come after it)
+    config_from_args(TPSRConfig, args, preset_from_args(args).tpsr_config(), file_values)
     # what the user set stays as set; the preset's sizes follow the data
     given = {f.name for f in dataclasses.fields(TPSRConfig) if getattr(args, f.name) is not None}
     args.sizing = Sizing(given | set(file_values or {}))
     pca_config = config_from_args(PCAConfig, args)
     topics = topics_from_args(args)
     if args.stream or args.workers is not None or args.scheduler is not None:
-        return _run_streamed(args, output, tpsr_config, pca_config, topics, stream_options, record)
+        return _run_streamed(args, output, file_values, pca_config, topics, stream_options)
     timings: dict[str, float] = {}
 
     _say(f"reading {len(args.bags)} bag(s)")
     start = time.perf_counter()
     trajectory, spec = read_training_bags(args, topics, stream_options)
     timings["reading bags"] = time.perf_counter() - start
+    environment = trajectory.summary().get("environment")
+    tpsr_config, record = _fit_config(args, file_values, spec, environment)
     episodes = make_episodes(
         trajectory,
         tpsr_config.history_length,
@@ -317,14 +312,34 @@ def _robot_spec(
     return spec
 
 
+def _fit_config(
+    args: argparse.Namespace,
+    file_values: dict[str, Any] | None,
+    spec: StreamSpec | None,
+    environment: str | None,
+) -> tuple[TPSRConfig, dict[str, Any] | None]:
+    """The fit's parameters and the preset record of the model: the preset (with its robot
+    bags' and turning robot's changes where the data are such), then the ``--config`` file's
+    values, then the options (a robot turns: :func:`learner.inputs.robot_turns`)."""
+    preset = preset_from_args(args)
+    robot, turning = spec is not None, robot_turns(spec, environment)
+    preset_config = preset.tpsr_config(robot=robot, turning=turning)
+    tpsr_config = config_from_args(TPSRConfig, args, preset_config, file_values)
+    if file_values is not None:
+        _say(f"TPSR parameters from {args.config}: {describe(tpsr_config)}")
+    if args.method != "tpsr":
+        return tpsr_config, None
+    _say_preset(preset, preset_config, tpsr_config, robot=robot, turning=turning)
+    return tpsr_config, {"name": preset.name, "changed": departures(tpsr_config, preset_config)}
+
+
 def _run_streamed(
     args: argparse.Namespace,
     output: Path,
-    tpsr_config: TPSRConfig,
+    file_values: dict[str, Any] | None,
     pca_config: PCAConfig,
     topics: Topics,
     stream_options: FitOptions | None,
-    preset: dict[str, Any] | None,
 ) -> int:
     """``--stream`` (and ``--workers`` / ``--scheduler``): the streamed fit, then as :func:`run`."""
     distributed = args.workers is not None or args.scheduler is not None
@@ -352,6 +367,7 @@ def _run_streamed(
         environment = vertical_half_extent = None
         image_shape = [spec.preprocessing.height, spec.preprocessing.width]
         recorded["pose_frame"] = pose_frame  # as the in-memory fit records it
+    tpsr_config, preset = _fit_config(args, file_values, spec, environment)
     reader = BagChunks(
         topics=topics, chunk_steps=args.chunk_steps, spec=spec, pose_frame=pose_frame
     )
@@ -422,13 +438,21 @@ def _say_sizing(model: StateModel) -> None:
 
 
 def _say_preset(
-    preset: Preset, preset_config: TPSRConfig, config: TPSRConfig, robot_bags: bool
+    preset: Preset, preset_config: TPSRConfig, config: TPSRConfig, *, robot: bool, turning: bool
 ) -> None:
     """Say which preset the fit starts from and what the options changed in it."""
     changed = departures(config, preset_config)
-    robot = " with its robot-bag settings" if robot_bags and preset.robot_tpsr else ""
+    extras = [
+        f"{what} settings ({' '.join(f'{k}={v}' for k, v in changes.items())})"
+        for what, applies, changes in (
+            ("robot-bag", robot, preset.robot_tpsr),
+            ("turning robot's", turning, preset.turning_tpsr),
+        )
+        if applies and changes
+    ]
+    with_extras = f" with its {' and '.join(extras)}" if extras else ""
     what = " ".join(f"{k}={v}" for k, v in changed.items()) or "nothing"
-    _say(f"preset {preset.name}{robot} ({preset.summary}); changed by options: {what}")
+    _say(f"preset {preset.name}{with_extras} ({preset.summary}); changed by options: {what}")
 
 
 def _write(

@@ -18,9 +18,11 @@ from typing import Any
 
 from learner.config_file import TOPIC_KEYS
 from tpsr_ros.cli import positive_int
+from tpsr_ros.core.actions import environment_grid
 from tpsr_ros.core.codebook import COMPONENTS, DEFAULT_COMPONENTS
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.presets import turns
 from tpsr_ros.core.units import NS_PER_S
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.model_io import ModelFile, metadata_field, open_model
@@ -39,6 +41,7 @@ __all__ = [
     "require_camera",
     "require_given_topics",
     "require_simulator_model",
+    "robot_turns",
     "stream_inputs",
     "topics_from_args",
 ]
@@ -336,3 +339,11 @@ def open_simulator_model(path: Path | str, vertical_half_extent: float) -> Model
     require_simulator_model(model_file)
     require_camera(model_file, vertical_half_extent)
     return model_file
+
+
+def robot_turns(spec: StreamSpec | None, environment: str | None) -> bool:
+    """Whether the robot of the training data turns: its actions carry a turn rate (a robot
+    bag's varying command components; a simulator bag's environment, ``drive``)."""
+    if spec is not None:
+        return turns(spec.codebook.components)
+    return turns(environment_grid(environment).components)

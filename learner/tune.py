@@ -429,6 +429,7 @@ def run(args: argparse.Namespace) -> int:
     from learner.inputs import (
         fit_options_from_args,
         require_given_topics,
+        robot_turns,
         stream_inputs,
         topics_from_args,
     )
@@ -445,7 +446,8 @@ def run(args: argparse.Namespace) -> int:
     if args.steps is not None:
         trajectory = trajectory.rows(0, min(len(trajectory), args.steps))
     # the search starts from what learner fit would fit with the same preset
-    base = preset_from_args(args).tpsr_config(robot=spec is not None)
+    turning = robot_turns(spec, trajectory.summary().get("environment"))
+    base = preset_from_args(args).tpsr_config(robot=spec is not None, turning=turning)
     result = tune(
         trajectory, budget=args.budget, candidates=args.candidates, seed=args.seed, base=base,
         report=_say, progress=True, started=start,

@@ -85,15 +85,17 @@ class RoomWorld:
         """Drive forward at ``speed`` m/s while turning at ``turn_rate`` rad/s for
         ``duration`` s; return whether a wall blocked it.
 
-        The heading of each substep is the one at its middle, so a step of constant speed
-        and turn rate follows the arc it commands.
+        Each substep moves along the chord of its piece of the arc (the heading at its
+        middle, the chord's length), so a free step of constant speed and turn rate ends
+        exactly on the arc it commands.
         """
         self._max_impulse = 0.0
         dt = duration / self.substeps
+        chord = speed * float(np.sinc(0.5 * turn_rate * dt / np.pi))  # sin(x)/x, x = w dt / 2
         heading = self.heading
         for _ in range(self.substeps):
             middle = heading + 0.5 * turn_rate * dt
-            self._body.velocity = (speed * np.cos(middle), speed * np.sin(middle))
+            self._body.velocity = (chord * np.cos(middle), chord * np.sin(middle))
             self._space.step(dt)
             heading += turn_rate * dt
         self.heading = float(np.mod(heading, 2 * np.pi))

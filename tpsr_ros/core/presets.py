@@ -9,6 +9,11 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
   "Studies"): k-means kernel centres, history/test features normalised to sum 1, rank 8,
   every action's operators pooled, the observation whitening keeping 95 % of the
   camera's variance; fitted Q in predictive units with an ensemble of 5 x 100 centres.
+  For a robot that turns (its actions include a turn rate, ``angular.z``: the ``drive``
+  environment, a differential-drive robot's ``cmd_vel``): 20 history/test dimensions,
+  rank 16 and operators pooled half-way, since its camera's view depends on a third
+  coordinate, the heading, and on which way each action turns it (docs/results.md,
+  "drive").
 
 Options given explicitly (``learner fit --rank 5``, ``--set tpsr.rank=5``) change single
 fields of a preset; :func:`departures` names them, so a model records its preset and what
@@ -27,7 +32,15 @@ from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.tpsr import TPSRConfig
 
-__all__ = ["DEFAULT_PRESET", "PRESETS", "Preset", "departures", "get_preset"]
+__all__ = [
+    "DEFAULT_PRESET",
+    "PRESETS",
+    "TURN_COMPONENT",
+    "Preset",
+    "departures",
+    "get_preset",
+    "turns",
+]
 
 
 def _frozen(values: Mapping[str, Any]) -> Mapping[str, Any]:
@@ -39,7 +52,8 @@ class Preset:
     """Changes to the guide's defaults of the fit (``tpsr``) and the planner (``fqi``).
 
     ``robot_tpsr`` holds further changes for robot bags (camera and commands resampled on
-    a step grid), applied on top of ``tpsr``.
+    a step grid), applied on top of ``tpsr``; ``turning_tpsr`` further changes for a robot
+    that turns (:func:`turns`), applied last.
     """
 
     name: str
@@ -47,20 +61,29 @@ class Preset:
     tpsr: Mapping[str, Any] = field(default_factory=dict)
     fqi: Mapping[str, Any] = field(default_factory=dict)
     robot_tpsr: Mapping[str, Any] = field(default_factory=dict)
+    turning_tpsr: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        for attr in ("tpsr", "fqi", "robot_tpsr"):
+        for attr in ("tpsr", "fqi", "robot_tpsr", "turning_tpsr"):
             object.__setattr__(self, attr, _frozen(getattr(self, attr)))
-        self.tpsr_config(robot=True)  # every change must name a field and be valid
+        self.tpsr_config(robot=True, turning=True)  # every change must name a valid field
         self.fqi_config()
 
-    def tpsr_values(self, *, robot: bool = False) -> dict[str, Any]:
-        """The preset's TPSR changes (with the robot-bag ones when ``robot``)."""
-        return {**self.tpsr, **(self.robot_tpsr if robot else {})}
+    def tpsr_values(self, *, robot: bool = False, turning: bool = False) -> dict[str, Any]:
+        """The preset's TPSR changes (with the robot-bag ones when ``robot``, the turning
+        robot's when ``turning``)."""
+        return {
+            **self.tpsr,
+            **(self.robot_tpsr if robot else {}),
+            **(self.turning_tpsr if turning else {}),
+        }
 
-    def tpsr_config(self, *, robot: bool = False, **changes: Any) -> TPSRConfig:
+    def tpsr_config(
+        self, *, robot: bool = False, turning: bool = False, **changes: Any
+    ) -> TPSRConfig:
         """The preset's TPSR parameters, then ``changes``."""
-        return _build(TPSRConfig, {**self.tpsr_values(robot=robot), **changes}, self.name)
+        values = {**self.tpsr_values(robot=robot, turning=turning), **changes}
+        return _build(TPSRConfig, values, self.name)
 
     def fqi_config(self, **changes: Any) -> FQIConfig:
         """The preset's fitted-Q parameters, then ``changes``."""
@@ -89,6 +112,7 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
                 "obs_variance": 0.95,
             },
             fqi={"state_scaling": "predictive", "ensemble": 5, "centers": 100},
+            turning_tpsr={"ht_dim": 20, "rank": 16, "action_pooling": 0.5},
         ),
         "guide": Preset(
             "guide",
@@ -102,6 +126,20 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
 
 DEFAULT_PRESET = "best"
 """The preset of every command and of :func:`tpsr_ros.fit` unless another is named."""
+
+
+TURN_COMPONENT = "angular.z"
+"""The command component of a robot that turns (``cmd_vel``'s turn rate)."""
+
+
+def turns(components: tuple[str, ...] | list[str]) -> bool:
+    """Whether actions of these command components turn the robot (carry ``angular.z``).
+
+    The components are those the actions vary in (constant ones are dropped when a
+    codebook is learned), so a ``Twist`` stream whose ``angular.z`` is always 0 does not
+    turn.
+    """
+    return TURN_COMPONENT in components
 
 
 def get_preset(name: str) -> Preset:
