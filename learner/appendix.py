@@ -19,6 +19,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from learner.camera_study import CAMERA_SECTION
+from learner.experiment import preset_tpsr
 from learner.jobs import GUIDE_ENVIRONMENTS, SELECTION_SEEDS, Job, experiment_job, study_job
 from learner.overrides import convert
 from learner.sections import (
@@ -45,19 +46,24 @@ __all__ = ["SECTIONS", "SELECTION_EPISODES", "Section", "cell"]
 # -- one-parameter studies (learner study) -------------------------------------------------
 
 
-def _default_value(name: str) -> Any:
+def _default_value(name: str, environment: str) -> Any:
+    """The default's value of ``name`` in ``environment`` (the turning robot's in drive)."""
     group, field = name.split(".", 1)
-    preset = PRESETS[DEFAULT_PRESET]
-    config = preset.tpsr_config() if group == "tpsr" else preset.fqi_config()
-    return getattr(config, field)
+    if group == "tpsr":
+        return getattr(preset_tpsr(DEFAULT_PRESET, environment), field)
+    return getattr(PRESETS[DEFAULT_PRESET].fqi_config(), field)
 
 
 
 
 def _render_study(section: Section, data: Data) -> list[str]:
     name, values = varied(section.jobs[0])
-    default = _default_value(name)
-    default_text = next((v for v in values if convert(name, v) == default), None)
+    defaults = {job.environment: _default_value(name, job.environment) for job in section.jobs}
+    shown = {
+        env: next((v for v in values if convert(name, v) == value), None)
+        for env, value in defaults.items()
+    }
+    default_text = shown[section.jobs[0].environment]
     lines = [
         f"Every other setting is the default's; the default's value is `{default_text}`. "
         "Cells: mean / median / SEM of 10 runs; R² of the true position's affine map from "
@@ -72,6 +78,7 @@ def _render_study(section: Section, data: Data) -> list[str]:
     verdicts: list[str] = []
     for job in section.jobs:
         environment = job.environment
+        default_text = shown[environment]
         size = SELECTION_EPISODES[environment]
         reference, entries = study_entries(job, data[job])
         for entry in reference:
@@ -133,13 +140,20 @@ def _study_verdict(
     )
 
 
-def _study(key: str, title: str, question: str, vary: str, *options: str) -> Section:
+def _study(
+    key: str,
+    title: str,
+    question: str,
+    vary: str,
+    *options: str,
+    environments: tuple[str, ...] = GUIDE_ENVIRONMENTS,
+) -> Section:
     jobs = tuple(
         study_job(
             "studies", env, vary, "--episodes", str(SELECTION_EPISODES[env]), *SELECTION_SEEDS,
             *options,
         )
-        for env in GUIDE_ENVIRONMENTS
+        for env in environments
     )
     return Section(key, title, question, jobs, _render_study)
 
@@ -400,6 +414,26 @@ _PLANNER = (
     ),
 )
 
+_DRIVE = tuple(
+    _study(
+        f"drive-{field}",
+        f"The turning robot: {title}",
+        f"A robot that turns (`drive`) gets the default preset's turning changes (rank 16, 20 "
+        f"history/test dimensions, operators pooled half-way); is its {title} the best of "
+        "these?",
+        f"tpsr.{field}={values}",
+        "--methods",
+        "tpsr",
+        environments=("drive",),
+    )
+    for field, title, values in (
+        ("rank", "rank", "8,16,24"),
+        ("ht_dim", "history/test dimensions", "10,20,30"),
+        ("action_pooling", "pooling of the action operators", "0,0.5,1"),
+    )
+)
+"""One-knob studies of the turning robot's settings, around them."""
+
 SECTIONS: tuple[Section, ...] = (
     *_PLANNER,
     *_FIT_SWITCHES,
@@ -430,5 +464,6 @@ SECTIONS: tuple[Section, ...] = (
         _render_memory,
     ),
     CAMERA_SECTION,
+    *_DRIVE,
 )
 """Every section of the appendix, in page order."""

@@ -22,7 +22,7 @@ __all__ = [
 
 GUIDE_ENVIRONMENTS = ("full", "partial", "distractors")
 """The guide's environments: the appendix's studies run in them."""
-ENVIRONMENTS = (*GUIDE_ENVIRONMENTS, "partial-strip")
+ENVIRONMENTS = (*GUIDE_ENVIRONMENTS, "partial-strip", "drive")
 """Every environment of the headline."""
 
 SELECTION_SEEDS = ("--seed", "0", "--rl-seed", "100")

@@ -59,6 +59,9 @@ GUIDE_RESULTS = {
     "(figure 4.7).",
     "partial-strip": "Not in the guide: partial's camera with a strip that hides the walls' "
     "distance; the guide's findings for partial (figure 4.8) are judged here too.",
+    "drive": "Not in the guide: a differential-drive robot (9 actions: forward speed 0, 1.5 or "
+    "3 m/s times turn rate -45, 0 or +45 degrees per step) whose 300 degree camera turns with "
+    "it; the ceiling plans on the true x, y and heading (cos, sin).",
 }
 
 Table = list[dict[str, Any]]
