@@ -7,7 +7,11 @@ The table of docs/robot_bags.md ("Measured"): for seeds 0 and 1, bags of
 0`` (steps on the command times, the phase the grid chose before it chose one);
 ``learner plot`` prints the R^2 of the true position from the states. Target: R^2 >= 0.9.
 
-    python -m benchmarks.bench_robot_bags [--seeds 0 1]
+``--drive``: the turning robot instead (``--environment drive``, ``step-start``, 24000 steps,
+the 300 and 90 degree cameras), R^2 of x, y and the heading's cos and sin; targets 0.8 for
+the 300 degree camera and 0.6 for the 90 degree one.
+
+    python -m benchmarks.bench_robot_bags [--seeds 0 1] [--drive]
 """
 
 from __future__ import annotations
@@ -32,6 +36,14 @@ CASES = (  # (label, generator options, fit options)
 )  # fmt: skip
 
 
+DRIVE = ["--environment", "drive", "--timeline", "step-start", "--steps", "24000"]
+DRIVE_CASES = (  # (label, generator options, fit options, target)
+    ("drive, 300° camera", [*DRIVE, "--field-of-view", "300"], [], 0.8),
+    ("drive, 90° camera", [*DRIVE, "--field-of-view", "90"], [], 0.6),
+)
+_R2 = re.compile(r"(?:^|: |, )(?:x|y|cos heading|sin heading) (-?[\d.]+)")
+
+
 def _run(argv: list[str]) -> tuple[float, str]:
     start = time.perf_counter()
     done = subprocess.run(argv, capture_output=True, text=True, check=False)
@@ -41,7 +53,8 @@ def _run(argv: list[str]) -> tuple[float, str]:
 
 
 def r2_of(bag: Path, generator: list[str], fit: list[str], seed: int, tmp: Path) -> list[float]:
-    """Make the bag (once), fit with the defaults and ``fit``, return R^2 of x and y."""
+    """Make the bag (once), fit with the defaults and ``fit``, return the R^2 that ``learner
+    plot`` prints (x and y; and the heading's cos and sin for a robot that turns)."""
     py = sys.executable
     if not bag.exists():
         _run([py, "-m", "sim_node.robot_bag", *generator, "--seed", str(seed), "-o", str(bag)])
@@ -52,13 +65,17 @@ def r2_of(bag: Path, generator: list[str], fit: list[str], seed: int, tmp: Path)
           "--force"])  # fmt: skip
     _, plot = _run([py, "-m", "learner", "plot", str(model), str(bag), "-o",
                     str(tmp / "states.png"), "--force"])  # fmt: skip
-    return [float(v) for v in re.findall(r"[xy] (-?[\d.]+)", plot.splitlines()[-1])]
+    return [float(v) for v in _R2.findall(plot.splitlines()[-1])]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--drive", action="store_true", help="the turning robot's bags")
     args = parser.parse_args()
+    if args.drive:
+        _drive(args.seeds)
+        return
     print("| bag | " + " | ".join(f"R² x, y (seed {s})" for s in args.seeds) + " |")
     print("|---|" + "---|" * len(args.seeds))
     with tempfile.TemporaryDirectory() as tmp:
@@ -69,6 +86,20 @@ def main() -> None:
                 x, y = r2_of(bag, generator, fit, seed, Path(tmp))
                 mark = "" if min(x, y) >= TARGET else " (below 0.9)"
                 cells.append(f"{x:.3f}, {y:.3f}{mark}")
+            print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
+
+
+def _drive(seeds: list[int]) -> None:
+    print("| bag | " + " | ".join(f"R² x, y, cos, sin (seed {s})" for s in seeds) + " |")
+    print("|---|" + "---|" * len(seeds))
+    with tempfile.TemporaryDirectory() as tmp:
+        for label, generator, fit, target in DRIVE_CASES:
+            cells = []
+            for seed in seeds:
+                bag = Path(tmp) / f"drive_{generator[-1]}_{seed}"
+                values = r2_of(bag, generator, fit, seed, Path(tmp))
+                mark = "" if min(values) >= target else f" (below {target})"
+                cells.append(", ".join(f"{v:.3f}" for v in values) + mark)
             print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
 
 

@@ -201,3 +201,54 @@ def test_sim_node_drive_takes_twist_turns_and_publishes_the_heading():
     probe.node.spin_once(0.0)
     assert sim.steps_published == 2
     sim.close()
+
+
+@pytest.mark.slow
+def test_fit_policy_and_closed_loop_on_drive_bags(tmp_path, monkeypatch, capsys):
+    """A drive model gets the turning robot's settings, and its closed loop over the nodes
+    scores exactly what the headless evaluation scores (three starts, ten steps)."""
+    pytest.importorskip("cyclonedds")
+    from graph_support import LOOPBACK, fresh_domain
+
+    from learner.cli import main as learner_main
+    from learner.closed_loop import run_closed_loop
+    from learner.evaluate import START_POSITIONS, evaluate
+    from learner.representations import load_tracker
+    from tpsr_ros.io.model_io import open_model
+    from tpsr_ros.io.policy import load_policy
+
+    generate_bag(tmp_path / "train", DRIVE, 3000, seed=0)
+    generate_bag(tmp_path / "rl", DRIVE, 3000, seed=1)
+    model, policy = tmp_path / "model.npz", tmp_path / "policy.npz"
+    small = ["--obs-centers", "60", "--ht-centers", "120"]
+    assert learner_main(["fit", str(tmp_path / "train"), "-o", str(model), *small]) == 0
+    said = capsys.readouterr().err
+    assert "with its turning robot's settings (ht_dim=20 rank=16 action_pooling=0.5)" in said
+    opened = open_model(model)
+    config = opened.model.config
+    assert (config.rank, config.ht_dim, config.action_pooling) == (16, 20, 0.5)
+    assert opened.environment == "drive" and opened.model.n_actions == 9
+    assert learner_main(["policy", str(model), str(tmp_path / "rl"), "-o", str(policy)]) == 0
+    starts, steps = START_POSITIONS[:3], 10
+    tracker, seen = load_tracker(model), []
+
+    class Recording:  # the headless run's states after every step, in order
+        representation, fingerprint = tracker.representation, tracker.fingerprint
+        start = tracker.start
+
+        def step(self, *args):
+            seen.append(tracker.step(*args))
+            return seen[-1]
+
+    headless = evaluate(load_policy(policy), Recording(), "drive", starts=starts, steps=steps)
+    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
+    result = run_closed_loop(
+        policy, "drive", model_path=model, starts=starts, steps=steps, transport="dds",
+        domain_id=fresh_domain(),
+    )  # fmt: skip
+    assert result.evaluation == headless
+    # the states the filter node published are the headless ones: the nodes turned the
+    # robot to each start's heading and executed (speed, turn rate) commands alike
+    published = [result.states[stamp] for stamp in sorted(result.states)]
+    assert len(published) == len(seen) == 30
+    assert max(np.abs(a - b).max() for a, b in zip(published, seen, strict=True)) <= 1e-9

@@ -128,7 +128,7 @@ def test_generated_bag_records_its_settings(tmp_path):
         generate_bag(out, SimConfig(), 10, seed=7)
 
 
-@pytest.mark.parametrize("environment", ["full", "distractors"])
+@pytest.mark.parametrize("environment", ["full", "distractors", "drive"])
 def test_chunk_payloads_are_exactly_what_rosbags_serialises(environment):
     # the generator writes CDR built per chunk with numpy; it must be rosbags' bytes
     from sim_node.batch_cdr import chunk_payloads
@@ -140,11 +140,13 @@ def test_chunk_payloads_are_exactly_what_rosbags_serialises(environment):
     part = random_rollout(config, 400, seed=5)
     assert part.wall_contact.any() and part.goal_zone.any()  # every reward value occurs
     topics = SimTopics()
-    payloads = chunk_payloads(topics, part)
+    payloads = chunk_payloads(topics, part, config)
     for i in range(len(part)):
         reward = RewardSample(float(part.rewards[i]), bool(part.wall_contact[i]),
                               bool(part.goal_zone[i]))
+        heading = float(part.headings[i]) if config.drives else None
         expected = step_messages(topics, int(part.stamps_ns[i]), part.images[i],
-                                 part.commands[i], part.positions[i], reward)
+                                 part.commands[i], part.positions[i], reward,
+                                 components=config.actions.components, heading=heading)
         for topic, msgtype, msg in expected:
             assert payloads[topic][i] == serialize(msg, msgtype), (topic, i)

@@ -145,7 +145,7 @@ class FilterNode(Node):
         self.model = self.inputs.model
         self.policy = self.inputs.policy
         self.spec = self.inputs.spec
-        self.grid = environment_grid(self.inputs.model_file.environment)  # exact pairing's
+        self.sim_actions = environment_grid(self.inputs.model_file.environment)  # exact pairing's
         jump_ns = round(p.jump_threshold * _NS)
         self.source: ExactPairing | GridStepping
         if self.spec is None:
@@ -299,7 +299,7 @@ class FilterNode(Node):
             return
         try:
             action = simulator_action(
-                msg, self.params.action_frame, self._action_cache, self.grid
+                msg, self.params.action_frame, self._action_cache, self.sim_actions
             )
         except Rejected as exc:
             self._reject(self.action_topic, exc.reason, str(exc))
@@ -449,7 +449,7 @@ class FilterNode(Node):
         action, stamp = self._pending_command
         self._pending_command = None
         # the action's command itself: never outside the simulator's grid or the codebook
-        codes = self.grid if self.spec is None else self.spec.codebook
+        codes = self.sim_actions if self.spec is None else self.spec.codebook
         twist = m.twist_from_components(codes.command(action))
         if self.params.command_type == "twist_stamped":
             msg = m.stamped_twist(stamp if stamp is not None else self.now_ns(), twist)
