@@ -215,7 +215,7 @@ def test_a_real_rclpy_client_gets_parameters_and_sets_are_checked_like_at_start_
         # the constraints the node enforces are in the descriptors (ros2 param describe)
         described = call(client.describe_parameters(["environment", "rate", "seed"])).descriptors
         assert [d.additional_constraints for d in described] == [
-            "one of: full, partial, distractors, partial-strip", "> 0", ">= 0"
+            "one of: full, partial, distractors, partial-strip, drive", "> 0", ">= 0"
         ]
     finally:
         caller.close()

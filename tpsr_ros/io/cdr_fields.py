@@ -49,7 +49,6 @@ from tpsr_ros.io.messages import (
     quaternion_heading,
     reward_to_sample,
     stamp_of,
-    twist_components,
 )
 
 __all__ = [
@@ -258,8 +257,14 @@ class TwistDecoder(_Decoder):
         self._columns = [_TWIST_FIELDS.index(c) for c in self.components]
 
     def _check(self, msg: Any) -> Any:
-        first, second = twist_components(msg, self.components)
-        return float(first), float(second)
+        twist = msg.twist
+        first, second = (
+            float(getattr(getattr(twist, part), axis))
+            for part, axis in (name.split(".") for name in self.components)
+        )
+        if not (math.isfinite(first) and math.isfinite(second)):
+            raise MessageError(f"velocity ({first}, {second}) is not finite")
+        return first, second
 
     def _locate(self, walk: _Walk) -> _Layout:
         walk.string()  # header.frame_id

@@ -147,7 +147,7 @@ def _poses_at(streams: BagStreams, at: np.ndarray) -> np.ndarray:
     if times.size == 0 or streams.pose_topic is None:
         return np.full((at.size, 4), np.nan)
     if streams.pose_values is not None:
-        times, values = times, streams.pose_values
+        values = streams.pose_values
     else:
         after = np.clip(np.searchsorted(times, at, side="left"), 0, times.size - 1)
         needed = np.unique(np.concatenate([after, np.maximum(after - 1, 0)]))
