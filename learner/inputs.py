@@ -275,7 +275,10 @@ def read_for_model(
     metadata = model_file.metadata
     if spec is None:
         return read_trajectory(
-            bags, topics=topics_from_args(args), require_ground_truth=require_ground_truth
+            bags,
+            topics=topics_from_args(args),
+            require_ground_truth=require_ground_truth,
+            environment=model_file.environment,  # a recording of sim_node names none
         )
     for name, own in (("image", spec.image_topic), ("action", spec.action_topic)):
         given = getattr(args, f"{name}_topic", None)

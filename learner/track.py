@@ -7,9 +7,10 @@ models, exact-stamp pairing for simulator models) and tracked with the model's p
 (Algorithm 4), restarting at every gap.
 
 ``.csv``: a header line, then one row per tracked step in step order, columns
-``stamp_ns,b0,...,b{r-1}`` (then ``x,y`` where the bags carry a pose), every number written
-to round-trip exactly (17 significant digits). ``.npz`` (no pickles): ``stamp_ns`` ``(T,)``,
-``states`` ``(T, r)``, ``recovered`` ``(T,)`` and, with a pose, ``positions`` ``(T, 2)``.
+``stamp_ns,b0,...,b{r-1}`` (then ``x,y`` where the bags carry a pose, and
+``cos_heading,sin_heading`` where the robot turns), every number written to round-trip
+exactly (17 significant digits). ``.npz`` (no pickles): ``stamp_ns`` ``(T,)``, ``states``
+``(T, r)``, ``recovered`` ``(T,)`` and, with a pose, ``positions`` ``(T, 2)`` or ``(T, 4)``.
 """
 
 from __future__ import annotations
@@ -51,6 +52,10 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(run=run)
 
 
+POSE_COLUMNS = ("x", "y", "cos_heading", "sin_heading")
+"""CSV columns of the ground truth: the position, and the heading of a robot that turns."""
+
+
 def write_states(
     path: Path,
     stamps: np.ndarray,
@@ -71,7 +76,7 @@ def write_states(
     columns = ["stamp_ns", *(f"b{i}" for i in range(states.shape[1]))]
     values = [states]
     if positions is not None:
-        columns += ["x", "y"]
+        columns += list(POSE_COLUMNS[: positions.shape[1]])
         values.append(positions)
     table = np.concatenate(values, axis=1)
     with atomic_file(path, "w") as handle:

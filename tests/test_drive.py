@@ -252,3 +252,42 @@ def test_fit_policy_and_closed_loop_on_drive_bags(tmp_path, monkeypatch, capsys)
     published = [result.states[stamp] for stamp in sorted(result.states)]
     assert len(published) == len(seen) == 30
     assert max(np.abs(a - b).max() for a, b in zip(published, seen, strict=True)) <= 1e-9
+
+
+def test_learner_track_writes_the_heading_columns_of_a_robot_that_turns(tmp_path):
+    from learner.track import write_states
+
+    stamps = np.arange(3, dtype=np.int64)
+    states, recovered = np.zeros((3, 2)), np.zeros(3, dtype=bool)
+    poses = random_rollout(DRIVE, 3, seed=0).poses
+    write_states(tmp_path / "s.csv", stamps, states, recovered, poses)
+    lines = (tmp_path / "s.csv").read_text().splitlines()
+    assert lines[0] == "stamp_ns,b0,b1,x,y,cos_heading,sin_heading"
+    np.testing.assert_array_equal(np.loadtxt(tmp_path / "s.csv", delimiter=",", skiprows=1)[:, 3:],
+                                  poses)  # fmt: skip
+
+
+def test_a_recording_without_its_environment_reads_with_the_models(tmp_path):
+    """A recorder's bag of sim_node in drive names no environment: the model's says it."""
+    from sim_node.batch_cdr import chunk_payloads
+    from sim_node.topics import SimTopics
+    from tpsr_ros.core.errors import DataError
+    from tpsr_ros.io.bag import BagWriter
+
+    run = random_rollout(DRIVE, 200, seed=6)
+    topics = SimTopics()
+    payloads = chunk_payloads(topics, run, DRIVE)
+    with BagWriter(tmp_path / "recorded") as writer:  # no custom data, as the recorder writes
+        for topic, msgtype in topics.types().items():
+            writer.add_topic(topic, msgtype)
+        for i, stamp in enumerate(run.stamps_ns.tolist()):
+            for topic in topics.types():
+                writer.write(topic, stamp, payloads[topic][i])
+    trajectory = read_trajectory([tmp_path / "recorded"], environment="drive")
+    np.testing.assert_array_equal(trajectory.actions, run.actions)
+    assert trajectory.positions.shape == (200, 4)
+    with pytest.raises(DataError, match="farther than"):  # as planar: 1.5 m/s is no action
+        read_trajectory([tmp_path / "recorded"])
+    generate_bag(tmp_path / "full", SimConfig(), 50, seed=1)
+    with pytest.raises(DataError, match="comes from environment 'full'"):
+        read_trajectory([tmp_path / "full"], environment="drive")

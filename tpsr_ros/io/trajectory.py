@@ -136,6 +136,7 @@ class _Options:
     require_ground_truth: bool
     chunk_steps: int
     reorder_window: int
+    environment: str | None = None  # of bags that do not say theirs (the model's)
 
 
 @dataclass(frozen=True)
@@ -214,6 +215,14 @@ class _BagSteps:
         with BagReader(self.path) as reader:
             present = self._check_topics(reader)
             environment, generator = bag_custom_data(reader)
+            given = self.options.environment
+            if environment is None:
+                environment = given
+            elif given is not None and environment != given and "drive" in (environment, given):
+                raise DataError(
+                    f"bag {str(self.path)!r} comes from environment {environment!r}, whose "
+                    f"actions are not those of {given!r}"
+                )
             drives = environment == "drive"  # the robot that turns: its own actions, a heading
             self.grid = environment_grid(environment)
             self.pose_width = 4 if drives else 2
@@ -418,6 +427,7 @@ def _read_steps(bags: Sequence[Path | str], image_shape: tuple[int, int] | None,
 def _options(
     bags: Sequence[Path | str], topics: Topics | None, step_ns: int, action_tolerance: float,
     require_ground_truth: bool, chunk_steps: int, reorder_window: int,
+    environment: str | None = None,
 ) -> _Options:
     if not bags:
         raise ConfigError("no bag given")
@@ -429,7 +439,7 @@ def _options(
         raise ConfigError(f"reorder_window must be at least 1 stamp, not {reorder_window}")
     return _Options(
         topics or Topics(), int(step_ns), float(action_tolerance), bool(require_ground_truth),
-        int(chunk_steps), int(reorder_window),
+        int(chunk_steps), int(reorder_window), environment,
     )
 
 
@@ -467,14 +477,17 @@ def read_trajectory(
     action_tolerance: float = DEFAULT_ACTION_TOLERANCE,
     require_ground_truth: bool = False,
     reorder_window: int = REORDER_WINDOW,
+    environment: str | None = None,
 ) -> Trajectory:
     """Read and pair the steps of ``bags`` (see the module docstring).
 
     ``image_shape=None`` accepts any size, but all images must share it.
     ``require_ground_truth`` also demands the pose and reward topics; ``reorder_window``
-    is how far out of stamp order a message may come. The chunks of
+    is how far out of stamp order a message may come. ``environment`` is the simulator of
+    bags that do not name theirs (a recording of ``sim_node``: its actions, and in
+    ``drive`` the heading); a bag that names another is refused. The chunks of
     :func:`iter_trajectory_chunks` concatenated (pixels converted to observations once).
     """
     options = _options(bags, topics, step_ns, action_tolerance, require_ground_truth,
-                       DEFAULT_CHUNK_STEPS, reorder_window)
+                       DEFAULT_CHUNK_STEPS, reorder_window, environment)
     return _trajectory(list(_read_steps(bags, image_shape, options)))
