@@ -330,7 +330,9 @@ def _fit_config(
     if args.method != "tpsr":
         return tpsr_config, None
     _say_preset(preset, preset_config, tpsr_config, robot=robot, turning=turning)
-    return tpsr_config, {"name": preset.name, "changed": departures(tpsr_config, preset_config)}
+    changed = departures(tpsr_config, preset_config)
+    record = {"name": preset.name, "changed": changed}
+    return tpsr_config, record | ({"turning": True} if turning and preset.turning_tpsr else {})
 
 
 def _run_streamed(

@@ -50,14 +50,16 @@ def _mapping(value: Any) -> dict[str, Any]:
 
 
 def _preset_line(record: Any) -> str:
-    """``preset: best; changed by options: rank=5`` (models written before presets: unknown)."""
+    """``preset: best (its turning robot's settings); changed by options: rank=5`` (models
+    written before presets: unknown)."""
     record = _mapping(record)
     name = record.get("name")
     if not isinstance(name, str):
         return "preset: not recorded (a model written before presets existed)"
     changed = _mapping(record.get("changed"))
     what = ", ".join(f"{k}={v}" for k, v in changed.items()) or "nothing"
-    return f"preset: {name}; changed by options: {what}"
+    turning = " (its turning robot's settings)" if record.get("turning") is True else ""
+    return f"preset: {name}{turning}; changed by options: {what}"
 
 
 def _camera(training: dict[str, Any]) -> str:

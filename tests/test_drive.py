@@ -228,6 +228,7 @@ def test_fit_policy_and_closed_loop_on_drive_bags(tmp_path, monkeypatch, capsys)
     config = opened.model.config
     assert (config.rank, config.ht_dim, config.action_pooling) == (16, 20, 0.5)
     assert opened.environment == "drive" and opened.model.n_actions == 9
+    assert opened.metadata["preset"]["turning"] is True
     assert learner_main(["policy", str(model), str(tmp_path / "rl"), "-o", str(policy)]) == 0
     starts, steps = START_POSITIONS[:3], 10
     tracker, seen = load_tracker(model), []

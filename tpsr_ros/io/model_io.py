@@ -8,7 +8,8 @@ entry ``metadata``, a 0-d unicode array holding a JSON object::
      variance, timings...}, "n_actions": 25, "observation": {"size": 768, ...},
      "training": {...bags, steps, episodes, stamps, environment, topics...},
      "input": {...} (models learned with --step-period only),
-     "preset": {"name": "best", "changed": {...}} (descriptive; learner fit writes it),
+     "preset": {"name": "best", "changed": {...}[, "turning": true]} (descriptive; learner
+       fit writes it),
      "created": "...", "software": {"tpsr_ros": "0.1.0", "numpy": "..."}}
 
 ``input`` (:class:`tpsr_ros.io.stream_spec.StreamSpec`) is what a model learned from robot bags
