@@ -419,8 +419,8 @@ _DRIVE = tuple(
         f"drive-{field}",
         f"The turning robot: {title}",
         f"A robot that turns (`drive`) gets the default preset's turning changes (rank 16, 20 "
-        f"history/test dimensions, operators pooled half-way); is its {title} the best of "
-        "these?",
+        f"history/test dimensions, operators pooled half-way); how does the score change with "
+        f"the {title} around them?",
         f"tpsr.{field}={values}",
         "--methods",
         "tpsr",
