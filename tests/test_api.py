@@ -64,3 +64,5 @@ def test_fit_arrays_with_the_defaults_sizes_them_to_a_small_system() -> None:
     assert (read == cells[half:]).mean() > 0.95
     with pytest.raises(Exception, match="actions \\(T,\\) and observations"):
         fit(actions)
+    turning = fit(actions, observations, turning=True).config  # a robot whose actions turn it
+    assert (turning.rank, turning.action_pooling) == (16, 0.5)

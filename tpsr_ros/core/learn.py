@@ -38,6 +38,7 @@ def fit(
     *,
     max_episodes: int | None = None,
     progress: Progress | None = None,
+    turning: bool = False,
 ) -> TPSRModel | PCAModel:
     """Learn a TPSR (default) or the PCA baseline from arrays, a trajectory or episodes.
 
@@ -49,7 +50,8 @@ def fit(
         observations: ``(T, k)`` observations, one per action (``o_k`` seen after ``a_k``).
             ``fit(trajectory, config)`` is accepted too.
         config: :class:`TPSRConfig` or :class:`PCAConfig`, used as given; None: the default
-            preset's TPSR, sized to the data.
+            preset's TPSR, sized to the data (with its turning robot's changes if
+            ``turning``: for a robot whose actions turn it, e.g. ``cmd_vel``'s angular.z).
         max_episodes: cut only the first episodes of a trajectory (guide ``|E|``).
         progress: called with the name of each stage of a TPSR fit.
 
@@ -61,7 +63,7 @@ def fit(
     data = _data(actions, observations)
     sizing = None
     if config is None:
-        config, sizing = get_preset(DEFAULT_PRESET).tpsr_config(), Sizing()
+        config, sizing = get_preset(DEFAULT_PRESET).tpsr_config(turning=turning), Sizing()
     if not isinstance(config, (TPSRConfig, PCAConfig)):
         raise ConfigError(f"config must be a TPSRConfig or PCAConfig, not {type(config).__name__}")
     if isinstance(data, Trajectory):
