@@ -22,7 +22,7 @@ from functools import cached_property
 from typing import Any
 
 import numpy as np
-from scipy.cluster.vq import vq
+from scipy.cluster.vq import kmeans2, vq
 
 from tpsr_ros.core.actions import ActionGrid, environment_grid
 from tpsr_ros.core.errors import ConfigError, DataError
@@ -31,6 +31,7 @@ __all__ = [
     "COMPONENTS",
     "DEFAULT_COMPONENTS",
     "ActionCodebook",
+    "cluster_count",
     "fit_codebook",
     "sim_codebook",
 ]
@@ -46,6 +47,12 @@ COMPONENTS = (
 """Twist components a codebook can use."""
 DEFAULT_COMPONENTS = ("linear.x", "linear.y", "angular.z")
 KMEANS_RESTARTS = 10
+CLUSTERED = 0.5
+"""Mean silhouette from which commands count as forming clear clusters (a robot driven by a
+few discrete commands plus jitter: 0.7-0.8 at jitter of a fifth of the spacing; 0.4 for
+commands spread evenly)."""
+SILHOUETTE_SAMPLE = 1000
+"""Commands the cluster count looks at (seeded sample): the silhouette costs their square."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,7 +178,7 @@ def fit_codebook(
     Needs at least ``k`` distinct commands. Codes are sorted lexicographically, so the
     action numbering does not depend on the initialisation.
     """
-    from scipy.cluster.vq import ClusterError, kmeans2
+    from scipy.cluster.vq import ClusterError
 
     cmd = np.asarray(commands, dtype=np.float64)
     if cmd.ndim != 2 or cmd.shape[1] != len(components):
@@ -204,3 +211,48 @@ def fit_codebook(
         raise DataError(f"k-means left a code empty in every restart; lower --actions from {k}")
     codes = best[1][np.lexsort(best[1].T[::-1])]
     return ActionCodebook("kmeans", tuple(components), codes)
+
+
+def _silhouette(distances: np.ndarray, labels: np.ndarray, k: int) -> float:
+    """Mean silhouette of a labelling, from the points' pairwise ``distances`` ``(n, n)``.
+
+    A point's ``a`` is its mean distance to the others of its cluster, ``b`` the smallest
+    mean distance to another cluster; a point alone in its cluster scores 0.
+    """
+    onehot = np.zeros((labels.size, k))
+    onehot[np.arange(labels.size), labels] = 1.0
+    counts = onehot.sum(axis=0)
+    sums = distances @ onehot  # (n, k): summed distance to each cluster
+    own = counts[labels]
+    a = sums[np.arange(labels.size), labels] / np.maximum(own - 1, 1)
+    means = np.where(counts > 0, sums / np.maximum(counts, 1), np.inf)
+    means[np.arange(labels.size), labels] = np.inf
+    b = means.min(axis=1)
+    score = np.where(own > 1, (b - a) / np.maximum(np.maximum(a, b), 1e-300), 0.0)
+    return float(score.mean())
+
+
+def cluster_count(commands: np.ndarray, most: int, seed: int) -> int | None:
+    """How many clusters the commands ``(N, d)`` form, if they form clear ones (else None).
+
+    A robot driven by a few discrete commands (teleoperation with fixed speeds, a planner's
+    actions, a simulator's grid) records them as tight clusters; its actions are those
+    commands, however many steps the data have. The count is the ``K`` in ``2..most`` whose
+    k-means labelling of a seeded sample of :data:`SILHOUETTE_SAMPLE` commands has the
+    highest mean silhouette, provided that reaches :data:`CLUSTERED`.
+    """
+    cmd = np.asarray(commands, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    sample = cmd[rng.choice(cmd.shape[0], min(cmd.shape[0], SILHOUETTE_SAMPLE), replace=False)]
+    distinct = np.unique(sample, axis=0).shape[0]
+    if distinct < 3:
+        return None
+    distances = np.linalg.norm(sample[:, None, :] - sample[None, :, :], axis=2)
+    best_score, best_k = -np.inf, None
+    for k in range(2, min(most, distinct - 1) + 1):
+        start = _farthest_first(sample, k, rng)  # one start per well-separated cluster
+        _, labels = kmeans2(sample, start, minit="matrix", iter=50)
+        score = _silhouette(distances, labels, k)
+        if score > best_score:
+            best_score, best_k = score, k
+    return best_k if best_score >= CLUSTERED else None

@@ -4,8 +4,10 @@
   aspect kept (a smaller camera keeps its size); a size larger than the camera's is refused
   (area averaging cannot add detail, and the fit would only grow);
 - **actions**: a k-means codebook of :func:`default_action_count` codes (one per
-  :data:`STEPS_PER_ACTION` grid steps, 2 to 25), reduced until every code is the command in
-  force at some grid step (:func:`supported_codebook`);
+  :data:`STEPS_PER_ACTION` grid steps, 2 to 25), or of as many as the clusters the commands
+  form when they form clear ones and are fewer (a robot driven by a few discrete commands:
+  :func:`~tpsr_ros.core.codebook.cluster_count`), reduced until every code is the command
+  in force at some grid step (:func:`supported_codebook`);
 - **memory**: :func:`check_fit_memory` refuses, with the figures, a batch fit whose
   observations alone would not fit in this machine's memory.
 """
@@ -17,7 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from tpsr_ros.core.codebook import ActionCodebook, fit_codebook
+from tpsr_ros.core.codebook import ActionCodebook, cluster_count, fit_codebook
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.resample import GridConfig, resample_grid
 from tpsr_ros.io.bag_streams import BagStreams
@@ -102,8 +104,9 @@ def supported_codebook(
 ) -> ActionCodebook:
     """A k-means codebook whose every code is the command in force at some grid step.
 
-    Fitted on all commands. ``reduce`` (a default K): fewer codes until each occurs; else a
-    code that never occurs is refused, naming how many actions the data support.
+    Fitted on all commands. ``reduce`` (a default K): at most as many codes as the clusters
+    the commands form, when they form clear ones, and fewer until each occurs; else a code
+    that never occurs is refused, naming how many actions the data support.
     """
     commands = np.concatenate([s.commands[:, list(columns)] for s in streams])
     in_force = _commands_in_force(streams, grid, columns)
@@ -111,6 +114,7 @@ def supported_codebook(
         raise DataError("no grid step has a command in force: check --step-period and topics")
     if reduce:
         k = min(k, np.unique(commands, axis=0).shape[0])
+        k = min(k, cluster_count(commands, k, seed) or k)
 
     def covering(count: int) -> ActionCodebook | None:
         codebook = fit_codebook(commands, components, count, seed)
