@@ -426,3 +426,17 @@ def test_a_codebook_whose_codes_are_never_in_force_is_refused_or_reduced():
     with pytest.raises(DataError, match=r"3 actions: .* the data support 2 \(give --actions 2"):
         supported_codebook(*args, reduce=False)
     assert len(supported_codebook(*args, reduce=True)) == 2
+
+
+@pytest.mark.parametrize(("levels", "expected"), [((3, 3), 9), ((5, 5), 25), ((2, 3), 6)])
+def test_cluster_count_finds_the_discrete_commands_under_jitter(levels, expected):
+    from tpsr_ros.core.codebook import cluster_count
+
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(*(np.arange(n) * 1.5 for n in levels), indexing="ij"), -1)
+    codes = grid.reshape(-1, 2)
+    commands = codes[rng.integers(0, len(codes), 5000)] + rng.uniform(-0.3, 0.3, (5000, 2))
+    assert cluster_count(commands, 25, seed=0) == expected
+    # commands spread evenly form no clusters
+    assert cluster_count(rng.uniform(-3, 3, (5000, 2)), 25, seed=0) is None
+    assert cluster_count(np.zeros((100, 2)), 25, seed=0) is None  # one command
