@@ -322,7 +322,8 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
     command_s = timeline.command_s
     command_logs = start + np.rint(command_s * sec).astype(np.int64)
     command_logs += rng.integers(0, timeline.command_delay_ns + 1, size=command_s.size)
-    jitter = rng.uniform(-1.0, 1.0, size=(command_s.size, 2)) * _jitter_scale(config)
+    scale = _jitter_scale(config)
+    jitter = rng.uniform(-scale, scale, size=(command_s.size, 2))
     commands = run.commands[timeline.command_steps - 1] + jitter
     odom_s = timeline.odom_s
     odom = _interpolated(_trail(run), odom_s / config.step_seconds)
