@@ -453,18 +453,19 @@ def iter_trajectory_chunks(
     require_ground_truth: bool = False,
     chunk_steps: int = DEFAULT_CHUNK_STEPS,
     reorder_window: int = REORDER_WINDOW,
+    environment: str | None = None,
 ) -> Iterator[Trajectory]:
     """The steps of ``bags`` as trajectories of at most ``chunk_steps`` steps, in order.
 
-    Concatenated, the chunks are :func:`read_trajectory` of the same arguments and
-    ``reorder_window`` (segments numbered over all bags). A chunk holds steps of one bag;
+    Concatenated, the chunks are :func:`read_trajectory` of the same arguments (segments
+    numbered over all bags). A chunk holds steps of one bag;
     ``sources`` is empty except on each bag's last chunk, which carries that bag's source
     dict. Memory is bounded by ``chunk_steps`` and ``reorder_window``, each capped in bytes
     for large images (see the module docstring), not by the bags. Arguments are checked
     here; bags are read as the chunks are taken.
     """
     options = _options(bags, topics, step_ns, action_tolerance, require_ground_truth,
-                       chunk_steps, reorder_window)
+                       chunk_steps, reorder_window, environment)
     return (steps.trajectory() for steps in _read_steps(bags, image_shape, options))
 
 
