@@ -14,6 +14,7 @@ from rosbags.typesys import Stores, get_typestore
 
 import sim_node.generate as generate
 from sim_node import SimConfig
+from sim_node.config import Environment
 from sim_node.generate import generate_bag
 from tpsr_ros.core.errors import BagError
 
@@ -153,7 +154,7 @@ def test_chunk_payloads_are_exactly_what_rosbags_serialises(environment):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("environment", ["full", "partial", "distractors", "partial-strip", "drive"])
+@pytest.mark.parametrize("environment", [e.value for e in Environment])
 def test_the_sample_bags_are_what_the_generator_writes(environment, tmp_path):
     """bags/ holds 3000 steps of each environment (seed 2026): the messages of today's
     simulator, rewards and all."""
