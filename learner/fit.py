@@ -497,7 +497,8 @@ def _spec_line(spec: StreamSpec, options: FitOptions | None = None) -> str:
         + (" (default; --image-size to set)" if defaults["image"] else "")
         + f"; {len(spec.codebook)} actions over {', '.join(spec.codebook.components)} "
         f"({spec.codebook.kind})"
-        + (" (default sized to the steps; --actions to set)" if defaults["actions"] else "")
+        + (" (default sized to the steps and the commands' clusters; --actions to set)"
+           if defaults["actions"] else "")
     )  # fmt: skip
 
 

@@ -22,7 +22,8 @@ from functools import cached_property
 from typing import Any
 
 import numpy as np
-from scipy.cluster.vq import kmeans2, vq
+from scipy.cluster.vq import ClusterError, kmeans2, vq
+from scipy.spatial.distance import cdist
 
 from tpsr_ros.core.actions import ActionGrid, environment_grid
 from tpsr_ros.core.errors import ConfigError, DataError
@@ -178,8 +179,6 @@ def fit_codebook(
     Needs at least ``k`` distinct commands. Codes are sorted lexicographically, so the
     action numbering does not depend on the initialisation.
     """
-    from scipy.cluster.vq import ClusterError
-
     cmd = np.asarray(commands, dtype=np.float64)
     if cmd.ndim != 2 or cmd.shape[1] != len(components):
         raise ConfigError(f"commands must be (N, {len(components)}), got {cmd.shape}")
@@ -247,11 +246,14 @@ def cluster_count(commands: np.ndarray, most: int, seed: int) -> int | None:
     distinct = np.unique(sample, axis=0).shape[0]
     if distinct < 3:
         return None
-    distances = np.linalg.norm(sample[:, None, :] - sample[None, :, :], axis=2)
+    distances = cdist(sample, sample)
     best_score, best_k = -np.inf, None
     for k in range(2, min(most, distinct - 1) + 1):
         start = _farthest_first(sample, k, rng)  # one start per well-separated cluster
-        _, labels = kmeans2(sample, start, minit="matrix", iter=50)
+        try:
+            _, labels = kmeans2(sample, start, minit="matrix", iter=50, missing="raise")
+        except ClusterError:  # a code lost every command: not k clear clusters
+            continue
         score = _silhouette(distances, labels, k)
         if score > best_score:
             best_score, best_k = score, k
