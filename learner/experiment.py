@@ -37,6 +37,7 @@ from tqdm import tqdm
 
 from learner.evaluate import Evaluation, evaluate
 from learner.floors import CONSTANT, FLOORS, constant_floor, random_floor
+from learner.inputs import robot_turns
 from learner.measures import criterion_of, memory_of, tuned
 from learner.options import add_preset_option
 from learner.overrides import apply_overrides
@@ -51,7 +52,7 @@ from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError, DivergenceError, TpsrError
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.pca_baseline import PCAConfig, fit_pca
-from tpsr_ros.core.presets import DEFAULT_PRESET, departures, get_preset, turns
+from tpsr_ros.core.presets import DEFAULT_PRESET, departures, get_preset
 from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
 from tpsr_ros.io.model_io import model_fingerprint
@@ -151,9 +152,8 @@ class ExperimentConfig:
 
 def preset_tpsr(preset: str, environment: str) -> TPSRConfig:
     """The fit ``preset`` gives in ``environment``: with the turning robot's changes where the
-    actions turn the robot (``drive``)."""
-    components = SimConfig(environment=environment).actions.components
-    return get_preset(preset).tpsr_config(turning=turns(components))
+    actions turn the robot (``drive``), as ``learner fit`` gives them."""
+    return get_preset(preset).tpsr_config(turning=robot_turns(None, environment))
 
 
 def default_config(

@@ -21,6 +21,7 @@ and actions the guide's environments therefore follow exactly the same trajector
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -32,7 +33,15 @@ from sim_node.world import RoomWorld
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.units import NS_PER_S as _NS
 
-__all__ = ["RobotEnv", "Streams", "pose_of", "spawn_streams", "start_pose", "step_reward"]
+__all__ = [
+    "RobotEnv",
+    "Streams",
+    "motion",
+    "pose_of",
+    "spawn_streams",
+    "start_pose",
+    "step_reward",
+]
 
 
 class Streams:
@@ -60,6 +69,12 @@ def start_pose(config: SimConfig, rng: np.random.Generator) -> tuple[np.ndarray,
     position = rng.uniform(low, high, size=2)
     heading = float(rng.uniform(0.0, 2 * np.pi)) if config.drives else np.pi / 2
     return position, heading
+
+
+def motion(config: SimConfig, world: RoomWorld) -> Callable[[float, float, float], bool]:
+    """How ``world`` carries out an executed command for a duration: ``drive`` (speed, turn
+    rate) or move (vx, vy); returns whether a wall blocked it."""
+    return world.drive if config.drives else world.move
 
 
 def pose_of(config: SimConfig, positions: np.ndarray, headings: np.ndarray) -> np.ndarray:
@@ -98,6 +113,7 @@ class RobotEnv:
         )
         self._streams = Streams(seed)
         self._actions = self.config.actions
+        self._move = motion(self.config, self._world)
         self._distractors: Distractors | None = None
         self._step = 0
         self._ready = False
@@ -191,10 +207,7 @@ class RobotEnv:
         command = self._actions.codes[int(action)]
         noise = self._streams.noise.standard_normal(2)
         executed = command + self.config.noise_fraction * np.abs(command) * noise
-        if self.config.drives:
-            contact = self._world.drive(executed[0], executed[1], self.config.step_seconds)
-        else:
-            contact = self._world.move(executed[0], executed[1], self.config.step_seconds)
+        contact = self._move(executed[0], executed[1], self.config.step_seconds)
         if self._distractors is not None:
             self._distractors.advance()
         self._step += 1

@@ -16,7 +16,7 @@ import numpy as np
 from sim_node.camera import Camera
 from sim_node.config import SimConfig
 from sim_node.distractors import distractor_paths
-from sim_node.env import pose_of, spawn_streams, start_pose, step_reward
+from sim_node.env import motion, pose_of, spawn_streams, start_pose, step_reward
 from sim_node.world import RoomWorld
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.units import NS_PER_S as _NS
@@ -64,6 +64,7 @@ def iter_random_rollout(
         start_xy, heading = np.asarray(start, dtype=np.float64), np.pi / 2
     world = RoomWorld(config.room_size, config.robot_radius, config.physics_substeps)
     world.place(*start_xy, heading)
+    move = motion(config, world)
     camera = Camera(config)
     grid = config.actions
     actions = streams.actions.integers(0, len(grid), size=steps)
@@ -78,7 +79,6 @@ def iter_random_rollout(
         positions = np.empty((end - begin, 2))
         headings = np.empty(end - begin)
         contact = np.empty(end - begin, dtype=bool)
-        move = world.drive if config.drives else world.move
         for i, (first, second) in enumerate(executed[begin:end].tolist()):
             contact[i] = move(first, second, config.step_seconds)
             positions[i] = world.position

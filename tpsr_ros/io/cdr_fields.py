@@ -37,6 +37,7 @@ import numpy as np
 from tpsr_ros.core.errors import MessageError
 from tpsr_ros.core.units import NS_PER_S
 from tpsr_ros.io.images import decode_image, raw_pixels
+from tpsr_ros.io.message_fields import yaw_cos_sin
 from tpsr_ros.io.messages import (
     ACTION_TYPE,
     IMAGE_TYPE,
@@ -46,7 +47,6 @@ from tpsr_ros.io.messages import (
     image_to_array,
     pose_to_planar,
     pose_to_xy,
-    quaternion_heading,
     reward_to_sample,
     stamp_of,
 )
@@ -189,8 +189,7 @@ def _same(read: Any, expected: Any) -> bool:
     return bool(np.array_equal(np.asarray(read), np.asarray(expected), equal_nan=True))
 
 
-def _finite_pair(fields: tuple[Any, ...], what: str) -> tuple[float, float]:
-    x, y = fields[2], fields[3]
+def _finite_pair(x: float, y: float, what: str) -> tuple[float, float]:
     if not (math.isfinite(x) and math.isfinite(y)):
         raise MessageError(f"{what} ({x}, {y}) is not finite")
     return x, y
@@ -257,14 +256,11 @@ class TwistDecoder(_Decoder):
         self._columns = [_TWIST_FIELDS.index(c) for c in self.components]
 
     def _check(self, msg: Any) -> Any:
-        twist = msg.twist
         first, second = (
-            float(getattr(getattr(twist, part), axis))
+            float(getattr(getattr(msg.twist, part), axis))
             for part, axis in (name.split(".") for name in self.components)
         )
-        if not (math.isfinite(first) and math.isfinite(second)):
-            raise MessageError(f"velocity ({first}, {second}) is not finite")
-        return first, second
+        return _finite_pair(first, second, "velocity")
 
     def _locate(self, walk: _Walk) -> _Layout:
         walk.string()  # header.frame_id
@@ -273,9 +269,7 @@ class TwistDecoder(_Decoder):
 
     def _value(self, data: bytes, layout: _Layout, fields: tuple[Any, ...]) -> tuple[float, float]:
         first, second = (fields[2 + c] for c in self._columns)
-        if not (math.isfinite(first) and math.isfinite(second)):
-            raise MessageError(f"velocity ({first}, {second}) is not finite")
-        return first, second
+        return _finite_pair(first, second, "velocity")
 
 
 class PoseDecoder(_Decoder):
@@ -297,19 +291,8 @@ class PoseDecoder(_Decoder):
         return _Layout.of(walk.data, walk.pos, walk.pos + 7 * 8, "7d")
 
     def _value(self, data: bytes, layout: _Layout, fields: tuple[Any, ...]) -> tuple[float, ...]:
-        x, y = _finite_pair(fields, "value")
-        if not self.heading:
-            return x, y
-        qx, qy, qz, qw = fields[5:9]
-        return (x, y, *quaternion_heading(_Quaternion(qx, qy, qz, qw)))
-
-
-@dataclass(frozen=True)
-class _Quaternion:
-    x: float
-    y: float
-    z: float
-    w: float
+        x, y = _finite_pair(fields[2], fields[3], "value")
+        return (x, y, *yaw_cos_sin(*fields[5:9])) if self.heading else (x, y)
 
 
 class RewardDecoder(_Decoder):

@@ -23,6 +23,7 @@ __all__ = [
     "stamp_of",
     "twist_components",
     "twist_to_xy",
+    "yaw_cos_sin",
 ]
 
 
@@ -82,19 +83,23 @@ def pose_to_xy(msg: Any) -> tuple[float, float]:
     return float(msg.pose.position.x), float(msg.pose.position.y)
 
 
-def quaternion_heading(q: Any) -> tuple[float, float]:
-    """``(cos, sin)`` of the yaw (heading about z) of a ``geometry_msgs/msg/Quaternion``.
+def yaw_cos_sin(x: float, y: float, z: float, w: float) -> tuple[float, float]:
+    """``(cos, sin)`` of the yaw (heading about z) of the quaternion ``(x, y, z, w)``.
 
     Computed from the unnormalised rotation matrix entries, so a quaternion of any length
     gives its angle; a zero or non-finite one counts as no rotation.
     """
-    w, x, y, z = float(q.w), float(q.x), float(q.y), float(q.z)
     cos_part = w * w + x * x - y * y - z * z
     sin_part = 2.0 * (w * z + x * y)
     norm = float(np.hypot(cos_part, sin_part))
     if not (norm > 0 and np.isfinite(norm)):
         return 1.0, 0.0
     return cos_part / norm, sin_part / norm
+
+
+def quaternion_heading(q: Any) -> tuple[float, float]:
+    """:func:`yaw_cos_sin` of a ``geometry_msgs/msg/Quaternion``."""
+    return yaw_cos_sin(float(q.x), float(q.y), float(q.z), float(q.w))
 
 
 def pose_to_planar(msg: Any) -> tuple[float, float, float, float]:
