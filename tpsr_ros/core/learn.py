@@ -17,16 +17,19 @@ is used exactly as given.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from tpsr_ros.core.episodes import Episodes, Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.core.presets import DEFAULT_PRESET, get_preset
+from tpsr_ros.core.refine import refine_tpsr
 from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import Progress, TPSRConfig, TPSRModel, fit_tpsr_episodes
 
-__all__ = ["fit"]
+__all__ = ["fit", "fit_tpsr_trajectory"]
 
 Config = TPSRConfig | PCAConfig
 
@@ -64,20 +67,64 @@ def fit(
     sizing = None
     if config is None:
         config, sizing = get_preset(DEFAULT_PRESET).tpsr_config(turning=turning), Sizing()
+        if isinstance(data, Episodes):  # cut episodes carry no steps in order to refine on
+            config = replace(config, refine_epochs=0)
     if not isinstance(config, (TPSRConfig, PCAConfig)):
         raise ConfigError(f"config must be a TPSRConfig or PCAConfig, not {type(config).__name__}")
-    if isinstance(data, Trajectory):
-        m, n = (
-            (config.history_length, config.test_length)
-            if isinstance(config, TPSRConfig)
-            else (1, 1)
+    if isinstance(data, Trajectory) and isinstance(config, TPSRConfig):
+        return fit_tpsr_trajectory(
+            data, config, max_episodes=max_episodes, progress=progress, sizing=sizing
         )
-        episodes = make_episodes(data, m, n, max_episodes=max_episodes)
+    if isinstance(data, Trajectory):
+        episodes = make_episodes(data, 1, 1, max_episodes=max_episodes)
     else:
         episodes = data
     if isinstance(config, PCAConfig):
         return fit_pca(episodes.steps(), n_actions=episodes.n_actions, config=config)
+    if config.refine_epochs:
+        raise ConfigError(
+            "refinement runs on a trajectory (steps in order), not on episodes already cut: "
+            "pass a Trajectory, or refine_epochs=0"
+        )
     return fit_tpsr_episodes(episodes, config=config, progress=progress, sizing=sizing)
+
+
+def fit_tpsr_trajectory(
+    trajectory: Trajectory,
+    config: TPSRConfig,
+    *,
+    max_episodes: int | None = None,
+    progress: Progress | None = None,
+    sizing: Sizing | None = None,
+    action_codes: np.ndarray | None = None,
+    episodes: Episodes | None = None,
+) -> TPSRModel:
+    """The spectral TPSR of ``trajectory``'s episodes (Algorithm 3), then, with
+    ``config.refine_epochs``, refined through its filter on the trajectory's steps
+    (:mod:`tpsr_ros.core.refine`); ``sizing`` and ``action_codes`` as in ``fit_tpsr``;
+    ``episodes``: the trajectory's episodes when already cut."""
+    if episodes is None:
+        episodes = make_episodes(
+            trajectory, config.history_length, config.test_length, max_episodes=max_episodes
+        )
+    model = fit_tpsr_episodes(
+        episodes, config=config, progress=progress, sizing=sizing, action_codes=action_codes
+    )
+    if not model.config.refine_epochs:
+        return model
+    if progress is not None:
+        progress("refinement through the filter")
+    steps = len(trajectory) if max_episodes is None else _steps_of(trajectory, episodes)
+    part = trajectory.rows(0, steps)
+    return refine_tpsr(
+        model, part.actions, part.observations, part.segment_bounds(), progress=progress
+    )
+
+
+def _steps_of(trajectory: Trajectory, episodes: Episodes) -> int:
+    """The trajectory's steps up to the last one the episodes use."""
+    last = int(np.searchsorted(trajectory.stamps, episodes.stamps[-1]))
+    return min(len(trajectory), last + 1 + episodes.test_length)
 
 
 def _data(

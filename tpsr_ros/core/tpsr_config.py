@@ -29,6 +29,7 @@ _NUMBER_RULES: tuple[tuple[tuple[str, ...], Callable[[float], bool], str], ...] 
     (("state_clip_quantile",), lambda v: v == 0 or 0 < v < 0.5, "0 or in (0, 0.5)"),
     (("action_pooling",), lambda v: np.isfinite(v) and 0 <= v <= 1, "a number in [0, 1]"),
     (("obs_variance",), lambda v: v == 0 or 0 < v < 1, "0 or in (0, 1)"),
+    (("refine_pull",), lambda v: np.isfinite(v) and v >= 0, "a non-negative finite number"),
 )
 """The real-valued parameters of :class:`TPSRConfig`: names, the rule, and how it reads."""
 
@@ -88,6 +89,21 @@ class TPSRConfig:
         "shrink each action's operators toward their mean over all actions by this fraction "
         "(0: one operator per action, the guide; 1: one for all; see pool_actions)",
     )
+    refine_epochs: int = _param(
+        0,
+        "refine the spectral model through its filter for at most this many L-BFGS "
+        "iterations, one pass over the data each (0: the spectral model, the guide; see "
+        "tpsr_ros.core.refine)",
+    )
+    refine_window: int = _param(
+        16, "refinement: steps backpropagated before each window's scored steps, and scored"
+    )
+    refine_horizon: int = _param(
+        10, "refinement: the states predict the next this many observations"
+    )
+    refine_pull: float = _param(
+        1e-3, "refinement: weight of the pull toward the spectral parameters"
+    )
     seed: int = _param(0, "seed of k-means and of the SVD start vector")
 
     def __post_init__(self) -> None:
@@ -99,6 +115,8 @@ class TPSRConfig:
             "obs_centers",
             "ht_centers",
             "rank",
+            "refine_window",
+            "refine_horizon",
         ):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -119,12 +137,10 @@ class TPSRConfig:
             raise ConfigError(
                 f"normalize_ht_features must be true or false, not {self.normalize_ht_features!r}"
             )
-        if (
-            isinstance(self.seed, bool)
-            or not isinstance(self.seed, (int, np.integer))
-            or self.seed < 0
-        ):
-            raise ConfigError(f"seed must be a non-negative integer, not {self.seed!r}")
+        for name in ("seed", "refine_epochs"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+                raise ConfigError(f"{name} must be a non-negative integer, not {value!r}")
         if self.rank > self.ht_centers + 1:
             raise ConfigError(
                 f"rank {self.rank} exceeds the {self.ht_centers + 1} history/test features "

@@ -1,0 +1,459 @@
+"""Refinement of a spectral TPSR through its own filter: truncated backpropagation through time.
+
+The spectral fit (Algorithm 3) is consistent, but with one-image histories and tests and
+one pooled operator for all actions its filter is an action-blind smoother of the current
+image: the regression that defines ``B_ao`` only ever sees ``(o_{t-1}, a_t, o_t, o_{t+1})``.
+The successors of the spectral method (Hefny et al., NIPS 2015, and their RFF-PSR code;
+Downey et al., "Predictive State Recurrent Neural Networks", NIPS 2017) take the spectral
+model as the *initialisation* and refine it by backpropagation through the filter on
+multi-step prediction. This module does that with numpy and scipy's L-BFGS-B.
+
+The parameterisation gives each action back its own small factor::
+
+    B_{a o'} = B_{o'} A_a        b_t = B_{a_t o_t} b_{t-1} / (b_inf^T B_{a_t o_t} b_{t-1})
+
+with ``B_{o'}`` ``(l_O, r, r)`` shared by the actions, ``A_a`` ``(r, r)`` per action (the
+state propagated by the action before the observation weighs it) and ``b_inf``. It starts at
+the spectral model: ``B_{o'}`` the mean of the actions' operators and ``A_a`` the least-squares
+factor of action ``a`` (exactly the identity for pooled operators); what the factors leave
+of unpooled operators, ``R_{a o'} = B_{a o'} - B_{o'} A_a``, is kept fixed and added, so the
+start is the spectral model exactly. The refined model stores
+the operators ``B[a, o'] = B_{o'} A_a + R_{a o'}``, so the model file, :func:`~tpsr_ros.core.filtering.track`,
+the filter node and their equality bit for bit are unchanged.
+
+The objective, over windows of the training trajectory: each window starts at ``b_*`` and runs
+the filter (with its normaliser guard and restart) for ``window`` burn-in steps, then
+``window`` scored steps. The state ``b_t`` of a scored step should predict the next
+``horizon`` observations' features ``y_{t+1} .. y_{t+h}`` (the top principal components of
+the model's own observation whitening, weighted by their variance, as ``learner tune``'s
+criterion): an affine read-out ``W`` is solved in closed form by ridge regression for the
+current states (variable projection), so the loss is ``min_W ||Y - [X 1] W||^2 / SST``, the
+fraction of the futures' variance the states leave unexplained, plus a pull toward the
+spectral values, ``pull * sum_g ||theta_g - theta_g0||^2 / ||theta_g0||^2``. Its gradient
+is exact (the read-out is at its optimum, so only the states' dependence on the parameters
+counts) and checked against finite differences in the tests.
+
+Early stopping: the last :data:`HOLDOUT` of the windows (in time) are held out; after every
+iteration their loss is measured with the training read-out, and the parameters of the best
+held-out loss are returned; the search stops when it has not improved for :data:`PATIENCE`
+iterations.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from scipy.optimize import minimize
+
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.filtering import NORMALIZER_RTOL, observation_weights, update_matrices
+from tpsr_ros.core.tpsr_model import TPSRModel
+from tpsr_ros.core.tpsr_stages import Progress
+
+__all__ = [
+    "HOLDOUT",
+    "PATIENCE",
+    "Factors",
+    "RefineProblem",
+    "factor_model",
+    "refine_tpsr",
+]
+
+HOLDOUT = 0.1
+"""Fraction of the windows (the last in time) held out for early stopping."""
+
+PATIENCE = 5
+"""Iterations without a better held-out loss before the search stops."""
+
+TARGET_COMPONENTS = 10
+"""Principal components of the observations the states must predict."""
+
+CLIP_SPREADS = 3.0
+"""The read-out sees each state coordinate pulled smoothly (tanh) into its spectral median
++- this many robust spreads: a state blown up near the normaliser guard costs a bounded
+error instead of swamping the loss."""
+
+READOUT_RIDGE = 1e-6
+"""Ridge of the read-out, relative to the mean squared size of the spectral states."""
+
+
+@dataclass(frozen=True)
+class Factors:
+    """``B_{a o'} = B_{o'} A_a`` and the normaliser: the refined parameters."""
+
+    shared: np.ndarray  # (l_O, r, r): B_{o'}
+    action: np.ndarray  # (n_actions, r, r): A_a
+    b_inf: np.ndarray  # (r,)
+
+    def vector(self) -> np.ndarray:
+        """All parameters as one vector (the optimiser's)."""
+        return np.concatenate([self.shared.ravel(), self.action.ravel(), self.b_inf])
+
+    def like(self, theta: np.ndarray) -> Factors:
+        """Factors of these shapes holding ``theta``."""
+        n_s, n_a = self.shared.size, self.action.size
+        return Factors(
+            theta[:n_s].reshape(self.shared.shape),
+            theta[n_s : n_s + n_a].reshape(self.action.shape),
+            theta[n_s + n_a :].copy(),
+        )
+
+    def operators(self) -> np.ndarray:
+        """``B`` ``(n_actions, l_O, r, r)``: every ``B_{o'} A_a``."""
+        return np.einsum("oij,ajk->aoik", self.shared, self.action)
+
+
+def factor_model(model: TPSRModel) -> Factors:
+    """The factors closest to ``model``'s operators: ``B_{o'}`` their mean over actions and
+    ``A_a = argmin sum_o' ||B_{o'} A_a - B_{a o'}||^2`` (the identity for pooled operators)."""
+    big_b = model.B
+    shared = big_b.mean(axis=0)
+    r = shared.shape[-1]
+    gram = np.einsum("oji,ojk->ik", shared, shared)  # sum_o' B_o'^T B_o'
+    cross = np.einsum("oji,aojk->aik", shared, big_b)  # per action: sum_o' B_o'^T B_ao'
+    ridge = 1e-12 * np.trace(gram) / r
+    action = np.linalg.solve(gram + ridge * np.eye(r), cross)
+    return Factors(shared, action, np.array(model.b_inf, dtype=np.float64))
+
+
+def _targets(model: TPSRModel, observations: np.ndarray) -> np.ndarray:
+    """``(T, p)`` top principal components of the observations, weighted by their variance."""
+    white = (observations - model.obs_mean) @ model.obs_whitening
+    ratio = np.asarray(model.explained_variance["obs"], dtype=np.float64)
+    p = min(TARGET_COMPONENTS, white.shape[1], ratio.shape[0])
+    return white[:, :p] * np.sqrt(np.maximum(ratio[:p], 0.0))
+
+
+def _window_starts(
+    bounds: list[tuple[int, int]], window: int, horizon: int
+) -> np.ndarray:
+    """First rows of the windows: ``window`` burn-in then ``window`` scored steps, every
+    scored step with ``horizon`` future steps, all inside one segment."""
+    span = 2 * window + horizon
+    starts = [np.arange(a, b - span + 1, window, dtype=np.int64) for a, b in bounds]
+    return np.concatenate(starts) if starts else np.zeros(0, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class _Operators:
+    """Operators ``B`` alone, as :func:`~tpsr_ros.core.filtering.update_matrices` reads them."""
+
+    B: np.ndarray
+
+    @property
+    def state_dim(self) -> int:
+        return int(self.B.shape[-1])
+
+    @property
+    def n_actions(self) -> int:
+        return int(self.B.shape[0])
+
+
+@dataclass
+class _Tape:
+    """What the forward pass keeps for the backward one, per step of the windows."""
+
+    b_in: np.ndarray  # (2w, C, r) the state each step updated (b_{t-1}, or b_* on restart)
+    u: np.ndarray  # (2w, C, r) A_a b_in
+    v: np.ndarray  # (2w, C, r) M u
+    z: np.ndarray  # (2w, C) normaliser
+    mode: np.ndarray  # (2w, C) 0: normal step, 1: restarted from b_*, 2: set to b_*
+
+
+class RefineProblem:
+    """The refinement objective on one trajectory: loss and gradient of a parameter vector.
+
+    ``observations`` ``(T, k)`` and ``actions`` ``(T,)`` are the training trajectory with its
+    segments' ``bounds``; ``start`` gives the shapes, the pull's centre and ``b_*``.
+    """
+
+    def __init__(
+        self,
+        model: TPSRModel,
+        start: Factors,
+        actions: np.ndarray,
+        observations: np.ndarray,
+        bounds: list[tuple[int, int]],
+    ) -> None:
+        cfg = model.config
+        self.window, self.horizon, self.pull = (
+            int(cfg.refine_window),
+            int(cfg.refine_horizon),
+            float(cfg.refine_pull),
+        )
+        self.start = start
+        self.b_star = np.array(model.b_star, dtype=np.float64)
+        self.actions = np.asarray(actions, dtype=np.int64)
+        self.weights = observation_weights(model, observations)  # (T, l_O), fixed
+        # what the factors leave of each step's spectral operator, kept fixed: the start is
+        # the spectral model exactly, pooled or not
+        self._rest = update_matrices(
+            _Operators(model.B - start.operators()), self.actions, self.weights
+        )
+        targets = _targets(model, observations)
+        starts = _window_starts(bounds, self.window, self.horizon)
+        if starts.size < 2:
+            raise DataError(
+                f"refinement needs at least two windows of {2 * self.window + self.horizon} "
+                f"steps in one segment; the data has {starts.size}"
+            )
+        n_held = max(1, int(round(HOLDOUT * starts.size)))
+        self.train_starts, self.held_starts = starts[:-n_held], starts[-n_held:]
+        # scored rows of every window, and their futures' features (rows x horizon*p)
+        self._targets = {
+            name: self._future(targets, s)
+            for name, s in (("train", self.train_starts), ("held", self.held_starts))
+        }
+        self._norms = [max(float(np.sum(g**2)), 1e-300) for g in self._groups(start)]
+        states = self.states(start, self.train_starts)
+        centre = np.median(states, axis=0)
+        spread = 1.4826 * np.median(np.abs(states - centre), axis=0)
+        self._centre = centre
+        self._reach = CLIP_SPREADS * np.maximum(spread, 1e-12 * max(float(spread.max()), 1e-300))
+        states = self._squash(states)[0]
+        self.ridge = READOUT_RIDGE * max(float(np.mean(np.sum(states**2, axis=1))), 1e-300)
+        self.readout = self._readout(states, self._targets["train"])
+
+    # --- data --------------------------------------------------------------------------
+    def _future(self, targets: np.ndarray, starts: np.ndarray) -> np.ndarray:
+        w, h = self.window, self.horizon
+        scored = (starts[:, None] + w + np.arange(w)).ravel()  # window-major, then step
+        future = targets[scored[:, None] + 1 + np.arange(h)]  # (rows, h, p)
+        future = future.reshape(scored.size, -1)
+        return future - future.mean(axis=0)
+
+    @staticmethod
+    def _groups(f: Factors) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return f.shared, f.action, f.b_inf
+
+    # --- the filter over windows ---------------------------------------------------------
+    def _forward(self, f: Factors, starts: np.ndarray) -> tuple[np.ndarray, _Tape, np.ndarray]:
+        """States ``(2w, C, r)`` of the windows, the tape, and the rows ``(2w, C)``."""
+        w2, c, r = 2 * self.window, starts.size, self.b_star.shape[0]
+        rows = starts[None, :] + np.arange(w2)[:, None]
+        flat = f.shared.reshape(f.shared.shape[0], r * r)
+        tape = _Tape(*(np.empty((w2, c, r)) for _ in range(3)), np.empty((w2, c)),
+                     np.zeros((w2, c), dtype=np.int8))  # fmt: skip
+        states = np.empty((w2, c, r))
+        b = np.broadcast_to(self.b_star, (c, r)).copy()
+        norm_inf = float(np.linalg.norm(f.b_inf))
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            for k in range(w2):
+                m = (self.weights[rows[k]] @ flat).reshape(c, r, r)
+                a = f.action[self.actions[rows[k]]]
+                b_in, mode, u, v, z = self._step(m, a, self._rest[rows[k]], b, f.b_inf, norm_inf)
+                tape.b_in[k], tape.u[k], tape.v[k], tape.z[k], tape.mode[k] = b_in, u, v, z, mode
+                b = np.where((mode == 2)[:, None], self.b_star, v / np.where(mode == 2, 1.0, z)[:, None])
+                states[k] = b
+        return states, tape, rows
+
+    def _step(
+        self,
+        m: np.ndarray,
+        a: np.ndarray,
+        rest: np.ndarray,
+        b: np.ndarray,
+        b_inf: np.ndarray,
+        norm_inf: float,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """One guarded update of every window (filtering._step, vectorised):
+        ``v = M A b + R b`` with ``R`` the fixed part of the step's operator."""
+        u = np.einsum("cij,cj->ci", a, b)
+        v = np.einsum("cij,cj->ci", m, u) + np.einsum("cij,cj->ci", rest, b)
+        z = v @ b_inf
+        bad = ~(np.isfinite(z) & (z > NORMALIZER_RTOL * norm_inf * np.linalg.norm(v, axis=1)))
+        mode = np.zeros(b.shape[0], dtype=np.int8)
+        b_in = b
+        if bad.any():
+            b_in = b.copy()
+            b_in[bad] = self.b_star
+            u[bad] = a[bad] @ self.b_star
+            v[bad] = np.einsum("cij,cj->ci", m[bad], u[bad]) + rest[bad] @ self.b_star
+            z[bad] = v[bad] @ b_inf
+            still = bad & ~(
+                np.isfinite(z) & (z > NORMALIZER_RTOL * norm_inf * np.linalg.norm(v, axis=1))
+            )
+            mode[bad] = 1
+            mode[still] = 2
+        return b_in, mode, u, v, z
+
+    def states(self, f: Factors, starts: np.ndarray) -> np.ndarray:
+        """The scored states ``(C w, r)`` of the windows ``starts`` (window-major)."""
+        states, _, _ = self._forward(f, starts)
+        return states[self.window :].transpose(1, 0, 2).reshape(-1, states.shape[-1])
+
+    # --- read-out ------------------------------------------------------------------------
+    def _squash(self, states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """States pulled smoothly into ``centre +- reach`` and the derivative of the pull."""
+        t = np.tanh((states - self._centre) / self._reach)
+        return self._centre + self._reach * t, 1.0 - t**2
+
+    def _design(self, states: np.ndarray) -> np.ndarray:
+        return np.column_stack([states, np.ones(states.shape[0])])
+
+    def _readout(self, states: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        x = self._design(states)
+        gram = x.T @ x
+        gram[np.diag_indices(x.shape[1] - 1)] += self.ridge * x.shape[0]
+        return np.linalg.solve(gram, x.T @ targets)
+
+    def unexplained(self, f: Factors, which: str = "held", readout: np.ndarray | None = None) -> float:
+        """Fraction of the futures' variance unexplained on ``which`` windows (1 - R^2),
+        with the training read-out of ``f`` (or ``readout``)."""
+        starts = self.held_starts if which == "held" else self.train_starts
+        y = self._targets[which]
+        if readout is None:
+            train = self._squash(self.states(f, self.train_starts))[0]
+            readout = self._readout(train, self._targets["train"])
+        resid = y - self._design(self._squash(self.states(f, starts))[0]) @ readout
+        return float(np.sum(resid**2) / max(np.sum(y**2), 1e-300))
+
+    # --- loss and gradient -----------------------------------------------------------------
+    def loss_and_grad(
+        self, theta: np.ndarray, batch: np.ndarray | None = None, readout: np.ndarray | None = None
+    ) -> tuple[float, np.ndarray]:
+        """The objective (module docstring) and its exact gradient; on the training windows
+        ``batch`` (indices) with a fixed ``readout`` for stochastic steps."""
+        f = self.start.like(theta)
+        starts = self.train_starts if batch is None else self.train_starts[batch]
+        states, tape, rows = self._forward(f, starts)
+        w, r = self.window, states.shape[-1]
+        c = starts.size
+        scored = states[w:].transpose(1, 0, 2).reshape(-1, r)
+        y = self._targets["train"]
+        if batch is not None:
+            y = y.reshape(self.train_starts.size, w, -1)[batch].reshape(c * w, -1)
+        sst = max(float(np.sum(y**2)), 1e-300)
+        if not np.isfinite(scored).all():
+            return float("inf"), np.zeros_like(theta)
+        squashed, slope = self._squash(scored)
+        x = self._design(squashed)
+        if readout is None:
+            gram = x.T @ x
+            gram[np.diag_indices(r)] += self.ridge * x.shape[0]
+            readout = np.linalg.solve(gram, x.T @ y)
+        resid = y - x @ readout
+        loss = (float(np.sum(resid**2)) + self.ridge * x.shape[0] * float(np.sum(readout[:r] ** 2))) / sst
+        g_scored = (-2.0 / sst) * (resid @ readout[:r].T) * slope  # (C w, r)
+        g_states = np.zeros_like(states)
+        g_states[w:] = g_scored.reshape(c, w, r).transpose(1, 0, 2)
+        grads = self._backward(f, tape, rows, g_states)
+        for g, (cur, ini, norm) in zip(
+            grads, zip(self._groups(f), self._groups(self.start), self._norms, strict=True), strict=True
+        ):
+            diff = cur - ini
+            loss += self.pull * float(np.sum(diff**2)) / norm
+            g += (2.0 * self.pull / norm) * diff
+        return loss, np.concatenate([g.ravel() for g in grads])
+
+    def _backward(
+        self, f: Factors, tape: _Tape, rows: np.ndarray, g_states: np.ndarray
+    ) -> list[np.ndarray]:
+        """Gradients of the states' loss with respect to ``B_{o'}``, ``A_a`` and ``b_inf``."""
+        w2, c, r = g_states.shape
+        n_obs = f.shared.shape[0]
+        flat = f.shared.reshape(n_obs, r * r)
+        g_m_rows = np.zeros((self.weights.shape[0], r * r))
+        g_action = np.zeros_like(f.action)
+        g_inf = np.zeros(r)
+        carry = np.zeros((c, r))
+        for k in range(w2 - 1, -1, -1):
+            g = g_states[k] + carry
+            mode, z, u, v, b_in = tape.mode[k], tape.z[k], tape.u[k], tape.v[k], tape.b_in[k]
+            live = mode != 2
+            g = np.where(live[:, None], g, 0.0)
+            zz = np.where(live, z, 1.0)
+            b_new = v / zz[:, None]
+            gb = np.einsum("ci,ci->c", g, b_new)
+            g_v = (g - gb[:, None] * f.b_inf) / zz[:, None]
+            g_inf -= (gb / zz) @ v
+            m = (self.weights[rows[k]] @ flat).reshape(c, r, r)
+            g_m_rows[rows[k]] += np.einsum("ci,cj->cij", g_v, u).reshape(c, r * r)
+            g_u = np.einsum("cji,cj->ci", m, g_v)
+            acts = self.actions[rows[k]]
+            np.add.at(g_action, acts, np.einsum("ci,cj->cij", g_u, b_in))
+            carry = np.einsum("cji,cj->ci", f.action[acts], g_u)
+            carry += np.einsum("cji,cj->ci", self._rest[rows[k]], g_v)
+            carry[mode != 0] = 0.0  # a restart cuts the past off
+        g_shared = (self.weights.T @ g_m_rows).reshape(n_obs, r, r)
+        return [g_shared, g_action, g_inf]
+
+
+def refine_tpsr(
+    model: TPSRModel,
+    actions: np.ndarray,
+    observations: np.ndarray,
+    bounds: list[tuple[int, int]] | None = None,
+    *,
+    progress: Progress | None = None,
+) -> TPSRModel:
+    """``model`` refined through its filter on a trajectory (module docstring).
+
+    Args:
+        model: a spectral TPSR whose ``config.refine_epochs`` (iterations of L-BFGS, one
+            pass over the data each), ``refine_window``, ``refine_horizon`` and
+            ``refine_pull`` say how.
+        actions: ``(T,)`` action indices of the training trajectory.
+        observations: ``(T, k)`` its observations.
+        bounds: ``[start, stop)`` rows of its gap-free segments (default: one segment).
+        progress: called with a line per iteration.
+
+    Returns the refined model, whose ``fit_info["refinement"]`` records the held-out loss
+    before and after, the iterations and the seconds taken; with ``refine_epochs`` 0, the
+    model itself.
+    """
+    cfg = model.config
+    if cfg.refine_epochs == 0:
+        return model
+    if model.state_box is not None:
+        raise ConfigError("refinement does not support the state box (state_clip_quantile > 0)")
+    obs = np.asarray(observations, dtype=np.float64)
+    acts = np.asarray(actions)
+    if obs.ndim != 2 or acts.shape != (obs.shape[0],):
+        raise DataError(f"refinement needs actions (T,) and observations (T, k), not {acts.shape} and {obs.shape}")
+    begin = time.perf_counter()
+    start = factor_model(model)
+    problem = RefineProblem(model, start, acts, obs, bounds or [(0, obs.shape[0])])
+    before = problem.unexplained(start)
+    best = {"theta": start.vector(), "held": before, "iteration": 0}
+    since = [0]
+
+    def watch(intermediate_result: Any) -> None:
+        theta = np.asarray(intermediate_result.x)
+        held = problem.unexplained(start.like(theta))
+        since[0] += 1
+        if np.isfinite(held) and held < best["held"]:
+            best.update(theta=theta.copy(), held=held, iteration=since[0])
+        if progress is not None:
+            progress(
+                f"refinement {since[0]}/{cfg.refine_epochs}: held-out unexplained {held:.4f} "
+                f"(spectral {before:.4f})"
+            )
+        if since[0] - int(best["iteration"]) >= PATIENCE:
+            raise StopIteration
+
+    minimize(
+        problem.loss_and_grad,
+        start.vector(),
+        jac=True,
+        method="L-BFGS-B",
+        callback=watch,
+        options={"maxiter": int(cfg.refine_epochs), "maxcor": 20},
+    )
+    refined = start.like(np.asarray(best["theta"]))
+    seconds = time.perf_counter() - begin
+    info = dict(model.fit_info)
+    info["refinement"] = {
+        "iterations": since[0],
+        "best_iteration": int(best["iteration"]),
+        "heldout_unexplained_spectral": round(before, 6),
+        "heldout_unexplained": round(float(best["held"]), 6),
+        "windows": int(problem.train_starts.size + problem.held_starts.size),
+        "seconds": round(seconds, 3),
+    }
+    info.setdefault("timings", {})["refinement"] = round(seconds, 6)
+    rest = model.B - start.operators()
+    return replace(model, B=refined.operators() + rest, b_inf=refined.b_inf, fit_info=info)
