@@ -48,13 +48,14 @@ from learner.simulated import SimSettings, random_trajectory
 from learner.tables import METHODS, Row, format_table, plot_summary, summarise, write_csv
 from sim_node import Environment, SimConfig
 from tpsr_ros.cli import positive_float, positive_int
-from tpsr_ros.core.episodes import Trajectory, make_episodes
+from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError, DivergenceError, TpsrError
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.pca_baseline import PCAConfig, fit_pca
 from tpsr_ros.core.presets import DEFAULT_PRESET, departures, get_preset
 from tpsr_ros.core.sizing import Sizing
-from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
+from tpsr_ros.core.learn import fit_tpsr_trajectory
+from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.io.model_io import model_fingerprint
 from tpsr_ros.io.policy import TRUE_POSITION, Policy
 
@@ -306,12 +307,11 @@ def _learn_states(
         tracker = TruePositionTracker()
         return tracker, tracker.track(rl), 0
     if method == "tpsr":
-        episodes = make_episodes(train, config.tpsr.history_length, config.tpsr.test_length)
         # sizes set with --set stay as set; the preset's follow the data (core.sizing)
         given = departures(config.tpsr, preset_tpsr(config.preset, config.environment))
         codes = config.sim_config().actions.codes  # for action-aware features
-        model = fit_tpsr_episodes(
-            episodes, config=config.tpsr, sizing=Sizing(given), action_codes=codes
+        model = fit_tpsr_trajectory(
+            train, config.tpsr, sizing=Sizing(given), action_codes=codes
         )
     else:
         model = fit_pca(train.observations, n_actions=train.n_actions, config=config.pca)

@@ -50,7 +50,8 @@ from tpsr_ros.core.presets import Preset, departures
 from tpsr_ros.core.sizing import Sizing, describe_sizing
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.streamed_fit import fit_pca_streamed, fit_tpsr_streamed
-from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
+from tpsr_ros.core.learn import fit_tpsr_trajectory
+from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel
 from tpsr_ros.io.bag_chunks import DEFAULT_CHUNK_STEPS, BagChunks, survey_bags
 from tpsr_ros.io.model_io import check_output_path, save_model
 from tpsr_ros.io.stream_defaults import check_fit_memory, grid_step_count
@@ -238,9 +239,10 @@ def run(args: argparse.Namespace) -> int:
     model: StateModel
     if args.method == "tpsr":
         codes = None if spec is None else spec.codebook.codes  # action-aware features
-        model = fit_tpsr_episodes(
-            episodes, config=tpsr_config, progress=_say, action_codes=codes, sizing=args.sizing
-        )
+        model = fit_tpsr_trajectory(
+            trajectory, tpsr_config, episodes=episodes, max_episodes=args.episodes,
+            progress=_say, action_codes=codes, sizing=args.sizing,
+        )  # fmt: skip
         _say_sizing(model)
     else:
         _say("PCA")
@@ -370,6 +372,11 @@ def _run_streamed(
         image_shape = [spec.preprocessing.height, spec.preprocessing.width]
         recorded["pose_frame"] = pose_frame  # as the in-memory fit records it
     tpsr_config, preset = _fit_config(args, file_values, spec, environment)
+    if args.method == "tpsr" and tpsr_config.refine_epochs:
+        raise ConfigError(
+            f"refinement (refine_epochs {tpsr_config.refine_epochs}) runs through the filter "
+            "over the steps in memory; a streamed fit is spectral only: add --refine-epochs 0"
+        )
     reader = BagChunks(
         topics=topics, chunk_steps=args.chunk_steps, spec=spec, pose_frame=pose_frame
     )
@@ -543,6 +550,8 @@ def summary_lines(
             "whitening explained variance: "
             + ", ".join(f"{key} {val.sum():.3f} ({val.size} dims)" for key, val in ev.items())
         )
+        if refined := model.fit_info.get("refinement"):
+            lines.append(refinement_line(refined, timings["fit"]))
         stages = model.fit_info.get("timings", {})
     elif isinstance(model, PCAModel):
         ratio = model.explained_variance_ratio
@@ -555,3 +564,19 @@ def summary_lines(
     parts += [f"fit total {timings['fit']:.2f} s", f"writing {timings['writing']:.2f} s"]
     lines.append("timing: " + "; ".join(parts))
     return lines
+
+
+def refinement_line(refined: dict[str, Any], fit_seconds: float) -> str:
+    """What the refinement through the filter did, and its share of the fit's time."""
+    kept = (
+        "the spectral model kept (no held-out gain)"
+        if refined["best_iteration"] == 0
+        else f"best after iteration {refined['best_iteration']}"
+    )
+    share = 100.0 * refined["seconds"] / fit_seconds if fit_seconds > 0 else 0.0
+    return (
+        f"refinement: {refined['iterations']} iteration(s), {kept}; held-out unexplained "
+        f"variance of the next images {refined['heldout_unexplained_spectral']:.4f} -> "
+        f"{refined['heldout_unexplained']:.4f}; {refined['seconds']:.1f} s ({share:.0f} % of "
+        "the fit)"
+    )

@@ -117,4 +117,12 @@ def info_lines(
         lines.append(
             "fit timing: " + "; ".join(f"{k} {_num(v, '.3f')} s" for k, v in timings.items())
         )
+    if refined := _mapping(summary.get("refinement")):
+        lines.append(
+            f"refinement: {_num(refined.get('iterations'), 'd')} iteration(s), best "
+            f"{_num(refined.get('best_iteration'), 'd')} (0: the spectral model kept); "
+            "held-out unexplained variance of the next images "
+            f"{_num(refined.get('heldout_unexplained_spectral'), '.4f')} -> "
+            f"{_num(refined.get('heldout_unexplained'), '.4f')}"
+        )
     return lines

@@ -115,6 +115,23 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
             fqi={"state_scaling": "predictive", "ensemble": 5, "centers": 100},
             turning_tpsr={"ht_dim": 20, "rank": 16, "action_pooling": 0.5},
         ),
+        "predictive": Preset(
+            "predictive",
+            "the project's best, made a predictive state: P_TH with the tests from the current "
+            "step (so B_ao propagates the state it defines), then the spectral model refined "
+            "through its filter (30 L-BFGS iterations on predicting the next 10 images)",
+            tpsr={
+                "center_selection": "kmeans",
+                "normalize_ht_features": True,
+                "rank": 8,
+                "action_pooling": 1.0,
+                "obs_variance": 0.95,
+                "p_th_tests": "from-current",
+                "refine_epochs": 30,
+            },
+            fqi={"state_scaling": "predictive", "ensemble": 5, "centers": 100},
+            turning_tpsr={"ht_dim": 20, "rank": 16, "action_pooling": 0.5},
+        ),
         "guide": Preset(
             "guide",
             "the guide's settings: figure 4.5 with rank 5, fitted Q as in section 4.1 "
