@@ -161,6 +161,8 @@ class _Tape:
     v: np.ndarray  # (2w, C, r) M u
     z: np.ndarray  # (2w, C) normaliser
     mode: np.ndarray  # (2w, C) 0: normal step, 1: restarted from b_*, 2: set to b_*
+    m: np.ndarray  # (rows, r, r) sum_o' phi_o'(o_t) B_o' of the rows first .. first + rows
+    first: int
 
 
 class RefineProblem:
@@ -235,14 +237,16 @@ class RefineProblem:
         w2, c, r = 2 * self.window, starts.size, self.b_star.shape[0]
         rows = starts[None, :] + np.arange(w2)[:, None]
         flat = f.shared.reshape(f.shared.shape[0], r * r)
+        first, last = int(rows.min()), int(rows.max()) + 1  # windows are contiguous in time
+        m_rows = (self.weights[first:last] @ flat).reshape(-1, r, r)  # each row once
         tape = _Tape(*(np.empty((w2, c, r)) for _ in range(3)), np.empty((w2, c)),
-                     np.zeros((w2, c), dtype=np.int8))  # fmt: skip
+                     np.zeros((w2, c), dtype=np.int8), m_rows, first)  # fmt: skip
         states = np.empty((w2, c, r))
         b = np.broadcast_to(self.b_star, (c, r)).copy()
         norm_inf = float(np.linalg.norm(f.b_inf))
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             for k in range(w2):
-                m = (self.weights[rows[k]] @ flat).reshape(c, r, r)
+                m = m_rows[rows[k] - first]
                 a = f.action[self.actions[rows[k]]]
                 b_in, mode, u, v, z = self._step(m, a, self._rest[rows[k]], b, f.b_inf, norm_inf)
                 tape.b_in[k], tape.u[k], tape.v[k], tape.z[k], tape.mode[k] = b_in, u, v, z, mode
@@ -355,8 +359,7 @@ class RefineProblem:
         """Gradients of the states' loss with respect to ``B_{o'}``, ``A_a`` and ``b_inf``."""
         w2, c, r = g_states.shape
         n_obs = f.shared.shape[0]
-        flat = f.shared.reshape(n_obs, r * r)
-        g_m_rows = np.zeros((self.weights.shape[0], r * r))
+        g_m_rows = np.zeros((tape.m.shape[0], r * r))
         g_action = np.zeros_like(f.action)
         g_inf = np.zeros(r)
         carry = np.zeros((c, r))
@@ -370,15 +373,16 @@ class RefineProblem:
             gb = np.einsum("ci,ci->c", g, b_new)
             g_v = (g - gb[:, None] * f.b_inf) / zz[:, None]
             g_inf -= (gb / zz) @ v
-            m = (self.weights[rows[k]] @ flat).reshape(c, r, r)
-            g_m_rows[rows[k]] += np.einsum("ci,cj->cij", g_v, u).reshape(c, r * r)
+            m = tape.m[rows[k] - tape.first]
+            g_m_rows[rows[k] - tape.first] += np.einsum("ci,cj->cij", g_v, u).reshape(c, r * r)
             g_u = np.einsum("cji,cj->ci", m, g_v)
             acts = self.actions[rows[k]]
             np.add.at(g_action, acts, np.einsum("ci,cj->cij", g_u, b_in))
             carry = np.einsum("cji,cj->ci", f.action[acts], g_u)
             carry += np.einsum("cji,cj->ci", self._rest[rows[k]], g_v)
             carry[mode != 0] = 0.0  # a restart cuts the past off
-        g_shared = (self.weights.T @ g_m_rows).reshape(n_obs, r, r)
+        weights = self.weights[tape.first : tape.first + tape.m.shape[0]]
+        g_shared = (weights.T @ g_m_rows).reshape(n_obs, r, r)
         return [g_shared, g_action, g_inf]
 
 
