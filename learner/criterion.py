@@ -52,10 +52,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tpsr_ros.core.episodes import Trajectory, make_episodes, track_trajectory
+from tpsr_ros.core.episodes import Trajectory, track_trajectory
 from tpsr_ros.core.errors import ConfigError, DataError, TpsrError
 from tpsr_ros.core.fields import option
-from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, action_sums, fit_tpsr_episodes
+from tpsr_ros.core.learn import fit_tpsr_trajectory
+from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, action_sums
 from tpsr_ros.core.whitening import Whitening
 
 __all__ = [
@@ -361,8 +362,7 @@ def score_tpsr(
     """Fit ``tpsr`` on ``train``, track ``heldout``, score; a failed fit scores -inf."""
     start = time.perf_counter()
     try:
-        episodes = make_episodes(train, tpsr.history_length, tpsr.test_length)
-        model = fit_tpsr_episodes(episodes, config=tpsr)
+        model = fit_tpsr_trajectory(train, tpsr)
         states = track_trajectory(model, heldout).states
         r2 = score_states(states, heldout, features, config)
     except TpsrError as exc:

@@ -230,6 +230,7 @@ def run(args: argparse.Namespace) -> int:
         tpsr_config.history_length,
         tpsr_config.test_length,
         max_episodes=args.episodes,
+        stride=tpsr_config.episode_stride,
     )
     _say(
         f"{len(trajectory)} steps in {len(trajectory.segment_bounds())} segment(s) -> "

@@ -157,7 +157,9 @@ def median_widths(train: Trajectory, base: TPSRConfig, *, seed: int = 0) -> dict
     The whitenings are those a fit with ``base`` computes (``d^O`` and ``d^H``
     dimensions), on a seeded sample of at most 1000 episodes.
     """
-    episodes = make_episodes(train, base.history_length, base.test_length)
+    episodes = make_episodes(
+        train, base.history_length, base.test_length, stride=base.episode_stride
+    )
     obs = Whitening.fit(
         episodes.observation,
         base.obs_dim,

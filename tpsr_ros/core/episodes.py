@@ -278,15 +278,20 @@ def make_episodes(
     test_length: int = 1,
     *,
     max_episodes: int | None = None,
+    stride: int | None = None,
 ) -> Episodes:
-    """Cut each segment into episodes of ``m + 1 + n`` consecutive steps up to ``max_episodes``."""
+    """Cut each segment into episodes of ``m + 1 + n`` consecutive steps up to ``max_episodes``,
+    one starting every ``stride`` steps (default ``m + 1 + n``: the guide's, not overlapping;
+    1: every window of the data)."""
     m, n = int(history_length), int(test_length)
     if m < 1 or n < 1:
         raise ConfigError(f"history and test lengths must be at least 1, not {m} and {n}")
     if max_episodes is not None and max_episodes < 1:
         raise ConfigError(f"the number of episodes must be at least 1, not {max_episodes}")
     span = m + 1 + n
-    first = episode_starts(trajectory, span)
+    if stride is not None and not 1 <= stride <= span:
+        raise ConfigError(f"the episode stride must lie in 1..{span}, not {stride}")
+    first = episode_starts(trajectory, span, stride)
     if max_episodes is not None:
         first = first[:max_episodes]
     if first.size == 0:
@@ -304,10 +309,12 @@ def no_usable_episodes(history_length: int, test_length: int, where: str) -> Dat
     )
 
 
-def episode_starts(trajectory: Trajectory, span: int) -> np.ndarray:
-    """First rows of the episodes of ``span`` steps cut from the start of every segment."""
+def episode_starts(trajectory: Trajectory, span: int, stride: int | None = None) -> np.ndarray:
+    """First rows of the episodes of ``span`` steps cut from the start of every segment, one
+    every ``stride`` steps (default ``span``)."""
+    step = span if stride is None else int(stride)
     starts = [
-        np.arange(start, stop - span + 1, span, dtype=np.int64)
+        np.arange(start, stop - span + 1, step, dtype=np.int64)
         for start, stop in trajectory.segment_bounds()
     ]
     return np.concatenate(starts) if starts else np.zeros(0, dtype=np.int64)

@@ -105,7 +105,11 @@ def fit_tpsr_trajectory(
     ``episodes``: the trajectory's episodes when already cut."""
     if episodes is None:
         episodes = make_episodes(
-            trajectory, config.history_length, config.test_length, max_episodes=max_episodes
+            trajectory,
+            config.history_length,
+            config.test_length,
+            max_episodes=max_episodes,
+            stride=config.episode_stride,
         )
     model = fit_tpsr_episodes(
         episodes, config=config, progress=progress, sizing=sizing, action_codes=action_codes

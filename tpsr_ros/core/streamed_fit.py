@@ -508,6 +508,11 @@ def fit_tpsr_streamed(
     """
     if max_episodes is not None and max_episodes < 1:
         raise ConfigError(f"the number of episodes must be at least 1, not {max_episodes}")
+    if config is not None and config.overlapping_episodes:
+        raise ConfigError(
+            "overlapping episodes are cut in memory only; a streamed fit cuts the guide's "
+            "(overlapping_episodes false)"
+        )
     passes: StreamEngine = source if hasattr(source, "moments") else ChunkEngine(source)  # type: ignore[arg-type,assignment]
     with StreamedFit(passes, max_episodes, scratch_dir) as engine:
         return run_fit(

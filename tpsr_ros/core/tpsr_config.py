@@ -71,6 +71,11 @@ class TPSRConfig:
         "(Boots et al. 2011)",
         choices=("after-current", "from-current"),
     )
+    overlapping_episodes: bool = _param(
+        False,
+        "cut an episode at every step, overlapping (every window of the data a sample), "
+        "instead of every m + 1 + n steps (the guide)",
+    )
     history_action_weight: float = _param(
         0.0,
         "weight of each history step's action code joined to its observations before the "
@@ -133,6 +138,10 @@ class TPSRConfig:
                 raise ConfigError(
                     f"{f.name} must be one of {list(allowed)}, not {getattr(self, f.name)!r}"
                 )
+        if not isinstance(self.overlapping_episodes, bool):
+            raise ConfigError(
+                f"overlapping_episodes must be true or false, not {self.overlapping_episodes!r}"
+            )
         if not isinstance(self.normalize_ht_features, bool):
             raise ConfigError(
                 f"normalize_ht_features must be true or false, not {self.normalize_ht_features!r}"
@@ -146,6 +155,11 @@ class TPSRConfig:
                 f"rank {self.rank} exceeds the {self.ht_centers + 1} history/test features "
                 "(ht_centers + 1)"
             )
+
+    @property
+    def episode_stride(self) -> int:
+        """Steps between the starts of consecutive episodes (1 when they overlap)."""
+        return 1 if self.overlapping_episodes else self.history_length + 1 + self.test_length
 
     @property
     def uses_actions(self) -> bool:
