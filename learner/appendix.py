@@ -22,6 +22,7 @@ from learner.camera_study import CAMERA_SECTION
 from learner.experiment import preset_tpsr
 from learner.jobs import GUIDE_ENVIRONMENTS, SELECTION_SEEDS, Job, experiment_job, study_job
 from learner.overrides import convert
+from learner.predictive_section import PREDICTIVE_SECTION
 from learner.sections import (
     SELECTION_EPISODES,
     Data,
@@ -437,6 +438,7 @@ _DRIVE = tuple(
 SECTIONS: tuple[Section, ...] = (
     *_PLANNER,
     *_FIT_SWITCHES,
+    PREDICTIVE_SECTION,
     Section(
         "tuning",
         "Tuning: `learner tune` against the defaults",

@@ -1,0 +1,120 @@
+"""The results page's section on the ``predictive`` preset: the defaults' TPSR made a
+predictive state (from-current ``P_TH`` tests, refinement through the filter), against the
+defaults, PCA, the floors and the ceiling of the headline, on the headline's fresh seeds.
+
+The preset was chosen on four runs of the selection seeds in ``partial-strip``; its rows here
+come from ten runs on the headline's seeds in every environment, seeds it was not chosen on.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from learner.floors import CONSTANT, RANDOM
+from learner.jobs import ENVIRONMENTS, HEADLINE_SEEDS, Job, experiment_job
+from learner.sections import Data, Section, cell, comparison, judged
+from learner.tables import Row, summarise
+from tpsr_ros.io.policy import TRUE_POSITION
+
+__all__ = ["PREDICTIVE_SECTION", "PREDICTIVE_EPISODES"]
+
+PREDICTIVE_EPISODES = 8000
+"""The data size compared: the headline's largest (24000 recorded steps)."""
+
+
+def _jobs() -> tuple[Job, ...]:
+    return tuple(
+        experiment_job(
+            "predictive", env, "--preset", "predictive", "--episodes", str(PREDICTIVE_EPISODES),
+            "--methods", "tpsr", *HEADLINE_SEEDS,
+        )  # fmt: skip
+        for env in ENVIRONMENTS
+    )
+
+
+def _defaults(environment: str) -> Job:
+    return experiment_job("defaults", environment, *HEADLINE_SEEDS)
+
+
+def _at_size(rows: list[Row], method: str) -> list[Row]:
+    return [r for r in rows if r.method == method and r.episodes == PREDICTIVE_EPISODES]
+
+
+def _entry(rows: list[Row], method: str) -> dict | None:
+    found = summarise(_at_size(rows, method))
+    return found[0] if found else None
+
+
+def _weakest(rows: list[Row], method: str) -> str:
+    scores = [r.score for r in _at_size(rows, method) if math.isfinite(r.score)]
+    return f"{min(scores):.1f}" if scores else "-"
+
+
+def _restarts(rows: list[Row], method: str) -> str:
+    counts = [r.recoveries for r in _at_size(rows, method)]
+    return f"{float(np.median(counts)):.0f}" if counts else "-"
+
+
+def _render(section: Section, data: Data) -> list[str]:
+    lines = [
+        f"Ten runs per environment at {PREDICTIVE_EPISODES} episodes (24000 recorded steps) on "
+        "the headline's seeds; the other rows are the headline's own runs of the same seeds. "
+        "Cells: mean / median / SEM; weakest: the lowest run; restarts: the median number of "
+        "normaliser recoveries over the RL trajectory; the difference to the defaults' TPSR "
+        "in SEMs of the difference.",
+        "",
+        "| environment | representation | score | weakest run | restarts | vs the defaults' TPSR |",
+        "|---|---|---|---|---|---|",
+    ]
+    verdicts = []
+    for job in section.jobs:
+        env = job.environment
+        ours, base_rows = data[job], data[_defaults(env)]
+        base = _entry(base_rows, "tpsr")
+        mine = _entry(ours, "tpsr")
+        rows = [
+            ("TPSR, `--preset predictive`", ours, "tpsr"),
+            ("TPSR, defaults", base_rows, "tpsr"),
+            ("PCA, the defaults' planner", base_rows, "pca"),
+            ("floor: the best constant action", base_rows, CONSTANT),
+            ("floor: random actions", base_rows, RANDOM),
+            ("ceiling: the true position", base_rows, TRUE_POSITION),
+        ]
+        for name, source, method in rows:
+            entry = _entry(source, method)
+            versus = "-"
+            if method == "tpsr" and source is ours and entry and base:
+                versus = judged(*comparison(entry, base))
+            restarts = _restarts(source, method) if method in ("tpsr", "pca") else "-"
+            lines.append(
+                f"| `{env}` | {name} | {cell(entry)} | {_weakest(source, method)} | "
+                f"{restarts} | {versus} |"
+            )
+        if mine and base:
+            difference, sems = comparison(mine, base)
+            verdicts.append(
+                f"- `{env}`: {mine['mean']:.1f} against the defaults' {base['mean']:.1f}, "
+                f"{judged(difference, sems)}; weakest run {_weakest(ours, 'tpsr')} against "
+                f"{_weakest(base_rows, 'tpsr')}; median restarts {_restarts(ours, 'tpsr')} "
+                f"against {_restarts(base_rows, 'tpsr')}."
+            )
+    return [*lines, "", "**Verdict.**", "", *verdicts]
+
+
+PREDICTIVE_SECTION = Section(
+    "predictive",
+    "A predictive state: from-current tests and refinement through the filter",
+    "Does the defaults' TPSR become a better state for planning when `P_TH` takes its tests "
+    "from the current step (so that `B_ao` propagates the state it defines) and the "
+    "spectral model is then refined through its own filter on predicting the next 10 "
+    "images (`--preset predictive`; `tpsr_ros.core.refine`)? Chosen on four runs of the "
+    "selection seeds in `partial-strip`; measured here on fresh seeds in every environment.",
+    _jobs(),
+    _render,
+    "**Commands** (the headline's seeds):\n\n```sh\n"
+    + "\n".join(job.command for job in _jobs())
+    + "\n```",
+)
+"""The section, with its jobs (one per environment) and renderer."""
