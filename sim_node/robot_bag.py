@@ -21,7 +21,12 @@ velocity commands at their own times, and odometry. Three timelines (``--timelin
   at 18 Hz nominal, about 14 Hz on average as a third of its intervals are stretched up to
   3x; one ``Twist``
   per frame, logged at the frame's stamp (linear.x and angular.z carry the step's pair
-  plus ±0.6 jitter); ``/odom`` at 10 Hz.
+  plus ±0.6 jitter); ``/odom`` at 10 Hz. ``--phone-camera runs``: a phone whose camera
+  keeps a steady 64 ms (±5 %) for runs of 20 to 45 frames, each run ending in one long
+  frame of 2, 2.2, 3 or 3.5 periods (intervals of 61 to 224 ms, about 14 Hz).
+
+``--drop-frames I,J,...`` leaves those camera frames (0-based) out of the bag, as a camera
+driver that drops frames would; every other message stays (test data for loss counting).
 
 ``--environment drive`` records the differential-drive robot: its 9 (speed, turn rate)
 pairs as linear.x/angular.z on every timeline, the jitter scaled to the grid's spacing
@@ -36,6 +41,7 @@ starts 100 s into the bag's clock. Everything is seeded. The bag carries no
 
 from __future__ import annotations
 
+import argparse
 import functools
 import io
 import json
@@ -79,6 +85,8 @@ START_S = 100  # the run starts 100 s into the bag's clock
 PHONE_CAMERA = (96, 256)  # (height, width)
 PHONE_RATE = 18.0  # Hz nominal; about 14 Hz on average with the stretched intervals
 PHONE_STEP_S = 0.3
+PHONE_CAMERAS = ("stretched", "runs")
+PHONE_RUNS_PERIOD_S = 0.064  # the ``runs`` phone camera's steady period
 RENDER_CHUNK = 512  # frames rendered at once
 
 
@@ -103,10 +111,19 @@ class RobotBagConfig:
     jpeg_quality: int = 90
     command_topic: str = "/cmd_vel"
     timeline: str = "moving"
+    phone_camera: str = "stretched"
+    drop_frames: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
         if self.timeline not in TIMELINES:
             raise ConfigError(f"timeline {self.timeline!r} is not one of {TIMELINES}")
+        if self.phone_camera not in PHONE_CAMERAS:
+            raise ConfigError(f"phone camera {self.phone_camera!r} is not one of {PHONE_CAMERAS}")
+        if self.phone_camera != "stretched" and self.timeline != "phone":
+            raise ConfigError("--phone-camera applies to the phone timeline only")
+        if any(k < 0 for k in self.drop_frames):
+            raise ConfigError(f"dropped frames are 0-based indices, got {list(self.drop_frames)}")
+        object.__setattr__(self, "drop_frames", tuple(sorted({int(k) for k in self.drop_frames})))
         if self.encoding is None:
             object.__setattr__(self, "encoding", "jpeg" if self.timeline == "phone" else "bgr8")
         if self.encoding not in ENCODINGS:
@@ -187,9 +204,12 @@ def _phone(config: RobotBagConfig, run: Any) -> Timeline:
     rng = np.random.default_rng(config.seed + 2)  # the camera's own clock
     step_s, n = PHONE_STEP_S, config.steps
     span = (n - 1) * step_s
-    intervals = np.full(int(span * PHONE_RATE * 1.5) + 2, 1.0 / PHONE_RATE)
-    stretched = rng.random(intervals.size) < 1 / 3
-    intervals[stretched] *= rng.uniform(1.0, 3.0, int(stretched.sum()))
+    if config.phone_camera == "runs":
+        intervals = _steady_runs(rng, int(span / PHONE_RUNS_PERIOD_S) + 2)
+    else:
+        intervals = np.full(int(span * PHONE_RATE * 1.5) + 2, 1.0 / PHONE_RATE)
+        stretched = rng.random(intervals.size) < 1 / 3
+        intervals[stretched] *= rng.uniform(1.0, 3.0, int(stretched.sum()))
     frame_s = step_s + np.concatenate([[0.0], np.cumsum(intervals)])
     frame_s = frame_s[frame_s <= n * step_s]
     # one command per frame, at its stamp: the pair of the step the frame falls in
@@ -204,6 +224,17 @@ def _phone(config: RobotBagConfig, run: Any) -> Timeline:
         components=("linear.x", "angular.z"),
         odom_s=step_s + np.arange(int(span * 10) + 1) / 10.0,
     )
+
+
+def _steady_runs(rng: np.random.Generator, count: int) -> np.ndarray:
+    """``count`` frame intervals (s) of the ``runs`` phone camera: 64 ms ±5 % for runs of 20
+    to 45 frames, each run ending in one frame of 2, 2.2, 3 or 3.5 periods."""
+    intervals = PHONE_RUNS_PERIOD_S * rng.uniform(0.95, 1.05, count)
+    k = int(rng.integers(20, 46))
+    while k < count:
+        intervals[k] *= rng.choice([2.0, 2.2, 3.0, 3.5])
+        k += int(rng.integers(21, 47))
+    return intervals
 
 
 def run_components(config: RobotBagConfig) -> tuple[str, str]:
@@ -332,7 +363,10 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
 
     image_type, _ = _image_message(0, images[0], encoding, config.jpeg_quality)
     records: list[tuple[int, int, str, bytes]] = []  # (log time, order, topic, CDR)
+    dropped = set(config.drop_frames)
     for i in range(frame_s.size):
+        if i in dropped:
+            continue
         msgtype, msg = _image_message(
             int(image_stamps[i]), images[i], encoding, config.jpeg_quality
         )
@@ -356,7 +390,7 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
         )
     records.sort(key=lambda r: (r[0], r[1]))
     with BagWriter(output) as writer:
-        writer.set_custom_data("tpsr_ros.robot_bag", json.dumps(asdict(config)))
+        writer.set_custom_data("tpsr_ros.robot_bag", json.dumps(_settings(config)))
         writer.add_topic(config.image_topic, image_type)
         writer.add_topic(config.command_topic, TWIST_TYPE)
         writer.add_topic("/odom", ODOM_TYPE)
@@ -364,6 +398,26 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
         for log_time, _, topic, data in records:
             writer.write(topic, log_time, data)
         return writer.message_count
+
+
+def _settings(config: RobotBagConfig) -> dict[str, Any]:
+    """The config as recorded in the bag; the phone camera and dropped frames only when set
+    (bags of the other settings stay byte-identical to earlier ones)."""
+    settings = asdict(config)
+    if settings["phone_camera"] == "stretched":
+        del settings["phone_camera"]
+    if not settings["drop_frames"]:
+        del settings["drop_frames"]
+    return settings
+
+
+def _frame_list(text: str) -> tuple[int, ...]:
+    """``--drop-frames``: comma-separated 0-based frame indices."""
+    try:
+        return tuple(int(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        message = f"{text!r} is not a comma-separated list of frame indices"
+        raise argparse.ArgumentTypeError(message) from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -387,6 +441,20 @@ def main(argv: list[str] | None = None) -> int:
         default="full",
         help="the simulator recorded (drive: the robot that turns)",
     )
+    parser.add_argument(
+        "--phone-camera",
+        choices=PHONE_CAMERAS,
+        default="stretched",
+        help="the phone timeline's camera: a third of its frames stretched up to 3x, or steady "
+        "runs of 64 ms frames each ending in one frame of 2 to 3.5 periods",
+    )
+    parser.add_argument(
+        "--drop-frames",
+        type=_frame_list,
+        default=(),
+        metavar="I,J,...",
+        help="camera frames (0-based) left out of the bag, as a driver dropping them",
+    )
     add_vertical_half_extent_option(parser)
     add_drive_options(parser)
     parser.add_argument("-o", "--output", required=True, type=Path, help="new bag directory")
@@ -399,6 +467,8 @@ def main(argv: list[str] | None = None) -> int:
         encoding=args.encoding,
         image_size=args.image_size,
         timeline=args.timeline,
+        phone_camera=args.phone_camera,
+        drop_frames=args.drop_frames,
         environment=args.environment,
         vertical_half_extent=args.vertical_half_extent,
         field_of_view_deg=args.field_of_view,

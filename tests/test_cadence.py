@@ -97,3 +97,85 @@ def test_stamps_a_simulator_skips_at_a_reset_are_not_losses_in_either_order():
         elif k not in (250, 251):  # two frames really lost
             real.add(int(stamp))
     assert real.missing == 2
+
+
+# -- cameras that stretch frames (a phone) ---------------------------------------------------
+
+PHONE = 64_000_000  # a phone camera's steady period
+
+
+def _steady_runs(seed: int, count: int) -> np.ndarray:
+    """A phone's stamps: 64 ms ±5 % for runs of 20 to 45 frames, each ending in one long
+    frame of 2, 2.2, 3 or 3.5 periods (no frame lost)."""
+    rng = np.random.default_rng(seed)
+    intervals = PHONE * rng.uniform(0.95, 1.05, count)
+    k = int(rng.integers(20, 46))
+    while k < count:
+        intervals[k] *= rng.choice([2.0, 2.2, 3.0, 3.5])
+        k += int(rng.integers(21, 47))
+    return 10**12 + np.cumsum(intervals).astype(np.int64)
+
+
+def _jittery(seed: int, count: int) -> np.ndarray:
+    """30 % interval jitter and a long frame (2-3 periods) in 30."""
+    rng = np.random.default_rng(seed)
+    intervals = PHONE * rng.uniform(0.7, 1.3, count)
+    long = rng.random(count) < 1 / 30
+    intervals[long] = PHONE * rng.uniform(2.0, 3.0, int(long.sum()))
+    return 10**12 + np.cumsum(intervals).astype(np.int64)
+
+
+def _stretched(seed: int, count: int) -> np.ndarray:
+    """A third of the intervals stretched up to 3x (sim_node.robot_bag's phone)."""
+    rng = np.random.default_rng(seed)
+    intervals = np.full(count, float(PHONE))
+    stretched = rng.random(count) < 1 / 3
+    intervals[stretched] *= rng.uniform(1.0, 3.0, int(stretched.sum()))
+    return 10**12 + np.cumsum(intervals).astype(np.int64)
+
+
+def test_a_phone_log_with_steady_runs_and_long_frames_loses_nothing():
+    # the log that read as 4 lost: 287 frames, long ones (128 ms, 226 ms) after 32 steady ones
+    stamps = 10**12 + np.cumsum(
+        [PHONE] * 40 + [2 * PHONE] + [PHONE] * 32 + [3.53 * PHONE] + [PHONE] * 213
+    ).astype(np.int64)
+    assert _feed(stamps).missing == 0
+
+
+def test_phone_like_timelines_of_many_seeds_and_lengths_lose_nothing():
+    # (a recording that shows a single long frame, say 60 frames, cannot be judged: that
+    # frame comes before the stream has shown what it stretches to, and exactly 2 periods
+    # in a steady camera is a lost frame as far as stamps can tell)
+    for make in (_steady_runs, _jittery, _stretched):
+        for seed in range(8):
+            for count in (287, 1000, 2000):
+                gaps = _feed(make(seed, count))
+                assert gaps.missing == 0 and gaps.gaps == 0, (make.__name__, seed, count)
+
+
+def test_a_stretch_that_looks_like_a_loss_is_taken_back_once_the_stream_stretches():
+    stamps = 10**12 + np.cumsum([PHONE] * 40 + [2 * PHONE] + [PHONE] * 10).astype(np.int64)
+    gaps = _feed(stamps)
+    assert gaps.missing == 1  # a steady camera until then: one frame missing, by its phase
+    gaps.add(int(stamps[-1] + 2.5 * PHONE))  # not a multiple: it stretches frames
+    assert gaps.missing == 0 and gaps.gaps == 0 and gaps.stretching
+
+
+def test_frames_removed_from_phone_timelines_are_counted():
+    # a run of lost frames longer than the stream's longest stretch is seen, its size
+    # estimated from the mean interval; a lone frame lost among 3x stretches is not
+    for make in (_steady_runs, _jittery, _stretched):
+        for seed in range(6):
+            stamps = make(seed, 1500)
+            runs = [np.arange(k, k + 8) for k in (300, 700, 1100)]
+            gaps = _feed(np.delete(stamps, np.concatenate(runs)))
+            assert gaps.gaps == 3, (make.__name__, seed)
+            assert 16 <= gaps.missing <= 32, (make.__name__, seed, gaps.missing)
+
+
+def test_a_regular_camera_still_counts_every_single_lost_frame():
+    for seed in range(6):
+        stamps = _camera(1500, jitter=0.05, seed=seed)
+        holes = [200, 600, 601, 1000, 1001, 1002]
+        gaps = _feed(np.delete(stamps, holes))
+        assert (gaps.missing, gaps.gaps) == (6, 3), seed

@@ -221,7 +221,6 @@ class GridStepping:
         self.jump_threshold_ns = int(jump_threshold_ns)
         self.cadence = CadenceGaps()
         self.dating = CommandDating()
-        self.lost_images = 0
         self.time_jumps = 0
         self.far_commands = 0
 
@@ -229,6 +228,11 @@ class GridStepping:
     def last_image_time(self) -> int | None:
         """Stamp of the newest image (ns), or None."""
         return self.stepper.last_image_time
+
+    @property
+    def lost_images(self) -> int:
+        """Images missing from the camera's cadence (lower when it proves to stretch frames)."""
+        return self.cadence.missing
 
     def _jumped(self, stamp: int) -> bool:
         """Whether ``stamp`` is a backward jump of the stream's time; if so, restart the grid."""
@@ -244,7 +248,7 @@ class GridStepping:
         """An image (``sent_ns``: when it was published, to date unstamped commands); the
         steps it closes."""
         jumped = self._jumped(stamp)
-        self.lost_images += self.cadence.add(stamp)
+        self.cadence.add(stamp)
         last = self.stepper.last_image_time
         steps = []
         if last is None or stamp > last:  # else the stepper drops it: it dates nothing

@@ -210,6 +210,13 @@ class LossLedger:
                     f"by the publisher or the middleware; {cadence.missing} on this topic so far)"
                 )
                 self._missing_said[topic] = cadence.missing
+            elif cadence.missing < self._missing_said[topic]:
+                lines.append(
+                    f"{self._missing_said[topic] - cadence.missing} of the messages counted "
+                    f"missing on {topic} were stretched frames after all (the stream stretches "
+                    f"its frames; {cadence.missing} on this topic so far)"
+                )
+                self._missing_said[topic] = cadence.missing
         return lines
 
     def missing_by_stamps(self, topic: str | None = None) -> int:
