@@ -24,7 +24,6 @@ from tpsr_ros.core.resample import increasing
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.images import IMAGE_TYPES
 from tpsr_ros.io.messages import (
-    REWARD_TYPE,
     TWIST_TYPE,
     deserialize,
     header_stamp_ns,
@@ -32,6 +31,7 @@ from tpsr_ros.io.messages import (
     stamp_of,
     twist_components,
 )
+from tpsr_ros.io.reward_messages import REWARD_TYPES, decode_reward
 from tpsr_ros.io.stream_spec import COMMAND_TYPES
 
 __all__ = [
@@ -77,7 +77,8 @@ class BagStreams:
     pose_times: np.ndarray  # sorted
     pose_data: list[bytes]  # CDR, decoded only around the step times
     pose_values: np.ndarray | None  # (P, 4) already decoded (tf: transforms of one frame)
-    reward_times: np.ndarray
+    reward_topic: str | None  # None: no reward topic read (the bag has none of a reward type)
+    reward_times: np.ndarray  # header stamp (JointState) or log time (std_msgs)
     rewards: np.ndarray
     environment: str | None
     dropped_images: int
@@ -140,7 +141,7 @@ def _read_streams(
         if pose_topic and (require_pose or pose_topic in available):
             _check_types(path, available, pose_topic, POSE_TYPES, "ground-truth pose")
             wanted.append(pose_topic)
-        if reward_topic and available.get(reward_topic) == REWARD_TYPE:
+        if reward_topic and available.get(reward_topic) in REWARD_TYPES:
             wanted.append(reward_topic)
         numbers = dict.fromkeys(wanted, 0)
         image_times: list[int] = []
@@ -176,11 +177,9 @@ def _read_streams(
                     command_times.append(stamp if stamp > 0 else UNDATED - len(image_times))
                     command_logs.append(int(log_time))
                 else:
-                    msg = deserialize(data, types[topic])
-                    if tuple(msg.name[:1]) != ("reward",) or len(msg.position) < 1:
-                        raise MessageError("a reward message names 'reward' first")
-                    reward_times.append(_time(msg, log_time))
-                    rewards.append(float(msg.position[0]))
+                    time, value = decode_reward(data, types[topic], log_time)
+                    reward_times.append(time)
+                    rewards.append(value)
             except MessageError as exc:
                 raise MessageError(f"{where(path, topic, index)}: {exc}") from None
         environment = reader.custom_data.get("tpsr_ros.environment") or None
@@ -209,6 +208,7 @@ def _read_streams(
         pose_values=(
             np.array(tf_values, dtype=np.float64).reshape(-1, 4)[pose_order] if is_tf else None
         ),
+        reward_topic=reward_topic if reward_topic in wanted else None,
         reward_times=np.array(reward_times, dtype=np.int64),
         rewards=np.array(rewards, dtype=np.float64),
         environment=str(environment) if environment else None,
@@ -251,7 +251,8 @@ def read_bag_streams(
     """Each bag's timed streams, for :func:`fit_stream_spec` and :func:`read_stream_trajectory`.
 
     ``components`` are the command fields kept (a spec's codebook uses some of them); the
-    pose topic is read when given and present (required with ``require_pose``).
+    pose topic is read when given and present (required with ``require_pose``), the reward
+    topic when given and of a reward type (:mod:`tpsr_ros.io.reward_messages`).
     """
     if not bags:
         raise ConfigError("no bag given")

@@ -13,8 +13,10 @@ commands (``TwistStamped``: header stamp; unstamped: the stamp of the next image
 bag's order), optional ground truth (``PoseStamped``, ``Odometry``,
 ``TransformStamped``, ``PoseWithCovarianceStamped``, or ``tf2_msgs/TFMessage`` (``/tf``:
 the transforms whose child frame is ``pose_frame``); interpolated at the step times) and
-reward (``JointState`` as the simulator writes it: the reward of a step is the last one
-stamped within the step).
+reward (``Float32``, ``Float64``, ``Bool`` or the simulator's ``JointState``:
+:mod:`tpsr_ros.io.reward_messages`; a step earns the sum of the rewards timed within it,
+0 if none, :func:`tpsr_ros.core.rewards.step_reward_sums`; NaN throughout where the bag
+has no reward topic).
 :func:`fit_stream_spec` first makes the spec from the training bags (camera period,
 constant command components, k-means codebook). Both read each bag's timed streams
 (:func:`read_bag_streams`: stamps and commands, images not decoded); ``learner fit`` reads
@@ -39,6 +41,7 @@ from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError, DataError, MessageError
 from tpsr_ros.core.images import Preprocessing
 from tpsr_ros.core.resample import GridConfig, choose_phase, resample_grid
+from tpsr_ros.core.rewards import step_reward_sums
 from tpsr_ros.core.units import NS_PER_S
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.bag_streams import (
@@ -228,15 +231,12 @@ def _interpolate(times: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.nd
     return out
 
 
-def _step_rewards(times: np.ndarray, rewards: np.ndarray, at: np.ndarray, step: int) -> np.ndarray:
-    """The last reward stamped in ``(t - step, t]`` for every step time ``t`` (else NaN)."""
-    order = np.argsort(times, kind="stable")
-    times, rewards = times[order], rewards[order]
-    last = np.searchsorted(times, at, side="right") - 1
-    ok = (last >= 0) & (times[np.maximum(last, 0)] > at - step) if times.size else last >= 0
-    out = np.full(at.size, np.nan)
-    out[ok] = rewards[last[ok]]
-    return out
+def _step_rewards(streams: BagStreams, at: np.ndarray, step_ns: int) -> np.ndarray:
+    """Each step's summed reward (:func:`~tpsr_ros.core.rewards.step_reward_sums`); NaN
+    everywhere when the bag has no reward topic (unknown, not zero)."""
+    if streams.reward_topic is None:
+        return np.full(at.size, np.nan)
+    return step_reward_sums(streams.reward_times, streams.rewards, at, step_ns)
 
 
 # -- the spec of the training bags --------------------------------------------------------
@@ -445,11 +445,14 @@ def read_stream_trajectory(
             raise DataError(
                 f"bag {str(path)!r}: the poses on {pose_topic!r} cover none of the steps"
             )
-        rewards = _step_rewards(bag.reward_times, bag.rewards, steps.stamps, spec.grid.step_ns)
+        rewards = _step_rewards(bag, steps.stamps, spec.grid.step_ns)
         breaks = np.diff(steps.stamps) != spec.grid.step_ns
         segments = segment_offset + np.concatenate([[0], np.cumsum(breaks)])
         segment_offset = int(segments[-1]) + 1
-        far = distance > codebook.far_distance
+        # far commands per command message put in force (dated), as the filter node counts
+        # them, not per step: a step holds the command in force, which may be held over
+        _, message_distance = codebook.assign(bag.commands[:, columns])
+        far = message_distance > codebook.far_distance
         parts.append(
             {
                 "stamps": steps.stamps,
@@ -470,8 +473,9 @@ def read_stream_trajectory(
                 "camera_gaps": steps.stale_image,
                 "command_gaps": steps.no_command,
                 "images_out_of_order": bag.dropped_images,
+                "command_messages": int(far.size),
                 "far_commands": int(far.sum()),
-                "worst_command_distance": float(distance.max()),
+                "worst_command_distance": float(message_distance.max(initial=0.0)),
                 "stamps_ns": [int(steps.stamps[0]), int(steps.stamps[-1])],
                 "environment": bag.environment,
                 "generator": None,
