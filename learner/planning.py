@@ -3,7 +3,9 @@
 States come from the model's parameters tracked over a separate random RL trajectory
 (guide 4.2: never embedded histories); ``MODEL`` may also be ``true-position``, the
 ground-truth baseline. Transitions ``(s_k, a_{k+1}, r_{k+1}, s_{k+1})`` never cross a gap
-in the bag. The policy file names the model's fingerprint.
+in the bag. The policy file names the model's fingerprint. Rewards come from the
+simulator's ``/reward``, a robot's ``--reward-topic`` or a ``--goal-region`` on its poses
+(:mod:`learner.rewards`).
 """
 
 from __future__ import annotations
@@ -19,7 +21,12 @@ import numpy as np
 
 from learner.criterion import CriterionConfig, ObservationFeatures, future_targets
 from learner.fit import add_topic_options, topics_from_args
-from learner.inputs import read_for_model, require_camera, require_given_topics
+from learner.inputs import (
+    read_for_model,
+    recorded_topic,
+    require_camera,
+    require_given_topics,
+)
 from learner.options import (
     add_config_options,
     add_preset_option,
@@ -27,15 +34,23 @@ from learner.options import (
     preset_from_args,
 )
 from learner.representations import Tracker, load_tracker
+from learner.rewards import (
+    REWARD_WAYS,
+    RewardSource,
+    add_reward_options,
+    apply_rewards,
+    check_reward_topic,
+    reward_source_from_args,
+)
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import DataError, DivergenceError
 from tpsr_ros.core.fqi import FQIConfig, QFunction, fit_q
 from tpsr_ros.core.presets import departures
-from tpsr_ros.io.model_io import open_model
+from tpsr_ros.io.model_io import ModelFile, open_model
 from tpsr_ros.io.npz_archive import check_output_path
 from tpsr_ros.io.policy import TRUE_POSITION, Policy, save_policy
-from tpsr_ros.io.trajectory import read_trajectory
+from tpsr_ros.io.trajectory import Topics, read_trajectory
 
 __all__ = [
     "MAX_RIDGE",
@@ -50,18 +65,28 @@ __all__ = [
 
 
 def transitions(
-    states: np.ndarray, trajectory: Trajectory
+    states: np.ndarray, trajectory: Trajectory, *, skip_unknown: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(s_k, a_{k+1}, r_{k+1}, s_{k+1})`` for consecutive steps of each segment."""
+    """``(s_k, a_{k+1}, r_{k+1}, s_{k+1})`` for consecutive steps of each segment.
+
+    A step without a reward (NaN) is refused, or with ``skip_unknown`` its transition is
+    left out (a goal region's steps beyond the poses recorded); none left is refused.
+    """
     if len(states) != len(trajectory):
         raise DataError(f"{len(states)} states for {len(trajectory)} steps")
     current = np.concatenate(
         [np.arange(a, b - 1) for a, b in trajectory.segment_bounds() if b - a > 1] or [[]]
     ).astype(np.int64)
     following = current + 1
+    known = np.isfinite(trajectory.rewards[following])
+    if not known.all():
+        if not skip_unknown or not known.any():
+            raise DataError(
+                f"the RL bag lacks rewards for {int((~known).sum())} of {known.size} "
+                f"transitions; rewards are needed to plan: {REWARD_WAYS}"
+            )
+        current, following = current[known], following[known]
     rewards = trajectory.rewards[following]
-    if not np.all(np.isfinite(rewards)):
-        raise DataError("the RL bag lacks /reward for some steps; rewards are needed to plan")
     return states[current], trajectory.actions[following], rewards, states[following]
 
 
@@ -93,15 +118,16 @@ def ridge_ladder(ridge: float) -> list[float]:
 
 
 def fit_q_on(
-    states: np.ndarray, trajectory: Trajectory, config: FQIConfig
+    states: np.ndarray, trajectory: Trajectory, config: FQIConfig, *, skip_unknown: bool = False
 ) -> tuple[QFunction, FQIConfig, int]:
     """Fitted Q on the transitions of ``states`` tracked over ``trajectory``.
 
     A fit that diverges is refitted at the next ridge of :func:`ridge_ladder`. Returns
     the Q-function, the configuration that fitted it (its ridge) and the number of
-    transitions; raises ``DivergenceError`` when every ridge diverges.
+    transitions; raises ``DivergenceError`` when every ridge diverges. ``skip_unknown``:
+    see :func:`transitions`.
     """
-    s, a, r, s_next = transitions(states, trajectory)
+    s, a, r, s_next = transitions(states, trajectory, skip_unknown=skip_unknown)
     futures = future_pairs(states, trajectory) if config.state_scaling == "predictive" else None
     ladder = ridge_ladder(config.ridge)
     for ridge in ladder:
@@ -124,17 +150,20 @@ def fit_policy(
     environment: str | None,
     model_path: str | None = None,
     preset: dict[str, Any] | None = None,
+    rewards: dict[str, Any] | None = None,
+    skip_unknown: bool = False,
 ) -> Policy:
     """Track states over ``trajectory``, fit Q on its transitions, return the greedy policy.
 
     The metadata record the fitted-Q configuration used (a larger ridge than ``config``'s
-    if the fit diverged: :func:`fit_q_on`) and ``preset``, the named settings it started
-    from and what changed in them.
+    if the fit diverged: :func:`fit_q_on`), ``preset``, the named settings it started
+    from and what changed in them, and ``rewards``, where the rewards came from.
+    ``skip_unknown``: see :func:`transitions`.
     """
     start = time.perf_counter()
     states = tracker.track(trajectory)
     tracked = time.perf_counter()
-    q, config, n_transitions = fit_q_on(states, trajectory, config)
+    q, config, n_transitions = fit_q_on(states, trajectory, config, skip_unknown=skip_unknown)
     done = time.perf_counter()
     return Policy(
         q=q,
@@ -145,6 +174,7 @@ def fit_policy(
             "model_path": model_path,
             "fqi": config.to_dict(),
             **({"preset": preset} if preset is not None else {}),
+            **({"rewards": rewards} if rewards is not None else {}),
             "data": {**trajectory.summary(), "transitions": n_transitions},
             "timing_s": {"tracking": tracked - start, "fitted_q": done - tracked},
         },
@@ -171,6 +201,7 @@ def register(subparsers: Any) -> None:
     add_preset_option(planner, "fitted-Q")
     add_config_options(planner, FQIConfig)
     add_topic_options(parser.add_argument_group("topics"))
+    add_reward_options(parser.add_argument_group("rewards of a robot's bag (docs/robot_bags.md)"))
     parser.set_defaults(run=run)
 
 
@@ -187,21 +218,46 @@ def _first_steps(trajectory: Trajectory, steps: int | None) -> Trajectory:
     )
 
 
+def _reward_source(
+    args: argparse.Namespace, model_file: ModelFile | None
+) -> tuple[RewardSource, str]:
+    """The run's reward source and the pose topic a goal region reads (the options', else
+    the model's training bags', else the defaults)."""
+    defaults = Topics()
+    if model_file is not None and model_file.spec is not None:  # its training bags' topics
+        metadata = model_file.metadata
+        defaults = Topics(
+            pose=recorded_topic(metadata, "pose") or defaults.pose,
+            reward=recorded_topic(metadata, "reward") or defaults.reward,
+        )
+    source = reward_source_from_args(args, defaults.reward)
+    return source, args.pose_topic or defaults.pose
+
+
 def run(args: argparse.Namespace) -> int:
     """Fit and save a policy."""
     output = check_output_path(args.output, force=args.force)
-    require_given_topics(args.bags, args)
     preset = preset_from_args(args)
     config = config_from_args(FQIConfig, args, preset.fqi_config())
-    if str(args.model) == TRUE_POSITION:
+    model_file = None if str(args.model) == TRUE_POSITION else open_model(args.model)
+    source, pose_topic = _reward_source(args, model_file)
+    require_given_topics(args.bags, args)
+    if source.region is not None:  # the bags are read with these topics
+        args.pose_topic = pose_topic
+    else:
+        args.reward_topic = source.topic
+    check_reward_topic(
+        args.bags, source, resampled=model_file is not None and model_file.spec is not None
+    )
+    if model_file is None:
         tracker = load_tracker(TRUE_POSITION)
         read = read_trajectory(args.bags, topics=topics_from_args(args))
     else:  # a model reads bags as its training bags were read (its input spec, if any)
-        model_file = open_model(args.model)
         tracker = load_tracker(model_file)
         read = read_for_model(model_file, args.bags, args)
-    trajectory = _first_steps(read, args.steps)
-    if str(args.model) != TRUE_POSITION:  # the RL bags must show the model's camera
+    trajectory, said = apply_rewards(_first_steps(read, args.steps), source, pose_topic)
+    print(f"learner policy: {said}", file=sys.stderr)
+    if model_file is not None:  # the RL bags must show the model's camera
         camera = trajectory.summary()["vertical_half_extent"]
         if isinstance(camera, float):
             require_camera(model_file, camera, "the RL bags' camera")
@@ -216,6 +272,8 @@ def run(args: argparse.Namespace) -> int:
         environment=environment,
         model_path=str(args.model),
         preset=record,
+        rewards=source.as_dict(pose_topic),
+        skip_unknown=source.region is not None,
     )
     save_policy(policy, output, force=args.force)
     timing = policy.metadata["timing_s"]
