@@ -34,9 +34,11 @@ pairs as linear.x/angular.z on every timeline, the jitter scaled to the grid's s
 (``--field-of-view``, default 300 degrees), and the heading in ``/odom``'s orientation.
 
 Every timeline adds ``/reward`` (``sensor_msgs/msg/JointState``, the simulator's reward of
-each step, stamped at the step's end). Images are logged 1..3 ms after their stamp. The run
-starts 100 s into the bag's clock. Everything is seeded. The bag carries no
-``tpsr_ros.environment`` entry: it is a "robot" bag, not a simulator bag.
+each step, stamped at the step's end), unless ``--no-reward`` leaves it out as a real
+robot would (``learner policy --goal-region`` then gives rewards from ``/odom``). Images
+are logged 1..3 ms after their stamp. The run starts 100 s into the bag's clock.
+Everything is seeded. The bag carries no ``tpsr_ros.environment`` entry: it is a "robot"
+bag, not a simulator bag.
 """
 
 from __future__ import annotations
@@ -113,6 +115,7 @@ class RobotBagConfig:
     timeline: str = "moving"
     phone_camera: str = "stretched"
     drop_frames: tuple[int, ...] = ()
+    reward: bool = True
 
     def __post_init__(self) -> None:
         if self.timeline not in TIMELINES:
@@ -380,7 +383,7 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
         x, y, heading = odom[i]
         msg = _odometry(int(odom_stamps[i]), x, y, heading if turns else None)
         records.append((int(odom_stamps[i]) + 1_000_000, 2, "/odom", serialize(msg, ODOM_TYPE)))
-    for k in range(1, n + 1):
+    for k in range(1, n + 1 if config.reward else 1):
         sample = RewardSample(
             float(run.rewards[k - 1]), bool(run.wall_contact[k - 1]), bool(run.goal_zone[k - 1])
         )
@@ -394,7 +397,8 @@ def write_robot_bag(output: Path | str, config: RobotBagConfig) -> int:
         writer.add_topic(config.image_topic, image_type)
         writer.add_topic(config.command_topic, TWIST_TYPE)
         writer.add_topic("/odom", ODOM_TYPE)
-        writer.add_topic("/reward", REWARD_TYPE)
+        if config.reward:
+            writer.add_topic("/reward", REWARD_TYPE)
         for log_time, _, topic, data in records:
             writer.write(topic, log_time, data)
         return writer.message_count
@@ -457,6 +461,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_vertical_half_extent_option(parser)
     add_drive_options(parser)
+    parser.add_argument(
+        "--no-reward",
+        dest="reward",
+        action="store_false",
+        help="leave out /reward, as a real robot's bag has none",
+    )
     parser.add_argument("-o", "--output", required=True, type=Path, help="new bag directory")
     args = parser.parse_args(argv)
     if args.seed < 0:
@@ -473,6 +483,7 @@ def main(argv: list[str] | None = None) -> int:
         vertical_half_extent=args.vertical_half_extent,
         field_of_view_deg=args.field_of_view,
         turn_rate_deg=args.turn_rate,
+        reward=args.reward,
     )
     count = write_robot_bag(args.output, config)
     print(f"wrote {args.output}: {args.steps} steps, {count} messages", file=sys.stderr)
