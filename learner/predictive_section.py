@@ -18,7 +18,7 @@ from learner.sections import Data, Section, cell, comparison, judged
 from learner.tables import Row, summarise
 from tpsr_ros.io.policy import TRUE_POSITION
 
-__all__ = ["PREDICTIVE_SECTION", "PREDICTIVE_EPISODES"]
+__all__ = ["PREDICTIVE_EPISODES", "PREDICTIVE_SECTION"]
 
 PREDICTIVE_EPISODES = 8000
 """The data size compared: the headline's largest (24000 recorded steps)."""
@@ -27,9 +27,16 @@ PREDICTIVE_EPISODES = 8000
 def _jobs() -> tuple[Job, ...]:
     return tuple(
         experiment_job(
-            "predictive", env, "--preset", "predictive", "--episodes", str(PREDICTIVE_EPISODES),
-            "--methods", "tpsr", *HEADLINE_SEEDS,
-        )  # fmt: skip
+            "predictive",
+            env,
+            "--preset",
+            "predictive",
+            "--episodes",
+            str(PREDICTIVE_EPISODES),
+            "--methods",
+            "tpsr",
+            *HEADLINE_SEEDS,
+        )
         for env in ENVIRONMENTS
     )
 

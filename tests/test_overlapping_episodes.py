@@ -30,7 +30,9 @@ def test_every_window_inside_each_segment_is_an_episode() -> None:
     np.testing.assert_array_equal(episodes.history[:, :4], data.observations[first])
     np.testing.assert_array_equal(episodes.test, data.observations[first + 3])
     guide = make_episodes(data, 2, 1)  # the guide's: one every 4 steps
-    np.testing.assert_array_equal(guide.observation, make_episodes(data, 2, 1, stride=4).observation)
+    np.testing.assert_array_equal(
+        guide.observation, make_episodes(data, 2, 1, stride=4).observation
+    )
     assert len(guide) == 2 + 1
 
 

@@ -17,9 +17,10 @@ state propagated by the action before the observation weighs it) and ``b_inf``. 
 the spectral model: ``B_{o'}`` the mean of the actions' operators and ``A_a`` the least-squares
 factor of action ``a`` (exactly the identity for pooled operators); what the factors leave
 of unpooled operators, ``R_{a o'} = B_{a o'} - B_{o'} A_a``, is kept fixed and added, so the
-start is the spectral model exactly. The refined model stores
-the operators ``B[a, o'] = B_{o'} A_a + R_{a o'}``, so the model file, :func:`~tpsr_ros.core.filtering.track`,
-the filter node and their equality bit for bit are unchanged.
+start is the spectral model exactly. The refined model stores the operators
+``B[a, o'] = B_{o'} A_a + R_{a o'}``, so the model file,
+:func:`~tpsr_ros.core.filtering.track`, the filter node and their equality bit for bit are
+unchanged.
 
 The objective, over windows of the training trajectory: each window starts at ``b_*`` and runs
 the filter (with its normaliser guard and restart) for ``window`` burn-in steps, then
@@ -127,9 +128,7 @@ def _targets(model: TPSRModel, observations: np.ndarray) -> np.ndarray:
     return white[:, :p] * np.sqrt(np.maximum(ratio[:p], 0.0))
 
 
-def _window_starts(
-    bounds: list[tuple[int, int]], window: int, horizon: int
-) -> np.ndarray:
+def _window_starts(bounds: list[tuple[int, int]], window: int, horizon: int) -> np.ndarray:
     """First rows of the windows: ``window`` burn-in then ``window`` scored steps, every
     scored step with ``horizon`` future steps, all inside one segment."""
     span = 2 * window + horizon
@@ -202,7 +201,7 @@ class RefineProblem:
                 f"refinement needs at least two windows of {2 * self.window + self.horizon} "
                 f"steps in one segment; the data has {starts.size}"
             )
-        n_held = max(1, int(round(HOLDOUT * starts.size)))
+        n_held = max(1, round(HOLDOUT * starts.size))
         self.train_starts, self.held_starts = starts[:-n_held], starts[-n_held:]
         # scored rows of every window, and their futures' features (rows x horizon*p)
         self._targets = {
@@ -250,7 +249,9 @@ class RefineProblem:
                 a = f.action[self.actions[rows[k]]]
                 b_in, mode, u, v, z = self._step(m, a, self._rest[rows[k]], b, f.b_inf, norm_inf)
                 tape.b_in[k], tape.u[k], tape.v[k], tape.z[k], tape.mode[k] = b_in, u, v, z, mode
-                b = np.where((mode == 2)[:, None], self.b_star, v / np.where(mode == 2, 1.0, z)[:, None])
+                b = np.where(
+                    (mode == 2)[:, None], self.b_star, v / np.where(mode == 2, 1.0, z)[:, None]
+                )
                 states[k] = b
         return states, tape, rows
 
@@ -304,7 +305,9 @@ class RefineProblem:
         gram[np.diag_indices(x.shape[1] - 1)] += self.ridge * x.shape[0]
         return np.linalg.solve(gram, x.T @ targets)
 
-    def unexplained(self, f: Factors, which: str = "held", readout: np.ndarray | None = None) -> float:
+    def unexplained(
+        self, f: Factors, which: str = "held", readout: np.ndarray | None = None
+    ) -> float:
         """Fraction of the futures' variance unexplained on ``which`` windows (1 - R^2),
         with the training read-out of ``f`` (or ``readout``)."""
         starts = self.held_starts if which == "held" else self.train_starts
@@ -340,13 +343,17 @@ class RefineProblem:
             gram[np.diag_indices(r)] += self.ridge * x.shape[0]
             readout = np.linalg.solve(gram, x.T @ y)
         resid = y - x @ readout
-        loss = (float(np.sum(resid**2)) + self.ridge * x.shape[0] * float(np.sum(readout[:r] ** 2))) / sst
+        loss = (
+            float(np.sum(resid**2)) + self.ridge * x.shape[0] * float(np.sum(readout[:r] ** 2))
+        ) / sst
         g_scored = (-2.0 / sst) * (resid @ readout[:r].T) * slope  # (C w, r)
         g_states = np.zeros_like(states)
         g_states[w:] = g_scored.reshape(c, w, r).transpose(1, 0, 2)
         grads = self._backward(f, tape, rows, g_states)
         for g, (cur, ini, norm) in zip(
-            grads, zip(self._groups(f), self._groups(self.start), self._norms, strict=True), strict=True
+            grads,
+            zip(self._groups(f), self._groups(self.start), self._norms, strict=True),
+            strict=True,
         ):
             diff = cur - ini
             loss += self.pull * float(np.sum(diff**2)) / norm
@@ -408,6 +415,7 @@ def refine_tpsr(
     Returns the refined model, whose ``fit_info["refinement"]`` records the held-out loss
     before and after, the iterations and the seconds taken; with ``refine_epochs`` 0, the
     model itself.
+
     """
     cfg = model.config
     if cfg.refine_epochs == 0:
@@ -417,7 +425,10 @@ def refine_tpsr(
     obs = np.asarray(observations, dtype=np.float64)
     acts = np.asarray(actions)
     if obs.ndim != 2 or acts.shape != (obs.shape[0],):
-        raise DataError(f"refinement needs actions (T,) and observations (T, k), not {acts.shape} and {obs.shape}")
+        raise DataError(
+            "refinement needs actions (T,) and observations (T, k), not "
+            f"{acts.shape} and {obs.shape}"
+        )
     begin = time.perf_counter()
     start = factor_model(model)
     problem = RefineProblem(model, start, acts, obs, bounds or [(0, obs.shape[0])])
