@@ -225,3 +225,12 @@ def test_the_sim_node_page_documents_the_reset_protocol():
     for needle in ("t_{k+1}", "t_{k+2}", "/sim/episode_start", "transient-local",
                    "never jumps back"):
         assert needle in text
+
+
+def test_the_reward_types_are_those_learner_policy_reads():
+    from tpsr_ros.io.reward_messages import REWARD_TYPES
+
+    text = (DOC / "README.md").read_text()
+    rows = table(sections(text)["Rewards from a robot"], ["type", "reward", "time"])
+    assert rows is not None
+    assert [_unquote(row[0]) for row in rows] == list(REWARD_TYPES)
