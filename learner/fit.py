@@ -31,6 +31,7 @@ from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible,
 from learner.inputs import (
     add_stream_options,
     apply_config_inputs,
+    far_commands_line,
     fit_options_from_args,
     require_given_topics,
     robot_turns,
@@ -511,14 +512,7 @@ def _spec_line(spec: StreamSpec, options: FitOptions | None = None) -> str:
 
 
 def _commands_line(trajectory: Trajectory, spec: StreamSpec) -> str:
-    sources = trajectory.sources
-    far = sum(int(s.get("far_commands", 0)) for s in sources)
-    worst = max(float(s.get("worst_command_distance", 0.0)) for s in sources)
-    gaps = sum(int(s.get("camera_gaps", 0)) + int(s.get("command_gaps", 0)) for s in sources)
-    return (
-        f"commands: {far} of {len(trajectory)} farther than {spec.codebook.far_distance:.3g} "
-        f"from every code (worst {worst:.3g}); {gaps} grid steps were gaps"
-    )
+    return far_commands_line(trajectory, spec)
 
 
 def _fmt(values: Any) -> str:

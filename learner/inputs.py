@@ -33,6 +33,7 @@ from tpsr_ros.io.trajectory import Topics, read_trajectory
 __all__ = [
     "add_stream_options",
     "apply_config_inputs",
+    "far_commands_line",
     "fit_options_from_args",
     "image_size",
     "open_simulator_model",
@@ -256,6 +257,23 @@ def recorded_topic(metadata: dict[str, Any], name: str) -> str | None:
     bags = metadata_field(metadata, "training", "bags")
     topic = metadata_field(bags[0], "topics", name) if isinstance(bags, list) and bags else None
     return topic if isinstance(topic, str) else None
+
+
+def far_commands_line(trajectory: Trajectory, spec: StreamSpec) -> str:
+    """What the codebook made of a robot bag's commands, in the filter node's unit: command
+    messages (``far_commands`` among ``command_messages`` on its ``/diagnostics``), not
+    steps, which hold a command over; and the grid steps that were gaps."""
+    sources = trajectory.sources
+    far = sum(int(s.get("far_commands", 0)) for s in sources)
+    messages = sum(int(s.get("command_messages", 0)) for s in sources)
+    worst = max(float(s.get("worst_command_distance", 0.0)) for s in sources)
+    gaps = sum(int(s.get("camera_gaps", 0)) + int(s.get("command_gaps", 0)) for s in sources)
+    steps = sum(int(s.get("grid_steps", 0)) for s in sources)
+    return (
+        f"commands: {far} of {messages} command messages farther than "
+        f"{spec.codebook.far_distance:.3g} from every code (worst {worst:.3g}); {gaps} of "
+        f"{steps} grid steps were gaps"
+    )
 
 
 def read_for_model(

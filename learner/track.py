@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from learner.fit import add_topic_options
-from learner.inputs import read_for_model, require_given_topics
+from learner.inputs import far_commands_line, read_for_model, require_given_topics
 from tpsr_ros.core.episodes import track_trajectory
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.io.atomic import atomic_file
@@ -94,6 +94,8 @@ def run(args: argparse.Namespace) -> int:
     model_file = open_model(args.model)
     trajectory = read_for_model(model_file, args.bags, args)
     tracked = track_trajectory(model_file.model, trajectory)
+    if model_file.spec is not None:  # a robot model: the filter node's far_commands
+        print(f"learner track: {far_commands_line(trajectory, model_file.spec)}", file=sys.stderr)
     positions = trajectory.positions
     has_pose = positions is not None and bool(np.isfinite(positions).any())
     write_states(

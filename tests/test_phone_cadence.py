@@ -16,7 +16,7 @@ from tpsr_ros.filter_node import FilterNode
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.runtime import Node, NodeOptions, parse_ros_args
-from tpsr_ros.runtime.diagnostics import WARN
+from tpsr_ros.runtime.diagnostics import OK, WARN
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
 
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -55,6 +55,7 @@ def test_the_runs_camera_has_long_frames_that_the_old_rule_read_as_loss(phone):
 
 
 def _filter_values(model, inputs):
+    """The filter node's diagnostics values and next status after ``inputs``."""
     bus = InprocBus()
     feeder = Node(NodeOptions(name="feeder"), transport=InprocTransport("/f", bus))
     pubs = {COMPRESSED_TOPIC: feeder.create_publisher(COMPRESSED_TOPIC, COMPRESSED),
@@ -135,3 +136,44 @@ def test_the_bag_generator_drops_the_frames_it_is_told(tmp_path):
         with BagReader(bag) as reader:
             counts.append(reader.message_counts[COMPRESSED_TOPIC])
     assert counts[0] - counts[1] == 2
+
+
+def test_far_commands_are_counted_per_command_message_by_fit_track_and_the_filter_node(
+    phone, model, capsys
+):
+    from tpsr_ros.io.model_io import model_stream_spec, read_metadata
+    from tpsr_ros.io.streams import read_stream_trajectory
+
+    spec = model_stream_spec(model, read_metadata(model))
+    source = read_stream_trajectory([phone["bag"]], spec).sources[0]
+    values, _ = _filter_values(model, phone["bags"]["complete"])
+    commands = sum(topic == "/cmd_vel" for topic, _ in phone["bags"]["complete"])
+    assert values["command_messages"] == source["command_messages"] >= commands - 1
+    assert values["command_messages"] > values["steps"]  # messages, not steps
+    assert values["far_commands"] == source["far_commands"] > 0
+    assert learner_main(["track", str(model), str(phone["bag"]), "-o", str(phone["tmp"] / "s.csv")]) == 0
+    far, messages = source["far_commands"], source["command_messages"]
+    assert f"commands: {far} of {messages} command messages farther than" in capsys.readouterr().err
+
+
+def test_no_far_share_is_judged_from_fewer_than_the_minimum_of_command_messages(model):
+    # the first report used to WARN "100% far" from 2 commands
+    from tpsr_ros.filter_node.health import MIN_SHARE_SAMPLES
+
+    bus = InprocBus()
+    options = NodeOptions.for_node(FilterNode, parse_ros_args(["-p", f"model:={model}"]))
+    node = FilterNode(options, transport=InprocTransport("/tpsr_filter", bus))
+    node.logger.stream = io.StringIO()
+    grid = node.grid
+    try:
+        levels = []
+        for messages in (2, MIN_SHARE_SAMPLES - 1, MIN_SHARE_SAMPLES + 4, MIN_SHARE_SAMPLES + 6):
+            grid.far_commands = grid.stepper.commands = messages  # every one of them far
+            levels.append(node.health_status())
+            node.publish_diagnostics()
+        assert [level for level, _ in levels] == [OK, OK, WARN, OK]
+        assert levels[2][1].startswith(f"{MIN_SHARE_SAMPLES + 4} of {MIN_SHARE_SAMPLES + 4} "
+                                       "command messages (100%) since the last judged report")
+        assert node.diagnostics_values()["command_messages"] == MIN_SHARE_SAMPLES + 6
+    finally:
+        node.close()

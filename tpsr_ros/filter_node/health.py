@@ -16,7 +16,17 @@ from typing import Any
 
 from tpsr_ros.filter_node.inputs import REJECT_REASONS
 
-__all__ = ["ERROR", "INPUTS", "OK", "RATE_WINDOW_S", "STALE", "WARN", "HealthLedger", "Throttle"]
+__all__ = [
+    "ERROR",
+    "INPUTS",
+    "MIN_SHARE_SAMPLES",
+    "OK",
+    "RATE_WINDOW_S",
+    "STALE",
+    "WARN",
+    "HealthLedger",
+    "Throttle",
+]
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 """``diagnostic_msgs/msg/DiagnosticStatus`` levels."""
@@ -26,6 +36,9 @@ RATE_WINDOW_S = 10.0
 """Input rates count the messages of the last this many seconds."""
 RECOVERY_ERROR_RUN = 10
 """This many consecutive updates that all needed recovery are an ERROR."""
+MIN_SHARE_SAMPLES = 20
+"""A share (``far_commands_warn``) is judged over at least this many messages: a report
+with fewer since the last judged one judges nothing and carries them to the next."""
 
 Clock = Callable[[], float]
 

@@ -18,7 +18,7 @@ from tpsr_ros.core.actions import environment_grid
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.online import OnlineTracker
 from tpsr_ros.core.units import NS_PER_S as _NS
-from tpsr_ros.filter_node.health import OK, WARN, HealthLedger, Throttle
+from tpsr_ros.filter_node.health import MIN_SHARE_SAMPLES, OK, WARN, HealthLedger, Throttle
 from tpsr_ros.filter_node.inputs import (
     Frame,
     Rejected,
@@ -167,6 +167,7 @@ class FilterNode(Node):
         self._ready_since: float | None = None
         self.commands_ready = self.policy is None
         self._create_endpoints(image_name, action_name)
+        self._far_reported = (0, 0)  # far commands and command messages when last judged
         self._report_done()
         self.create_timer(p.diagnostics_period, self.publish_diagnostics)
         if self.policy is not None:
@@ -501,6 +502,7 @@ class FilterNode(Node):
             "resets": self.resets,
             "stale_resets": self.stale_resets,
             **self._problem_counts(),
+            **({"command_messages": self._command_messages()} if self.grid is not None else {}),
             **self.health.input_values(self._topics()),
             "last_stamp_s": "none" if last is None else f"{last / _NS:.9f}",
             "state_dim": self.model.state_dim,
@@ -512,21 +514,30 @@ class FilterNode(Node):
         """Level and message of the next report: what got worse since the previous one.
 
         Far commands inform (a key-value); they WARN only when more than
-        ``far_commands_warn`` of the commands since the previous report were far.
+        ``far_commands_warn`` of the command messages since the last judged report were far,
+        judged over at least :data:`~tpsr_ros.filter_node.health.MIN_SHARE_SAMPLES` of them.
         """
         counts = self._problem_counts()
         far = counts.pop("far_commands", 0)
         level, message = self.health.assess(counts, self.tracker.steps, self._topics())
         far_then, commands_then = self._far_reported
-        commands = self.grid.stepper.commands if self.grid is not None else 0
-        share = (far - far_then) / max(1, commands - commands_then)
-        if level == OK and far > far_then and share > self.params.far_commands_warn:
+        new_far, new_commands = far - far_then, self._command_messages() - commands_then
+        if (
+            level == OK
+            and new_commands >= MIN_SHARE_SAMPLES
+            and new_far > self.params.far_commands_warn * new_commands
+        ):
             level = WARN
             message = (
-                f"{share:.0%} of the commands since the last report were far from every "
-                f"action (more than far_commands_warn {self.params.far_commands_warn:g})"
+                f"{new_far} of {new_commands} command messages ({new_far / new_commands:.0%}) "
+                f"since the last judged report were far from every action (more than "
+                f"far_commands_warn {self.params.far_commands_warn:g})"
             )
         return level, message
+
+    def _command_messages(self) -> int:
+        """Command messages put in force so far (robot streams; the unit of far_commands)."""
+        return self.grid.command_messages if self.grid is not None else 0
 
     def publish_diagnostics(self) -> None:
         """Publish one DiagnosticArray (timer callback)."""
@@ -541,8 +552,9 @@ class FilterNode(Node):
     def _report_done(self) -> None:
         """Remember the counters of the report just published."""
         counts = self._problem_counts()
-        commands = self.grid.stepper.commands if self.grid is not None else 0
-        self._far_reported = (counts.pop("far_commands", 0), commands)
+        far, commands = counts.pop("far_commands", 0), self._command_messages()
+        if commands - self._far_reported[1] >= MIN_SHARE_SAMPLES:  # judged: start afresh
+            self._far_reported = (far, commands)
         self.health.reported(counts, self.tracker.steps)
 
     def on_parameter_change(self, name: str, value: Any) -> str | None:

@@ -89,10 +89,10 @@ class FilterNodeParams:
     )
     far_commands_warn: float = param(
         0.5,
-        "fraction (step-grid models); far commands (farther from every action than half the "
-        "codes' spacing, normal for continuous teleoperation) are counted, and make "
-        "/diagnostics WARN only when more than this fraction of the commands since the last "
-        "report were far",
+        "fraction (step-grid models); far command messages (farther from every action than "
+        "half the codes' spacing, normal for continuous teleoperation) are counted, and make "
+        "/diagnostics WARN only when more than this fraction of the command messages since "
+        "the last judged report were far, judged over at least 20 of them",
         minimum=0.0,
         maximum=1.0,
     )

@@ -209,8 +209,10 @@ class GridStepping:
     """Robot streams resampled on the model's step grid; lost images from the camera's cadence.
 
     Images are given as they arrive (any object; a step holds the image in force at its
-    time) and commands as action indices; ``far`` counts commands farther from every code
-    than the codebook's ``far_distance``. ``max_latency_ns``: how far one stream may run
+    time) and commands as action indices; ``far_commands`` counts the command messages
+    farther from every code than the codebook's ``far_distance``, among the
+    ``command_messages`` put in force (dated), as ``learner fit`` counts a bag's.
+    ``max_latency_ns``: how far one stream may run
     ahead of a step before the step closes without the other (:class:`GridStepper`).
     """
 
@@ -252,8 +254,8 @@ class GridStepping:
         last = self.stepper.last_image_time
         steps = []
         if last is None or stamp > last:  # else the stepper drops it: it dates nothing
-            for date, action in self.dating.image(sent_ns, stamp):
-                steps += self.stepper.add_command(date, action)
+            for date, (action, far) in self.dating.image(sent_ns, stamp):
+                steps += self._command(date, action, far)
         steps += self.stepper.add_image(stamp, image)
         return Added(_steps(steps), jumped)
 
@@ -262,13 +264,22 @@ class GridStepping:
     ) -> Added:
         """A command in force from ``stamp`` on; ``stamp`` None (unstamped): from the first
         image sent after ``sent_ns``. The steps it closes."""
-        self.far_commands += int(far)
         if stamp is None:
-            dated = self.dating.command(sent_ns, action)
+            dated = self.dating.command(sent_ns, (action, far))
             if dated is None:
                 return Added()
             stamp = dated[0]
-        return Added(_steps(self.stepper.add_command(stamp, action)))
+        return Added(_steps(self._command(stamp, action, far)))
+
+    def _command(self, stamp: int, action: int, far: bool) -> list[GridStep]:
+        """A command put in force from ``stamp`` (counted as the bag's reading counts it)."""
+        self.far_commands += int(far)
+        return self.stepper.add_command(stamp, action)
+
+    @property
+    def command_messages(self) -> int:
+        """Command messages put in force so far (the unit of ``far_commands``)."""
+        return self.stepper.commands
 
     def flush(self) -> Added:
         """Close the steps before the newest image (both inputs fell silent)."""
