@@ -1,6 +1,7 @@
 """The end-to-end demo behind ``make demo``: simulate, record, learn, plan, filter, control.
 
-Everything goes to ``demo_output/`` (recreated on every run):
+Everything goes to ``demo_output/<environment>/`` (recreated on every run of that
+environment; the other environments' outputs are left alone):
 
 1. a random training run (24000 steps) and a separate random RL run (15000 steps; 20000
    in the other environments, as in the guide's ``partial``) of the simulator, written as bags
@@ -26,7 +27,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from tqdm import tqdm
 
 from learner.cli import main as learner_main
 from learner.closed_loop import run_closed_loop
@@ -43,9 +43,12 @@ from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.policy import TRUE_POSITION, load_policy
 from tpsr_ros.runtime.backend import choose_backend
+from tpsr_ros.progress import progress_bar
 
 __all__ = ["main", "plot_trajectories"]
 
+DEMO_OUTPUT = Path("demo_output")
+"""Where each environment's run goes by default (``demo_output/<environment>``)."""
 PROG = "python -m learner.demo"
 STAGES = 7
 
@@ -112,8 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--output",
         type=Path,
-        default=Path("demo_output"),
-        help="output directory, recreated (default: %(default)s)",
+        default=None,
+        help="output directory, recreated (default: demo_output/<environment>, so runs of "
+        "other environments keep theirs)",
     )
     parser.add_argument(
         "--environment",
@@ -152,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     began = time.perf_counter()
-    out: Path = args.output
+    out: Path = args.output if args.output is not None else DEMO_OUTPUT / args.environment
     if out.exists():
         shutil.rmtree(out)
     (out / "bags").mkdir(parents=True)
@@ -188,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         f"closed loop over the nodes: sim_node + tpsr_filter as processes over "
         f"{choose_backend()[0]}, recorded to {closed}",
     )
-    with tqdm(total=len(START_POSITIONS) * STEPS, unit="step", desc="closed loop") as bar:
+    with progress_bar(total=len(START_POSITIONS) * STEPS, unit="step", desc="closed loop") as bar:
         result = run_closed_loop(
             policy,
             env,

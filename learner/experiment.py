@@ -33,7 +33,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
 from learner.evaluate import Evaluation, evaluate
 from learner.floors import CONSTANT, FLOORS, constant_floor, random_floor
@@ -58,6 +57,7 @@ from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.io.model_io import model_fingerprint
 from tpsr_ros.io.policy import TRUE_POSITION, Policy
+from tpsr_ros.progress import progress_bar
 
 __all__ = [
     "ExperimentConfig",
@@ -405,7 +405,9 @@ def run_experiment(
         )
     ]
     results: dict[tuple[int, int], list[Row]] = {}
-    bar = tqdm(total=len(cells), unit="run", disable=not progress, desc=config.environment)
+    bar = progress_bar(
+        total=len(cells), unit="run", disable=not progress, desc=config.environment
+    )
     if workers <= 1:
         for cell in cells:
             results[cell] = run_cell(config, *cell)

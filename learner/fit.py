@@ -31,6 +31,7 @@ from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible,
 from learner.inputs import (
     add_stream_options,
     apply_config_inputs,
+    environment_label,
     far_commands_line,
     fit_options_from_args,
     require_given_topics,
@@ -528,7 +529,7 @@ def summary_lines(
         f"{model.n_actions} actions)",
         f"data: {len(training.get('bags', []))} bag(s), {training.get('steps')} steps, "
         f"{training.get('segments')} segment(s), {training.get('episodes')} episodes, "
-        f"environment {training.get('environment')}",
+        f"{environment_label(training.get('environment'))}",
     ]
     if isinstance(model, TPSRModel):
         r = model.state_dim

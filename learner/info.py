@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from learner.inputs import environment_label
 from tpsr_ros.io.model_io import metadata_field, open_model
 from tpsr_ros.io.stream_spec import StreamSpec
 
@@ -92,8 +93,8 @@ def info_lines(
         paths = [metadata_field(b, "path") for b in bags] if isinstance(bags, list) else []
         lines.append(
             f"training data: {training.get('steps')} steps, {training.get('segments')} "
-            f"segment(s), {training.get('episodes')} episodes, environment "
-            f"{training.get('environment')}{_camera(training)}, stamps "
+            f"segment(s), {training.get('episodes')} episodes, "
+            f"{environment_label(training.get('environment'))}{_camera(training)}, stamps "
             f"{training.get('stamps_ns')} ns"
         )
         lines.append(f"bags: {', '.join(map(str, paths))}")

@@ -33,6 +33,7 @@ from tpsr_ros.io.trajectory import Topics, read_trajectory
 __all__ = [
     "add_stream_options",
     "apply_config_inputs",
+    "environment_label",
     "far_commands_line",
     "fit_options_from_args",
     "image_size",
@@ -257,6 +258,12 @@ def recorded_topic(metadata: dict[str, Any], name: str) -> str | None:
     bags = metadata_field(metadata, "training", "bags")
     topic = metadata_field(bags[0], "topics", name) if isinstance(bags, list) and bags else None
     return topic if isinstance(topic, str) else None
+
+
+def environment_label(environment: str | None) -> str:
+    """How a model's or bag's data names its source: ``environment full`` for a simulator's,
+    ``a robot bag (no simulator environment)`` for the others (None is no environment)."""
+    return f"environment {environment}" if environment else "a robot bag (no simulator environment)"
 
 
 def far_commands_line(trajectory: Trajectory, spec: StreamSpec) -> str:

@@ -15,8 +15,6 @@ import sys
 import time
 from pathlib import Path
 
-from tqdm import tqdm
-
 from sim_node.batch_cdr import chunk_payloads
 from sim_node.config import Environment, SimConfig
 from sim_node.options import add_vertical_half_extent_option
@@ -24,6 +22,7 @@ from sim_node.rollout import Rollout, iter_random_rollout
 from sim_node.topics import SimTopics
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
 from tpsr_ros.io.bag import BagWriter, check_bag_path_free
+from tpsr_ros.progress import progress_bar
 
 __all__ = ["generate_bag", "main"]
 
@@ -68,7 +67,7 @@ def generate_bag(
         writer.set_custom_data("tpsr_ros.environment", config.environment.value)
         for topic, msgtype in topics.types().items():
             writer.add_topic(topic, msgtype)
-        with tqdm(
+        with progress_bar(
             total=steps, unit="step", disable=not progress, desc=config.environment.value
         ) as bar:
             for part in iter_random_rollout(config, steps, seed):

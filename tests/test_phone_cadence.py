@@ -177,3 +177,9 @@ def test_no_far_share_is_judged_from_fewer_than_the_minimum_of_command_messages(
         assert node.diagnostics_values()["command_messages"] == MIN_SHARE_SAMPLES + 6
     finally:
         node.close()
+
+
+def test_fit_and_info_name_a_robot_bag_instead_of_environment_none(model, capsys):
+    assert learner_main(["info", str(model)]) == 0
+    out = capsys.readouterr().out
+    assert "a robot bag (no simulator environment)" in out and "environment None" not in out

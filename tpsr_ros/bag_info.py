@@ -3,8 +3,11 @@
     python -m tpsr_ros.bag_info BAG
 
 Prints files, size, storage, duration, start and end (UTC and seconds), the message count
-and, per topic, its type, count, serialization format and offered QoS. A path that is not
-a rosbag2 MCAP bag is refused with one line on stderr and exit status 1.
+and, per topic, its type, count, serialization format and offered QoS. ``BAG`` is the bag
+directory, one of its ``.mcap`` files (the bag it belongs to is shown), or a lone ``.mcap``
+file with no ``metadata.yaml`` (summarised from its own summary section; "QoS: not
+recorded" where its channels carry none). A path that is none of these is refused with one
+line on stderr and exit status 1.
 """
 
 from __future__ import annotations
@@ -36,7 +39,12 @@ def _time(ns: int) -> str:
 
 
 def format_info(path: Path) -> str:
-    """The summary of bag ``path`` as text."""
+    """The summary of bag ``path`` (a directory, or a ``.mcap`` file) as text."""
+    path = Path(path)
+    if path.suffix == ".mcap" and path.is_file():
+        if not (path.parent / "metadata.yaml").is_file():
+            return _lone_mcap_info(path)
+        path = path.parent  # a bag's file: the bag it belongs to
     with BagReader(path) as reader:
         topics = reader.topics
         counts = reader.message_counts
@@ -71,10 +79,67 @@ def format_info(path: Path) -> str:
     return "\n".join(lines)
 
 
+def _lone_mcap_info(path: Path) -> str:
+    """The summary of an MCAP file without rosbag2 metadata (its summary section)."""
+
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+    from rosbags.rosbag2 import ReaderError
+    from rosbags.rosbag2.metadata import parse_qos
+
+    from tpsr_ros.io.bag import BagError
+
+    try:
+        with path.open("rb") as handle:
+            summary = make_reader(handle).get_summary()
+    except (McapError, OSError, ValueError) as exc:
+        raise BagError(f"cannot read {str(path)!r} as MCAP: {exc}") from None
+    if summary is None or summary.statistics is None:
+        raise BagError(f"{str(path)!r} has no MCAP summary section (run bag_recover on its bag)")
+    stats = summary.statistics
+    total = int(stats.message_count)
+    start, end = int(stats.message_start_time), int(stats.message_end_time)
+    duration = max(0, end - start)
+    lines = [
+        f"Files:             {path.name} (no metadata.yaml)",
+        f"Bag size:          {_size(path.stat().st_size)}",
+        "Storage id:        mcap",
+        f"Duration:          {duration // _NS}.{duration % _NS:09d}s",
+        f"Start:             {_time(start)}" if total else "Start:             (no messages)",
+        f"End:               {_time(end)}" if total else "End:               (no messages)",
+        f"Messages:          {total}",
+    ]
+    channels = sorted(summary.channels.values(), key=lambda c: c.topic)
+    width = max((len(c.topic) for c in channels), default=0)
+    names = {c.id: summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else "?"
+             for c in channels}  # fmt: skip
+    type_width = max((len(n) for n in names.values()), default=0)
+    for i, channel in enumerate(channels):
+        offered = "not recorded"
+        text = channel.metadata.get("offered_qos_profiles", "")
+        try:
+            profile = from_bag_qos(parse_qos(text)) if text else None
+        except (ReaderError, ValueError, KeyError, TypeError, AttributeError):
+            profile = None
+        if profile is not None:
+            offered = str(profile)
+        head = "Topic information: " if i == 0 else " " * 19
+        lines.append(
+            f"{head}Topic: {channel.topic:<{width}} | Type: {names[channel.id]:<{type_width}} | "
+            f"Count: {stats.channel_message_counts.get(channel.id, 0)} | Serialization Format: "
+            f"{channel.message_encoding} | QoS: {offered}"
+        )
+    if not channels:
+        lines.append("Topic information: (none)")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Print the summary of one bag."""
     parser = ArgumentParser(prog=PROG, description=__doc__.split("\n")[0])
-    parser.add_argument("bag", type=Path, help="rosbag2 MCAP bag directory")
+    parser.add_argument(
+        "bag", type=Path, help="rosbag2 MCAP bag directory, one of its .mcap files, or a lone .mcap"
+    )
     args = parser.parse_args(argv)
     print(format_info(args.bag))
     return 0

@@ -10,15 +10,43 @@ from typing import NoReturn
 
 from tpsr_ros.core.errors import TpsrError
 
-__all__ = ["ArgumentParser", "non_negative_int", "positive_float", "positive_int", "run_cli"]
+__all__ = [
+    "ROS_ARGUMENT_FLAGS",
+    "ArgumentParser",
+    "non_negative_int",
+    "positive_float",
+    "positive_int",
+    "ros_args_hint",
+    "run_cli",
+]
 
 
 class ArgumentParser(argparse.ArgumentParser):
     """``argparse.ArgumentParser`` whose errors are a single line ``prog: error: ...``."""
 
     def error(self, message: str) -> NoReturn:
-        """Print one line naming the problem and exit with status 2."""
-        self.exit(2, f"{self.prog}: error: {message}\n")
+        """Print one line naming the problem and exit with status 2 (with a hint where ROS
+        arguments were given without ``--ros-args`` before them)."""
+        self.exit(2, f"{self.prog}: error: {message}{ros_args_hint(message, self.prog)}\n")
+
+
+ROS_ARGUMENT_FLAGS = frozenset(
+    {"-p", "--param", "-r", "--remap", "--params-file", "--log-level", "-e", "--enclave"}
+)
+"""Arguments of ROS 2's command line, which only count after ``--ros-args``."""
+
+
+def ros_args_hint(message: str, prog: str) -> str:
+    """A hint for an ``unrecognized arguments`` error that names ROS arguments: they go
+    after ``--ros-args``, as for any ROS 2 node; "" otherwise."""
+    prefix = "unrecognized arguments: "
+    if not message.startswith(prefix):
+        return ""
+    tokens = message[len(prefix):].split()
+    if not any(t in ROS_ARGUMENT_FLAGS or t.split("=")[0] in ROS_ARGUMENT_FLAGS for t in tokens):
+        return ""
+    given = " ".join(tokens)
+    return f" (ROS arguments go after --ros-args, as for any ROS 2 node: {prog} --ros-args {given})"
 
 
 def _number(text: str, kind: type[int] | type[float], noun: str) -> int | float:

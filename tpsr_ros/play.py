@@ -235,11 +235,30 @@ class PlayerNode(Node):
             self._play_once()
             if not self.args.loop:
                 break
-        self.logger.info(
-            f"played {self.published} messages from {self.args.bag}; {self.lateness()}"
-        )
+        self.logger.info(f"{self.summary(interrupted=not self.ok())}; {self.lateness()}")
         self.request_shutdown("end of bag")
         return True
+
+    def summary(self, *, interrupted: bool) -> str:
+        """What was played: all of the bag, or (``interrupted``: a signal or a shutdown
+        stopped it) how much of it, so a stopped replay never reads as a complete one."""
+        counts = self.reader.message_counts
+        total = sum(counts.get(topic, 0) for topic in self.played)
+        bag = self.args.bag
+        if not interrupted:
+            return f"played {self.published} messages from {bag}"
+        why = self.shutdown_reason or "interrupted"
+        if self.args.loop:
+            passes = self.published // total if total else 0
+            return (
+                f"interrupted ({why}): played {self.published} messages from {bag} in --loop "
+                f"({passes} complete pass(es) of {total})"
+            )
+        share = f" ({100 * self.published / total:.0f} %)" if total else ""
+        return (
+            f"interrupted ({why}): played {self.published} of {total} messages{share} "
+            f"from {bag}, not the whole bag"
+        )
 
     def lateness(self) -> str:
         """``lateness p50 X ms, p99 Y ms, max Z ms`` over the messages published so far."""
