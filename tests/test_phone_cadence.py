@@ -81,9 +81,10 @@ def test_the_filter_node_counts_no_lost_image_on_the_complete_phone_recording(ph
 
 
 def test_the_filter_node_counts_frames_removed_from_the_phone_recording(phone, model):
-    values, (level, message) = _filter_values(model, phone["bags"]["dropped"])
+    values, _ = _filter_values(model, phone["bags"]["dropped"])
+    # the count, not the last report's message: which counters grew since the previous
+    # report depends on when the report timer fired, which the machine's load decides
     assert 4 <= values["lost_images"] <= 12, values["lost_images"]
-    assert level == WARN and "lost_images" in message
 
 
 def _recorded_missing(bag, inputs) -> int:
