@@ -8,6 +8,11 @@ without looking at what the robot sees:
   state-blind policy that does not randomise). It is deterministic: the protocol's seed
   fixes the execution noise, so every repetition of an experiment scores the same and its SEM is 0.
 - ``random``: uniformly random actions from a seeded generator (one seed per run).
+
+Neither uses training data, so the results page pools each floor over all its runs of an
+experiment, whatever their data size (:func:`learner.tables.pooled_floors`); an
+experiment's random run draws its policy seed from the grid's seed, the demo runs it once
+with :data:`DEMO_POLICY_SEED`.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from tpsr_ros.core.episodes import Trajectory
 
 __all__ = [
     "CONSTANT",
+    "DEMO_POLICY_SEED",
     "FLOORS",
     "RANDOM",
     "BlindTracker",
@@ -34,6 +40,8 @@ __all__ = [
 CONSTANT = "constant"
 RANDOM = "random"
 FLOORS = (CONSTANT, RANDOM)
+DEMO_POLICY_SEED = 0
+"""The random floor's policy seed in ``make demo`` (``python -m learner.demo``): one run."""
 _NO_STATE = np.zeros(0)
 
 

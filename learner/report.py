@@ -79,8 +79,8 @@ def run(args: argparse.Namespace) -> int:
     data = _read(jobs, args.results)
     page = write_page(data, args.docs)
     readme = args.docs.parent / "README.md"
-    if readme.exists():  # the README's results table, from the same CSVs
+    if readme.exists():  # the README's results table and summary line, from the same CSVs
         write_readme_table(data, readme)
-    print(f"wrote {page}" + (f" and the results table of {readme}" if readme.exists() else ""),
-          file=sys.stderr)
+    written = f" and the results table and summary of {readme}" if readme.exists() else ""
+    print(f"wrote {page}{written}", file=sys.stderr)
     return 0

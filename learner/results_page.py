@@ -1,8 +1,9 @@
 """The results page (``docs/results.md``) rendered from the experiment CSVs alone.
 
-The page leads with what works and what does not reproduce from the guide, the commands to
-use, the headline tables (the defaults, ``--preset guide``, PCA with each planner, floors and
-ceiling, by data size, on fresh seeds), the guide's findings judged by
+The page leads with what works (above the floors, and against the baseline, apart) and what
+does not reproduce from the guide, the commands to use, the headline tables (the defaults,
+``--preset guide``, PCA with each planner and the ceiling by data size, on fresh seeds; the
+floors once, pooled over the data sizes since they use no data), the guide's findings judged by
 :mod:`learner.verdicts`, and then the appendix of :mod:`learner.appendix`. Nothing on it is
 typed by hand: every number comes from a CSV under ``results/`` that a named command wrote,
 and the same CSVs always give the same bytes.
@@ -19,7 +20,7 @@ import numpy as np
 
 from learner.appendix import SECTIONS
 from learner.camera_study import narrowest_camera
-from learner.floors import CONSTANT, FLOORS, RANDOM
+from learner.floors import CONSTANT, DEMO_POLICY_SEED, RANDOM
 from learner.jobs import (
     ENVIRONMENTS,
     GUIDE_ENVIRONMENTS,
@@ -29,12 +30,18 @@ from learner.jobs import (
     experiment_job,
 )
 from learner.sections import Data, cell
-from learner.tables import Row, difference_in_sems, summarise
+from learner.tables import Row, difference_in_sems, pooled_floors, summarise
 from learner.verdicts import (
+    ABOUT_300,
+    BETTER,
     DIFFERENCE_SEMS,
     FLOOR_SEMS,
     GUIDE_RESULTS,
     NEAR_CEILING,
+    NEAR_FLOOR,
+    NOT_REPRODUCED,
+    REPRODUCED,
+    SLIGHTLY,
     Table,
     judge,
 )
@@ -45,6 +52,7 @@ from tpsr_ros.io.policy import TRUE_POSITION
 __all__ = [
     "HEADLINE",
     "all_jobs",
+    "readme_summary",
     "readme_table",
     "render",
     "write_page",
@@ -66,10 +74,18 @@ _ROWS = (
     ("PCA", "the guide's planner", "guide", "pca"),
     ("true position (ceiling)", "the defaults' planner", "defaults", TRUE_POSITION),
     ("true position (ceiling)", "the guide's planner", "guide", TRUE_POSITION),
-    ("best constant action (floor)", "-", "defaults", CONSTANT),
-    ("random actions (floor)", "-", "defaults", RANDOM),
 )
 """Headline table rows: (representation, settings, headline arm, method)."""
+
+_FLOOR_ROWS = (
+    ("best constant action (floor)", CONSTANT),
+    ("random actions (floor)", RANDOM),
+)
+"""The floors' rows (label, method): one cell each, pooled over the data sizes
+(:func:`learner.tables.pooled_floors`), from the defaults' CSV."""
+
+Floors = Mapping[str, dict[str, Any]]
+"""The pooled floors of one CSV by method (:func:`learner.tables.pooled_floors`)."""
 
 
 def all_jobs() -> list[Job]:
@@ -81,6 +97,27 @@ def all_jobs() -> list[Job]:
 
 def _tables(data: Data, arm: str) -> dict[str, Table]:
     return {env: summarise(data[job]) for env, job in zip(ENVIRONMENTS, HEADLINE[arm], strict=True)}
+
+
+def _floors(data: Data, arm: str = "defaults") -> dict[str, Floors]:
+    """Each environment's floors pooled over all their runs in the arm's CSV."""
+    return {
+        env: pooled_floors(data[job]) for env, job in zip(ENVIRONMENTS, HEADLINE[arm], strict=True)
+    }
+
+
+def _best_floor(floors: Floors) -> dict[str, Any] | None:
+    """The floor with the highest pooled mean, the one every margin is taken over."""
+    finite = [f for f in floors.values() if math.isfinite(f["mean"])]
+    return max(finite, key=lambda f: f["mean"], default=None)
+
+
+def _floor_text(floor: Mapping[str, Any] | None) -> str:
+    """A pooled floor as ``name mean / median / SEM over N runs``."""
+    if floor is None:
+        return "no floor"
+    name = {CONSTANT: "the best constant action", RANDOM: "random actions"}[floor["method"]]
+    return f"{name} ({cell(floor)} over its {floor['runs']} runs)"
 
 
 def _entry(table: Table, method: str, episodes: int) -> dict[str, Any] | None:
@@ -129,23 +166,52 @@ def _versus(table: Table, method: str, other: str) -> str:
     return ", ".join(parts)
 
 
-def _environment_summary(env: str, best: Table, guide: Table) -> str:
+def _gaps(table: Table, method: str, other: str) -> list[float]:
+    """``method`` against ``other`` in SEMs of the difference, at each shared data size."""
+    return [
+        difference_in_sems(a, b)
+        for a in _method(table, method)
+        for b in _method(table, other)
+        if a["episodes"] == b["episodes"]
+    ]
+
+
+def _count(hits: int, sizes: int) -> str:
+    """``at every data size``, ``at no data size`` or ``at H of N data sizes``."""
+    if sizes and hits == sizes:
+        return f"at every data size ({sizes} of {sizes})"
+    return "at no data size" if not hits else f"at {hits} of {sizes} data sizes"
+
+
+def _environment_summary(env: str, best: Table, guide: Table, floors: Floors) -> str:
+    """Two separate statements: whether the TPSR is above the floors, and whether it beats
+    the baseline (PCA with the same planner); then the guide's settings against the defaults."""
     tpsr = _method(best, "tpsr")
+    pca = _method(best, "pca")
     ceiling = _method(best, TRUE_POSITION)
-    floors = [t for t in best if t["method"] in FLOORS]
-    weakest = min((t["margin_sem"] for t in tpsr), default=math.nan)
     sizes = _sizes(best)
-    return (
-        f"- **`{env}`**: with the defaults the TPSR scores {_span([t['mean'] for t in tpsr])} "
-        f"(medians {_span([t['median'] for t in tpsr])}, SEMs {_span([t['sem'] for t in tpsr])}) "
-        f"from {sizes[0]} to {sizes[-1]} episodes, against a ceiling of "
-        f"{_span([t['mean'] for t in ceiling])} and floors of "
-        f"{_span([t['mean'] for t in floors])} (at least {weakest:.0f} SEMs above the best "
-        f"floor). PCA with the same planner scores "
-        f"{_span([t['mean'] for t in _method(best, 'pca')])}: "
-        f"the TPSR is {_versus(best, 'tpsr', 'pca')}. The guide's settings "
-        f"(`--preset guide`) score {_span([t['mean'] for t in _method(guide, 'tpsr')])}; "
-        f"against them the defaults are {_versus(_merged(best, guide), 'tpsr', 'tpsr-guide')}."
+    margins = [t["margin_sem"] for t in tpsr]
+    above_floor = sum(m > FLOOR_SEMS for m in margins)
+    gaps = _gaps(best, "tpsr", "pca")
+    beats = sum(g > DIFFERENCE_SEMS for g in gaps)
+    below = sum(g < -DIFFERENCE_SEMS for g in gaps)
+    return "\n".join(
+        [
+            f"- **`{env}`**, the defaults from {sizes[0]} to {sizes[-1]} episodes: the TPSR "
+            f"scores {_span([t['mean'] for t in tpsr])} (medians "
+            f"{_span([t['median'] for t in tpsr])}, SEMs {_span([t['sem'] for t in tpsr])}) "
+            f"against a ceiling of {_span([t['mean'] for t in ceiling])}.",
+            f"  - *Above the floors* {_count(above_floor, len(tpsr))}, by more than "
+            f"{FLOOR_SEMS:g} SEMs: {_span(margins, '.0f')} SEMs above the best floor, "
+            f"{_floor_text(_best_floor(floors))}.",
+            f"  - *Beats the baseline* (PCA with the same planner, "
+            f"{_span([t['mean'] for t in pca])}) {_count(beats, len(gaps))}, by more than "
+            f"{DIFFERENCE_SEMS:g} SEMs; level with it at {len(gaps) - beats - below} and below "
+            f"it at {below} of {len(gaps)}.",
+            f"  - The guide's settings (`--preset guide`) score "
+            f"{_span([t['mean'] for t in _method(guide, 'tpsr')])}; against them the defaults "
+            f"are {_versus(_merged(best, guide), 'tpsr', 'tpsr-guide')}.",
+        ]
     )
 
 
@@ -170,6 +236,19 @@ def _headline_table(env: str, tables: Mapping[str, Table], jobs: Mapping[str, Jo
     return lines
 
 
+def _floor_table(floors: Floors, job: Job) -> list[str]:
+    """The floors once each: blind to the state, every run of the CSV is one repetition."""
+    lines = [
+        "| floor | runs (pooled over the data sizes) | mean / median / SEM | command |",
+        "|---|---|---|---|",
+    ]
+    for label, method in _FLOOR_ROWS:
+        floor = floors.get(method)
+        runs = "-" if floor is None else f"{floor['runs']} ({floor['sizes']} data sizes)"
+        lines.append(f"| {label} | {runs} | {cell(floor)} | `{job.command}` |")
+    return lines
+
+
 def _margins(table: Table) -> str:
     tpsr = _method(table, "tpsr")
     ceiling = {t["episodes"]: t for t in _method(table, TRUE_POSITION)}
@@ -179,7 +258,7 @@ def _margins(table: Table) -> str:
         if t["episodes"] in ceiling
     )
     return (
-        "The defaults' TPSR against the best floor: "
+        "The defaults' TPSR against the best floor (pooled): "
         + ", ".join(f"{t['episodes']}: {t['margin_sem']:+.1f} SEM" for t in tpsr)
         + f"; against the ceiling: {gaps}."
     )
@@ -207,6 +286,48 @@ def _position_error(rows: Sequence[Row], method: str, episodes: int) -> float:
     return float(np.median(finite)) if finite else math.nan
 
 
+def _plural(count: int, singular: str, plural: str) -> str:
+    """``count`` and the verb or noun that agrees with it."""
+    return f"{count} {singular if count == 1 else plural}"
+
+
+def _verdicts(tables: Mapping[str, Table]) -> dict[str, list[str]]:
+    """The guide's findings in its own environments by verdict, each as ``env: claim``."""
+    guides = {env: tables[env] for env in GUIDE_ENVIRONMENTS}
+    found: dict[str, list[str]] = {REPRODUCED: [], BETTER: [], NOT_REPRODUCED: []}
+    for finding, _, verdict in judge(guides):
+        found[verdict].append(f"`{finding.environment}`: {finding.claim}")
+    return found
+
+
+def _verdict_counts(verdicts: Mapping[str, list[str]]) -> str:
+    """``R reproduce, B are measured better, N do not``."""
+    return (
+        f"{_plural(len(verdicts[REPRODUCED]), 'reproduces', 'reproduce')}, "
+        f"{_plural(len(verdicts[BETTER]), 'is', 'are')} measured better than found and "
+        f"{len(verdicts[NOT_REPRODUCED])} {'does' if len(verdicts[NOT_REPRODUCED]) == 1 else 'do'}"
+        " not reproduce"
+    )
+
+
+def _summary(best: Mapping[str, Table], guide: Mapping[str, Table]) -> str:
+    """What the page finds, in one sentence of counts: the guide's findings with its
+    settings and with the defaults, and the defaults against the guide's settings and PCA."""
+    with_guide, with_defaults = _verdicts(guide), _verdicts(best)
+    total = sum(len(v) for v in with_guide.values())
+    merged = [_gaps(_merged(best[env], guide[env]), "tpsr", "tpsr-guide") for env in ENVIRONMENTS]
+    over_pca = [_gaps(best[env], "tpsr", "pca") for env in ENVIRONMENTS]
+    pairs = sum(len(g) for g in merged)
+    return (
+        f"Of the guide's {total} findings, with its own settings "
+        f"{_verdict_counts(with_guide)}; with the defaults {_verdict_counts(with_defaults)}. "
+        f"Over the {len(ENVIRONMENTS)} environments the defaults' TPSR is above the guide's "
+        f"settings at {sum(g > DIFFERENCE_SEMS for m in merged for g in m)} of {pairs} data "
+        f"sizes and beats PCA at {sum(g > DIFFERENCE_SEMS for m in over_pca for g in m)} of "
+        f"{sum(len(g) for g in over_pca)}"
+    )
+
+
 def _not_reproduced(data: Data, best: Mapping[str, Table], guide: Mapping[str, Table]) -> list[str]:
     """What the guide found that does not hold here, with the measurements that say why."""
     partial_rows = data[HEADLINE["defaults"][ENVIRONMENTS.index("partial")]]
@@ -214,18 +335,14 @@ def _not_reproduced(data: Data, best: Mapping[str, Table], guide: Mapping[str, T
     pca_partial = _entry(best["partial"], "pca", largest)
     ceiling = _entry(best["partial"], TRUE_POSITION, largest)
     guide_full = _method(guide["full"], "tpsr")
-    guides = {env: guide[env] for env in GUIDE_ENVIRONMENTS}  # the guide's own environments
-    failed = [
-        f"`{finding.environment}`: {finding.claim}"
-        for finding, _, verdict in judge(guides)
-        if verdict != "reproduced"
-    ]
+    failed = _verdicts(guide)[NOT_REPRODUCED]  # in the guide's own environments
     pca_share = (
         pca_partial["mean"] / ceiling["mean"] if pca_partial and ceiling else math.nan
     )
+    summary = _summary(best, guide)  # the README's line says the same
     return [
-        f"Of the guide's {len(judge(guides))} findings (table below), "
-        f"{len(failed)} do not reproduce with its own settings: " + "; ".join(failed) + ".",
+        f"{summary} (the findings' table below). With the guide's "
+        "settings these do not reproduce: " + "; ".join(failed) + ".",
         "",
         f"- **PCA does not fail without memory.** In `partial` PCA of the current image scores "
         f"{pca_partial['mean'] if pca_partial else math.nan:.1f} at {largest} episodes "
@@ -303,15 +420,15 @@ def _recommended() -> list[str]:
     ]
 
 
-def _plot(env: str, tables: Mapping[str, Table], path: Path) -> None:
-    """Mean (line, SEM band) and median (dashed) over data size for the headline's rows."""
+def _plot(env: str, tables: Mapping[str, Table], floors: Floors, path: Path) -> None:
+    """Mean (line, SEM band) and median (dashed) over data size for the headline's rows; the
+    floors, which use no data, as one level each (dotted, SEM band) across the data sizes."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colours = ("tab:red", "tab:blue", "tab:orange", "tab:cyan", "tab:gray", "silver", "tab:brown",
-               "tab:olive")
+    colours = ("tab:red", "tab:blue", "tab:orange", "tab:cyan", "tab:gray", "silver")
     fig, ax = plt.subplots(figsize=(7.0, 4.8))
     for (label, settings, arm, method), colour in zip(_ROWS, colours, strict=True):
         part = _method(tables[arm], method)
@@ -320,10 +437,19 @@ def _plot(env: str, tables: Mapping[str, Table], path: Path) -> None:
         x = np.array([t["episodes"] for t in part])
         mean = np.array([t["mean"] for t in part])
         sem = np.nan_to_num(np.array([t["sem"] for t in part]))
-        name = label if settings == "-" else f"{label}, {settings.replace('`', '')}"
-        ax.plot(x, mean, "-o", color=colour, label=name, markersize=4)
+        ax.plot(x, mean, "-o", color=colour, label=f"{label}, {settings.replace('`', '')}",
+                markersize=4)
         ax.plot(x, [t["median"] for t in part], "--", color=colour, linewidth=0.8)
         ax.fill_between(x, mean - sem, mean + sem, color=colour, alpha=0.2)
+    sizes = _sizes(tables["defaults"])
+    for (label, method), colour in zip(_FLOOR_ROWS, ("tab:brown", "tab:olive"), strict=True):
+        floor = floors.get(method)
+        if floor is None or not math.isfinite(floor["mean"]) or not sizes:
+            continue
+        x = np.array([sizes[0], sizes[-1]])
+        level, sem = floor["mean"], float(np.nan_to_num(floor["sem"]))
+        ax.plot(x, [level, level], ":", color=colour, label=f"{label}, all {floor['runs']} runs")
+        ax.fill_between(x, level - sem, level + sem, color=colour, alpha=0.2)
     ax.set_xlabel("training episodes")
     ax.set_ylabel("mean reward of 10 trials (dashed: median over 10 runs)")
     ax.set_title(f"{env}: the learning-planning loop on fresh seeds")
@@ -338,6 +464,7 @@ def _plot(env: str, tables: Mapping[str, Table], path: Path) -> None:
 def render(data: Data) -> list[str]:
     """The page's lines from every job's rows."""
     best, guide = _tables(data, "defaults"), _tables(data, "guide")
+    floors = _floors(data)
     lines = [
         "# Results",
         "",
@@ -350,7 +477,7 @@ def render(data: Data) -> list[str]:
         "",
         "## What works",
         "",
-        *(_environment_summary(env, best[env], guide[env]) for env in ENVIRONMENTS),
+        *(_environment_summary(env, best[env], guide[env], floors[env]) for env in ENVIRONMENTS),
         "",
         "## What does not reproduce from the guide, and why",
         "",
@@ -370,7 +497,13 @@ def render(data: Data) -> list[str]:
         "most about 470; in `drive`, whose robot drives at most 3 m per step, a start also has "
         "a heading). PCA has 2 components in `full`, 4 in `drive` and 3 otherwise, and plans "
         "with the same planner as the TPSR of its arm. Floors: the best constant action (of "
-        "25; of 9 in `drive`) and uniformly random actions; ceiling: the same planner on the "
+        "25; of 9 in `drive`) and uniformly random actions; both are blind to the state and "
+        "use no training data, so each is shown once per environment, pooled over all its "
+        "runs in the CSV (every data size; a random run's policy seed is its cell's training "
+        "seed, drawn from `--seed`), and every margin is taken over the better of the two. "
+        "`make demo` (`python -m learner.demo`) runs each floor once under the same "
+        f"evaluation, random actions with policy seed {DEMO_POLICY_SEED}: a single draw from "
+        "the spread of the pooled runs. Ceiling: the same planner on the "
         "true position (and heading, in `drive`). Cells: "
         "mean / median / SEM over the 10 runs. The seeds "
         f"(`{' '.join(HEADLINE_SEEDS)}`) are fresh: the defaults were chosen on "
@@ -387,6 +520,8 @@ def render(data: Data) -> list[str]:
             "",
             *_headline_table(env, tables, jobs),
             "",
+            *_floor_table(floors[env], defaults_job),
+            "",
             _margins(best[env]),
             "",
             f"The guide's figures: {GUIDE_RESULTS[env]}",
@@ -398,10 +533,19 @@ def render(data: Data) -> list[str]:
         "## The guide's findings, measured",
         "",
         f"Verdicts follow fixed rules (`learner/verdicts.py`): a representation *works* only "
-        f"more than {FLOOR_SEMS:g} SEMs above the best floor; one method *beats* another by "
-        f"more than {DIFFERENCE_SEMS:g} SEMs of the difference; *close to the maximum* is at "
-        "least 95 % of the ceiling, *near zero* at most 25 % of it, *slightly below* at least "
-        "90 % of the other's mean; a finding must hold at every data size.",
+        f"more than {FLOOR_SEMS:g} SEMs above the best floor (pooled); one method *beats* "
+        f"another by more than {DIFFERENCE_SEMS:g} SEMs of the difference and is *level* "
+        f"within them; *close to the maximum* is at least {NEAR_CEILING:.0%} of the ceiling "
+        f"(*low SEM*: at most the remaining {1 - NEAR_CEILING:.0%}), *near zero* a mean and a "
+        f"median of at most {NEAR_FLOOR:.0%} of it, *slightly below* at least "
+        f"{SLIGHTLY:.0%} of the other's mean and nowhere above it, *about 300* a mean from "
+        f"{ABOUT_300[0]:g} to {ABOUT_300[1]:g} (*medians above*: a median at least the mean). "
+        "A finding must hold at every data size: *reproduced* where it does, *better* where "
+        "the measurement is at least as good as the finding at every data size and better at "
+        "one or more (a TPSR level with or above PCA everywhere and above it somewhere, for "
+        f"\"slightly below PCA\"; a mean and median above {ABOUT_300[1]:g} at some sizes and "
+        "about 300 with the median above at the others, for \"about 300\"), *not reproduced* "
+        "otherwise.",
         "",
         *_findings(best, guide),
         "",
@@ -420,6 +564,8 @@ def render(data: Data) -> list[str]:
 README_BEGIN = "<!-- results: written by python -m learner report -->"
 README_END = "<!-- end of results -->"
 README_EPISODES = 8000
+README_SUMMARY_BEGIN = "<!-- summary: written by python -m learner report -->"
+README_SUMMARY_END = "<!-- end of summary -->"
 
 
 def readme_table(data: Data) -> list[str]:
@@ -430,16 +576,14 @@ def readme_table(data: Data) -> list[str]:
         entry = _entry(table, method, README_EPISODES)
         return "-" if entry is None else f"{entry['mean']:.1f} / {entry['sem']:.1f}"
 
+    floors = _floors(data)
     lines = [
         "| environment | TPSR, defaults | TPSR, `--preset guide` | PCA, same planner | best "
-        "floor | ceiling (true position) |",
+        "floor (all its runs) | ceiling (true position) |",
         "|---|---|---|---|---|---|",
     ]
     for env in ENVIRONMENTS:
-        floors = [
-            e for m in FLOORS if (e := _entry(best[env], m, README_EPISODES)) is not None
-        ]
-        floor = max(floors, key=lambda e: e["mean"], default=None)
+        floor = _best_floor(floors[env])
         floor_cell = "-" if floor is None else f"{floor['mean']:.1f} / {floor['sem']:.1f}"
         lines.append(
             f"| `{env}` | {at(best[env], 'tpsr')} | {at(guide[env], 'tpsr')} | "
@@ -448,15 +592,30 @@ def readme_table(data: Data) -> list[str]:
     return lines
 
 
+def readme_summary(data: Data) -> str:
+    """The README's one-line account of the page: the verdicts' counts (as the page says)."""
+    return _summary(_tables(data, "defaults"), _tables(data, "guide"))
+
+
+def _replace(text: str, begin: str, end: str, block: str, readme: Path) -> str:
+    """``text`` with what lies between ``begin`` and ``end`` replaced by ``block``."""
+    if begin not in text or end not in text:
+        raise ConfigError(f"{readme} has no block {begin} ... {end}")
+    head, rest = text.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    return head + begin + block + end + tail
+
+
 def write_readme_table(data: Data, readme: Path) -> None:
-    """Replace the lines between :data:`README_BEGIN` and :data:`README_END` in ``readme``."""
+    """Replace the results table (between :data:`README_BEGIN` and :data:`README_END`) and
+    the summary of the page (between :data:`README_SUMMARY_BEGIN` and
+    :data:`README_SUMMARY_END`, within a line) in ``readme``, so that neither says more or
+    less than the page."""
     text = readme.read_text(encoding="utf-8")
-    if README_BEGIN not in text or README_END not in text:
-        raise ConfigError(f"{readme} has no results block ({README_BEGIN} ... {README_END})")
-    head, rest = text.split(README_BEGIN, 1)
-    _, tail = rest.split(README_END, 1)
-    block = "\n".join([README_BEGIN, *readme_table(data), README_END])
-    readme.write_text(head + block + tail, encoding="utf-8")
+    table = "\n".join(["", *readme_table(data), ""])
+    text = _replace(text, README_BEGIN, README_END, table, readme)
+    text = _replace(text, README_SUMMARY_BEGIN, README_SUMMARY_END, readme_summary(data), readme)
+    readme.write_text(text, encoding="utf-8")
 
 
 def write_page(data: Data, docs: Path) -> Path:
@@ -465,7 +624,7 @@ def write_page(data: Data, docs: Path) -> Path:
         ENVIRONMENTS, HEADLINE["defaults"], HEADLINE["guide"], strict=True
     ):
         tables = {"defaults": summarise(data[defaults_job]), "guide": summarise(data[guide_job])}
-        _plot(env, tables, docs / f"results_{env}.png")
+        _plot(env, tables, pooled_floors(data[defaults_job]), docs / f"results_{env}.png")
     page = docs / "results.md"
     page.write_text("\n".join(render(data)).rstrip() + "\n")
     return page

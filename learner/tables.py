@@ -1,5 +1,6 @@
 """Experiment runs as rows: their CSV files, summaries (mean, median, SEM, margin over the
-best floor per method and data size), text tables and plots.
+best floor per method and data size; the floors pooled over every data size), text tables
+and plots.
 
 One :class:`Row` is one learning-planning run of :mod:`learner.experiment`; a CSV holds one
 row per run with every seed and parameter, so any run reruns alone.
@@ -21,19 +22,29 @@ from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.io.policy import TRUE_POSITION
 
 __all__ = [
+    "DEFAULT_METHODS",
     "METHODS",
+    "PAST_BASELINES",
     "Row",
     "difference_in_sems",
     "format_table",
     "margin_text",
     "plot_summary",
+    "pooled_floors",
     "read_csv",
     "summarise",
     "write_csv",
 ]
 
-METHODS = (CONSTANT, RANDOM, "tpsr", "pca", TRUE_POSITION)
+PAST_BASELINES = ("stacked-pca", "window")
+"""Baselines that carry the past (:mod:`tpsr_ros.core.window_baselines`)."""
+
+METHODS = (CONSTANT, RANDOM, "tpsr", "pca", *PAST_BASELINES, TRUE_POSITION)
 """Every method of an experiment, in table order: floors, learned representations, ceiling."""
+
+DEFAULT_METHODS = (CONSTANT, RANDOM, "tpsr", "pca", TRUE_POSITION)
+"""The methods an experiment runs unless ``--methods`` names others: the baselines that
+carry the past run on request, so the default grids keep their cost and their CSVs."""
 
 
 @dataclass(frozen=True)
@@ -68,36 +79,55 @@ class Row:
     """``learner tune``'s criterion of the run's TPSR configuration (``--criterion``)."""
 
 
+def _statistics(scores: np.ndarray) -> dict[str, Any]:
+    """Runs, failed runs (non-finite scores), mean, median and SEM of the finite ones."""
+    ok = scores[np.isfinite(scores)]
+    return {
+        "runs": len(scores),
+        "failed": int(len(scores) - len(ok)),
+        "mean": float(ok.mean()) if len(ok) else float("nan"),
+        "median": float(np.median(ok)) if len(ok) else float("nan"),
+        "sem": float(ok.std(ddof=1) / np.sqrt(len(ok))) if len(ok) > 1 else float("nan"),
+    }
+
+
+def pooled_floors(rows: Sequence[Row]) -> dict[str, dict[str, Any]]:
+    """One entry per floor over all its runs, whatever their data size.
+
+    A floor is blind to the state and learns nothing, so its runs at different data sizes
+    are repetitions of one measurement: pooled, they give one mean, median and SEM per
+    environment instead of a noise that would read as a trend. ``sizes`` is the number of
+    data sizes pooled.
+    """
+    pooled = {}
+    for method in FLOORS:
+        scores = np.array([r.score for r in rows if r.method == method])
+        if len(scores):
+            sizes = len({r.episodes for r in rows if r.method == method})
+            pooled[method] = {"method": method, "sizes": sizes, **_statistics(scores)}
+    return pooled
+
+
 def summarise(rows: Sequence[Row]) -> list[dict[str, Any]]:
     """Mean, median, SEM and failures per (method, data size), and each margin over the floor.
 
-    For every method that is not a floor, ``floor`` names the best floor at the same data
-    size (highest mean) and ``margin_sem`` is ``(mean - floor mean) / sqrt(SEM^2 + floor
-    SEM^2)``: how many standard errors of the difference the method lies above it (NaN
-    when no floor ran).
+    For every method that is not a floor, ``floor`` names the best floor (highest mean) of
+    :func:`pooled_floors`, each floor pooled over all its runs since it uses no data, and
+    ``margin_sem`` is ``(mean - floor mean) / sqrt(SEM^2 + floor SEM^2)``: how many
+    standard errors of the difference the method lies above it (NaN when no floor ran).
+    The floors' own entries stay per data size, as run.
     """
     table = []
     keys = sorted({(r.method, r.episodes) for r in rows}, key=lambda k: (METHODS.index(k[0]), k[1]))
     for method, episodes in keys:
         scores = np.array([r.score for r in rows if (r.method, r.episodes) == (method, episodes)])
-        ok = scores[np.isfinite(scores)]
-        table.append(
-            {
-                "method": method,
-                "episodes": episodes,
-                "runs": len(scores),
-                "failed": int(len(scores) - len(ok)),
-                "mean": float(ok.mean()) if len(ok) else float("nan"),
-                "median": float(np.median(ok)) if len(ok) else float("nan"),
-                "sem": float(ok.std(ddof=1) / np.sqrt(len(ok))) if len(ok) > 1 else float("nan"),
-            }
-        )
+        table.append({"method": method, "episodes": episodes, **_statistics(scores)})
+    floors = [f for f in pooled_floors(rows).values() if np.isfinite(f["mean"])]
+    best = max(floors, key=lambda t: t["mean"], default=None)
     for entry in table:
-        floors = [t for t in table if t["method"] in FLOORS and t["episodes"] == entry["episodes"]]
         entry["floor"], entry["margin_sem"] = "", float("nan")
-        if entry["method"] in FLOORS or not floors:
+        if entry["method"] in FLOORS or best is None:
             continue
-        best = max(floors, key=lambda t: t["mean"])
         entry["floor"] = best["method"]
         entry["margin_sem"] = difference_in_sems(entry, best)
     return table
@@ -162,6 +192,8 @@ def plot_summary(table: Sequence[dict[str, Any]], environment: str, path: Path) 
         RANDOM: "tab:olive",
         "tpsr": "tab:red",
         "pca": "tab:blue",
+        "stacked-pca": "tab:cyan",
+        "window": "tab:purple",
         TRUE_POSITION: "tab:gray",
     }
     fig, ax = plt.subplots(figsize=(6.4, 4.8))

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from learner.appendix import SECTIONS
-from learner.jobs import ENVIRONMENTS, Job
+from learner.jobs import ENVIRONMENTS, GUIDE_ENVIRONMENTS, Job
 from learner.overrides import convert
-from learner.results_page import HEADLINE, all_jobs
-from learner.tables import Row, read_csv, summarise, write_csv
+from learner.results_page import HEADLINE, README_SUMMARY_BEGIN, README_SUMMARY_END, all_jobs
+from learner.tables import Row, pooled_floors, read_csv, summarise, write_csv
 from learner.verdicts import BETTER, NOT_REPRODUCED, REPRODUCED, judge
 
 REPOSITORY = Path(__file__).resolve().parents[1]
@@ -158,9 +158,10 @@ def test_the_committed_page_is_what_the_committed_csvs_give(tmp_path):
     results table byte for byte."""
     docs = tmp_path / "docs"
     docs.mkdir()
+    link = "- [docs/results.md](docs/results.md): "
     (tmp_path / "README.md").write_text(
         "before\n<!-- results: written by python -m learner report -->\nold\n"
-        "<!-- end of results -->\nafter\n"
+        f"<!-- end of results -->\n{link}{README_SUMMARY_BEGIN}old{README_SUMMARY_END}.\n"
     )
     result = subprocess.run(
         [sys.executable, "-m", "learner", "report", "--reuse", "--results",
@@ -169,9 +170,11 @@ def test_the_committed_page_is_what_the_committed_csvs_give(tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert (docs / "results.md").read_text() == (REPOSITORY / "docs" / "results.md").read_text()
-    block = (tmp_path / "README.md").read_text().split("\n")[1:-2]
+    written = (tmp_path / "README.md").read_text().split("\n")
+    block, line = written[1:-2], written[-2]
     readme = (REPOSITORY / "README.md").read_text()
     assert "\n".join(block) in readme and "old" not in block and len(block) == 4 + len(ENVIRONMENTS)
+    assert line.startswith(link) and "old" not in line and line in readme.splitlines()
 
 
 def test_csvs_written_before_new_columns_still_read(tmp_path):
@@ -189,3 +192,207 @@ def test_csvs_written_before_new_columns_still_read(tmp_path):
     with pytest.raises(Exception, match="unknown columns"):
         read_csv(path)
     shutil.rmtree(tmp_path)
+
+
+def _sized(environment, scores_by_cell):
+    """Rows with the given scores per cell: ``{(method, episodes): [score, ...]}``."""
+    return [
+        Row(environment, method, size, k, 1, 100, float(score), "", 0.0, 0.01, 0, 0.9, 0.9, "ok")
+        for (method, size), scores in scores_by_cell.items()
+        for k, score in enumerate(scores)
+    ]
+
+
+def _spread(centre, half=1.0, runs=10):
+    """``runs`` scores evenly spread around ``centre`` (mean = median = centre)."""
+    return list(np.linspace(centre - half, centre + half, runs))
+
+
+def _floors_and_ceiling(sizes, random=(-3.0, 40.0)):
+    """A constant floor at 0, a random floor centred on ``random[k]`` at size ``k``, a ceiling."""
+    cells = {}
+    for size, centre in zip(sizes, itertools.cycle(random)):
+        cells[("constant", size)] = [0.0] * 10
+        cells[("random", size)] = _spread(centre, 10.0)
+        cells[("true-position", size)] = [470.0] * 10
+    return cells
+
+
+def _verdict(environment, cells, claim_start):
+    tables = {environment: summarise(_sized(environment, cells))}
+    found = [(m, v) for f, m, v in judge(tables) if f.claim.startswith(claim_start)]
+    assert len(found) == 1, claim_start
+    return found[0][1]
+
+
+def test_the_floors_are_pooled_over_every_data_size():
+    sizes = (2000, 4000)
+    rows = _sized("full", {**_floors_and_ceiling(sizes), ("tpsr", 2000): _spread(100.0, 5.0)})
+    floors = pooled_floors(rows)
+    random_scores = [r.score for r in rows if r.method == "random"]
+    assert floors["random"]["runs"] == 20 and floors["random"]["sizes"] == 2
+    assert floors["random"]["mean"] == pytest.approx(np.mean(random_scores))  # 18.5, not 40
+    assert floors["random"]["median"] == pytest.approx(np.median(random_scores))
+    assert floors["random"]["sem"] == pytest.approx(np.std(random_scores, ddof=1) / np.sqrt(20))
+    tpsr = next(t for t in summarise(rows) if t["method"] == "tpsr")
+    assert tpsr["floor"] == "random"  # pooled, though no random run shares its data size
+    expected = (tpsr["mean"] - floors["random"]["mean"]) / np.hypot(
+        tpsr["sem"], floors["random"]["sem"]
+    )
+    assert tpsr["margin_sem"] == pytest.approx(expected)
+
+
+def test_a_tpsr_above_pca_somewhere_is_not_slightly_below_it():
+    sizes = (2000, 4000)
+    base = _floors_and_ceiling(sizes)
+    claim = "TPSR: works, slightly below PCA"
+    pca = {("pca", n): _spread(460.0) for n in sizes}
+    # level at 2000, above by far more than 2 SEMs at 4000: better, not "slightly below"
+    above = {("tpsr", 2000): _spread(460.0), ("tpsr", 4000): _spread(465.0)}
+    assert _verdict("full", {**base, **pca, **above}, claim) == BETTER
+    # above at one size, below at the other: neither
+    mixed = {("tpsr", 2000): _spread(440.0), ("tpsr", 4000): _spread(465.0)}
+    assert _verdict("full", {**base, **pca, **mixed}, claim) == NOT_REPRODUCED
+    # slightly below (within 10 %) everywhere: the guide's finding
+    below = {("tpsr", 2000): _spread(440.0), ("tpsr", 4000): _spread(455.0)}
+    assert _verdict("full", {**base, **pca, **below}, claim) == REPRODUCED
+
+
+def test_about_300_must_hold_at_every_data_size():
+    sizes = (2000, 4000, 8000)
+    base = {**_floors_and_ceiling(sizes), **{("pca", n): _spread(5.0) for n in sizes}}
+    claim = "TPSR: mean about 300"
+
+    def tpsr(*scores):
+        return {("tpsr", n): s for n, s in zip(sizes, scores, strict=True)}
+
+    skewed = [200.0] * 3 + [340.0] * 7  # mean 298, median 340: about 300, medians above
+    assert _verdict("distractors", {**base, **tpsr(skewed, skewed, skewed)}, claim) == REPRODUCED
+    # one data size far below 300 (mean 186): not reproduced, whatever the others score
+    low = _spread(186.0, 20.0)
+    high = _spread(420.0, 20.0)
+    assert _verdict("distractors", {**base, **tpsr(low, high, high)}, claim) == NOT_REPRODUCED
+    # means and medians above 350 everywhere: better, even with medians below the means
+    heavy = [470.0] * 2 + [400.0] * 8  # mean 414, median 400
+    assert _verdict("distractors", {**base, **tpsr(heavy, high, heavy)}, claim) == BETTER
+    # about 300 with medians below the means: the "medians above" half fails
+    dented = [420.0] * 3 + [250.0] * 7  # mean 301, median 250
+    assert _verdict("distractors", {**base, **tpsr(dented, skewed, skewed)}, claim) == (
+        NOT_REPRODUCED
+    )
+
+
+def test_close_to_the_maximum_needs_a_low_sem_and_near_zero_a_low_median():
+    sizes = (2000, 6000, 8000)
+    base = _floors_and_ceiling(sizes)
+    claim = "5-dim TPSR with many centres"
+    steady = {("tpsr", n): _spread(460.0, 5.0) for n in sizes}
+    assert _verdict("full", {**base, **steady}, claim) == REPRODUCED
+    # mean at 96 % of the ceiling, but one run of ten fails: SEM ~ 45 > 5 % of 470
+    shaky = {**steady, ("tpsr", 8000): [0.0] + [500.0] * 9}
+    assert _verdict("full", {**base, **shaky}, claim) == NOT_REPRODUCED
+    claim = "PCA: mean slightly above zero"
+    near_zero = {("pca", n): [-40.0] * 5 + [60.0] * 5 for n in sizes}  # mean 10, median 10
+    assert _verdict("partial", {**base, **near_zero}, claim) == REPRODUCED
+    # mean 94 (20 % of the ceiling) but the median run scores 460: PCA does not fail
+    bimodal = {("pca", n): [-300.0] * 4 + [460.0] * 6 for n in sizes}
+    assert _verdict("partial", {**base, **bimodal}, claim) == NOT_REPRODUCED
+
+
+def test_what_works_says_above_the_floors_and_beats_the_baseline_apart():
+    from learner.results_page import _environment_summary
+
+    sizes = (2000, 8000)
+    rows = _sized(
+        "partial",
+        {
+            **_floors_and_ceiling(sizes),
+            **{("pca", n): _spread(460.0) for n in sizes},
+            ("tpsr", 2000): _spread(300.0, 20.0),
+            ("tpsr", 8000): _spread(459.5),
+        },
+    )
+    table = summarise(rows)
+    text = _environment_summary("partial", table, table, pooled_floors(rows))
+    (floors_line,) = [line for line in text.splitlines() if "*Above the floors*" in line]
+    (baseline_line,) = [line for line in text.splitlines() if "*Beats the baseline*" in line]
+    assert "at every data size (2 of 2)" in floors_line and "PCA" not in floors_line
+    random = pooled_floors(rows)["random"]
+    assert f"{random['mean']:.1f} / {random['median']:.1f} / {random['sem']:.1f}" in floors_line
+    assert f"over its {random['runs']} runs" in floors_line
+    assert "PCA" in baseline_line and "at no data size" in baseline_line
+    assert "level with it at 1 and below it at 1 of 2" in baseline_line
+
+
+def test_the_headline_shows_each_floor_once_pooled():
+    from learner.results_page import _floor_table, _headline_table
+
+    sizes = (2000, 8000)
+    tpsr = {("tpsr", n): [400.0] * 3 for n in sizes}
+    rows = _sized("full", {**_floors_and_ceiling(sizes), **tpsr})
+    tables = {"defaults": summarise(rows), "guide": summarise(rows)}
+    jobs = {"defaults": HEADLINE["defaults"][0], "guide": HEADLINE["guide"][0]}
+    assert not any("(floor)" in line for line in _headline_table("full", tables, jobs))
+    lines = _floor_table(pooled_floors(rows), jobs["defaults"])
+    (random,) = [line for line in lines if line.startswith("| random actions (floor) |")]
+    pooled = pooled_floors(rows)["random"]
+    assert f"| 20 (2 data sizes) | {pooled['mean']:.1f} / {pooled['median']:.1f} / " in random
+
+
+def _headline_data():
+    rng = np.random.default_rng(5)
+    return {job: _fake_rows(job, rng) for arm in HEADLINE.values() for job in arm}
+
+
+def test_the_readme_says_what_the_page_says(tmp_path):
+    from learner.results_page import readme_summary, write_readme_table
+
+    data = _headline_data()
+    tables = {
+        arm: {env: summarise(data[job]) for env, job in zip(ENVIRONMENTS, jobs, strict=True)}
+        for arm, jobs in HEADLINE.items()
+    }
+    summary = readme_summary(data)
+    for arm, words in (("guide", "with its own settings"), ("defaults", "with the defaults")):
+        verdicts = [v for f, _, v in judge(tables[arm]) if f.environment in GUIDE_ENVIRONMENTS]
+        counts = (
+            f"{words} {verdicts.count(REPRODUCED)} reproduce"
+            + ("s" if verdicts.count(REPRODUCED) == 1 else "")
+            + f", {verdicts.count(BETTER)} "
+        )
+        assert counts in summary, (counts, summary)
+        assert f"and {verdicts.count(NOT_REPRODUCED)} do" in summary.split(words)[1]
+    assert f"Of the guide's {len(verdicts)} findings" in summary
+    readme = tmp_path / "README.md"
+    readme.write_text(
+        "<!-- results: written by python -m learner report -->\n<!-- end of results -->\n"
+        f"- [docs/results.md](docs/results.md): {README_SUMMARY_BEGIN}old{README_SUMMARY_END}.\n"
+    )
+    write_readme_table(data, readme)
+    line = readme.read_text().splitlines()[-1]
+    assert line == (
+        f"- [docs/results.md](docs/results.md): {README_SUMMARY_BEGIN}{summary}"
+        f"{README_SUMMARY_END}."
+    )
+    readme.write_text("<!-- results: written by python -m learner report -->\n"
+                      "<!-- end of results -->\n")
+    with pytest.raises(Exception, match="summary"):
+        write_readme_table(data, readme)
+
+
+def test_the_committed_readme_link_line_is_written_by_the_report():
+    readme = (REPOSITORY / "README.md").read_text()
+    (line,) = [x for x in readme.splitlines() if x.startswith("- [docs/results.md]")]
+    assert README_SUMMARY_BEGIN in line and README_SUMMARY_END in line
+    assert "reproduced and beaten" not in readme
+
+
+def test_the_demo_names_its_floors_protocol():
+    from learner.demo import Bounds, bounds_line
+    from learner.evaluate import Evaluation, Trial
+    from learner.floors import DEMO_POLICY_SEED, ConstantFloor
+
+    evaluation = Evaluation((Trial((5.0, 5.0), 0.0, None, 0),))
+    line = bounds_line(Bounds(ConstantFloor(0, evaluation, (0.0, 0.0)), 38.1, 469.8))
+    assert "one run each" in line and f"policy seed {DEMO_POLICY_SEED}" in line
+    assert "random actions 38.1" in line and "true position 469.8" in line
