@@ -19,6 +19,16 @@ the Cyclone DDS backend; ``--transport`` or ``TPSR_TRANSPORT`` picks one), in a 
    (announced on ``/sim/cmd_ignored``; only then can the next reset not be overtaken by
    that command), and resets to the next start.
 
+A model learned from robot bags (``learner fit --step-period 1``) runs the same protocol:
+the simulator renders its robot camera's size (``-p image_size:=N``) on the model's camera
+topic (``-r camera/image_raw:=TOPIC``) and snaps each code's command to its nearest
+action, and the filter node runs with ``-p lockstep:=true``: each image is one step on the
+model's grid (at the first grid time at or after its stamp) with the node's own last
+command, which its grid rules could not close in lockstep (they wait for an image after the
+step, which the simulator sends only once the step is answered). What the simulator cannot
+play (another step period, a compressed or non-square camera, a command it does not have)
+is refused in one line before any process starts (:mod:`learner.sim_robot`).
+
 Lockstep, reliable QoS and waiting for matched endpoints make the run deterministic: its
 trial rewards and score equal ``learner evaluate``'s exactly. The filter holds its first
 command until ``/cmd_vel`` and ``/tpsr/state`` have every subscriber (``wait_for_subscribers``),
@@ -53,14 +63,16 @@ from learner.evaluate import (
     Trial,
     start_heading,
 )
-from learner.inputs import open_simulator_model
+from learner.inputs import require_camera
+from learner.sim_robot import SimulatedRobot, simulated_robot
 from sim_node import Environment, SimConfig
 from sim_node.topics import CMD_IGNORED_TOPIC
 from tpsr_ros.core.errors import ModelFormatError, TpsrError
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import check_bag_path_free
-from tpsr_ros.io.filter_inputs import filter_inputs
+from tpsr_ros.io.filter_inputs import filter_inputs, input_topics
+from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.policy import TRUE_POSITION, load_policy
 from tpsr_ros.runtime import (
     LATCHED_QOS,
@@ -168,7 +180,9 @@ class _Driver:
     reset until a recorder has subscribed every one of them as well.
     """
 
-    def __init__(self, backend: str, *, watch_all: bool) -> None:
+    def __init__(
+        self, backend: str, *, watch_all: bool, image_topic: str = "/camera/image_raw"
+    ) -> None:
         # the transport reads ROS_DOMAIN_ID (and the discovery range) from the environment
         transport = open_transport(backend, "closed_loop_driver", "/")
         self.node = Node(NodeOptions(name="closed_loop_driver"), transport=transport)
@@ -199,6 +213,7 @@ class _Driver:
         )
         if watch_all:
             for topic, msgtype in _WATCHED_TOPICS.items():
+                topic = image_topic if topic == "/camera/image_raw" else topic
                 self.node.create_subscription(topic, msgtype, lambda data: None, raw=True)
         self.reset_pub = self.node.create_publisher("/sim/reset", m.POSE_TYPE)
 
@@ -228,13 +243,15 @@ def _run_trial(
     on_reset: Callable[[], None] | None,
     on_step: Callable[[int], None] | None,
     heading: float | None = None,
+    state_stamp: Callable[[int], int] = lambda stamp: stamp,
 ) -> Trial:
     """One trial of the standard protocol (guide 4.1): reset, N lockstep steps, their reward.
 
     Reset to ``start`` (turned to ``heading``, if any), collect the rewards r_1 .. r_N
     stamped after the reset, wait until the simulator announced on ``/sim/cmd_ignored`` that
     it ignored the filter's command N+1 (only then can the next reset not be overtaken by
-    it) and for the N states.
+    it) and for the N states (``state_stamp``: the filter's stamp of the step stamped
+    so by the simulator; a robot model's grid time).
     """
     name = f"trial {index + 1}"
     before = len(driver.episode_starts)
@@ -265,7 +282,8 @@ def _run_trial(
         f"the simulator to ignore the command after step {steps} of {name}",
         lambda: driver.ended_episodes >= index + 1,
     )
-    launch.wait(f"the {steps} states of {name}", lambda: all(s in driver.states for s in wanted))
+    stamps = [state_stamp(s) for s in wanted]
+    launch.wait(f"the {steps} states of {name}", lambda: all(s in driver.states for s in stamps))
     samples = rewards()
     return Trial(
         (float(start[0]), float(start[1])),
@@ -280,10 +298,12 @@ def _check_inputs(
     environment: str,
     model_path: Path | str | None,
     vertical_half_extent: float | None = None,
-) -> tuple[Path, Path]:
-    """Refuse what the filter node would refuse, before any process starts.
+    camera_size: int | None = None,
+) -> tuple[Path, Path, SimulatedRobot | None]:
+    """Refuse what the filter node or the simulator would refuse, before any process starts.
 
-    Returns the resolved policy and model paths.
+    Returns the resolved policy and model paths, and for a model learned on a step grid how
+    the simulator plays its robot.
     """
     policy_path = Path(policy_path).resolve()
     policy = load_policy(policy_path)
@@ -296,9 +316,16 @@ def _check_inputs(
     model = policy.model_path(model_path).resolve()
     camera = SimConfig(environment=environment, vertical_half_extent=vertical_half_extent)
     # once: the filter node opens it again in its process
-    model_file = open_simulator_model(model, camera.vertical_extent)
-    filter_inputs(model_file, (policy, str(policy_path)))
-    return policy_path, model
+    model_file = open_model(model)
+    robot = None
+    if model_file.spec is not None:
+        robot = simulated_robot(model_file, camera, camera_size)
+    require_camera(model_file, camera.vertical_extent)
+    image, action = ("/" + t for t in input_topics(model_file) or ("camera/image_raw", "action"))
+    filter_inputs(
+        model_file, (policy, str(policy_path)), image_topic=image, action_topic=action
+    )
+    return policy_path, model, robot
 
 
 def _join_free_domain(
@@ -307,13 +334,14 @@ def _join_free_domain(
     backend: str,
     watch_all: bool,
     say: Callable[[str], None],
+    image_topic: str = "/camera/image_raw",
 ) -> tuple[_Driver, int]:
     """Start the driver node in a ROS domain nobody else uses right now (runs, tests, robots)."""
     for _ in range(8):
         domain = domain_id if domain_id is not None else _pick_domain()
         try:
             with _environment({**network, "ROS_DOMAIN_ID": str(domain)}):
-                driver = _Driver(backend, watch_all=watch_all)
+                driver = _Driver(backend, watch_all=watch_all, image_topic=image_topic)
         except TpsrError as exc:
             if domain_id is not None:
                 raise
@@ -337,6 +365,7 @@ def _start_simulator(
     steps: int,
     record: Path | None,
     say: Callable[[str], None],
+    robot: SimulatedRobot | None = None,
 ) -> None:
     """Start the recorder (if any) and the simulator; wait until both are in the graph.
 
@@ -346,7 +375,7 @@ def _start_simulator(
     """
     if record is not None:
         say(f"recording to {record}")
-        launch.start("recorder", "tpsr_ros.record", ["-o", str(record), *RECORDED_TOPICS])
+        launch.start("recorder", "tpsr_ros.record", ["-o", str(record), *_recorded(robot)])
     sim_args = [
         "--ros-args",
         "-p",
@@ -364,6 +393,9 @@ def _start_simulator(
         sim_args[1:1] = ["-p", f"vertical_half_extent:={float(vertical_half_extent)!r}"]
     if record is not None:  # the recorder gets everything, the start-up reset included
         sim_args[1:1] = ["-p", "wait_for_subscribers:=2"]
+    if robot is not None:  # the robot's camera, on the model's camera topic
+        sim_args[1:1] = ["-p", f"image_size:={robot.camera_size}"]
+        sim_args += ["-r", f"camera/image_raw:={robot.image_topic}"]
     say("starting " + " ".join(["python -m sim_node", *sim_args]))
     launch.start("sim_node", "sim_node", sim_args)
     launch.wait("the simulator's start-up reset", lambda: len(driver.episode_starts) >= 1)
@@ -378,8 +410,18 @@ def _start_simulator(
     )
 
 
-def _filter_args(model_path: Path, policy_path: Path, record: Path | None) -> list[str]:
-    """Build the filter node's command line: the first command waits until its readers match."""
+def _recorded(robot: SimulatedRobot | None) -> list[str]:
+    """The topics to record: the simulator's camera on the model's camera topic."""
+    if robot is None:
+        return list(RECORDED_TOPICS)
+    return [robot.image_topic if t == "/camera/image_raw" else t for t in RECORDED_TOPICS]
+
+
+def _filter_args(
+    model_path: Path, policy_path: Path, record: Path | None, lockstep: bool = False
+) -> list[str]:
+    """Build the filter node's command line: the first command waits until its readers match
+    (``lockstep``: one step per image, for a model learned on a step grid)."""
     return [
         "--ros-args",
         "-p",
@@ -388,6 +430,7 @@ def _filter_args(model_path: Path, policy_path: Path, record: Path | None) -> li
         f"policy:={policy_path}",
         "-p",
         f"wait_for_subscribers:={2 if record is not None else 1}",
+        *(["-p", "lockstep:=true"] if lockstep else []),
     ]
 
 
@@ -421,6 +464,7 @@ def run_closed_loop(
     on_trial: Callable[[int, Trial], None] | None = None,
     on_step: Callable[[int], None] | None = None,
     say: Callable[[str], None] | None = None,
+    camera_size: int | None = None,
 ) -> ClosedLoopResult:
     """Run the standard protocol (guide 4.1-4.2) with the simulator and filter nodes as processes.
 
@@ -430,7 +474,8 @@ def run_closed_loop(
     node starts at the first trial's reset). ``on_step(n)`` is called with the number of
     new rewards as they arrive (for progress bars), ``on_trial`` after each trial, ``say``
     with stage lines. ``transport`` is ``rclpy`` or ``dds`` (default: ``TPSR_TRANSPORT``,
-    else rclpy if importable, else dds).
+    else rclpy if importable, else dds). ``camera_size``: the simulator's camera for a model
+    learned from robot bags (default: the one the model records).
     """
     started = time.monotonic()
     say = say or (lambda text: None)
@@ -441,8 +486,8 @@ def run_closed_loop(
             "not inproc"
         )
     environment = Environment(environment).value
-    policy_path, model_path = _check_inputs(
-        policy_path, environment, model_path, vertical_half_extent
+    policy_path, model_path, robot = _check_inputs(
+        policy_path, environment, model_path, vertical_half_extent, camera_size
     )
     if record is not None:
         record = Path(record).resolve()
@@ -463,7 +508,10 @@ def run_closed_loop(
     statuses: dict[str, int] = {}
     ok = False
     try:
-        driver, domain = _join_free_domain(domain_id, network, backend, record is not None, say)
+        image_topic = "/camera/image_raw" if robot is None else robot.image_topic
+        driver, domain = _join_free_domain(
+            domain_id, network, backend, record is not None, say, image_topic
+        )
         env = {**os.environ, **network, "ROS_DOMAIN_ID": str(domain), "TPSR_TRANSPORT": backend}
         launch = Launch(logs, env=env, spin=driver.node.spin_once, timeout_s=timeout_s)
         say(f"{backend} transport, ROS_DOMAIN_ID {domain}; node logs in {logs}")
@@ -476,8 +524,10 @@ def run_closed_loop(
             steps=steps,
             record=record,
             say=say,
+            robot=robot,
         )
-        filter_args = _filter_args(model_path, policy_path, record)
+        filter_args = _filter_args(model_path, policy_path, record, lockstep=robot is not None)
+        state_stamp = (lambda stamp: stamp) if robot is None else robot.step_time
 
         def start_filter() -> None:
             # only after the first trial's reset, so the latched episode start it receives
@@ -491,7 +541,9 @@ def run_closed_loop(
             on_reset = start_filter if index == 0 else None
             heading = start_heading(environment == Environment.DRIVE.value, index)
             trials.append(
-                _run_trial(launch, driver, index, start, steps, on_reset, on_step, heading)
+                _run_trial(
+                    launch, driver, index, start, steps, on_reset, on_step, heading, state_stamp
+                )
             )
             if on_trial is not None:
                 on_trial(index, trials[-1])

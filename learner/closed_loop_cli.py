@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from learner.closed_loop import format_trial, run_closed_loop
-from learner.evaluate import EVALUATION_SEED, Trial
+from learner.evaluate import EVALUATION_SEED, Trial, add_camera_size_option
 from sim_node import Environment
 from sim_node.options import add_vertical_half_extent_option
 from tpsr_ros.core.errors import ModelFormatError
@@ -32,6 +32,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("policy", type=Path, metavar="POLICY")
     parser.add_argument("--environment", required=True, choices=[e.value for e in Environment])
     add_vertical_half_extent_option(parser, "sim_node's camera (the model's must match)")
+    add_camera_size_option(parser)
     parser.add_argument(
         "--model",
         type=Path,
@@ -99,6 +100,7 @@ def run(args: argparse.Namespace) -> int:
         timeout_s=args.timeout,
         domain_id=args.domain_id,
         transport=args.transport,
+        camera_size=args.camera_size,
         on_trial=show,
         say=lambda text: print(f"learner closed-loop: {text}", file=sys.stderr, flush=True),
     )

@@ -9,24 +9,30 @@ start also has a heading (``START_HEADINGS_DEG``: east, north, west, south in tu
 trial's reward
 is the sum over its steps; the score is the mean over the ten trials (at most about 470:
 no start lies in the goal zone). Execution noise continues from trial to trial, exactly
-as in a ``sim_node`` that is reset ten times.
+as in a ``sim_node`` that is reset ten times. A model learned from robot bags sees the
+simulator's camera at its robot camera's size through its own preprocessing, and each code
+its policy chooses is executed as the simulator's action nearest to the code's command
+(:mod:`learner.sim_robot`), as over the nodes.
 """
 
 from __future__ import annotations
 
 import argparse
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from learner.inputs import open_simulator_model
-from learner.representations import Tracker, load_tracker
+from learner.inputs import require_camera
+from learner.representations import ModelTracker, Tracker, load_tracker
+from learner.sim_robot import is_robot_model, simulated_robot
 from sim_node import Environment, RobotEnv, SimConfig
 from sim_node.options import add_vertical_half_extent_option
+from tpsr_ros.cli import positive_int
 from tpsr_ros.core.errors import ModelFormatError
+from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.policy import TRUE_POSITION, Policy, load_policy
 
 __all__ = [
@@ -36,8 +42,10 @@ __all__ = [
     "STEPS",
     "Evaluation",
     "Trial",
+    "add_camera_size_option",
     "evaluate",
     "register",
+    "robot_setup",
     "run",
     "run_protocol",
     "start_heading",
@@ -118,12 +126,15 @@ def run_protocol(
     starts: Sequence[tuple[float, float]] = START_POSITIONS,
     steps: int = STEPS,
     on_trial: Callable[[int, Trial], None] | None = None,
+    execute: Callable[[int], int] | None = None,
 ) -> Evaluation:
     """The standard protocol for any controller ``choose(state) -> action index``.
 
     :func:`evaluate` runs it for a fitted-Q policy, the floor baselines
     (:mod:`learner.floors`) for state-blind controllers. ``environment`` is a name (the
-    default camera) or the simulator's whole configuration.
+    default camera) or the simulator's whole configuration. ``execute`` maps the
+    controller's action to the simulator's (a robot model's code to the action its command
+    snaps to); the tracker is updated with the controller's own action.
     """
     config = (
         environment if isinstance(environment, SimConfig) else SimConfig(environment=environment)
@@ -137,7 +148,7 @@ def run_protocol(
         total, goal_step, contacts = 0.0, None, 0
         for k in range(1, steps + 1):
             action = choose(state)
-            image, reward, _, _, info = env.step(action)
+            image, reward, _, _, info = env.step(action if execute is None else execute(action))
             total += reward
             contacts += info["wall_contact"]
             if goal_step is None and info["goal_zone"]:
@@ -159,6 +170,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("policy", type=Path, metavar="POLICY")
     parser.add_argument("--environment", required=True, choices=[e.value for e in Environment])
     add_vertical_half_extent_option(parser, "the simulator's camera (the model's must match)")
+    add_camera_size_option(parser)
     parser.add_argument(
         "--model",
         default=None,
@@ -171,10 +183,35 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(run=run)
 
 
-def _tracker_for(policy: Policy, model: str | None, vertical_half_extent: float) -> Tracker:
+def add_camera_size_option(parser: argparse.ArgumentParser) -> None:
+    """``--camera-size N``: the simulator's camera for a model learned from robot bags."""
+    parser.add_argument(
+        "--camera-size",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="for a model learned from robot bags: the simulator's camera pixels on each side "
+        "(default: its robot's camera, as the model records it)",
+    )
+
+
+def robot_setup(
+    policy: Policy, model: str | None, sim: SimConfig, camera_size: int | None
+) -> tuple[Tracker, SimConfig, Callable[[int], int] | None]:
+    """The tracker, the simulator's configuration and the code-to-action map of the policy's
+    model: a robot model's camera size, preprocessing and codebook (:mod:`learner.sim_robot`),
+    else the simulator's own (no map)."""
     if policy.representation == TRUE_POSITION:
-        return load_tracker(TRUE_POSITION)
-    return load_tracker(open_simulator_model(policy.model_path(model), vertical_half_extent))
+        return load_tracker(TRUE_POSITION), sim, None
+    model_file = open_model(policy.model_path(model))
+    if not is_robot_model(model_file):
+        require_camera(model_file, sim.vertical_extent)
+        return load_tracker(model_file), sim, None
+    robot = simulated_robot(model_file, sim, camera_size)
+    assert model_file.spec is not None
+    tracker = ModelTracker(model_file.model, model_file.fingerprint, model_file.spec.preprocessing)
+    return tracker, replace(sim, image_size=robot.camera_size), robot.execute
+
 
 
 def run(args: argparse.Namespace) -> int:
@@ -186,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
     sim = SimConfig(
         environment=args.environment, vertical_half_extent=args.vertical_half_extent
     )
-    tracker = _tracker_for(policy, args.model, sim.vertical_extent)
+    tracker, sim, execute = robot_setup(policy, args.model, sim, args.camera_size)
 
     def show(index: int, trial: Trial) -> None:
         goal = (
@@ -198,6 +235,6 @@ def run(args: argparse.Namespace) -> int:
             flush=True,
         )
 
-    result = evaluate(policy, tracker, sim, seed=args.seed, on_trial=show)
+    result = evaluate(policy, tracker, sim, seed=args.seed, on_trial=show, execute=execute)
     print(f"score: {result.score:.1f}")
     return 0

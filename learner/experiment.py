@@ -7,8 +7,12 @@ model's parameters over one separate random RL trajectory (15000 steps in ``full
 fitted Q-iteration on them; the standard evaluation. Beside them stand the floors
 (``constant``: the best of the 25 constant actions; ``random``: uniformly random
 actions, seeded per run; :mod:`learner.floors`) and the ceiling (``true-position``: the
-same RL step on the ground truth). ``--set NAME=VALUE`` changes any fit or fitted-Q
-parameter (:mod:`learner.overrides`); the CSV records every parameter of every run.
+same RL step on the ground truth). On request (``--methods stacked-pca window``) the
+baselines that carry the past (:mod:`tpsr_ros.core.window_baselines`): PCA frames stacked
+over the last ``k`` steps, and a finite-window predictive state, whose fitted Q sees its
+predictive part only (:func:`tpsr_ros.core.fqi.ignore_trailing`). ``--set NAME=VALUE``
+changes any fit or fitted-Q parameter (:mod:`learner.overrides`); the CSV records every
+parameter of every run.
 
 Every seed is derived from ``--seed``, the data size and the repetition and written to
 the CSV, so any row reruns alone (``--episodes N --first-repetition K --repetitions 1``).
@@ -44,17 +48,33 @@ from learner.planning import fit_q_on, ridge_ladder
 from learner.plots import affine_r2, neighbour_position_error
 from learner.representations import ModelTracker, Tracker, TruePositionTracker
 from learner.simulated import SimSettings, random_trajectory
-from learner.tables import METHODS, Row, format_table, plot_summary, summarise, write_csv
+from learner.tables import (
+    DEFAULT_METHODS,
+    METHODS,
+    PAST_BASELINES,
+    Row,
+    format_table,
+    plot_summary,
+    summarise,
+    write_csv,
+)
 from sim_node import Environment, SimConfig
 from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError, DivergenceError, TpsrError
-from tpsr_ros.core.fqi import FQIConfig
+from tpsr_ros.core.fqi import FQIConfig, ignore_trailing
 from tpsr_ros.core.pca_baseline import PCAConfig, fit_pca
 from tpsr_ros.core.presets import DEFAULT_PRESET, departures, get_preset
 from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.learn import fit_tpsr_trajectory
+from tpsr_ros.core.state_model import planner_dim
 from tpsr_ros.core.tpsr import TPSRConfig
+from tpsr_ros.core.window_baselines import (
+    StackedPCAConfig,
+    WindowConfig,
+    fit_stacked_pca,
+    fit_window,
+)
 from tpsr_ros.io.model_io import model_fingerprint
 from tpsr_ros.io.policy import TRUE_POSITION, Policy
 from tpsr_ros.progress import progress_bar
@@ -92,12 +112,16 @@ class ExperimentConfig:
     episodes: tuple[int, ...] = (2000, 4000, 6000, 8000)
     repetitions: int = 10
     first_repetition: int = 0
-    methods: tuple[str, ...] = METHODS
+    methods: tuple[str, ...] = DEFAULT_METHODS
     rl_steps: int = 15000
     rl_seed: int = 100
     seed: int = 0
     tpsr: TPSRConfig = field(default_factory=TPSRConfig)
     pca: PCAConfig = field(default_factory=PCAConfig)
+    stacked: StackedPCAConfig = field(default_factory=StackedPCAConfig)
+    """The ``stacked-pca`` baseline (its images' dimension follows the PCA baseline's)."""
+    window: WindowConfig = field(default_factory=WindowConfig)
+    """The ``window`` baseline (its images' components follow the PCA baseline's)."""
     fqi: FQIConfig = field(default_factory=FQIConfig)
     sim: SimSettings = field(default_factory=SimSettings)
     """The simulator's settings (the camera's vertical extent) for training, RL and scoring."""
@@ -167,6 +191,8 @@ def default_config(
         "environment": environment,
         "rl_steps": RL_STEPS[environment],
         "pca": PCAConfig(dim=PCA_DIM[environment]),
+        "stacked": StackedPCAConfig(dim=PCA_DIM[environment]),
+        "window": WindowConfig(components=PCA_DIM[environment]),
         "tpsr": preset_tpsr(chosen.name, environment),
         "fqi": chosen.fqi_config(),
         "preset": chosen.name,
@@ -195,7 +221,7 @@ def experiment_command(config: ExperimentConfig, episodes: Sequence[int] | None 
     for name in ("repetitions", "first_repetition", "seed", "rl_seed", "rl_steps"):
         if getattr(config, name) != getattr(reference, name):
             parts.append(f"--{name.replace('_', '-')} {getattr(config, name)}")
-    for group in ("sim", "tpsr", "pca", "fqi"):
+    for group in ("sim", "tpsr", "pca", "stacked", "window", "fqi"):
         changed = departures(getattr(config, group), getattr(reference, group))
         parts += [f"--set {group}.{k}={_setting(v)}" for k, v in changed.items()]
     if config.tune_budget is not None:
@@ -212,14 +238,31 @@ def experiment_command(config: ExperimentConfig, episodes: Sequence[int] | None 
 def _plan_and_score(
     config: ExperimentConfig, tracker: Tracker, rl: Trajectory, states: np.ndarray
 ) -> tuple[float, str, float, str]:
-    """Fitted Q on the tracked RL states (larger ridges if it diverges), then the standard score."""
+    """Fitted Q on the tracked RL states (larger ridges if it diverges), then the standard score.
+
+    A model whose state carries a buffer for its updates only (``window``) is planned on
+    its leading ``planner_dim`` coordinates; the Q-function ignores the rest.
+    """
+    seen = _planner_dim(tracker, states)
     try:
-        q, fqi, _ = fit_q_on(states, rl, config.fqi)
+        q, fqi, _ = fit_q_on(states[:, :seen], rl, config.fqi)
     except DivergenceError:
         return float("nan"), "", ridge_ladder(config.fqi.ridge)[-1], "fitted-q-diverged"
+    q = ignore_trailing(q, states.shape[1])
     policy = Policy(q, tracker.representation, tracker.fingerprint, config.environment)
     result = evaluate(policy, tracker, config.sim_config())
     return result.score, _trials(result), fqi.ridge, "ok"
+
+
+def _planner_dim(tracker: Tracker, states: np.ndarray) -> int:
+    """Leading state coordinates the planner (and the position measures) see."""
+    if isinstance(tracker, ModelTracker):
+        return planner_dim(tracker.model)
+    return int(states.shape[1])
+
+
+_CONFIG_GROUP = {"tpsr": "tpsr", "pca": "pca", "stacked-pca": "stacked", "window": "window"}
+"""The experiment's configuration of each learned method."""
 
 
 @lru_cache(maxsize=1)
@@ -231,8 +274,8 @@ def _rl_trajectory(environment: str, steps: int, seed: int, sim: SimSettings) ->
 def _parameters(config: ExperimentConfig, method: str, extra: dict[str, Any]) -> str:
     """Every parameter of one run as JSON: the method's own config, the RL step's, the rest."""
     values: dict[str, Any] = {"rl_steps": config.rl_steps, **extra}
-    if method in ("tpsr", "pca"):
-        values[method] = dataclasses.asdict(getattr(config, method))
+    if method in _CONFIG_GROUP:
+        values[method] = dataclasses.asdict(getattr(config, _CONFIG_GROUP[method]))
         values["sim"] = dataclasses.asdict(config.sim)  # what the camera shows them
     if method not in FLOORS:
         values["fqi"] = dataclasses.asdict(config.fqi)
@@ -313,6 +356,22 @@ def _learn_states(
         model = fit_tpsr_trajectory(
             train, config.tpsr, sizing=Sizing(given), action_codes=codes
         )
+    elif method == "stacked-pca":
+        model = fit_stacked_pca(
+            train.observations,
+            n_actions=train.n_actions,
+            config=config.stacked,
+            action_codes=config.sim_config().actions.codes,
+        )
+    elif method == "window":
+        model = fit_window(
+            train.observations,
+            train.actions,
+            n_actions=train.n_actions,
+            segments=train.segments,
+            config=config.window,
+            action_codes=config.sim_config().actions.codes,
+        )
     else:
         model = fit_pca(train.observations, n_actions=train.n_actions, config=config.pca)
     track = model.track(rl.actions, rl.observations)
@@ -344,8 +403,9 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             fit_seconds = time.perf_counter() - start
             if method == "tpsr":  # the fit's own record, e.g. the d^O that obs_variance chose
                 run_config = dataclasses.replace(run_config, tpsr=tracker.model.config)
-            r2 = affine_r2(states, rl.positions)
-            position_error = neighbour_position_error(states, rl.positions[:, :2])
+            seen = states[:, : _planner_dim(tracker, states)]  # what the planner sees
+            r2 = affine_r2(seen, rl.positions)
+            position_error = neighbour_position_error(seen, rl.positions[:, :2])
             memory = (
                 memory_of(tracker, config.environment, config.sim)
                 if config.memory
@@ -449,7 +509,9 @@ def add_grid_options(parser: argparse.ArgumentParser) -> None:
         dest="assignments",
         help="set a fit, fitted-Q or simulator parameter for every run (repeatable): "
         "tpsr.<field> (e.g. rank, sigma_ht, ht_centers), pca.dim, fqi.<field> (e.g. ridge, "
-        "centers), sim.vertical_half_extent (the camera's); a bare name where unambiguous",
+        "centers), sim.vertical_half_extent (the camera's), stacked.<field> (k, dim, "
+        "actions) and window.<field> (k, dim, components, actions, ridge) of the baselines "
+        "that carry the past; a bare name where unambiguous",
     )
     parser.add_argument(
         "--rl-steps",
@@ -516,9 +578,12 @@ def register(subparsers: Any) -> None:
         "--methods",
         nargs="+",
         choices=METHODS,
-        default=list(METHODS),
-        help="floors (constant, random), learned representations (tpsr, pca) and the "
-        "ceiling (true-position); default: all",
+        default=list(DEFAULT_METHODS),
+        help="floors (constant, random), learned representations (tpsr, pca), baselines "
+        "that carry the past (stacked-pca: PCA of the last k images with their actions; "
+        "window: a finite-window predictive state of the last k steps; set k with --set "
+        "stacked.k=K, window.k=K) and the ceiling (true-position); default: all but "
+        + " and ".join(PAST_BASELINES),
     )
     parser.add_argument(
         "-o",
@@ -547,7 +612,14 @@ def config_from_args(
     tpsr = base.tpsr
     if args.p_th_tests is not None:
         tpsr = dataclasses.replace(tpsr, p_th_tests=args.p_th_tests)
-    configs = {"tpsr": tpsr, "pca": base.pca, "fqi": base.fqi, "sim": base.sim}
+    configs = {
+        "tpsr": tpsr,
+        "pca": base.pca,
+        "fqi": base.fqi,
+        "sim": base.sim,
+        "stacked": base.stacked,
+        "window": base.window,
+    }
     overrides.update(apply_overrides(configs, assignments))
     if args.episodes:
         overrides["episodes"] = tuple(args.episodes)

@@ -1,14 +1,16 @@
 """``--set NAME=VALUE``: any fit or fitted-Q parameter of an experiment, by name.
 
 Names are the fields of :class:`~tpsr_ros.core.tpsr.TPSRConfig`,
-:class:`~tpsr_ros.core.pca_baseline.PCAConfig`, :class:`~tpsr_ros.core.fqi.FQIConfig` and
-the simulator's :class:`~learner.simulated.SimSettings`, qualified as ``tpsr.rank``,
-``pca.dim``, ``fqi.ridge`` or ``sim.vertical_half_extent``; a bare name (``rank``,
-``sigma_ht``) is enough where only one of them has it, and ``-`` may stand for ``_``
-(``ht-centers`` as in ``learner fit --ht-centers``). Values are converted to the field's
-type (integer, number, ``true``/``false``, one of the field's choices) and then validated
-by the config itself, so a ``--set`` value obeys the same rules as the command-line option
-of the same name. """
+:class:`~tpsr_ros.core.pca_baseline.PCAConfig`, :class:`~tpsr_ros.core.fqi.FQIConfig`, the
+simulator's :class:`~learner.simulated.SimSettings` and the baselines that carry the past
+(:class:`~tpsr_ros.core.window_baselines.StackedPCAConfig` as ``stacked``,
+:class:`~tpsr_ros.core.window_baselines.WindowConfig` as ``window``), qualified as
+``tpsr.rank``, ``pca.dim``, ``fqi.ridge``, ``sim.vertical_half_extent`` or ``window.k``; a
+bare name (``rank``, ``sigma_ht``) is enough where only one of them has it, and ``-`` may
+stand for ``_`` (``ht-centers`` as in ``learner fit --ht-centers``). Values are converted to
+the field's type (integer, number, ``true``/``false``, one of the field's choices) and then
+validated by the config itself, so a ``--set`` value obeys the same rules as the
+command-line option of the same name. """
 
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.pca_baseline import PCAConfig
 from tpsr_ros.core.tpsr import TPSRConfig
+from tpsr_ros.core.window_baselines import StackedPCAConfig, WindowConfig
 
 __all__ = [
     "CONFIG_CLASSES",
@@ -38,6 +41,8 @@ CONFIG_CLASSES: Mapping[str, type] = {
     "pca": PCAConfig,
     "fqi": FQIConfig,
     "sim": SimSettings,
+    "stacked": StackedPCAConfig,
+    "window": WindowConfig,
 }
 _BOOLEANS = {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}
 
@@ -105,7 +110,7 @@ def convert(name: str, text: str) -> Any:
 
 
 def apply_overrides(configs: Mapping[str, Any], assignments: Iterable[str]) -> dict[str, Any]:
-    """New ``{"tpsr": ..., "pca": ..., "fqi": ..., "sim": ...}`` configs with every
+    """New ``{"tpsr": ..., "pca": ..., "fqi": ..., "sim": ..., ...}`` configs with every
     ``NAME=VALUE`` applied.
 
     Later assignments of the same name win. The configs validate the result; their

@@ -17,6 +17,7 @@ import numpy as np
 
 from tpsr_ros.core.episodes import Trajectory, image_to_observation, track_trajectory
 from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.images import Preprocessing, preprocess_images
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.io.model_io import ModelFile, open_model
 from tpsr_ros.io.policy import TRUE_POSITION
@@ -44,10 +45,15 @@ class Tracker(Protocol):
 
 @dataclass(frozen=True)
 class ModelTracker:
-    """A learned model (TPSR or PCA): starts at its initial state, never sees ground truth."""
+    """A learned model (TPSR or PCA): starts at its initial state, never sees ground truth.
+
+    ``preprocessing``: a robot model's own (its camera's images resized as the filter node
+    resizes them); None: the simulator's images as they are (pixels / 255).
+    """
 
     model: StateModel
     fingerprint: str
+    preprocessing: Preprocessing | None = None
 
     @property
     def representation(self) -> str:
@@ -62,7 +68,11 @@ class ModelTracker:
         self, state: np.ndarray, action: int, image: np.ndarray, position: np.ndarray
     ) -> np.ndarray:
         """One update with the model's parameters (Algorithm 4 for a TPSR)."""
-        return self.model.update(state, action, image_to_observation(image))[0]
+        if self.preprocessing is None:
+            observation = image_to_observation(image)
+        else:
+            observation = preprocess_images(image[None], self.preprocessing)[0]
+        return self.model.update(state, action, observation)[0]
 
     def track(self, trajectory: Trajectory) -> np.ndarray:
         """States tracked with the model's parameters over the trajectory."""

@@ -2,7 +2,8 @@
 
 One :mod:`learner.experiment` grid per value of one fit, fitted-Q or simulator parameter
 (any ``--set`` name), everything else held fixed: the learned method the parameter belongs
-to (``tpsr.*`` and ``fqi.*``: the TPSR; ``pca.*``: PCA; ``sim.*``, the camera: both;
+to (``tpsr.*`` and ``fqi.*``: the TPSR; ``pca.*``: PCA; ``stacked.*`` and ``window.*``:
+those baselines; ``sim.*``, the camera: TPSR and PCA;
 ``--methods`` for others, e.g. PCA under each fitted-Q setting too) at every value, and
 once beside them
 the floors (best constant action, random actions) and the ceiling (true position; at every
@@ -56,7 +57,12 @@ def run_study(
 ) -> tuple[list[Any], list[StudyPoint]]:
     """Floors (and the ceiling) once, then the parameter's method at every value."""
     group = name.split(".", 1)[0]
-    default = {"pca": ["pca"], "sim": ["tpsr", "pca"]}.get(group, ["tpsr"])
+    default = {
+        "pca": ["pca"],
+        "sim": ["tpsr", "pca"],
+        "stacked": ["stacked-pca"],
+        "window": ["window"],
+    }.get(group, ["tpsr"])
     learned = list(args.methods or default)
     once = [CONSTANT, RANDOM] if group == "fqi" else [CONSTANT, RANDOM, TRUE_POSITION]
     if group == "fqi" and TRUE_POSITION not in learned:

@@ -67,6 +67,13 @@ class SimNodeParams:
         minimum=0.0,
         maximum=MAX_VERTICAL_HALF_EXTENT,
     )
+    image_size: int = param(
+        16,
+        "camera: pixels on each side of /camera/image_raw (16: the guide's; a robot model's "
+        "camera may be larger)",
+        minimum=1,
+        maximum=1024,
+    )
     seed: int = param(
         0, "seed of every random stream (start, actions, noise, distractors)", minimum=0
     )
@@ -120,7 +127,9 @@ class SimNode(Node):
         """Create the environment, publishers, subscriptions and the explore timer."""
         p: SimNodeParams = self.params
         self.config = SimConfig(
-            environment=p.environment, vertical_half_extent=p.vertical_half_extent or None
+            environment=p.environment,
+            vertical_half_extent=p.vertical_half_extent or None,
+            image_size=p.image_size,
         )
         self.env = RobotEnv(self.config, seed=p.seed)
         grid = self.config.actions

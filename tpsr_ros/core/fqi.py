@@ -43,7 +43,7 @@ from scipy.spatial.distance import cdist
 from tpsr_ros.core.errors import ConfigError, DataError, DivergenceError
 from tpsr_ros.core.fields import option as _param
 
-__all__ = ["FQIConfig", "QFunction", "fit_q"]
+__all__ = ["FQIConfig", "QFunction", "fit_q", "ignore_trailing"]
 
 SCALINGS = ("standardise", "whiten", "predictive")
 """Planner units (``FQIConfig.state_scaling``); ``predictive`` needs ``fit_q(futures=...)``."""
@@ -378,4 +378,31 @@ def fit_q(
         np.vstack(weights),
         rotation,
         np.array([len(c) for c, _ in members]),
+    )
+
+
+def ignore_trailing(q: QFunction, state_dim: int) -> QFunction:
+    """``q``, fitted on the leading ``q.state_dim`` coordinates, over states of ``state_dim``.
+
+    The trailing coordinates get zero planner units (zero rows in the rotation, scale 1,
+    centres 0 there), so values and greedy actions are those of ``q`` on the leading part.
+    For states that carry memory the planner should not see: the buffer of
+    :class:`tpsr_ros.core.window_baselines.WindowModel`.
+    """
+    r = q.state_dim
+    if state_dim < r:
+        raise DataError(f"states of {state_dim} coordinates cannot hold the Q-function's {r}")
+    if state_dim == r:
+        return q
+    extra = state_dim - r
+    rotation = np.zeros((state_dim, state_dim))
+    rotation[:r, :r] = np.eye(r) if q.rotation is None else q.rotation
+    return QFunction(
+        np.concatenate([q.mean, np.zeros(extra)]),
+        np.concatenate([q.scale, np.ones(extra)]),
+        np.concatenate([q.centers, np.zeros((len(q.centers), extra))], axis=1),
+        q.width,
+        q.weights,
+        rotation,
+        q.group_sizes,
     )

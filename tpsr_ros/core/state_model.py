@@ -10,6 +10,11 @@ Conventions: an observation is a float64 vector of ``obs_size`` values produced 
 :func:`tpsr_ros.core.episodes.image_to_observation` (pixel values / 255); an action is an integer
 index ``0 .. n_actions - 1``. ``track`` returns, for step ``s``, the state *after* the pair
 ``(a_s, o_s)`` has been incorporated.
+
+A model whose state carries memory needed only by its next update (the buffer of the
+finite-window predictive state, :mod:`tpsr_ros.core.window_baselines`) puts it after the
+coordinates the planner should see and says how many those are in ``planner_dim``
+(:func:`planner_dim`; every coordinate when absent).
 """
 
 from __future__ import annotations
@@ -21,7 +26,14 @@ import numpy as np
 
 from tpsr_ros.core.errors import DataError
 
-__all__ = ["StateModel", "Track", "UpdateInfo", "check_actions", "check_observations"]
+__all__ = [
+    "StateModel",
+    "Track",
+    "UpdateInfo",
+    "check_actions",
+    "check_observations",
+    "planner_dim",
+]
 
 
 @dataclass(frozen=True)
@@ -108,6 +120,12 @@ class StateModel(Protocol):
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Return the numeric content, for :mod:`tpsr_ros.io.model_io` (no object arrays)."""
         ...
+
+
+def planner_dim(model: StateModel) -> int:
+    """Leading state coordinates a planner sees: the model's ``planner_dim``, else all."""
+    dim = getattr(model, "planner_dim", None)
+    return int(model.state_dim if dim is None else dim)
 
 
 def check_observations(observations: np.ndarray, obs_size: int) -> np.ndarray:

@@ -37,7 +37,13 @@ from tpsr_ros.filter_node.params import (
     STATE_TOPIC,
     FilterNodeParams,
 )
-from tpsr_ros.filter_node.stepping import Added, ExactPairing, GridStepping, Step
+from tpsr_ros.filter_node.stepping import (
+    Added,
+    ExactPairing,
+    GridStepping,
+    LockstepStepping,
+    Step,
+)
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.filter_inputs import FilterInputs, check_policy, filter_inputs, input_topics
 from tpsr_ros.io.model_io import open_model
@@ -147,8 +153,15 @@ class FilterNode(Node):
         self.spec = self.inputs.spec
         self.sim_actions = environment_grid(self.inputs.model_file.environment)  # exact pairing's
         jump_ns = round(p.jump_threshold * _NS)
-        self.source: ExactPairing | GridStepping
-        if self.spec is None:
+        self.source: ExactPairing | GridStepping | LockstepStepping
+        if p.lockstep:
+            if self.spec is None or self.policy is None:
+                raise ConfigError(
+                    "lockstep needs a model learned with --step-period and a policy (a "
+                    "simulator model pairs the simulator's own stamped actions)"
+                )
+            self.source = LockstepStepping(self.spec.grid, jump_threshold_ns=jump_ns)
+        elif self.spec is None:
             self.source = ExactPairing(
                 round(p.step_period * _NS), queue_size=p.queue_size, jump_threshold_ns=jump_ns
             )
@@ -172,12 +185,14 @@ class FilterNode(Node):
         self.create_timer(p.diagnostics_period, self.publish_diagnostics)
         if self.policy is not None:
             self._ready_timer = self.create_timer(0.01, self._check_ready)
-        if self.spec is not None:
+        if self.grid is not None:
             self.create_timer(min(0.1, p.max_latency / 4), self._flush_if_idle)
         what = "pure filter" if self.policy is None else f"policy {p.policy}"
         how = "pairing"
         if self.spec is not None:
             how = f"steps of {self.spec.grid.step_ns / _NS:g} s from"
+        if p.lockstep:
+            how = "lockstep: one step per image of"
         self.logger.info(
             f"model {p.model} ({self.model.method}, {self.model.state_dim}-d states, "
             f"{self.inputs.fingerprint[:12]}); {what}; {how} {self.image_topic} and "
@@ -225,6 +240,9 @@ class FilterNode(Node):
         if self.spec is None:
             self.image_type, self.action_type = m.IMAGE_TYPE, m.ACTION_TYPE
             on_image, on_action = self._on_image, self._on_action
+        elif p.lockstep:
+            self.image_type, self.action_type = self.spec.image_type, self.spec.action_type
+            on_image, on_action = self._on_lockstep_image, self._on_lockstep_command
         else:
             self.image_type, self.action_type = self.spec.image_type, self.spec.action_type
             on_image, on_action = self._on_grid_image, self._on_grid_command
@@ -356,6 +374,31 @@ class FilterNode(Node):
                 continue
             self._process(replace(step, image=observation), start)
 
+    # -- a lockstep robot: one step per image ----------------------------------------------
+
+    def _on_lockstep_image(self, data: bytes) -> None:
+        """An image of a lockstep robot: the step of the node's last command."""
+        start = time.perf_counter()
+        sent = self._sent(self.image_sub)
+        assert isinstance(self.source, LockstepStepping) and self.spec is not None
+        self.health.arrived("image")
+        msg = self._decode(data, self.image_type, self.image_topic)
+        if msg is None:
+            return
+        stamp = m.stamp_of(msg)
+        stamp = stamp if stamp > 0 else sent
+        added = self.source.add_image(stamp, Frame(msg, self.image_type, self.spec.preprocessing))
+        if added.jumped:
+            self._reinit(f"camera time jumped back to {stamp / _NS:.3f} s")
+        if added.problem is not None:
+            self._warn(self.image_topic, "late", f"image at {stamp / _NS:.3f} s makes no step")
+        self._grid_steps(added.steps, start)
+
+    def _on_lockstep_command(self, data: bytes) -> None:
+        """The command input in lockstep: not read (the node's own commands are the
+        actions), only heard, for the input's health."""
+        self.health.arrived("action")
+
     def _flush_if_idle(self) -> None:
         """Both inputs silent for ``max_latency``: close the steps before the newest image."""
         assert self.grid is not None
@@ -456,6 +499,8 @@ class FilterNode(Node):
             msg = m.stamped_twist(stamp if stamp is not None else self.now_ns(), twist)
         else:
             msg = twist
+        if isinstance(self.source, LockstepStepping):  # before the robot can answer it
+            self.source.command(action)
         self.cmd_pub.publish(msg)
         self.commands += 1
 

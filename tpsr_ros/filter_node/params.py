@@ -103,6 +103,13 @@ class FilterNodeParams:
         "steps before the newest image close",
         positive=True,
     )
+    lockstep: bool = param(
+        False,
+        "step-grid models with a policy: the robot takes one step per command and answers it "
+        "with one image (sim_node in command mode); each image is the step at the first grid "
+        "time at or after its stamp, with the node's last command as its action (the command "
+        "input is not read)",
+    )
 
     def __post_init__(self) -> None:
         if self.queue_size < 1:

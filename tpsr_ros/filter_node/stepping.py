@@ -10,6 +10,11 @@ steps offline tracking makes of the same messages: ``(t_k, a_k, o_k)``.
 - :class:`GridStepping` (models learned with ``--step-period``): camera and commands are
   resampled on the model's step grid (:class:`~tpsr_ros.core.resample.GridStepper`), the
   latest image and the command in force at each grid time.
+- :class:`LockstepStepping` (the same models driving a robot that takes one step per
+  command and answers it with one image, as ``sim_node`` in command mode does): each image
+  is one step on the model's grid, with the node's own last command as its action. The
+  grid rules cannot close a step there: they wait for an image after the step, which the
+  robot sends only once the node has answered that step.
 
 Both answer ``add_image`` and ``add_action`` with :class:`Added` (the completed steps and
 whether time jumped back, which restarts the state) and report their counters with
@@ -23,10 +28,19 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from tpsr_ros.core.cadence import CadenceGaps
+from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.pairing import ExactTimeSynchronizer, Outcome
 from tpsr_ros.core.resample import GridConfig, GridStep, GridStepper
 
-__all__ = ["Added", "CommandDating", "ExactPairing", "GridStepping", "Step", "StepSource"]
+__all__ = [
+    "Added",
+    "CommandDating",
+    "ExactPairing",
+    "GridStepping",
+    "LockstepStepping",
+    "Step",
+    "StepSource",
+]
 
 
 @dataclass(frozen=True)
@@ -307,6 +321,84 @@ class GridStepping:
             "camera_gaps": stepper.camera_gaps,
             "command_gaps": stepper.command_gaps,
             "far_commands": self.far_commands,
+        }
+
+
+class LockstepStepping:
+    """One step per image of a lockstep robot (module docstring), on the model's grid.
+
+    An image stamped ``s`` is the step at the first grid time at or after ``s`` (the grid
+    step that takes it offline, as the next image comes at least a period later); its
+    action is the node's last command sent (:meth:`command`) before the image arrived. An
+    image not newer than the previous one, or whose grid time was already stepped, is
+    counted and dropped; an image before any command is a command gap.
+    """
+
+    def __init__(self, grid: GridConfig, *, jump_threshold_ns: int) -> None:
+        if grid.phase_ns is None:
+            raise ConfigError(
+                "lockstep needs a model whose step grid has a phase (refit it with learner fit)"
+            )
+        self.step_ns, self.phase_ns = int(grid.step_ns), int(grid.phase_ns)
+        self.jump_threshold_ns = int(jump_threshold_ns)
+        self.action: int | None = None
+        self.last_image: int | None = None
+        self.last_step: int | None = None
+        self.late = self.out_of_order = self.time_jumps = self.command_gaps = 0
+
+    def step_time(self, stamp: int) -> int:
+        """The first grid time at or after ``stamp``."""
+        return int(stamp) + (self.phase_ns - int(stamp)) % self.step_ns
+
+    def command(self, action: int) -> None:
+        """The node sent ``action``: the robot's next step executes it."""
+        self.action = int(action)
+
+    def _jumped(self, stamp: int) -> bool:
+        if self.last_image is None or stamp >= self.last_image - self.jump_threshold_ns:
+            return False
+        self.last_image = self.last_step = None
+        self.time_jumps += 1
+        return True
+
+    def add_image(self, stamp: int, image: Any) -> Added:
+        """An image (any object holding it); the step it makes, if any."""
+        jumped = self._jumped(stamp)
+        if self.last_image is not None and stamp <= self.last_image:
+            self.out_of_order += 1
+            return Added(jumped=jumped, problem="late")
+        self.last_image = int(stamp)
+        at = self.step_time(stamp)
+        if self.last_step is not None and at <= self.last_step:
+            self.late += 1
+            return Added(jumped=jumped, problem="late")
+        if self.action is None:
+            self.command_gaps += 1
+            return Added(jumped=jumped)
+        self.last_step = at
+        return Added([Step(at, self.action, image)], jumped)
+
+    def episode_start(self, stamp: int) -> bool:
+        """A start message restarts the state (robot streams have no episodes)."""
+        return True
+
+    def clock(self, stamp: int) -> bool:
+        """``/clock``: a jump back restarts the steps."""
+        return self._jumped(stamp)
+
+    def counts(self) -> dict[str, int]:
+        """Counters in the grid's keys (dropped images are the out-of-order and late ones)."""
+        return {
+            "dropped": self.out_of_order + self.late,
+            "duplicates": 0,
+            "late": self.late,
+            "out_of_order": self.out_of_order,
+            "time_jumps": self.time_jumps,
+            "lost_images": 0,
+            "lost_actions": 0,
+            "camera_gaps": 0,
+            "command_gaps": self.command_gaps,
+            "far_commands": 0,
         }
 
 

@@ -98,6 +98,11 @@ def save_model(
     ``preset`` the named settings the fit started from and what its options changed
     (``{"name": ..., "changed": {...}}``, shown by ``learner info``).
     """
+    if model.method not in METHODS:
+        raise ModelFormatError(
+            f"{model.method} models are experiment baselines (learner experiment --methods "
+            f"{model.method}) and cannot be saved; model files hold {' or '.join(METHODS)}"
+        )
     scaling = "rgb8 pixel values / 255, row-major (height, width, channel)"
     if inputs is not None:
         _check_inputs(inputs, model.obs_size, model.n_actions, "the model to save")

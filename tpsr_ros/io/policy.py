@@ -43,7 +43,9 @@ FORMAT_NAME = "tpsr-ros policy"
 FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2)
 TRUE_POSITION = "true-position"
-REPRESENTATIONS = ("tpsr", "pca", TRUE_POSITION)
+REPRESENTATIONS = ("tpsr", "pca", "stacked-pca", "window", TRUE_POSITION)
+"""Representations a policy may name; ``stacked-pca`` and ``window`` are experiment
+baselines (:mod:`tpsr_ros.core.window_baselines`) whose models are never saved."""
 MAX_MAGNITUDE = 1e100
 """Bound on every stored value: fitted Q squares widths and distances, which must not overflow."""
 

@@ -464,9 +464,11 @@ def read_stream_trajectory(
                 "segments": segments.astype(np.int64),
             }
         )
+        camera = _first_pixels(bag, spec.image_topic).shape
         sources.append(
             {
                 "path": str(path),
+                "camera": {"height": int(camera[0]), "width": int(camera[1])},
                 "steps": int(steps.stamps.size),
                 "segments": int(breaks.sum()) + 1,
                 "grid_steps": steps.grid_steps,
