@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from sim_node import SimConfig
-from sim_node.node import SimNodeParams
+from sim_node.config import DEFAULT_COMMAND_TOLERANCE
 from tpsr_ros.core.actions import PLANAR
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.units import NS_PER_S
@@ -142,7 +142,7 @@ def sim_actions(model_file: ModelFile, config: SimConfig) -> np.ndarray:
                 f"{config.environment.value} robot does not have (it executes "
                 f"{', '.join(grid.components)})"
             )
-    limits = tuple(SimNodeParams().command_tolerance * grid.spacing() / PLANAR.spacing())
+    limits = tuple(DEFAULT_COMMAND_TOLERANCE * grid.spacing() / PLANAR.spacing())
     try:
         return grid.indices(commands, limits)
     except ConfigError as exc:

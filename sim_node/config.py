@@ -15,6 +15,7 @@ from tpsr_ros.core.actions import DEFAULT_TURN_RATE_DEG, PLANAR, ActionGrid, dri
 from tpsr_ros.core.errors import ConfigError
 
 __all__ = [
+    "DEFAULT_COMMAND_TOLERANCE",
     "DEFAULT_VERTICAL_HALF_EXTENT",
     "MAX_VERTICAL_HALF_EXTENT",
     "STRIP_VERTICAL_HALF_EXTENT",
@@ -25,6 +26,9 @@ __all__ = [
 ]
 
 STEP_SECONDS = 1.0
+DEFAULT_COMMAND_TOLERANCE = 3.0
+"""Command mode: the farthest (m/s) a ``/cmd_vel`` component may lie from the planar grid's
+nearest speed (0, ±3, ±6); relative to the grid's spacing for other grids."""
 DEFAULT_VERTICAL_HALF_EXTENT = 0.2
 """The camera's vertical half-extent (tangent of the half-angle, ±11.3°) of the guide's
 environments: a wall farther than 10 m shows its top and the floor."""

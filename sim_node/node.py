@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from sim_node.config import (
+    DEFAULT_COMMAND_TOLERANCE,
     MAX_VERTICAL_HALF_EXTENT,
     Environment,
     SimConfig,
@@ -92,7 +93,7 @@ class SimNodeParams:
         minimum=0,
     )
     command_tolerance: float = param(
-        3.0,
+        DEFAULT_COMMAND_TOLERANCE,
         "command mode: reject a /cmd_vel component farther than this (m/s) from 0, ±3, ±6 "
         "(drive: as far relative to the spacing of its speeds, 1.5 m/s, and turn rates, 45°)",
         positive=True,

@@ -73,9 +73,12 @@ def test_a_player_stopped_early_says_it_was_interrupted_and_how_much_it_played(b
         [sys.executable, "-m", "tpsr_ros.play", str(bag), "--rate", "0.5"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT, env=env,
     )  # fmt: skip
-    time.sleep(3.0)  # 6 steps at half speed: 12 s
+    assert proc.stdout is not None
+    first = proc.stdout.readline()  # the node is up (however long the imports took)
+    time.sleep(2.0)  # 6 steps at half speed: 12 s
     proc.send_signal(signal.SIGINT)
     out, _ = proc.communicate(timeout=30)
+    out = first + out
     assert "interrupted (SIGINT received): played " in out, out
     played = re.search(r"played (\d+) of (\d+) messages \(\d+ %\) from \S+, not the whole bag", out)
     assert played and 0 < int(played.group(1)) < int(played.group(2)), out
