@@ -446,7 +446,9 @@ def _say_sizing(model: StateModel) -> None:
     sized = model.fit_info.get("sized") if isinstance(model, TPSRModel) else None
     if sized:
         changes = {name: (int(old), int(new)) for name, (old, new) in sized.items()}
-        _say(describe_sizing(int(model.fit_info["episodes"]), changes))
+        by_rule = changes.get("rank", (0, 0))[1] == model.fit_info.get("supported_rank")
+        n_train = int(model.fit_info["training_episodes"]) if by_rule else None
+        _say(describe_sizing(int(model.fit_info["episodes"]), changes, n_train))
 
 
 def _say_preset(

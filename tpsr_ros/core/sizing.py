@@ -10,10 +10,13 @@ each size the data cannot carry, and only those, to what it can:
 - whitening dimensions: at most the dimension of what is whitened (``d^O`` of the
   observation, unless ``obs_variance`` chooses it; ``d^H = d^T`` of the shorter of history
   and test) and fewer than the episodes;
-- rank: at most the history/test centres (the features are one more, the constant).
+- rank: at most the history/test centres (the features are one more, the constant), and,
+  once ``P_TH`` is known, at most its singular values that the training episodes support
+  (at least ``0.05 / sqrt(t)`` of the largest, ``t`` training episodes:
+  :func:`tpsr_ros.core.tpsr_stages.supported_rank`, applied by the fit).
 
 Sizes named in ``fixed`` (set on purpose by the user) are never changed: a fit that cannot
-carry them fails with the reason, as before. At 2000 episodes of 16x16 images and more,
+carry them fails with the reason (a rank above the supported singular values too). At 2000 episodes of 16x16 images and more,
 no size of either preset changes.
 """
 
@@ -23,6 +26,7 @@ from collections.abc import Collection
 from dataclasses import dataclass, replace
 
 from tpsr_ros.core.tpsr_config import TPSRConfig
+from tpsr_ros.core.tpsr_stages import singular_value_floor
 
 __all__ = ["SIZED_FIELDS", "Sizing", "describe_sizing", "size_to_data"]
 
@@ -70,7 +74,24 @@ def size_to_data(
     return (replace(config, **values) if values else config), changes
 
 
-def describe_sizing(n_episodes: int, changes: dict[str, tuple[int, int]]) -> str:
-    """``69 episodes: ht_centers 1000 -> 34, ...``: what :func:`size_to_data` changed."""
-    parts = ", ".join(f"{name} {old} -> {new}" for name, (old, new) in changes.items())
+def describe_sizing(
+    n_episodes: int, changes: dict[str, tuple[int, int]], n_train: int | None = None
+) -> str:
+    """``69 episodes: ht_centers 1000 -> 34, ...``: what :func:`size_to_data` changed.
+
+    With ``n_train`` (the fit's training episodes), a rank change says the rank rule's
+    floor (:func:`tpsr_ros.core.tpsr_stages.singular_value_floor`).
+    """
+
+    def part(name: str, old: int, new: int) -> str:
+        text = f"{name} {old} -> {new}"
+        if name == "rank" and n_train is not None:
+            floor = singular_value_floor(1.0, n_train)
+            text += (
+                f" (the singular values of P_TH that {n_train} training episodes support: "
+                f"at least {floor:.2g} of the largest)"
+            )
+        return text
+
+    parts = ", ".join(part(name, old, new) for name, (old, new) in changes.items())
     return f"{n_episodes} episodes carry less than configured: {parts} (set them to keep them)"

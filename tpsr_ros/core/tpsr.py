@@ -71,7 +71,9 @@ from tpsr_ros.core.tpsr_stages import (
     obs_features,
     pool_actions,
     projected_outer,
+    rank_rule_refusal,
     start_and_normaliser,
+    supported_rank,
     top_singular_triplets,
     training_start,
     truncated_svd,
@@ -173,7 +175,11 @@ def run_fit(
     """Algorithms 1-3 (and the state box) on the data of ``engine``, stage by stage.
 
     ``sizing`` sizes the centres, whitening dimensions and rank to the data
-    (:mod:`tpsr_ros.core.sizing`; ``fit_info["sized"]`` records what changed);
+    (:mod:`tpsr_ros.core.sizing`; ``fit_info["sized"]`` records what changed), and holds
+    the rank to the singular values of ``P_TH`` the training episodes support
+    (:func:`~tpsr_ros.core.tpsr_stages.supported_rank`): a rank the sizing may change is
+    lowered to them, a rank it keeps (set on purpose) above them is refused; without
+    ``sizing`` the config is used as given;
     ``action_codes`` are the commands of the actions for action-aware features (default:
     the simulator's 25 velocity pairs).
     """
@@ -205,6 +211,14 @@ def run_fit(
     watch.stage("SVD")
     u, s, v, s_all, usable = truncated_svd(p_th, cfg)
     del p_th
+    supported = supported_rank(s_all, n_train, usable)
+    if sizing is not None and cfg.rank > supported:  # the rank rule (tpsr_stages)
+        if "rank" in sizing.fixed:
+            raise DataError(rank_rule_refusal(cfg.rank, s_all, n_train, usable))
+        sized["rank"] = (sized.get("rank", (cfg.rank, 0))[0], supported)
+        cfg = replace(cfg, rank=supported)
+        u, v = np.ascontiguousarray(u[:, :supported]), np.ascontiguousarray(v[:, :supported])
+        s = s[:supported].copy()
     watch.stage("parameters")
     b_star, b_inf = start_and_normaliser(p_h, s, v)
     sums = engine.parameter_sums(start, centres, (u, s, v), cfg, n_actions)
@@ -217,6 +231,7 @@ def run_fit(
         "training_episodes": int(n_train),
         "samples_per_action": sums.counts.tolist(),
         "usable_singular_values": usable,
+        **({"supported_rank": supported} if sizing is not None else {}),
         "timings": {name: round(sec, 6) for name, sec in watch.timings.items()},
         **engine.info(),
     }

@@ -296,8 +296,9 @@ class Whitening:
         if usable < d:
             raise DataError(
                 f"whitening of {what} asks for {d} dimensions but the data have numerical rank "
-                f"{usable} among their top {d} directions (eigenvalues {values.tolist()}); "
-                "lower the whitening dimension or provide more varied data"
+                f"{usable} among their top {d} directions (eigenvalues from {largest:.3g} down "
+                f"to {float(values[d - 1]) if d else 0.0:.3g}); lower the whitening dimension or "
+                "provide more varied data"
             )
         (vectors,) = flip_signs(vectors)
         return cls(
