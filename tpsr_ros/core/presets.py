@@ -118,9 +118,8 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
         "predictive": Preset(
             "predictive",
             "the project's best, made a predictive state: P_TH with the tests from the current "
-            "step (so B_ao propagates the state it defines), an episode at every step, then the "
-            "spectral model refined through its filter (at most 30 L-BFGS iterations on "
-            "predicting the next 10 images)",
+            "step (so B_ao propagates the state it defines), then the spectral model refined "
+            "through its filter (at most 30 L-BFGS iterations on predicting the next 10 images)",
             tpsr={
                 "center_selection": "kmeans",
                 "normalize_ht_features": True,
@@ -128,7 +127,6 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
                 "action_pooling": 1.0,
                 "obs_variance": 0.95,
                 "p_th_tests": "from-current",
-                "overlapping_episodes": True,
                 "refine_epochs": 30,
             },
             fqi={"state_scaling": "predictive", "ensemble": 5, "centers": 100},
