@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -56,6 +56,7 @@ from tpsr_ros.core.episodes import Trajectory, track_trajectory
 from tpsr_ros.core.errors import ConfigError, DataError, TpsrError
 from tpsr_ros.core.fields import option
 from tpsr_ros.core.learn import fit_tpsr_trajectory
+from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, action_sums
 from tpsr_ros.core.whitening import Whitening
 
@@ -65,6 +66,7 @@ __all__ = [
     "ObservationFeatures",
     "Score",
     "block_jackknife_se",
+    "criterion_for",
     "future_targets",
     "jackknife_replicates",
     "paired_jackknife_se",
@@ -148,6 +150,47 @@ class Score:
     def ok(self) -> bool:
         """True when the candidate was fitted and scored."""
         return not self.error
+
+
+MIN_SCORED_STEPS = 8
+"""Fewest held-out steps a candidate is scored on (after the burn-in and the horizons)."""
+
+
+def criterion_for(
+    config: CriterionConfig, heldout_steps: int, step_seconds: float | None = None
+) -> CriterionConfig:
+    """``config``, its burn-in and horizons shortened when they would leave fewer than half
+    of ``heldout_steps`` scored (a short robot log): each at most a quarter of them.
+
+    A few hundred held-out steps keep the configured values. Fewer than
+    :data:`MIN_SCORED_STEPS` scored steps even then are refused in one line, saying how
+    many more steps (seconds, given ``step_seconds``) the recording needs.
+    """
+
+    def shortened(steps: int) -> CriterionConfig:
+        if steps - config.burn_in - config.horizons >= steps / 2:
+            return config
+        return replace(
+            config,
+            burn_in=min(config.burn_in, steps // 4),
+            horizons=min(config.horizons, max(1, steps // 4)),
+        )
+
+    def enough(steps: int) -> bool:
+        chosen = shortened(steps)
+        return steps - chosen.burn_in - chosen.horizons >= MIN_SCORED_STEPS
+
+    steps = int(heldout_steps)
+    if not enough(steps):
+        needed = next(n for n in range(steps + 1, steps + 10 * MIN_SCORED_STEPS) if enough(n))
+        more = int(np.ceil(needed / config.holdout - steps / config.holdout))
+        extra = "" if step_seconds is None else f", {more * step_seconds:.0f} s"
+        raise DataError(
+            f"{steps} held-out steps are too few to score a candidate (at least "
+            f"{MIN_SCORED_STEPS} after a burn-in and the horizons): record at least {more} "
+            f"more steps{extra}"
+        )
+    return shortened(steps)
 
 
 def split_trajectory(trajectory: Trajectory, holdout: float) -> tuple[Trajectory, Trajectory]:
@@ -358,11 +401,17 @@ def score_tpsr(
     heldout: Trajectory,
     features: ObservationFeatures,
     config: CriterionConfig,
+    *,
+    sizing: Sizing | None = None,
 ) -> tuple[Score, TPSRModel | None]:
-    """Fit ``tpsr`` on ``train``, track ``heldout``, score; a failed fit scores -inf."""
+    """Fit ``tpsr`` on ``train``, track ``heldout``, score; a failed fit scores -inf.
+
+    ``sizing`` as in :func:`~tpsr_ros.core.learn.fit_tpsr_trajectory` (with it the fit
+    holds the rank to the singular values the data support); None: ``tpsr`` as given.
+    """
     start = time.perf_counter()
     try:
-        model = fit_tpsr_trajectory(train, tpsr)
+        model = fit_tpsr_trajectory(train, tpsr, sizing=sizing)
         states = track_trajectory(model, heldout).states
         r2 = score_states(states, heldout, features, config)
     except TpsrError as exc:

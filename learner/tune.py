@@ -39,6 +39,7 @@ from tqdm import tqdm
 from learner.config_file import changed_parameters, describe, write_fit_config
 from learner.criterion import (
     CriterionConfig,
+    criterion_for,
     ObservationFeatures,
     Score,
     paired_jackknife_se,
@@ -46,10 +47,12 @@ from learner.criterion import (
     split_trajectory,
 )
 from tpsr_ros.cli import positive_float, positive_int
-from tpsr_ros.core.episodes import Trajectory, make_episodes
-from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.episodes import Trajectory, episode_starts, make_episodes
+from tpsr_ros.core.errors import ConfigError, DataError, TpsrError
 from tpsr_ros.core.features import median_distance
+from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.sizing import Sizing, describe_sizing, size_to_data
+from tpsr_ros.core.tpsr_stages import singular_value_floor
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.core.whitening import Whitening
 from tpsr_ros.io.model_io import check_output_path
@@ -77,6 +80,11 @@ POOLING = (0.0, 0.5, 1.0)
 OBS_VARIANCE = (0.0, 0.95)
 """Observation whitening: the base's ``d^O``, or the dimensions keeping 95 % of the variance
 (``obs_variance``; docs/results.md, "Observation whitening dimensions")."""
+MESSAGE_CHARS = 200
+"""A candidate's failure is said in at most this many characters (:func:`brief`)."""
+AS_GIVEN = Sizing(f.name for f in dataclasses.fields(TPSRConfig))
+"""Every size as given (as ``learner fit --config`` fits a tuned config): the fit holds
+the rank to the supported singular values by refusing a candidate above them."""
 LOWER_RANKS = 3
 """The last stage tries this many ranks below the best at its other parameters, so the
 one-standard-error rule compares simpler candidates that differ from the best in rank only."""
@@ -173,39 +181,35 @@ def median_widths(train: Trajectory, base: TPSRConfig, *, seed: int = 0) -> dict
     }
 
 
-def _stages(
+Changes = dict[str, Any]
+
+
+def _stage_changes(
     widths: dict[str, float], episodes: int
-) -> list[tuple[str, Callable[[TPSRConfig], list[TPSRConfig]]]]:
-    """The coarse grid, one parameter per stage, each around the best config so far."""
+) -> list[tuple[str, Callable[[TPSRConfig], list[Changes]]]]:
+    """The coarse grid, one parameter per stage, each around the best config so far: each
+    stage proposes changes to the best config (applied, and checked, by :func:`_candidates`)."""
 
-    def replace_each(name: str, values: Sequence[Any]) -> Callable[[TPSRConfig], list[TPSRConfig]]:
-        return lambda best: [dataclasses.replace(best, **{name: v}) for v in values]
+    def replace_each(name: str, values: Sequence[Any]) -> Callable[[TPSRConfig], list[Changes]]:
+        return lambda best: [{name: v} for v in values]
 
-    def lengths(best: TPSRConfig) -> list[TPSRConfig]:
-        return [dataclasses.replace(best, history_length=k, test_length=k) for k in (1, 2)]
+    def lengths(best: TPSRConfig) -> list[Changes]:
+        return [{"history_length": k, "test_length": k} for k in (1, 2)]
 
-    def centres(best: TPSRConfig) -> list[TPSRConfig]:
+    def centres(best: TPSRConfig) -> list[Changes]:
         usable = [c for c in CENTRES if c < episodes // 2]
-        return [dataclasses.replace(best, ht_centers=c, obs_centers=c // 2) for c in usable]
+        return [{"ht_centers": c, "obs_centers": c // 2} for c in usable]
 
-    def refine(name: str) -> Callable[[TPSRConfig], list[TPSRConfig]]:
-        return lambda best: [
-            dataclasses.replace(best, **{name: float(getattr(best, name) * f)})
-            for f in REFINE_FACTORS
-        ]
+    def refine(name: str) -> Callable[[TPSRConfig], list[Changes]]:
+        return lambda best: [{name: float(getattr(best, name) * f)} for f in REFINE_FACTORS]
 
-    def refine_rank(best: TPSRConfig) -> list[TPSRConfig]:
+    def refine_rank(best: TPSRConfig) -> list[Changes]:
         return [
-            dataclasses.replace(best, rank=r)
-            for r in (best.rank - 1, best.rank + 2)
-            if 1 <= r <= best.ht_centers + 1
+            {"rank": r} for r in (best.rank - 1, best.rank + 2) if 1 <= r <= best.ht_centers + 1
         ]
 
-    def lower_ranks(best: TPSRConfig) -> list[TPSRConfig]:
-        return [
-            dataclasses.replace(best, rank=r)
-            for r in range(best.rank - 1, max(0, best.rank - 1 - LOWER_RANKS), -1)
-        ]
+    def lower_ranks(best: TPSRConfig) -> list[Changes]:
+        return [{"rank": r} for r in range(best.rank - 1, max(0, best.rank - 1 - LOWER_RANKS), -1)]
 
     def scaled(name: str) -> list[float]:
         return [f * widths[name] for f in WIDTH_FACTORS]
@@ -227,27 +231,109 @@ def _stages(
     ]
 
 
+def _stages(
+    widths: dict[str, float], episodes: int
+) -> list[tuple[str, Callable[[TPSRConfig], list[TPSRConfig]]]]:
+    """:func:`_stage_changes` applied to the best config (changes it cannot take left out)."""
+
+    def applied(
+        propose: Callable[[TPSRConfig], list[Changes]],
+    ) -> Callable[[TPSRConfig], list[TPSRConfig]]:
+        def configs(best: TPSRConfig) -> list[TPSRConfig]:
+            found = [_applied(best, changes) for changes in propose(best)]
+            return [c for c in found if isinstance(c, TPSRConfig)]
+
+        return configs
+
+    return [(name, applied(propose)) for name, propose in _stage_changes(widths, episodes)]
+
+
+def _applied(config: TPSRConfig, changes: Changes) -> TPSRConfig | str:
+    """``config`` with ``changes``, or why it cannot take them (one short line)."""
+    try:
+        return dataclasses.replace(config, **changes)
+    except ConfigError as exc:
+        return f"{_changes_text(changes)}: {brief(str(exc))}"
+
+
 def _planned(widths: dict[str, float], episodes: int) -> int:
     """Upper bound on the number of candidates (for the progress bar)."""
     probe = TPSRConfig()
-    return 2 + sum(len(propose(probe)) for _, propose in _stages(widths, episodes))
+    return 2 + sum(len(propose(probe)) for _, propose in _stage_changes(widths, episodes))
 
 
 def _candidates(
     base: TPSRConfig, widths: dict[str, float], episodes: int, best: Callable[[], TPSRConfig]
-) -> Iterator[tuple[str, TPSRConfig]]:
+) -> Iterator[tuple[str, TPSRConfig | str]]:
     """The base (a preset's settings) first, median widths second, then each stage around
-    the best.
+    the best: ``(stage, config)``, or ``(stage, reason)`` for changes no config can take.
 
     The base comes first so that a budget that allows one candidate returns a model no
     worse than an untuned fit: at the median observation width the filter of a `full`
     bag explodes (docs/results.md, "Tuning").
     """
     yield "base", base
-    yield "median widths", dataclasses.replace(base, **widths)
-    for stage, propose in _stages(widths, episodes):
-        for candidate in propose(best()):
-            yield stage, candidate
+    yield "median widths", dataclasses.replace(best(), **widths)  # the base as fitted
+    for stage, propose in _stage_changes(widths, episodes):
+        current = best()
+        for changes in propose(current):
+            yield stage, _applied(current, changes)
+
+
+def _departures_text(config: TPSRConfig, base: TPSRConfig) -> str:
+    """``sigma_ht=3.08 rank=5``: what ``config`` changes in ``base`` (``as the base``)."""
+    changed = {
+        f.name: getattr(config, f.name)
+        for f in dataclasses.fields(config)
+        if getattr(config, f.name) != getattr(base, f.name)
+    }
+    return _changes_text(changed) or "as the base"
+
+
+def _changes_text(changes: Changes) -> str:
+    return " ".join(
+        f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in changes.items()
+    )
+
+
+def brief(message: str, limit: int = MESSAGE_CHARS) -> str:
+    """The first line of ``message``, cut to ``limit`` characters (an ellipsis marks a cut)."""
+    line = message.strip().splitlines()[0] if message.strip() else "failed"
+    return line if len(line) <= limit else line[: limit - 1].rstrip() + "\u2026"
+
+
+@dataclass(frozen=True)
+class Support:
+    """What the training part of the data can carry, checked before a candidate is fitted.
+
+    ``obs_size`` values per observation; ``max_rank``: the singular values of ``P_TH`` the
+    base candidate's fit found supported (:func:`tpsr_ros.core.tpsr_stages.supported_rank`),
+    None when unknown.
+    """
+
+    train: Trajectory
+    obs_size: int
+    max_rank: int | None = None
+
+    def episodes(self, config: TPSRConfig) -> int:
+        """Episodes ``config`` cuts from the training part."""
+        span = config.history_length + 1 + config.test_length
+        return int(episode_starts(self.train, span, config.episode_stride).size)
+
+    def refusal(self, config: TPSRConfig) -> str | None:
+        """Why the data cannot carry ``config`` (one short phrase), or None."""
+        episodes = self.episodes(config)
+        if episodes < 2:
+            return f"no 2 episodes of {config.history_length} + 1 + {config.test_length} steps"
+        _, changes = size_to_data(config, episodes, self.obs_size, Sizing())
+        too_large = [f"{name} {old} > {new}" for name, (old, new) in changes.items()]
+        if self.max_rank is not None and config.rank > self.max_rank:
+            too_large.append(
+                f"rank {config.rank} > the {self.max_rank} supported singular values of P_TH"
+            )
+        if not too_large:
+            return None
+        return f"{episodes} episodes cannot carry {', '.join(too_large)}"
 
 
 def tune(
@@ -278,23 +364,58 @@ def tune(
     crit = criterion or CriterionConfig()
     base = dataclasses.replace(base or TPSRConfig(), seed=seed)
     train, heldout = split_trajectory(trajectory, crit.holdout)
+    stamps = np.asarray(trajectory.stamps, dtype=np.float64)
+    step_seconds = float(np.median(np.diff(stamps))) * 1e-9 if stamps.size > 1 else None
+    sized_crit = criterion_for(crit, len(heldout), step_seconds)
+    if sized_crit != crit:
+        crit = sized_crit
+        say(
+            f"criterion sized to {len(heldout)} held-out steps: burn-in {crit.burn_in}, "
+            f"horizons 1..{crit.horizons}"
+        )
     features = ObservationFeatures.fit(train.observations, crit.feature_dim)
-    widths = median_widths(train, base, seed=seed)
-    span = base.history_length + 1 + base.test_length
-    episodes = len(train) // span
-    base, sized = size_to_data(base, episodes, train.observations.shape[1], Sizing())
+    support = Support(train, train.observations.shape[1])
+    episodes = support.episodes(base)
+    if episodes < 2:
+        raise DataError(f"{len(train)} training steps cut into {episodes} episodes: too few to tune")
+    base, sized = size_to_data(base, episodes, support.obs_size, Sizing())
+    try:  # the rank the data support, from the sized base's P_TH (spectral fit only)
+        probe = fit_tpsr_trajectory(train, dataclasses.replace(base, refine_epochs=0), sizing=Sizing())
+    except TpsrError as exc:
+        raise DataError(
+            f"the base settings cannot be fitted on {len(train)} training steps ({brief(str(exc))})"
+        ) from None
+    n_train = int(probe.fit_info["training_episodes"])
+    support = dataclasses.replace(support, max_rank=int(probe.fit_info["supported_rank"]))
+    if probe.config.rank < base.rank:
+        sized["rank"] = (sized.get("rank", (base.rank, 0))[0], probe.config.rank)
+        base = dataclasses.replace(base, rank=probe.config.rank)
     if sized:
-        say(describe_sizing(episodes, sized))
+        say(describe_sizing(episodes, sized, n_train if "rank" in sized else None))
+    say(
+        f"the data support rank {support.max_rank} at most (singular values of P_TH at least "
+        f"{singular_value_floor(1.0, n_train):.2g} of the largest, {n_train} training "
+        "episodes); candidates the data cannot carry are skipped"
+    )
+    try:
+        widths = median_widths(train, base, seed=seed)  # whitened as the sized base whitens
+    except DataError as exc:
+        widths = {"sigma_obs": base.sigma_obs, "sigma_ht": base.sigma_ht}
+        say(f"median widths unavailable ({brief(str(exc))}); the grid scales the base's")
     say(
         f"median widths: sigma_obs {widths['sigma_obs']:.3g}, sigma_ht {widths['sigma_ht']:.3g} "
         f"({len(train)} steps fitted, {len(heldout)} held out)"
     )
     trials: list[Trial] = []
     seen: set[TPSRConfig] = set()
+    skipped: set[str] = set()
     stopped = "every candidate of the grid was tried"
 
     def best() -> Trial:
         return max(trials, key=lambda t: t.score.value)
+
+    def best_config() -> TPSRConfig:
+        return best().config if trials else base
 
     bar = tqdm(
         total=_planned(widths, episodes),
@@ -303,7 +424,14 @@ def tune(
         disable=None if progress else True,  # None: only on a terminal
         file=sys.stderr,
     )
-    for stage, candidate in _candidates(base, widths, episodes, lambda: best().config):
+    for stage, candidate in _candidates(base, widths, episodes, best_config):
+        reason = candidate if isinstance(candidate, str) else support.refusal(candidate)
+        if reason is not None:
+            if reason not in skipped:  # the data cannot carry it: not fitted, said once
+                skipped.add(reason)
+                say(f"skipped ({stage}): {reason}")
+            continue
+        assert not isinstance(candidate, str)
         if candidate in seen:
             continue
         if candidates is not None and len(trials) >= candidates:
@@ -318,19 +446,27 @@ def tune(
             )
             break
         seen.add(candidate)
-        score, _ = score_tpsr(candidate, train, heldout, features, crit)
+        # fitted as given: a rank above the singular values its P_TH supports is refused
+        score, _ = score_tpsr(candidate, train, heldout, features, crit, sizing=AS_GIVEN)
         trials.append(Trial(candidate, stage, score))
         top = best()
-        result = f"{score.value:.4f} ± {score.se:.4f}" if score.ok else f"failed ({score.error})"
+        result = (
+            f"{score.value:.4f} ± {score.se:.4f}" if score.ok else f"failed ({brief(score.error)})"
+        )
+        what = describe(candidate) if len(trials) == 1 else _departures_text(candidate, base)
         say(
-            f"[{len(trials)}] {stage}: {describe(candidate)} -> criterion {result} "
-            f"({score.seconds:.1f} s); best {top.score.value:.4f}: {describe(top.config)}"
+            f"[{len(trials)}] {stage}: {what} -> criterion {result} ({score.seconds:.1f} s); "
+            f"best {top.score.value:.4f} [{trials.index(top) + 1}]"
         )
         bar.update()
         bar.set_postfix(best=f"{top.score.value:.4f}")
     bar.close()
-    if not best().score.ok:
-        raise DataError(f"no candidate could be fitted: {best().score.error}")
+    if not trials or not best().score.ok:
+        why = brief(best().score.error) if trials else "every candidate was skipped"
+        raise DataError(
+            f"no candidate could be fitted on {len(train)} training steps ({why}); record more "
+            "data or a shorter --step-period"
+        )
     say(stopped)
     top, chosen = best(), one_standard_error_choice(trials)
     if chosen is not top:
@@ -343,6 +479,38 @@ def tune(
     return TuneResult(chosen, top, tuple(trials), widths, stopped, clock() - start, crit)
 
 
+def fit_check(trajectory: Trajectory, result: TuneResult, report: Report | None = None) -> Trial:
+    """The candidate to write: the chosen one if ``learner fit --config`` can fit it on all of
+    ``trajectory`` (every size as given, the rank held to the supported singular values),
+    else the next fitted candidate in the rule's order that it can.
+
+    The spectral fit is checked (refinement, where configured, cannot refuse).
+    """
+    say = report or (lambda _line: None)
+    fitted = [t for t in result.trials if t.score.ok]
+    order = [result.best] + sorted(
+        (t for t in fitted if t is not result.best),
+        key=lambda t: (-t.score.value, complexity(t.config)),
+    )
+    reasons: list[str] = []
+    for trial in order:
+        try:
+            fit_tpsr_trajectory(
+                trajectory, dataclasses.replace(trial.config, refine_epochs=0), sizing=AS_GIVEN
+            )
+        except TpsrError as exc:
+            reasons.append(brief(str(exc)))
+            say(f"{describe(trial.config)} cannot be fitted on all {len(trajectory)} steps: {reasons[-1]}")
+            continue
+        if trial is not result.best:
+            say(f"writing instead {describe(trial.config)} (criterion {trial.score.value:.4f})")
+        return trial
+    raise DataError(
+        f"no tuned candidate can be fitted on all {len(trajectory)} steps ({reasons[0]}); "
+        "record more data"
+    )
+
+
 def tune_record(result: TuneResult) -> dict[str, Any]:
     """The ``tune`` section of the config file: criterion, widths, every candidate."""
 
@@ -352,7 +520,7 @@ def tune_record(result: TuneResult) -> dict[str, Any]:
             entry["criterion"] = round(t.score.value, 6)
             entry["se"] = round(t.score.se, 6)
         else:
-            entry["error"] = t.score.error
+            entry["error"] = brief(t.score.error)
         entry["seconds"] = round(t.score.seconds, 2)
         return entry
 
@@ -461,7 +629,8 @@ def run(args: argparse.Namespace) -> int:
         "'Tuning'),\nand the options the bags were read with;\nuse with: learner fit BAG... "
         "--config THIS_FILE -o MODEL"
     )
-    best = result.best
+    best = fit_check(trajectory, result, _say)
+    result = dataclasses.replace(result, best=best)
     print(
         f"chosen: {describe(best.config)} (criterion {best.score.value:.4f} ± "
         f"{best.score.se:.4f}; highest {result.top.score.value:.4f})"

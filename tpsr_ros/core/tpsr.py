@@ -209,7 +209,8 @@ def run_fit(
     watch.stage("P-statistics")
     p_h, p_th, n_train = engine.p_statistics(start, centres, cfg)
     watch.stage("SVD")
-    u, s, v, s_all, usable = truncated_svd(p_th, cfg)
+    free_rank = sizing is not None and "rank" not in sizing.fixed
+    u, s, v, s_all, usable = truncated_svd(p_th, cfg, refuse=not free_rank)
     del p_th
     supported = supported_rank(s_all, n_train, usable)
     if sizing is not None and cfg.rank > supported:  # the rank rule (tpsr_stages)

@@ -221,19 +221,20 @@ def obs_features(rows: np.ndarray, centres: np.ndarray, cfg: TPSRConfig) -> np.n
 
 
 def truncated_svd(
-    p_th: np.ndarray, cfg: TPSRConfig
+    p_th: np.ndarray, cfg: TPSRConfig, *, refuse: bool = True
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Algorithm 3's compact rank-``r`` SVD ``P_TH ~ U S V^T``.
 
     Returns ``U (l_T + 1, r)``, ``s (r,)``, ``V (l_H + 1, r)``, the singular values
     computed (``r`` plus :data:`EXTRA_SINGULAR_VALUES`, to show the gap) and how many of
-    them are numerically non-zero; a rank above that is refused.
+    them are numerically non-zero; a rank above that is refused (unless ``refuse`` is
+    False: the caller lowers the rank).
     """
     n_sv = min(cfg.rank + EXTRA_SINGULAR_VALUES, min(p_th.shape))
     u, s_all, v = top_singular_triplets(p_th, n_sv, seed=cfg.seed)
     tol = max(p_th.shape) * np.finfo(np.float64).eps * float(s_all[0])
     usable = int(np.count_nonzero(s_all > tol))
-    if usable < cfg.rank:
+    if refuse and usable < cfg.rank:
         raise DataError(
             f"rank {cfg.rank} exceeds the {usable} usable singular values of P_TH (from "
             f"{s_all[0]:.3g} down to {s_all[min(cfg.rank, s_all.size) - 1]:.3g}); lower the rank "
@@ -273,11 +274,10 @@ def rank_rule_refusal(rank: int, singular_values: np.ndarray, n_train: int, usab
     supported = supported_rank(values, n_train, usable)
     weakest = values[min(rank, values.size) - 1] / values[0]
     return (
-        f"rank {rank} (set on purpose) keeps singular values of P_TH that {n_train} training "
-        f"episodes do not support: {supported} reach the floor of "
-        f"{SINGULAR_NOISE_FACTOR:g}/sqrt({n_train}) = "
-        f"{singular_value_floor(1.0, n_train):.2g} of the largest, the {_ordinal(rank)} is "
-        f"{weakest:.2g} of it; give a rank of at most {supported} or record more data"
+        f"rank {rank} is above the {supported} singular value(s) of P_TH that {n_train} "
+        f"training episodes support (at least {singular_value_floor(1.0, n_train):.2g} of the "
+        f"largest; the {_ordinal(rank)} is {weakest:.2g} of it): set a rank of at most "
+        f"{supported}, or record more data"
     )
 
 
