@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from learner.adequacy import Adequacy, assess, recovery_text
 from learner.config_file import describe, read_fit_file
 from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible, dask_client
 from learner.inputs import (
@@ -261,8 +262,22 @@ def run(args: argparse.Namespace) -> int:
         "reading_seconds": round(timings["reading bags"], 6),
         "fit_seconds": round(timings["fit"], 6),
     }
+    if isinstance(model, TPSRModel):  # enough data? episodes per action, recovery rate
+        training["adequacy"] = _say_adequacy(assess(model, trajectory))
     _write(model, output, training, spec, timings, preset=record, force=args.force)
     return 0
+
+
+def _say_adequacy(adequacy: Adequacy) -> dict[str, Any]:
+    """Say the recovery rate, and when the data are too little, why and what to record."""
+    _say(
+        f"tracking the training data {recovery_text(adequacy.recoveries, adequacy.steps)} "
+        f"(recovery rate {adequacy.recovery_rate:.2f}); {adequacy.per_action:.1f} training "
+        "episodes per action"
+    )
+    if (judgement := adequacy.judgement()) is not None:
+        _say(f"warning: {judgement}")
+    return adequacy.as_dict()
 
 
 def read_training_bags(

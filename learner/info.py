@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from learner.adequacy import MAX_RECOVERY_RATE, MIN_EPISODES_PER_ACTION
 from learner.inputs import environment_label
 from tpsr_ros.io.model_io import metadata_field, open_model
 from tpsr_ros.io.stream_spec import StreamSpec
@@ -72,6 +73,24 @@ def _camera(training: dict[str, Any]) -> str:
     return f" (camera vertical half-extent {value:g})"
 
 
+def _adequacy_line(adequacy: dict[str, Any]) -> str:
+    """``recovery rate 0.06 (tracking the training data restarts at 5 of 83 steps);
+    13.5 training episodes per action`` and, for too little data, a warning."""
+    line = (
+        f"recovery rate {_num(adequacy.get('recovery_rate'), '.2f')} (tracking the training "
+        f"data restarts at {adequacy.get('recoveries')} of {adequacy.get('tracked_steps')} "
+        f"steps); {_num(adequacy.get('episodes_per_action'), '.1f')} training episodes per "
+        "action"
+    )
+    if adequacy.get("too_little") is True:
+        line += (
+            " - too little data for a good model (wanted: at least "
+            f"{MIN_EPISODES_PER_ACTION} episodes per action, at most "
+            f"{MAX_RECOVERY_RATE:.0%} of the steps restarting)"
+        )
+    return line
+
+
 def info_lines(
     path: Path, metadata: dict[str, Any], spec: StreamSpec | None = None
 ) -> list[str]:
@@ -98,6 +117,8 @@ def info_lines(
             f"{training.get('stamps_ns')} ns"
         )
         lines.append(f"bags: {', '.join(map(str, paths))}")
+        if adequacy := _mapping(training.get("adequacy")):
+            lines.append(_adequacy_line(adequacy))
     if spec is not None:
         prep, grid = spec.preprocessing, spec.grid.as_dict()
         book = spec.codebook
