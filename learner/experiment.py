@@ -359,6 +359,7 @@ def _learn_states(
     elif method == "stacked-pca":
         model = fit_stacked_pca(
             train.observations,
+            train.actions,
             n_actions=train.n_actions,
             config=config.stacked,
             action_codes=config.sim_config().actions.codes,

@@ -57,7 +57,7 @@ def separation(states: np.ndarray, cells: np.ndarray, actions: np.ndarray) -> fl
 def test_known_answer_k2_tells_apart_the_alike_cells_that_k1_cannot():
     obs, actions, cells = ring()
     for fit in (
-        lambda k: fit_stacked_pca(obs, n_actions=2, action_codes=CODES,
+        lambda k: fit_stacked_pca(obs, actions, n_actions=2, action_codes=CODES,
                                   config=StackedPCAConfig(k=k, dim=2)),
         lambda k: fit_window(obs, actions, n_actions=2,
                              config=WindowConfig(k=k, dim=2, components=2)),
@@ -93,8 +93,10 @@ def test_window_state_carries_its_buffer_and_predicts_more_with_a_longer_window(
 def test_track_equals_a_loop_of_updates_bit_for_bit(k):
     obs, actions, _ = ring(300, seed=k)
     models = [
-        fit_stacked_pca(obs, n_actions=2, action_codes=CODES, config=StackedPCAConfig(k=k, dim=2)),
-        fit_stacked_pca(obs, n_actions=2, config=StackedPCAConfig(k=k, dim=3, actions="one-hot")),
+        fit_stacked_pca(obs, actions, n_actions=2, action_codes=CODES,
+                        config=StackedPCAConfig(k=k, dim=2)),
+        fit_stacked_pca(obs, actions, n_actions=2,
+                        config=StackedPCAConfig(k=k, dim=3, actions="one-hot")),
         fit_window(obs, actions, n_actions=2, config=WindowConfig(k=k, dim=2, components=2)),
         fit_window(obs, actions, n_actions=2, action_codes=CODES,
                    config=WindowConfig(k=k, dim=2, components=3, actions="code")),
@@ -116,15 +118,29 @@ def test_track_equals_a_loop_of_updates_bit_for_bit(k):
 
 def test_stacked_state_is_the_window_of_step_features():
     obs, actions, _ = ring(50)
-    model = fit_stacked_pca(obs, n_actions=2, action_codes=CODES, config=StackedPCAConfig(k=3))
+    model = fit_stacked_pca(obs, actions, n_actions=2, action_codes=CODES,
+                            config=StackedPCAConfig(k=3))
     states = model.track(actions, obs).states
     codes = np.matmul((obs - model.obs_mean)[:, None, :], model.obs_components)[:, 0, :]
     x = np.concatenate([codes, CODES[actions]], axis=1)  # (T, 5)
     assert model.state_dim == planner_dim(model) == 15
     np.testing.assert_array_equal(states[10], np.concatenate([x[10], x[9], x[8]]))
-    np.testing.assert_array_equal(states[1], np.concatenate([x[1], x[0], np.zeros(5)]))
-    assert np.array_equal(model.initial_state(), np.zeros(15))
+    # steps before the first hold the training mean of the step features
+    np.testing.assert_allclose(model.padding, x.mean(axis=0), rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(states[1], np.concatenate([x[1], x[0], model.padding]))
+    assert np.array_equal(model.initial_state(), np.tile(model.padding, 3))
     assert np.array_equal(window_rows(x, 1), x)
+
+
+def test_window_starts_from_the_mean_step():
+    obs, actions, _ = ring(300)
+    model = fit_window(obs, actions, n_actions=2, config=WindowConfig(k=3, dim=2, components=2))
+    np.testing.assert_allclose(model.padding[2:], np.bincount(actions) / 300, rtol=1e-12)
+    start = model.initial_state()
+    empty = np.tile(model.padding, 3)
+    np.testing.assert_allclose(start[:2], (empty - model.window_mean) @ model.projection,
+                               rtol=1e-10, atol=1e-12)
+    assert np.array_equal(start[2:], empty[:8])
 
 
 def test_window_k1_update_ignores_the_previous_state():
@@ -180,7 +196,7 @@ def test_bad_configs_are_refused_with_clear_errors():
             make()
     obs, actions, _ = ring(200)
     with pytest.raises(ConfigError, match="needs the commands' codes"):
-        fit_stacked_pca(obs, n_actions=2, config=StackedPCAConfig(dim=2))
+        fit_stacked_pca(obs, actions, n_actions=2, config=StackedPCAConfig(dim=2))
     with pytest.raises(DataError, match="window dim 9 exceeds what the regression can span"):
         fit_window(obs, actions, n_actions=2, config=WindowConfig(k=2, dim=9, components=2))
     with pytest.raises(DataError, match="codes must be a finite"):

@@ -38,10 +38,14 @@ the buffer would make ``window`` a second ``stacked-pca``. The buffer is carried
 (copied, never reconstructed from ``p``), so :meth:`~WindowModel.track` equals a loop of
 updates bit for bit.
 
-Both models start from an empty window: steps before the first hold zeros (the mean
-image's components and zero action features), in tracking, evaluation and the fit alike
-(every training segment starts empty). Neither is saved to model files: they are
-experiment baselines (``learner experiment --methods stacked-pca window``).
+Both models start from an empty window: steps before the first hold the training mean of
+the step features (the mean image's components, zero, and the actions' mean features),
+the expectation of a past not seen, in tracking, evaluation and the fit alike (every
+training segment starts empty). Zeros would put one-hot actions where no real step
+lies, and a planner would meet those states only at the start of each trial.
+
+Neither model is saved to model files: they are experiment baselines (``learner
+experiment --methods stacked-pca window``).
 """
 
 from __future__ import annotations
@@ -206,7 +210,7 @@ def window_rows(features: np.ndarray, k: int, history: np.ndarray | None = None)
     """Windows ``(T, k * m)``: row ``t`` is ``[x_t, x_{t-1}, ..., x_{t-k+1}]``.
 
     ``history`` ``((k - 1) * m,)`` holds the steps before the first, newest first, as a
-    state's buffer does (default zeros: an empty window). Pure copies of the inputs.
+    state's buffer does (default zeros). Pure copies of the inputs.
     """
     n, m = features.shape
     before = np.zeros((k - 1) * m) if history is None else np.asarray(history, dtype=np.float64)
@@ -217,16 +221,18 @@ def window_rows(features: np.ndarray, k: int, history: np.ndarray | None = None)
     return padded[index].reshape(n, k * m)
 
 
-def _segment_windows(features: np.ndarray, k: int, segments: np.ndarray | None) -> np.ndarray:
-    """Windows of every row, each segment starting from an empty window."""
+def _segment_windows(
+    features: np.ndarray, k: int, segments: np.ndarray | None, empty: np.ndarray
+) -> np.ndarray:
+    """Windows of every row, each segment starting from the empty window's history ``empty``."""
     if segments is None:
-        return window_rows(features, k)
+        return window_rows(features, k, empty)
     seg = np.asarray(segments)
     if seg.shape != (features.shape[0],):
         raise DataError(f"segments of shape {seg.shape} for {features.shape[0]} steps")
     cuts = np.flatnonzero(np.diff(seg)) + 1
     bounds = zip(np.r_[0, cuts], np.r_[cuts, features.shape[0]], strict=True)
-    return np.concatenate([window_rows(features[a:b], k) for a, b in bounds], axis=0)
+    return np.concatenate([window_rows(features[a:b], k, empty) for a, b in bounds], axis=0)
 
 
 def _check_pair(
@@ -256,6 +262,7 @@ class StackedPCAModel:
         obs_mean: ``(b,)`` mean observation.
         obs_components: ``(b, dim)`` principal axes of the images.
         action_table: ``(n_actions, c)`` features of each action.
+        padding: ``(m,)`` features of a step before the first (the training mean).
         explained_variance_ratio: ``(dim,)`` of the images' axes.
         fit_info: JSON-serialisable diagnostics.
 
@@ -267,8 +274,13 @@ class StackedPCAModel:
     obs_mean: np.ndarray
     obs_components: np.ndarray
     action_table: np.ndarray
+    padding: np.ndarray
     explained_variance_ratio: np.ndarray
     fit_info: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.padding.shape != (self.step_dim,):
+            raise DataError(f"padding of shape {self.padding.shape}, not ({self.step_dim},)")
 
     @property
     def step_dim(self) -> int:
@@ -296,8 +308,8 @@ class StackedPCAModel:
         return int(self.obs_mean.shape[0])
 
     def initial_state(self) -> np.ndarray:
-        """The empty window: zeros."""
-        return np.zeros(self.state_dim)
+        """The empty window: ``k`` padding steps."""
+        return np.tile(self.padding, self.config.k)
 
     def _features(self, actions: np.ndarray, observations: np.ndarray) -> np.ndarray:
         return _step_features(
@@ -346,6 +358,7 @@ class StackedPCAModel:
             "obs_mean": self.obs_mean,
             "obs_components": self.obs_components,
             "action_table": self.action_table,
+            "padding": self.padding,
             "explained_variance_ratio": self.explained_variance_ratio,
             "k": np.asarray(self.config.k, dtype=np.int64),
         }
@@ -353,22 +366,28 @@ class StackedPCAModel:
 
 def fit_stacked_pca(
     observations: np.ndarray,
+    actions: np.ndarray,
     *,
     n_actions: int,
     config: StackedPCAConfig | None = None,
     action_codes: np.ndarray | None = None,
 ) -> StackedPCAModel:
-    """Fit the images' PCA on ``observations (T, b)``; ``action_codes (n_actions, c)`` are
-    the commands' codes, needed for ``actions="code"``."""
+    """Fit the images' PCA on ``observations (T, b)`` and the empty window's padding (the
+    mean step features, with ``actions (T,)``); ``action_codes (n_actions, c)`` are the
+    commands' codes, needed for ``actions="code"``."""
     cfg = config if config is not None else StackedPCAConfig()
     start = time.perf_counter()
+    obs = check_observations(observations, np.asarray(observations).shape[-1])
+    acts = check_actions(actions, n_actions, obs.shape[0])
     table = _action_table(cfg.actions, n_actions, action_codes)
-    pca = Whitening.fit(observations, cfg.dim, what="observations")
+    pca = Whitening.fit(obs, cfg.dim, what="observations")
+    step = _step_features(pca.mean_, pca.components_, table, acts, obs)
     return StackedPCAModel(
         config=cfg,
         obs_mean=pca.mean_,
         obs_components=pca.components_,
         action_table=table,
+        padding=step.mean(axis=0),
         explained_variance_ratio=pca.explained_variance_ratio_,
         fit_info={
             "steps": int(np.asarray(observations).shape[0]),
@@ -389,6 +408,7 @@ class WindowModel:
         obs_mean: ``(b,)`` mean observation.
         obs_components: ``(b, components)`` principal axes of the images in the window.
         action_table: ``(n_actions, c)`` features of each action.
+        padding: ``(m,)`` features of a step before the first (the training mean).
         window_mean: ``(k * m,)`` mean window of the training steps.
         projection: ``(k * m, dim)`` window -> predicted future on its top directions.
         gains: ``(dim,)`` standard deviation of the training states along each direction.
@@ -402,6 +422,7 @@ class WindowModel:
     obs_mean: np.ndarray
     obs_components: np.ndarray
     action_table: np.ndarray
+    padding: np.ndarray
     window_mean: np.ndarray
     projection: np.ndarray
     gains: np.ndarray
@@ -409,6 +430,8 @@ class WindowModel:
 
     def __post_init__(self) -> None:
         width = self.config.k * self.step_dim
+        if self.padding.shape != (self.step_dim,):
+            raise DataError(f"padding of shape {self.padding.shape}, not ({self.step_dim},)")
         if self.window_mean.shape != (width,) or self.projection.shape != (
             width,
             self.config.dim,
@@ -459,8 +482,8 @@ class WindowModel:
         return np.concatenate([p, windows[:, : self.buffer_dim]], axis=1)
 
     def initial_state(self) -> np.ndarray:
-        """The state of the empty window (zeros): its prediction, and a zero buffer."""
-        empty = np.zeros((1, self.config.k * self.step_dim))
+        """The state of the empty window (``k`` padding steps): its prediction and buffer."""
+        empty = np.tile(self.padding, self.config.k)[None, :]
         return self._states(empty)[0]
 
     def update(
@@ -504,6 +527,7 @@ class WindowModel:
             "obs_mean": self.obs_mean,
             "obs_components": self.obs_components,
             "action_table": self.action_table,
+            "padding": self.padding,
             "window_mean": self.window_mean,
             "projection": self.projection,
             "gains": self.gains,
@@ -561,7 +585,8 @@ def fit_window(
     table = _action_table(cfg.actions, n_actions, action_codes)
     pca = Whitening.fit(obs, cfg.components, what="observations")
     step = _step_features(pca.mean_, pca.components_, table, acts, obs)
-    windows = _segment_windows(step, cfg.k, segments)
+    padding = step.mean(axis=0)
+    windows = _segment_windows(step, cfg.k, segments, np.tile(padding, cfg.k - 1))
     targets, valid = _futures(_future_features(obs), segments, FUTURE_STEPS)
     width, n_targets = windows.shape[1], targets.shape[1]
     if cfg.dim > min(width, n_targets):
@@ -594,6 +619,7 @@ def fit_window(
         obs_mean=pca.mean_,
         obs_components=pca.components_,
         action_table=table,
+        padding=padding,
         window_mean=mean,
         projection=projection,
         gains=np.sqrt(top),
