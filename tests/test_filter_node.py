@@ -404,6 +404,27 @@ def test_resets_jumps_and_the_command_for_b_star(small):
         h.close()
 
 
+def test_a_swapped_policy_chooses_every_later_command(small):
+    images, actions = small["images"], small["actions"]
+    from tpsr_ros.io.policy import load_policy
+
+    other = random_policy(small["model"], small["tmp"] / "other_policy.npz", seed=1)
+    before, after = load_policy(small["policy"]), load_policy(other)
+    h = Harness(small["model"], small["policy"])
+    try:
+        for k in range(1, 6):
+            h.step(images, actions, k * S)
+        assert h.node.on_parameter_change("policy", str(other)) is None
+        for k in range(6, 21):
+            h.step(images, actions, k * S)
+        states = [x for _, x in h.states]
+        greedy = [before.action(x) for x in states[:5]] + [after.action(x) for x in states[5:]]
+        assert h.commands == [tuple(ACTIONS[a]) for a in greedy]
+        assert greedy[5:] != [before.action(x) for x in states[5:]]  # the swap shows
+    finally:
+        h.close()
+
+
 def test_a_late_joiner_gets_the_latched_episode_start(small):
     bus = InprocBus()
     feeder = Node(NodeOptions(name="sim"), transport=InprocTransport("/sim", bus))

@@ -1,13 +1,19 @@
-"""The filter node's ROS-free parts: the health ledger and the two step sources."""
+"""The filter node's ROS-free parts: the health ledger, the two step sources, the simulator
+inputs read from CDR bytes and the state messages written as CDR bytes."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from tpsr_ros.core.actions import PLANAR
+from tpsr_ros.core.episodes import image_to_observation
+from tpsr_ros.core.errors import MessageError
 from tpsr_ros.core.resample import GridConfig, resample_grid
 from tpsr_ros.filter_node.health import ERROR, OK, STALE, WARN, HealthLedger, Throttle
+from tpsr_ros.filter_node.inputs import Rejected, SimulatorInputs
 from tpsr_ros.filter_node.stepping import ExactPairing, GridStepping
+from tpsr_ros.io import messages as m
 
 S = 10**9
 TOPICS = {"image": "/camera/image_raw", "action": "/action"}
@@ -147,3 +153,48 @@ def test_unstamped_commands_get_their_offline_dates_in_any_handling_order(seed) 
     online += source.flush().steps
     assert [(s.stamp, s.action, s.image) for s in online] == expected
     assert len(expected) > 100
+
+
+def _image_cdr(stamp: int, seed: int, **changes) -> bytes:
+    rgb = np.random.default_rng(seed).integers(0, 256, size=(4, 5, 3), dtype=np.uint8)
+    msg = m.image_msg(stamp, rgb)
+    return m.serialize(type(msg)(**{**msg.__dict__, **changes}), m.IMAGE_TYPE)
+
+
+def test_simulator_inputs_read_a_learnt_layout_as_the_checks_do_and_check_anything_else():
+    inputs = SimulatorInputs((4, 5), "camera", "base_link", PLANAR)
+    for k in range(1, 4):  # the first is checked and learnt, the others read at its offsets
+        rgb = np.random.default_rng(k).integers(0, 256, size=(4, 5, 3), dtype=np.uint8)
+        stamp, observation = inputs.image(_image_cdr(k * S, k))
+        assert stamp == k * S
+        np.testing.assert_array_equal(observation, image_to_observation(rgb))
+        action = m.serialize(m.twist_stamped_msg(k * S, 3.0, -6.0), m.ACTION_TYPE)
+        assert inputs.action(action) == (k * S, PLANAR.indices(np.array([[3.0, -6.0]]))[0])
+    header = m.image_msg(S, np.zeros((4, 5, 3), np.uint8)).header
+    refused = {
+        "frame": _image_cdr(S, 0, header=type(header)(stamp=header.stamp, frame_id="map")),
+        "encoding": _image_cdr(S, 0, encoding="bgr8"),
+        "data": _image_cdr(S, 0, data=np.zeros(59, np.uint8)),
+        "undecodable": b"\x00\x01\x00\x00not an image",
+    }
+    for reason, data in refused.items():
+        with pytest.raises(Rejected) as caught:
+            inputs.image(data)
+        assert caught.value.reason == reason
+    for vx, frame, reason in ((1.5, "base_link", "action"), (3.0, "odom", "frame")):
+        data = m.serialize(m.twist_stamped_msg(5 * S, vx, 0.0, frame_id=frame), m.ACTION_TYPE)
+        with pytest.raises(Rejected) as caught:  # the first has the learnt layout
+            inputs.action(data)
+        assert caught.value.reason == reason
+    assert inputs.image(_image_cdr(6 * S, 6))[0] == 6 * S  # still reading
+
+
+@pytest.mark.parametrize("frame", ["", "a", "tpsr", "abcdefg"])
+@pytest.mark.parametrize("size", [1, 3, 8, 16])
+def test_state_messages_written_as_cdr_are_those_of_the_serialiser(size, frame):
+    encode = m.StateEncoder(size, frame)
+    for stamp in (0, 7, 1_500_000_002, (2**31 - 1) * S):
+        state = np.random.default_rng(stamp % 97).normal(size=size)
+        assert encode(stamp, state) == m.serialize(m.state_msg(stamp, state, frame), m.STATE_TYPE)
+    with pytest.raises(MessageError):
+        encode(0, np.zeros(size + 1))

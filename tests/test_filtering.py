@@ -117,6 +117,19 @@ def test_guard_falls_back_to_b_star_when_even_a_restart_fails(model, run):
     np.testing.assert_array_equal(track.states[hit], np.broadcast_to(model.b_star, (hit.sum(), 3)))
 
 
+def test_derived_arrays_belong_to_the_model_they_were_derived_from(model, run):
+    actions, obs = run
+    model.update(model.b_star, int(actions[0]), obs[0])  # derives model.derived once
+    moved = dataclasses.replace(model, obs_centers=model.obs_centers + 0.5, b_inf=model.b_inf * 2)
+    assert moved.derived is not model.derived
+    np.testing.assert_array_equal(
+        moved.derived.centers_sq, np.einsum("ij,ij->i", moved.obs_centers, moved.obs_centers)
+    )
+    assert moved.derived.b_inf_norm == np.linalg.norm(moved.b_inf)
+    states, infos = loop(moved, actions[:20], obs[:20])
+    assert_same(moved.track(actions[:20], obs[:20]), states, infos)
+
+
 def test_guard_catches_overflow(model, run):
     actions, obs = run
     new, info = filtering.update(model, np.full(3, 1e308), int(actions[0]), obs[0])

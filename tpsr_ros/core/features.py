@@ -47,6 +47,7 @@ __all__ = [
     "rbf_features",
     "select_centers",
     "squared_distances",
+    "squared_norms",
 ]
 
 CONSTANT_FEATURE = 1.0 / 1000.0
@@ -57,16 +58,30 @@ CONSTANT_SCALE = 1000.0
 CenterSelection = Literal["first", "kmeans"]
 
 
-def squared_distances(x: np.ndarray, centers: np.ndarray, *, rowwise: bool = False) -> np.ndarray:
+def squared_norms(x: np.ndarray) -> np.ndarray:
+    """Squared Euclidean norms ``(t,)`` of the rows of ``x`` (t, d), as
+    :func:`squared_distances` computes them (so a stored copy gives the same bits)."""
+    return np.einsum("ij,ij->i", x, x)
+
+
+def squared_distances(
+    x: np.ndarray,
+    centers: np.ndarray,
+    *,
+    rowwise: bool = False,
+    centers_sq: np.ndarray | None = None,
+) -> np.ndarray:
     """Squared Euclidean distances ``(t, l)`` between rows of ``x`` (t, d) and ``centers`` (l, d).
 
     ``rowwise=True`` computes the products row by row (a stacked matmul, still one call):
     every row is then bitwise the same whatever the number of rows, which BLAS does not
     guarantee for a matrix product (it picks other kernels for a single row). The filter
     uses it so that batch tracking equals a loop of single updates exactly.
+    ``centers_sq``: :func:`squared_norms` of ``centers`` computed once by a caller that
+    reuses the centres (the filter, every step), else computed here.
     """
-    x_sq = np.einsum("ij,ij->i", x, x)
-    c_sq = np.einsum("ij,ij->i", centers, centers)
+    x_sq = squared_norms(x)
+    c_sq = squared_norms(centers) if centers_sq is None else centers_sq
     dist: np.ndarray
     if rowwise:
         dist = np.matmul(x[:, None, :], centers.T)[:, 0, :]
@@ -87,11 +102,12 @@ def rbf_features(
     normalize: bool = False,
     add_constant: bool = False,
     rowwise: bool = False,
+    centers_sq: np.ndarray | None = None,
 ) -> np.ndarray:
     """RBF feature matrix of ``x`` (``(t, d)``) for ``centers`` (``(l, d)``): ``(t, l [+ 1])``.
 
     Row ``j`` is the transposed column ``phi_{:, j}`` of the guide's Algorithm 2.
-    ``rowwise``: see :func:`squared_distances`.
+    ``rowwise`` and ``centers_sq``: see :func:`squared_distances`.
     """
     if not sigma > 0 or not np.isfinite(sigma):
         raise ConfigError(f"kernel width sigma must be a positive number, not {sigma}")
@@ -101,7 +117,7 @@ def rbf_features(
         raise DataError(
             f"data of shape {x.shape} and kernel centres of shape {centers.shape} do not match"
         )
-    dist = squared_distances(x, centers, rowwise=rowwise)
+    dist = squared_distances(x, centers, rowwise=rowwise, centers_sq=centers_sq)
     if normalize and dist.shape[1] > 0:
         dist -= dist.min(axis=1, keepdims=True)
     dist *= -1.0 / (2.0 * float(sigma) ** 2)

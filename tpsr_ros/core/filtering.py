@@ -50,17 +50,21 @@ the state had left the box. Without ``state_box`` (the default) nothing is clipp
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
 from tpsr_ros.core.errors import DataError
-from tpsr_ros.core.features import rbf_features
+from tpsr_ros.core.features import rbf_features, squared_norms
 from tpsr_ros.core.state_model import Track, UpdateInfo, check_actions, check_observations
 
 __all__ = [
     "NORMALIZER_RTOL",
+    "Derived",
     "FilterParameters",
+    "derive",
     "observation_weights",
     "track",
     "update",
@@ -103,7 +107,38 @@ class FilterParameters(Protocol):
     def n_actions(self) -> int: ...
     @property
     def obs_size(self) -> int: ...
+    @property
+    def derived(self) -> Derived: ...
     def initial_state(self) -> np.ndarray: ...
+
+
+@dataclass(frozen=True, eq=False)
+class Derived:
+    """What every update reads that follows from a model's parameters: computed once per
+    model (:func:`derive`; a model keeps it as ``derived``) instead of at every step.
+
+    Attributes:
+        centers_sq: ``(l_O,)`` squared norms of the observation kernel centres.
+        b_inf_norm: ``||b_inf||``, the scale of the normaliser guard.
+
+    """
+
+    centers_sq: np.ndarray
+    b_inf_norm: float
+
+
+def derive(model: FilterParameters) -> Derived:
+    """The :class:`Derived` arrays of ``model``, computed as every update computed them."""
+    return Derived(
+        centers_sq=squared_norms(model.obs_centers),
+        b_inf_norm=float(np.linalg.norm(model.b_inf)),
+    )
+
+
+def _operators(model: FilterParameters) -> np.ndarray:
+    """``B`` as ``(n_actions, l_O, r * r)`` (a view): each ``B_ao'`` flattened."""
+    r = model.state_dim
+    return model.B.reshape(model.n_actions, -1, r * r)
 
 
 def observation_weights(model: FilterParameters, observations: np.ndarray) -> np.ndarray:
@@ -111,7 +146,12 @@ def observation_weights(model: FilterParameters, observations: np.ndarray) -> np
     obs = check_observations(observations, model.obs_size)
     white = np.matmul((obs - model.obs_mean)[:, None, :], model.obs_whitening)[:, 0, :]
     return rbf_features(
-        white, model.obs_centers, model.config.sigma_obs, normalize=True, rowwise=True
+        white,
+        model.obs_centers,
+        model.config.sigma_obs,
+        normalize=True,
+        rowwise=True,
+        centers_sq=model.derived.centers_sq,
     )
 
 
@@ -122,7 +162,7 @@ def update_matrices(
     r = model.state_dim
     n_steps = weights.shape[0]
     out = np.empty((n_steps, r * r))
-    flat = model.B.reshape(model.n_actions, -1, r * r)
+    flat = _operators(model)
     for a in np.unique(actions):
         rows = np.flatnonzero(actions == a)
         out[rows] = np.matmul(weights[rows, None, :], flat[a])[:, 0, :]
@@ -130,31 +170,33 @@ def update_matrices(
 
 
 def _normalise(
-    b_ao: np.ndarray, state: np.ndarray, b_inf: np.ndarray
+    b_ao: np.ndarray, state: np.ndarray, b_inf: np.ndarray, b_inf_norm: float
 ) -> tuple[np.ndarray | None, float]:
-    """Eq. 3.8 with the guard: ``(new state or None if degenerate, normaliser)``."""
+    """Eq. 3.8 with the guard: ``(new state or None if degenerate, normaliser)``.
+
+    ``||B_ao b||`` is ``sqrt(v . v)``, what ``np.linalg.norm`` computes for a vector.
+    """
     with np.errstate(over="ignore", invalid="ignore"):
         v = b_ao @ state
         z = float(b_inf @ v)
-        scale = float(np.linalg.norm(b_inf) * np.linalg.norm(v))
-    if not (np.isfinite(z) and np.isfinite(scale)) or z <= NORMALIZER_RTOL * scale:
+        scale = b_inf_norm * math.sqrt(float(v.dot(v)))
+    if not (math.isfinite(z) and math.isfinite(scale)) or z <= NORMALIZER_RTOL * scale:
         return None, z
     return v / z, z
 
 
 def _step(
-    b_ao: np.ndarray,
-    state: np.ndarray,
-    b_star: np.ndarray,
-    b_inf: np.ndarray,
-    box: np.ndarray | None,
+    b_ao: np.ndarray, state: np.ndarray, model: FilterParameters
 ) -> tuple[np.ndarray, float, bool]:
-    new, z = _normalise(b_ao, state, b_inf)
+    """Eq. 3.8 with the guard's restart from ``b_*`` and the state box."""
+    b_inf, b_inf_norm = model.b_inf, model.derived.b_inf_norm
+    new, z = _normalise(b_ao, state, b_inf, b_inf_norm)
     recovered = new is None
     if new is None:
-        new, _ = _normalise(b_ao, b_star, b_inf)
+        new, _ = _normalise(b_ao, model.b_star, b_inf, b_inf_norm)
         if new is None:
-            new = b_star.copy()
+            new = model.b_star.copy()
+    box = model.state_box
     if box is not None:
         new = np.clip(new, box[0], box[1])
     return new, z, recovered
@@ -169,6 +211,15 @@ def _check_state(model: FilterParameters, state: np.ndarray) -> np.ndarray:
     return arr
 
 
+def _check_action(action: int, n_actions: int) -> int:
+    """One action index, checked as :func:`check_actions` checks a batch (and by it, with
+    its message, when it is not a plain index in range)."""
+    if isinstance(action, int | np.integer) and not isinstance(action, bool):
+        if 0 <= action < n_actions:
+            return int(action)
+    return int(check_actions(np.asarray([action]), n_actions, 1)[0])
+
+
 def update(
     model: FilterParameters, state: np.ndarray, action: int, observation: np.ndarray
 ) -> tuple[np.ndarray, UpdateInfo]:
@@ -177,10 +228,12 @@ def update(
     Returns the new state ``(r,)`` and its :class:`UpdateInfo`.
     """
     state = _check_state(model, state)
-    actions = check_actions(np.asarray([action]), model.n_actions, 1)
+    a = _check_action(action, model.n_actions)
     weights = observation_weights(model, np.asarray(observation, dtype=np.float64)[None, :])
-    b_ao = update_matrices(model, actions, weights)[0]
-    new, z, recovered = _step(b_ao, state, model.b_star, model.b_inf, model.state_box)
+    # the product update_matrices computes for a one-step group of action a
+    r = model.state_dim
+    b_ao = np.matmul(weights[:, None, :], _operators(model)[a])[0, 0].reshape(r, r)
+    new, z, recovered = _step(b_ao, state, model)
     return new, UpdateInfo(normalizer=z, recovered=recovered)
 
 
@@ -204,8 +257,7 @@ def track(
     states = np.empty((n_steps, r))
     normalizers = np.empty(n_steps)
     recovered = np.zeros(n_steps, dtype=bool)
-    b_star, b_inf, box = model.b_star, model.b_inf, model.state_box
     for s in range(n_steps):
-        state, normalizers[s], recovered[s] = _step(b_aos[s], state, b_star, b_inf, box)
+        state, normalizers[s], recovered[s] = _step(b_aos[s], state, model)
         states[s] = state
     return Track(states=states, normalizers=normalizers, recovered=recovered)

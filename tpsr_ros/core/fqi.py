@@ -166,6 +166,11 @@ class QFunction:
         """First centre of each ensemble member."""
         return np.concatenate([[0], np.cumsum(self.group_sizes)[:-1]])
 
+    @cached_property
+    def _member_of(self) -> np.ndarray:
+        """Ensemble member of every centre: spreads a per-member value over its centres."""
+        return np.repeat(np.arange(self.members), self.group_sizes)
+
     def unit_features(self, units: np.ndarray) -> np.ndarray:
         """:meth:`features` of states already in planner units (:meth:`planner_units`)."""
         sq = cdist(units, self.centers, "sqeuclidean") / self._denominators
@@ -173,11 +178,11 @@ class QFunction:
             sq -= sq.min(axis=1, keepdims=True)  # exact nearest-centre limit, never 0/0
             activation = np.exp(-sq)
             return activation / activation.sum(axis=1, keepdims=True)
-        sizes, starts = self.group_sizes, self._group_starts
-        sq -= np.repeat(np.minimum.reduceat(sq, starts, axis=1), sizes, axis=1)
-        activation = np.exp(-sq)
+        starts, member_of = self._group_starts, self._member_of
+        sq -= np.minimum.reduceat(sq, starts, axis=1)[:, member_of]
+        activation = np.exp(np.negative(sq, out=sq), out=sq)
         totals = np.add.reduceat(activation, starts, axis=1) * self.members
-        return activation / np.repeat(totals, sizes, axis=1)
+        return activation / totals[:, member_of]
 
     def values(self, states: np.ndarray) -> np.ndarray:
         """Q-values ``(T, n_actions)`` of states ``(T, r)``."""
@@ -186,9 +191,9 @@ class QFunction:
     def greedy(self, states: np.ndarray) -> np.ndarray:
         """Greedy action indices ``(T,)``; a non-finite state is refused (``DataError``)."""
         states = np.atleast_2d(states)
-        if not np.all(np.isfinite(states)):
+        if not np.isfinite(states).all():
             raise DataError("greedy policy called with a non-finite state")
-        return np.argmax(self.values(states), axis=1)
+        return np.argmax(self.features(states) @ self.weights, axis=1)
 
 
 def _to_units(

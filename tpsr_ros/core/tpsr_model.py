@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any, ClassVar
 
 import numpy as np
@@ -118,6 +119,11 @@ class TPSRModel:
     def initial_state(self) -> np.ndarray:
         """``b_*`` (a copy)."""
         return np.array(self.b_star)
+
+    @cached_property
+    def derived(self) -> filtering.Derived:
+        """What every update derives from the parameters, computed on first use."""
+        return filtering.derive(self)
 
     def update(
         self, state: np.ndarray, action: int, observation: np.ndarray

@@ -22,9 +22,8 @@ from tpsr_ros.filter_node.health import MIN_SHARE_SAMPLES, OK, WARN, HealthLedge
 from tpsr_ros.filter_node.inputs import (
     Frame,
     Rejected,
+    SimulatorInputs,
     robot_command,
-    simulator_action,
-    simulator_image,
 )
 from tpsr_ros.filter_node.params import (
     ACTION_TOPIC,
@@ -175,7 +174,14 @@ class FilterNode(Node):
         self._throttle = Throttle(WARN_PERIOD_S)
         self.resets = self.stale_resets = self.errors = self.commands = 0
         self.latency = RollingPercentiles(1000)
-        self._action_cache: dict[tuple[float, float], int] = {}
+        self.sim_inputs = SimulatorInputs(
+            self.inputs.image_shape, p.image_frame, p.action_frame, self.sim_actions
+        )
+        # the actions' commands themselves: never outside the simulator's grid or the codebook
+        codes = self.sim_actions if self.spec is None else self.spec.codebook
+        self._twists = [m.twist_from_components(codes.command(a)) for a in range(len(codes))]
+        self._twist_cdr = [m.serialize(twist, m.TWIST_TYPE) for twist in self._twists]
+        self._state_cdr = m.StateEncoder(self.model.state_dim)
         self._pending_command: tuple[int, int | None] | None = None
         self._ready_since: float | None = None
         self.commands_ready = self.policy is None
@@ -299,31 +305,21 @@ class FilterNode(Node):
     def _on_image(self, data: bytes) -> None:
         start = time.perf_counter()
         self.health.arrived("image")
-        msg = self._decode(data, m.IMAGE_TYPE, self.image_topic)
-        if msg is None:
-            return
         try:
-            observation = simulator_image(msg, self.inputs.image_shape, self.params.image_frame)
+            stamp, observation = self.sim_inputs.image(data)
         except Rejected as exc:
             self._reject(self.image_topic, exc.reason, str(exc))
             return
-        stamp = m.stamp_of(msg)
         self._stepped(self.source.add_image(stamp, observation), stamp, self.image_topic, start)
 
     def _on_action(self, data: bytes) -> None:
         start = time.perf_counter()
         self.health.arrived("action")
-        msg = self._decode(data, m.ACTION_TYPE, self.action_topic)
-        if msg is None:
-            return
         try:
-            action = simulator_action(
-                msg, self.params.action_frame, self._action_cache, self.sim_actions
-            )
+            stamp, action = self.sim_inputs.action(data)
         except Rejected as exc:
             self._reject(self.action_topic, exc.reason, str(exc))
             return
-        stamp = m.stamp_of(msg)
         self._stepped(self.source.add_action(stamp, action), stamp, self.action_topic, start)
 
     def _stepped(self, added: Added, stamp: int, topic: str, start: float) -> None:
@@ -450,7 +446,7 @@ class FilterNode(Node):
                 "recovery",
                 f"normaliser {info.normalizer:.3g} at {step.stamp / _NS:.3f} s: restarted from b_*",
             )
-        self.state_pub.publish(m.state_msg(step.stamp, info.state))
+        self.state_pub.publish_raw(self._state_cdr(step.stamp, info.state))
         if self.policy is not None:
             self._command(info.state, step.stamp)
         self.latency.add(time.perf_counter() - start)
@@ -492,16 +488,14 @@ class FilterNode(Node):
             return
         action, stamp = self._pending_command
         self._pending_command = None
-        # the action's command itself: never outside the simulator's grid or the codebook
-        codes = self.sim_actions if self.spec is None else self.spec.codebook
-        twist = m.twist_from_components(codes.command(action))
         if self.params.command_type == "twist_stamped":
-            msg = m.stamped_twist(stamp if stamp is not None else self.now_ns(), twist)
-        else:
-            msg = twist
+            when = stamp if stamp is not None else self.now_ns()
+            cdr = m.serialize(m.stamped_twist(when, self._twists[action]), self.cmd_pub.msgtype)
+        else:  # a Twist's bytes are the same for every command of one action
+            cdr = self._twist_cdr[action]
         if isinstance(self.source, LockstepStepping):  # before the robot can answer it
             self.source.command(action)
-        self.cmd_pub.publish(msg)
+        self.cmd_pub.publish_raw(cdr)
         self.commands += 1
 
     def _subscribers_matched(self) -> bool:

@@ -140,6 +140,22 @@ class _Decoder:
 
     def decode(self, data: bytes) -> tuple[int, Any]:
         """``(stamp_ns, value)`` of the CDR bytes ``data``; bad bytes raise ``MessageError``."""
+        return self._read(data, self._known(data) or self._learn(data))
+
+    def decode_known(self, data: bytes) -> tuple[int, Any] | None:
+        """:meth:`decode` of a message of the learnt layout with a valid stamp and values;
+        None for any other, which the caller reads its own way (and may then :meth:`decode`
+        to learn its layout)."""
+        layout = self._known(data)
+        if layout is None:
+            return None
+        try:
+            return self._read(data, layout)
+        except MessageError:
+            return None
+
+    def _known(self, data: bytes) -> _Layout | None:
+        """The learnt layout if ``data`` has it, else None."""
         layout = self._layout
         if (
             layout is None
@@ -148,7 +164,10 @@ class _Decoder:
             or data[:_ENCAPSULATION] != layout.head
             or data[layout.values_end :] != layout.suffix
         ):
-            layout = self._learn(data)
+            return None
+        return layout
+
+    def _read(self, data: bytes, layout: _Layout) -> tuple[int, Any]:
         fields = layout.unpack(data)
         if fields[0] < 0 or fields[1] >= NS_PER_S:
             raise MessageError(f"header stamp {fields[0]} s {fields[1]} ns is not a valid time")

@@ -43,6 +43,7 @@ __all__ = [
     "STATE_TYPE",
     "TWIST_TYPE",
     "RewardSample",
+    "StateEncoder",
     "clock_msg",
     "deserialize",
     "header_stamp_ns",
@@ -331,11 +332,45 @@ def reward_to_sample(msg: Any) -> RewardSample:
     return RewardSample(reward=reward, wall_contact=contact > 0.5, goal_zone=goal > 0.5)
 
 
+@cache
+def _state_names(size: int) -> tuple[str, ...]:
+    """``b0``..``b{size-1}``, made once per state size (a filter publishes one per step)."""
+    return tuple(f"b{i}" for i in range(size))
+
+
 def state_msg(stamp_ns: int, state: np.ndarray, frame_id: str = "tpsr") -> Any:
     """Predictive state b_k as a stamped JointState with names ``b0``..``b{r-1}``."""
     state = np.asarray(state, dtype=np.float64).reshape(-1)
-    names = [f"b{i}" for i in range(state.size)]
-    return _named_vector(stamp_ns, names, state, frame_id)
+    return _named_vector(stamp_ns, list(_state_names(state.size)), state, frame_id)
+
+
+class StateEncoder:
+    """CDR of :func:`state_msg` messages of one state size and frame, byte for byte what
+    :func:`serialize` gives, without building a message: the stamp and the values written
+    into the bytes of a template (the names and the empty sequences never change).
+    """
+
+    def __init__(self, size: int, frame_id: str = "tpsr") -> None:
+        self.size = int(size)
+        template = serialize(state_msg(0, np.zeros(self.size), frame_id), STATE_TYPE)
+        # position's float64 values end the message but for the counts of the empty
+        # velocity and effort sequences (a uint32 each)
+        values = len(template) - 8 - 8 * self.size
+        order = "<" if template[1] == 1 else ">"
+        self._head, self._middle, self._tail = template[:4], template[12:values], template[-8:]
+        self._stamp = struct.Struct(order + "iI").pack
+        self._dtype = np.dtype(order + "f8")
+        stamp, probe = 1_500_000_002, np.arange(1.0, self.size + 1.0)
+        if self(stamp, probe) != serialize(state_msg(stamp, probe, frame_id), STATE_TYPE):
+            raise MessageError("the state message layout is not the one StateEncoder writes")
+
+    def __call__(self, stamp_ns: int, state: np.ndarray) -> bytes:
+        """CDR bytes of ``state_msg(stamp_ns, state)``."""
+        values = np.asarray(state, dtype=self._dtype).reshape(-1)
+        if values.size != self.size:
+            raise MessageError(f"a state of {values.size} values is not one of {self.size}")
+        stamp = self._stamp(*split_stamp(stamp_ns))
+        return b"".join((self._head, stamp, self._middle, values.tobytes(), self._tail))
 
 
 def state_to_array(msg: Any) -> np.ndarray:
