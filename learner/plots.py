@@ -1,16 +1,21 @@
-"""``learner plot MODEL BAG -o states.png``: tracked states coloured by ground truth.
+"""``learner plot MODEL BAG -o states.png``: the tracked states, laid out for the eye.
 
 States come from running the model's update over the bag (guide section 4.2: tracked with
-the learned parameters, not histories embedded with ``U``). The figure scatters pairs of
-the first state dimensions, one row per pair, coloured by reward, true x and true y, like
-the guide's figure 4.5 (a-c). The command also prints how linearly the states predict the
-true position (R^2 of an affine least-squares map), a one-number check of the topology.
+the learned parameters, not histories embedded with ``U``). The figure draws the states'
+path on their two leading principal directions coloured by time (beside the true path
+where the bag has a pose), the leading coordinates over time, the recoveries, and a
+judgement that needs no pose: the held-out R^2 of the next images from the states against
+predicting their mean (:func:`judge_states`). The command prints the judgement, the
+recovery rate and, with a pose, how linearly the states predict the true position (R^2 of
+an affine least-squares map).
 """
 
 from __future__ import annotations
 
 import argparse
-import itertools
+import textwrap
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,13 +23,16 @@ import numpy as np
 
 from learner.fit import add_topic_options
 from learner.inputs import read_for_model, require_given_topics
-from tpsr_ros.core.episodes import track_trajectory
+from learner.adequacy import recovery_text
+from tpsr_ros.core.episodes import Trajectory, track_trajectory
 from tpsr_ros.core.errors import DataError
 from tpsr_ros.io.model_io import check_output_path, open_model
 
 __all__ = [
     "affine_r2",
     "neighbour_position_error",
+    "judge_states",
+    "leading_coordinates",
     "plot_states",
     "register",
     "robust_limits",
@@ -113,77 +121,249 @@ def neighbour_position_error(
     return float(np.median(np.linalg.norm(located - positions[half:], axis=1)))
 
 
+JUDGEMENTS = ((0.4, "good"), (0.15, "fair"), (0.0, "poor"))
+"""Held-out R^2 of the next 1..10 images from the states at least this: the word for it
+(below 0: worse than predicting their mean). The later images depend on actions not yet
+taken, so even a model whose states give the true position to R^2 0.98 reaches only 0.50
+(the sample bag ``bags/full``, the default fit)."""
+DENSE_PATH = 400
+"""Paths of more steps are drawn with faint lines and small dots."""
+FOLDS = 5
+"""Contiguous blocks of the judged steps, each predicted by a regression fitted on the rest."""
+SERIES = 4
+"""Leading state coordinates drawn as time series."""
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """How well the states predict the future images: held-out R^2 per horizon (``1 -``
+    error / error of predicting their mean), the horizons and the scored steps."""
+
+    per_horizon: np.ndarray
+    scored: int
+
+    @property
+    def value(self) -> float:
+        """R^2 averaged over the horizons."""
+        return float(np.mean(self.per_horizon))
+
+    @property
+    def word(self) -> str:
+        """``good``, ``fair``, ``poor`` or ``no better than the mean``."""
+        return next((w for floor, w in JUDGEMENTS if self.value >= floor), "worse than the mean")
+
+    def line(self) -> str:
+        """The one-line judgement, printed and drawn."""
+        k = self.per_horizon.size
+        error = 100.0 * (1.0 - self.value)
+        return (
+            f"judgement: {self.word} - held-out R^2 {self.value:.2f} of the next 1..{k} images "
+            f"from the state (prediction error {error:.0f} % of predicting their mean; "
+            f"{self.scored} steps scored)"
+        )
+
+
+def judge_states(states: np.ndarray, trajectory: Trajectory, folds: int = FOLDS) -> Judgement:
+    """Held-out R^2 of the next images' principal components from ``states`` tracked over
+    ``trajectory``, no pose needed.
+
+    The targets and the scored steps are :mod:`learner.criterion`'s (the next 1..k images'
+    leading principal components, a burn-in after every restart of a segment); an affine
+    ridge regression from the whitened state is fitted on all but one of ``folds``
+    contiguous blocks of the scored steps and predicts the block left out, against the
+    mean of the same fitted steps. Blocks rather than halves: a short log's two halves
+    see different parts of the room. One regression for every next action, not one per
+    action as ``learner tune`` scores: under exploration the expected future images are
+    linear in a predictive state either way, and a short log cannot feed one per action.
+    """
+    from learner.criterion import (
+        CriterionConfig,
+        ObservationFeatures,
+        _state_whitener,
+        criterion_for,
+        future_targets,
+    )
+
+    config = criterion_for(CriterionConfig(), len(trajectory))
+    features = ObservationFeatures.fit(trajectory.observations, config.feature_dim)
+    targets, valid = future_targets(
+        features.transform(trajectory.observations), trajectory.segments, config.horizons
+    )
+    since_start = np.arange(len(trajectory)) - np.searchsorted(
+        trajectory.segments, trajectory.segments, side="left"
+    )
+    rows = np.flatnonzero(valid & (since_start >= config.burn_in) & np.isfinite(states).all(1))
+    if rows.size < 2 * folds:
+        raise DataError(f"only {rows.size} steps can be scored: too few to judge the states")
+    horizons = targets.shape[1]
+    flat = targets.reshape(len(targets), -1)
+    sse = np.zeros(horizons)
+    sst = np.zeros(horizons)
+    for block in np.array_split(rows, folds):
+        fit_rows = np.setdiff1d(rows, block, assume_unique=True)
+        whiten = _state_whitener(states[fit_rows], config.clip)
+        design = np.column_stack([np.ones(fit_rows.size), whiten(states[fit_rows])])
+        penalty = config.ridge * fit_rows.size * np.eye(design.shape[1])
+        penalty[0, 0] = 0.0
+        weights = np.linalg.solve(design.T @ design + penalty, design.T @ flat[fit_rows])
+        test = np.column_stack([np.ones(block.size), whiten(states[block])])
+        error = (flat[block] - test @ weights).reshape(block.size, horizons, -1)
+        spread = (flat[block] - flat[fit_rows].mean(axis=0)).reshape(block.size, horizons, -1)
+        sse += np.einsum("nkd,nkd->k", error, error)
+        sst += np.einsum("nkd,nkd->k", spread, spread)
+    return Judgement(1.0 - sse / sst, int(rows.size))
+
+
+def leading_coordinates(states: np.ndarray, count: int = SERIES) -> tuple[np.ndarray, np.ndarray]:
+    """The states on their ``count`` leading principal directions ``(T, c)`` and each
+    direction's share of the variance; the directions come from the states inside the
+    :func:`robust_limits` box, so a few exploded states cannot choose them."""
+    finite = np.isfinite(states).all(axis=1)
+    inside = finite.copy()
+    for column in states.T:
+        low, high = robust_limits(column)
+        inside &= (column >= low) & (column <= high)
+    basis = states[inside] if inside.sum() > 2 else states[finite]
+    mean = basis.mean(axis=0)
+    _, singular, vt = np.linalg.svd(basis - mean, full_matrices=False)
+    count = min(count, vt.shape[0])
+    share = singular[:count] ** 2 / max(float(np.sum(singular**2)), 1e-300)
+    return np.nan_to_num(states - mean) @ vt[:count].T, share
+
+
 def plot_states(
     states: np.ndarray,
+    times: np.ndarray,
     positions: np.ndarray,
-    rewards: np.ndarray,
+    recovered: np.ndarray,
     output: Path,
     *,
-    max_pairs: int = 3,
+    judgement: Judgement | None = None,
     title: str = "",
-    footnote: str = "",
+    notes: Sequence[str] = (),
 ) -> None:
-    """Scatter dimension pairs of ``states (T, r)`` coloured by reward, x and y; write a PNG.
+    """Draw the tracked states for the eye and write a PNG.
 
-    Colourings without data (no reward, no ground truth) are left out; with neither, the
-    states are coloured by time (step number). Axes follow :func:`robust_limits`: states
-    beyond them are drawn on the edge as crosses and counted in the panel's title.
+    Top left, the path of the states on their two leading principal directions coloured
+    by time; top middle (with a pose), the true path in the same colours; top right, the
+    judgement (held-out R^2 of the future images per horizon against predicting their
+    mean); below, the leading coordinates over time. Recoveries are marked in every panel;
+    states beyond the axes (:func:`robust_limits`) are drawn on the edge as open
+    triangles, counted and explained in the legend. ``notes`` are wrapped into the footer.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.colors import TwoSlopeNorm
+    from matplotlib.collections import LineCollection
+    from matplotlib.lines import Line2D
 
-    r = states.shape[1]
-    if r >= 2:
-        pairs = list(itertools.combinations(range(min(r, 3)), 2))[:max_pairs]
+    coords, share = leading_coordinates(states)
+    if coords.shape[1] < 2:  # one state dimension: against time
+        coords = np.column_stack([times, coords[:, 0]])
+        share = np.concatenate([[np.nan], share])
+    has_pose = bool(np.isfinite(positions[:, :2]).all(axis=1).sum() > 1)
+    top = 3 if has_pose else 2
+    series = min(SERIES, coords.shape[1]) if np.isfinite(share[0]) else 1
+    fig = plt.figure(figsize=(14, 12))
+    outer = fig.add_gridspec(
+        3, 1, height_ratios=[5.5, 1.1, 1.3 * series], hspace=0.3,
+        left=0.06, right=0.97, top=0.93, bottom=0.15,
+    )  # fmt: skip
+    upper = outer[0].subgridspec(1, top, wspace=0.28)
+    middle = outer[1].subgridspec(2, 1, height_ratios=[1, 1.2], hspace=0.2)
+    lower = outer[2].subgridspec(series, 1, hspace=0.15)
+    colour = plt.get_cmap("viridis")
+    span = (float(times.min()), float(times.max()) if times.max() > times.min() else 1.0)
+    norm = plt.Normalize(*span)
+
+    def path(ax: Any, xy: np.ndarray, label_x: str, label_y: str) -> int:
+        (x0, x1), (y0, y1) = robust_limits(xy[:, 0]), robust_limits(xy[:, 1])
+        outside = (xy[:, 0] < x0) | (xy[:, 0] > x1) | (xy[:, 1] < y0) | (xy[:, 1] > y1)
+        drawn = np.column_stack([np.clip(xy[:, 0], x0, x1), np.clip(xy[:, 1], y0, y1)])
+        segments = np.stack([drawn[:-1], drawn[1:]], axis=1)
+        dense = len(xy) > DENSE_PATH  # a long run: faint lines, small dots
+        lines = LineCollection(segments, cmap=colour, norm=norm, linewidths=0.5 if dense else 1.2,
+                               alpha=0.15 if dense else 0.8)  # fmt: skip
+        lines.set_array(times[1:])
+        ax.add_collection(lines)
+        ax.scatter(*drawn[~outside].T, c=times[~outside], cmap=colour, norm=norm,
+                   s=3 if dense else 10, zorder=3, linewidths=0)  # fmt: skip
+        if outside.any():
+            ax.scatter(*drawn[outside].T, facecolors="none", edgecolors="black", marker="^",
+                       s=40, zorder=4)  # fmt: skip
+        ax.scatter(*drawn[recovered].T, c="red", marker="x", s=45, linewidths=1.5, zorder=5)
+        ax.scatter(*drawn[:1].T, facecolors="none", edgecolors="black", s=120, zorder=5)
+        ax.set_xlim(x0, x1)
+        ax.set_ylim(y0, y1)
+        ax.set_xlabel(label_x)
+        ax.set_ylabel(label_y)
+        return int(outside.sum())
+
+    ax = fig.add_subplot(upper[0, 0])
+    beyond = path(
+        ax, coords[:, :2], f"state direction 1 ({share[0]:.0%} of the variance)"
+        if np.isfinite(share[0]) else "time (s)", f"state direction 2 ({share[1]:.0%})"
+        if np.isfinite(share[0]) else "state",
+    )  # fmt: skip
+    ax.set_title("the states' path (two leading directions)", fontsize=11)
+    if has_pose:
+        ax = fig.add_subplot(upper[0, 1])
+        path(ax, positions[:, :2], "true x (m)", "true y (m)")
+        ax.set_title("the true path, same colours (not a learning input)", fontsize=11)
+    ax = fig.add_subplot(upper[0, top - 1])
+    if judgement is not None:
+        k = np.arange(1, judgement.per_horizon.size + 1)
+        bars = np.clip(judgement.per_horizon, -1.0, 1.0)
+        ax.bar(k, bars, color=["tab:green" if v > 0 else "tab:red" for v in bars])
+        ax.axhline(0.0, color="black", linewidth=1)
+        ax.set_ylim(min(-0.2, float(bars.min()) - 0.05), 1.0)
+        ax.set_xlabel("images ahead")
+        ax.set_ylabel("held-out R^2 (0 = predicting the mean)")
+        ax.set_title(f"predicting the future images:\n{judgement.word}", fontsize=11)
+        ax.text(0.97, 0.95, f"R^2 {judgement.value:.2f} over 1..{k.size} images ahead"
+                + (" (bars clipped at -1)" if judgement.per_horizon.min() < -1 else ""),
+                transform=ax.transAxes, ha="right", va="top", fontsize=9)  # fmt: skip
     else:
-        pairs = [(-1, 0)]  # the single dimension against the step index
-    finite = np.isfinite(rewards)
-    low = min(float(np.nanmin(rewards)) if finite.any() else -1.0, -1e-9)
-    high = max(float(np.nanmax(rewards)) if finite.any() else 1.0, 1e-9)
-    steps = np.arange(states.shape[0])
-    colourings = [
-        ("reward", rewards, TwoSlopeNorm(vmin=low, vcenter=0.0, vmax=high)),
-        ("true x", positions[:, 0], None),
-        ("true y", positions[:, 1], None),
-    ]
-    colourings = [c for c in colourings if np.isfinite(c[1]).any()] or [("time", steps, None)]
-    fig, axes = plt.subplots(
-        len(pairs), len(colourings), figsize=(4 * len(colourings), 4 * len(pairs)), squeeze=False
-    )
-    for row, (i, j) in enumerate(pairs):
-        xs = steps.astype(np.float64) if i < 0 else states[:, i]
-        (x0, x1), (y0, y1) = robust_limits(xs), robust_limits(states[:, j])
-        outside = (xs < x0) | (xs > x1) | (states[:, j] < y0) | (states[:, j] > y1)
-        x_drawn, y_drawn = np.clip(xs, x0, x1), np.clip(states[:, j], y0, y1)
-        for col, (name, colour, norm) in enumerate(colourings):
-            ax = axes[row, col]
-            sc = ax.scatter(
-                x_drawn[~outside], y_drawn[~outside], c=colour[~outside], s=2, cmap="coolwarm",
-                norm=norm, rasterized=True, linewidths=0,
-            )  # fmt: skip
-            if outside.any():
-                ax.scatter(
-                    x_drawn[outside], y_drawn[outside], c="black", s=8, marker="x",
-                    linewidths=0.6, rasterized=True,
-                )  # fmt: skip
-            ax.set_xlim(x0, x1)
-            ax.set_ylim(y0, y1)
-            ax.ticklabel_format(style="sci", scilimits=(-3, 4), useOffset=False)
-            ax.set_xlabel("step" if i < 0 else f"state dim {i}")
-            ax.set_ylabel(f"state dim {j}")
-            count = int(outside.sum())
-            beyond = f"\n{count} outlying states on the edge (x)" if count else ""
-            ax.set_title(f"coloured by {name}{beyond}", fontsize=10)
-            fig.colorbar(sc, ax=ax, shrink=0.8)
+        ax.axis("off")
+    colour_bar = fig.add_subplot(middle[1].subgridspec(1, 4)[0, 1:3])
+    fig.colorbar(plt.cm.ScalarMappable(norm=norm, cmap=colour), cax=colour_bar,
+                 orientation="horizontal", label="time (s) - the colour of every path")  # fmt: skip
+    legend = fig.add_subplot(middle[0])
+    legend.axis("off")
+    handles = [
+        Line2D([], [], marker="o", linestyle="", markerfacecolor="none", markeredgecolor="black",
+               markersize=10, label="first step"),
+        Line2D([], [], marker="x", linestyle="", color="red", markersize=8,
+               label=f"recovery ({int(recovered.sum())}): the state restarted from b_*"),
+        Line2D([], [], marker="^", linestyle="", markerfacecolor="none", markeredgecolor="black",
+               markersize=8, label=f"{beyond} state(s) beyond the axes, drawn on the edge "
+               f"(axes cover {1 - 2 * AXIS_QUANTILE:.0%} of each coordinate)"),
+    ]  # fmt: skip
+    legend.legend(handles=handles, loc="center", ncol=3, frameon=False, fontsize=10)
+    for row in range(series):
+        ax = fig.add_subplot(lower[row])
+        values = coords[:, row] if np.isfinite(share[0]) else coords[:, 1]
+        low, high = robust_limits(values)
+        ax.plot(times, np.clip(values, low, high), color="tab:blue", linewidth=1)
+        for when in times[recovered]:
+            ax.axvline(when, color="red", linewidth=0.8, alpha=0.6)
+        ax.set_ylim(low, high)
+        ax.set_xlim(*span)
+        ax.set_ylabel(f"direction {row + 1}", fontsize=9)
+        ax.tick_params(labelsize=8)
+        if row < series - 1:
+            ax.tick_params(labelbottom=False)
+        else:
+            ax.set_xlabel("time (s); red lines: recoveries")
     if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    if footnote:
-        fig.subplots_adjust(bottom=fig.subplotpars.bottom + 0.25 / (4 * len(pairs)))
-        fig.text(0.01, 0.005, footnote, fontsize=8, ha="left", va="bottom")
+        fig.suptitle(title, fontsize=13)
+    wrapped = "\n".join(textwrap.fill(line, 175) for line in notes)
+    fig.text(0.02, 0.012, wrapped, fontsize=9, ha="left", va="bottom")
+    if judgement is not None:
+        lines = wrapped.count("\n") + 1
+        fig.text(0.02, 0.02 + 0.0125 * lines, textwrap.fill(judgement.line(), 150),
+                 fontsize=10.5, fontweight="bold", ha="left", va="bottom")  # fmt: skip
     fig.savefig(output, dpi=80)
     plt.close(fig)
 
@@ -221,21 +401,49 @@ def run(args: argparse.Namespace) -> int:
     tracked = track_trajectory(model, trajectory)
     known = np.isfinite(trajectory.positions).all(axis=1)
     r2 = affine_r2(tracked.states[known], trajectory.positions[known]) if known.sum() > 2 else None
-    fit_line = "" if r2 is None else f" (R^2 of {_r2_text(r2, ', ')} from an affine map)"
+    fit_line = "" if r2 is None else f"; R^2 of the true {_r2_text(r2, ', ')} from the states"
+    try:
+        judgement: Judgement | None = judge_states(tracked.states, trajectory)
+    except DataError as exc:
+        judgement, why = None, str(exc).splitlines()[0]
+    restarts = recovery_text(int(tracked.recovered.sum()), len(trajectory))
+    training = model_file.training.get("adequacy")
+    trained = (
+        f"; over its training data it restarts at {training.get('recoveries')} of "
+        f"{training.get('tracked_steps')} steps"
+        if isinstance(training, dict) else ""
+    )
+    notes = [
+        f"tracking {restarts} (recovery rate {tracked.recovered.mean():.2f}){trained}. "
+        + RECOVERY,
+        "the judgement needs no pose: it is how much better than their mean the states "
+        "predict the next 1..10 images (good from 0.4, fair from 0.15; the later images "
+        "depend on actions not yet taken, so a model that locates the robot to R^2 0.98 "
+        "reaches 0.5); near 0 or below, the states carry nothing the images' average does "
+        "not. When this bag trained the model, the fit saw its steps: a fresh recording is "
+        "the fairer test.",
+    ]
+    stamps = np.asarray(trajectory.stamps, dtype=np.float64)
+    times = (stamps - stamps[0]) * 1e-9 if stamps.size else stamps
     plot_states(
         tracked.states,
+        times,
         trajectory.positions,
-        trajectory.rewards,
+        np.asarray(tracked.recovered, dtype=bool),
         output,
-        title=f"{model.method} states over {len(trajectory)} steps{fit_line}",
-        footnote=f"{int(tracked.recovered.sum())} recoveries; {RECOVERY}",
+        judgement=judgement,
+        title=f"{model.method} states over {len(trajectory)} steps ({times[-1]:.0f} s), state "
+        f"dimension {model.state_dim}{fit_line}",
+        notes=notes,
     )
     print(
-        f"wrote {output}: {len(trajectory)} steps, {int(tracked.recovered.sum())} recoveries "
-        "(steps whose predicted observation probability was not positive: restarted from b_*)"
+        f"wrote {output}: {len(trajectory)} steps; tracking {restarts} (recovery rate "
+        f"{tracked.recovered.mean():.2f}: steps whose predicted observation probability was "
+        f"not positive, restarted from b_*){trained}"
     )
+    print(judgement.line() if judgement is not None else f"judgement: none ({why})")
     if r2 is None:
-        print("no ground-truth pose in the bag(s): states coloured by time, no R^2")
+        print("no ground-truth pose in the bag(s): no R^2 of the position")
     else:
         partial = "" if known.all() else f" (over the {int(known.sum())} steps with a pose)"
         what = "true pose" if r2.size > 2 else "true position"
