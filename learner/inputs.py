@@ -97,8 +97,10 @@ def add_stream_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup
         type=_seconds,
         default=None,
         metavar="SECONDS",
-        help="resample camera and commands onto steps this far apart (robot bags); without "
-        "it, images and actions are paired by identical stamp (simulator bags)",
+        help="resample camera and commands onto steps this far apart (robot bags): between "
+        "one camera frame (1.2 x the camera period fit prints) and the time one command "
+        "lasts, the short end for a short recording; without it, images and actions are "
+        "paired by identical stamp (simulator bags)",
     )
     parser.add_argument(
         "--image-size",

@@ -443,7 +443,7 @@ def run(args: argparse.Namespace) -> int:
     )
     print(judgement.line() if judgement is not None else f"judgement: none ({why})")
     if r2 is None:
-        print("no ground-truth pose in the bag(s): no R^2 of the position")
+        print("no ground-truth pose in the bag(s): states coloured by time, no R^2 of the position")
     else:
         partial = "" if known.all() else f" (over the {int(known.sum())} steps with a pose)"
         what = "true pose" if r2.size > 2 else "true position"
