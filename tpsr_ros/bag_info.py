@@ -3,7 +3,9 @@
     python -m tpsr_ros.bag_info BAG
 
 Prints files, size, storage, duration, start and end (UTC and seconds), the message count
-and, per topic, its type, count, serialization format and offered QoS. ``BAG`` is the bag
+and, per topic, its type, count, serialization format and the QoS profiles its publishers
+offered as recorded (each distinct one once; ``history unknown`` where the recorder could
+not learn a publisher's history and depth, never a made-up depth). ``BAG`` is the bag
 directory, one of its ``.mcap`` files (the bag it belongs to is shown), or a lone ``.mcap``
 file with no ``metadata.yaml`` (summarised from its own summary section; "QoS: not
 recorded" where its channels carry none). A path that is none of these is refused with one
@@ -18,7 +20,7 @@ from pathlib import Path
 from tpsr_ros.cli import ArgumentParser, run_cli
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.io.qos import from_bag_qos
+from tpsr_ros.io.qos import offered_text
 
 __all__ = ["format_info", "main"]
 
@@ -67,8 +69,7 @@ def format_info(path: Path) -> str:
     width = max((len(t) for t in topics), default=0)
     type_width = max((len(t) for t in topics.values()), default=0)
     for i, topic in enumerate(sorted(topics)):
-        profile = from_bag_qos(qos.get(topic, []))
-        offered = str(profile) if profile is not None else "not recorded"
+        offered = offered_text(qos.get(topic, []))
         head = "Topic information: " if i == 0 else " " * 19
         lines.append(
             f"{head}Topic: {topic:<{width}} | Type: {topics[topic]:<{type_width}} | "
@@ -115,14 +116,11 @@ def _lone_mcap_info(path: Path) -> str:
              for c in channels}  # fmt: skip
     type_width = max((len(n) for n in names.values()), default=0)
     for i, channel in enumerate(channels):
-        offered = "not recorded"
         text = channel.metadata.get("offered_qos_profiles", "")
         try:
-            profile = from_bag_qos(parse_qos(text)) if text else None
+            offered = offered_text(parse_qos(text)) if text else "not recorded"
         except (ReaderError, ValueError, KeyError, TypeError, AttributeError):
-            profile = None
-        if profile is not None:
-            offered = str(profile)
+            offered = "not recorded"
         head = "Topic information: " if i == 0 else " " * 19
         lines.append(
             f"{head}Topic: {channel.topic:<{width}} | Type: {names[channel.id]:<{type_width}} | "

@@ -5,8 +5,10 @@
 Messages are published in log-time order with their original spacing divided by
 ``--rate``; their stored CDR bytes are published unchanged. Each topic is published with
 the QoS its recorded publishers offered (reliable unless one was best-effort,
-transient-local only if all were, the largest depth); bags without recorded QoS (e.g.
-from ``sim_node.generate``) use ROS 2's default (reliable, volatile, keep-last 10).
+transient-local only if all were, the largest depth, where a publisher whose depth was
+not known when recorded counts as ROS 2's default 10, as ``ros2 bag play`` offers it);
+bags without recorded QoS (e.g. from ``sim_node.generate``) use ROS 2's default
+(reliable, volatile, keep-last 10).
 
 ``/clock``: when the bag contains ``/clock``, its recorded messages are replayed like any
 other topic. Otherwise the player publishes ``/clock`` itself before each message whose

@@ -87,6 +87,7 @@ def _dds_qos(
     from cyclonedds.core import Policy, Qos
     from cyclonedds.util import duration
 
+    profile = profile.resolved()  # an unknown history: ROS 2's default keep-last 10
     policies: list[Any] = []
     if profile.reliability is Reliability.RELIABLE:
         policies.append(Policy.Reliability.Reliable(max_blocking_time=duration(infinite=True)))
@@ -119,21 +120,36 @@ def _dds_qos(
     return Qos(*policies)
 
 
-def _profile_from_dds(qos: Any) -> QoSProfile:
+_CYCLONE_VENDOR = "0110"
+"""Eclipse Cyclone DDS's RTPS vendor id, the first two bytes of its GUID prefixes."""
+
+
+def _profile_from_dds(qos: Any, writer_guid: str = "") -> QoSProfile:
+    """The profile a discovered writer offers, its history unknown where discovery hid it.
+
+    DDS discovery need not carry a writer's history: Fast DDS (rmw_fastrtps) never sends
+    it, Cyclone DDS sends it only when it is not the DDS default keep-last 1, and Cyclone
+    fills in that default for a writer that sent none. So keep-last 1 is known only from a
+    Cyclone writer (``writer_guid`` starting with its vendor id); from any other it is
+    unknown, as is a missing history.
+    """
     from cyclonedds.core import Policy
 
     reliability = Reliability.BEST_EFFORT
     durability = Durability.VOLATILE
-    history, depth = History.KEEP_LAST, 1
+    history, depth = History.UNKNOWN, 0
     for policy in qos:
         if isinstance(policy, Policy.Reliability.Reliable):
             reliability = Reliability.RELIABLE
         elif policy is Policy.Durability.TransientLocal:
             durability = Durability.TRANSIENT_LOCAL
-        elif isinstance(policy, Policy.History.KeepLast):
-            depth = int(policy.depth)
+        elif isinstance(policy, Policy.History.KeepLast) and int(policy.depth) >= 1:
+            history, depth = History.KEEP_LAST, int(policy.depth)
         elif policy is Policy.History.KeepAll:
             history, depth = History.KEEP_ALL, 0
+    cyclone = str(writer_guid).replace("-", "").lower().startswith(_CYCLONE_VENDOR)
+    if history is History.KEEP_LAST and depth == 1 and not cyclone:
+        history, depth = History.UNKNOWN, 0  # Cyclone's default filled in, or truly 1
     return QoSProfile(reliability, durability, history, depth)
 
 
@@ -519,7 +535,8 @@ class DdsTransport(Transport):
             msgtype = ros_type_name(sample.type_name)
             if msgtype is None:
                 continue
-            found.append(TopicEndpoint(name[2:], msgtype, _profile_from_dds(sample.qos)))
+            profile = _profile_from_dds(sample.qos, str(sample.key))
+            found.append(TopicEndpoint(name[2:], msgtype, profile))
         return found
 
     # -- teardown ---------------------------------------------------------------------

@@ -125,7 +125,7 @@ class InprocTransport(Transport):
         self._subs: list[_Subscription] = []
 
     def create_publisher(self, topic: str, msgtype: str, qos: QoSProfile) -> PublisherHandle:
-        pub = _Publisher(self, topic, msgtype, qos)
+        pub = _Publisher(self, topic, msgtype, qos.resolved())
         with self.bus.lock:
             self.bus.publishers.setdefault(topic, []).append(pub)
         self._pubs.append(pub)
@@ -134,7 +134,7 @@ class InprocTransport(Transport):
     def create_subscription(
         self, topic: str, msgtype: str, qos: QoSProfile, callback: BytesCallback
     ) -> SubscriptionHandle:
-        sub = _Subscription(self, topic, msgtype, qos, callback)
+        sub = _Subscription(self, topic, msgtype, qos.resolved(), callback)
         with self.bus.lock:
             self.bus.subscriptions.setdefault(topic, []).append(sub)
             history = [

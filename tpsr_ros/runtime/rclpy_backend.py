@@ -85,9 +85,10 @@ def from_rclpy(msg: Any, msgtype: str) -> Any:
 
 
 def to_rclpy_qos(profile: QoSProfile) -> Any:
-    """``rclpy.qos.QoSProfile`` of ``profile``."""
+    """``rclpy.qos.QoSProfile`` of ``profile`` (an unknown history as ROS 2's default)."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+    profile = profile.resolved()
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST
         if profile.history is History.KEEP_LAST
@@ -103,7 +104,13 @@ def to_rclpy_qos(profile: QoSProfile) -> Any:
 
 
 def from_rclpy_qos(qos: Any) -> QoSProfile:
-    """Our profile of an ``rclpy.qos.QoSProfile`` (unknown policies map to ROS defaults)."""
+    """Our profile of an ``rclpy.qos.QoSProfile``.
+
+    Unknown reliability and durability map to ROS defaults. An unknown history (what
+    ``get_publishers_info_by_topic`` reports for every publisher under rmw_fastrtps: DDS
+    discovery does not carry it), a system-default one, or keep-last with depth 0 stays
+    unknown, never a made-up depth.
+    """
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
 
     reliability = (
@@ -118,7 +125,9 @@ def from_rclpy_qos(qos: Any) -> QoSProfile:
     )
     if qos.history == HistoryPolicy.KEEP_ALL:
         return QoSProfile(reliability, durability, History.KEEP_ALL, 0)
-    return QoSProfile(reliability, durability, History.KEEP_LAST, max(int(qos.depth), 1))
+    if qos.history == HistoryPolicy.KEEP_LAST and int(qos.depth) >= 1:
+        return QoSProfile(reliability, durability, History.KEEP_LAST, int(qos.depth))
+    return QoSProfile(reliability, durability, History.UNKNOWN, 0)
 
 
 class _Publisher(PublisherHandle):
