@@ -55,14 +55,15 @@ def test_fit_arrays_with_the_defaults_sizes_them_to_a_small_system() -> None:
     observations = np.eye(6)[cells] + 0.1 * rng.normal(size=(3000, 6))
     model = fit(actions, observations)
     assert model.config.center_selection == "kmeans" and model.config.action_pooling == 1.0
-    assert model.fit_info["sized"] == {"ht_centers": [1000, 500], "ht_dim": [10, 6]}
+    # rank 8 held to the 6 singular values of P_TH the data support (the ring's dimension)
+    assert model.fit_info["sized"] == {"ht_centers": [1000, 500], "ht_dim": [10, 6], "rank": [8, 6]}
     states = model.track(actions, observations).states
     design = np.column_stack([states, np.ones(len(states))])
     half = len(states) // 2
     weights, *_ = np.linalg.lstsq(design[:half], np.eye(6)[cells[:half]], rcond=None)
     read = np.argmax(design[half:] @ weights, axis=1)
-    assert (read == cells[half:]).mean() > 0.95
+    assert (read == cells[half:]).mean() > 0.93  # 0.946 at rank 6 (0.95+ with rank 8's noise)
     with pytest.raises(Exception, match="actions \\(T,\\) and observations"):
         fit(actions)
-    turning = fit(actions, observations, turning=True).config  # a robot whose actions turn it
-    assert (turning.rank, turning.action_pooling) == (16, 0.5)
+    turning = fit(actions, observations, turning=True)  # a robot whose actions turn it
+    assert turning.config.action_pooling == 0.5 and turning.fit_info["sized"]["rank"][0] == 16
