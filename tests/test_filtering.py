@@ -128,6 +128,17 @@ def test_derived_arrays_belong_to_the_model_they_were_derived_from(model, run):
     assert moved.derived.b_inf_norm == np.linalg.norm(moved.b_inf)
     states, infos = loop(moved, actions[:20], obs[:20])
     assert_same(moved.track(actions[:20], obs[:20]), states, infos)
+    assert model.derived.operator_of == (0, 1, 2)
+
+
+def test_pooled_operators_stored_per_action_are_read_from_one_copy(model, run):
+    actions, obs = run
+    pooled = dataclasses.replace(model, B=np.repeat(model.B[1:2], 3, axis=0))
+    assert pooled.derived.operator_of == (0, 0, 0)
+    states, infos = loop(pooled, actions, obs)
+    assert_same(pooled.track(actions, obs), states, infos)
+    one = dataclasses.replace(model, B=pooled.B[:1].copy())  # the same operators, once
+    np.testing.assert_array_equal(states, loop(one, np.zeros_like(actions), obs)[0])
 
 
 def test_guard_catches_overflow(model, run):

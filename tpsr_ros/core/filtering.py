@@ -120,11 +120,15 @@ class Derived:
     Attributes:
         centers_sq: ``(l_O,)`` squared norms of the observation kernel centres.
         b_inf_norm: ``||b_inf||``, the scale of the normaliser guard.
+        operator_of: for every action, the first action whose operators ``B_a`` are bit
+            for bit its own: pooled operators (``action_pooling`` 1) are stored once per
+            action, and an update reading always the same copy finds it in the cache.
 
     """
 
     centers_sq: np.ndarray
     b_inf_norm: float
+    operator_of: tuple[int, ...]
 
 
 def derive(model: FilterParameters) -> Derived:
@@ -132,7 +136,20 @@ def derive(model: FilterParameters) -> Derived:
     return Derived(
         centers_sq=squared_norms(model.obs_centers),
         b_inf_norm=float(np.linalg.norm(model.b_inf)),
+        operator_of=_first_equal(model.B),
     )
+
+
+def _first_equal(operators: np.ndarray) -> tuple[int, ...]:
+    """For every action, the first action whose operators equal its own bit for bit."""
+    firsts: list[int] = []
+    distinct: list[int] = []
+    for a in range(len(operators)):
+        first = next((b for b in distinct if np.array_equal(operators[b], operators[a])), a)
+        if first == a:
+            distinct.append(a)
+        firsts.append(first)
+    return tuple(firsts)
 
 
 def _operators(model: FilterParameters) -> np.ndarray:
@@ -230,9 +247,10 @@ def update(
     state = _check_state(model, state)
     a = _check_action(action, model.n_actions)
     weights = observation_weights(model, np.asarray(observation, dtype=np.float64)[None, :])
-    # the product update_matrices computes for a one-step group of action a
-    r = model.state_dim
-    b_ao = np.matmul(weights[:, None, :], _operators(model)[a])[0, 0].reshape(r, r)
+    # the product update_matrices computes for a one-step group of action a (on the same
+    # operators, maybe another copy)
+    r, flat = model.state_dim, _operators(model)[model.derived.operator_of[a]]
+    b_ao = np.matmul(weights[:, None, :], flat)[0, 0].reshape(r, r)
     new, z, recovered = _step(b_ao, state, model)
     return new, UpdateInfo(normalizer=z, recovered=recovered)
 
