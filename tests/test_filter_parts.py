@@ -11,7 +11,8 @@ from tpsr_ros.core.episodes import image_to_observation
 from tpsr_ros.core.errors import MessageError
 from tpsr_ros.core.resample import GridConfig, resample_grid
 from tpsr_ros.filter_node.health import ERROR, OK, STALE, WARN, HealthLedger, Throttle
-from tpsr_ros.filter_node.inputs import Rejected, SimulatorInputs
+from tpsr_ros.filter_node.inputs import Rejected
+from tpsr_ros.filter_node.simulator_inputs import SimulatorInputs
 from tpsr_ros.filter_node.stepping import ExactPairing, GridStepping
 from tpsr_ros.io import messages as m
 

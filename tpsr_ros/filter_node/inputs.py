@@ -8,10 +8,6 @@ bit, or raises :class:`Rejected` with the reason it is counted under
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Callable
-import contextlib
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -21,17 +17,14 @@ from tpsr_ros.core.codebook import ActionCodebook
 from tpsr_ros.core.episodes import DEFAULT_ACTION_TOLERANCE, image_to_observation
 from tpsr_ros.core.errors import EncodingError, MessageError, TpsrError
 from tpsr_ros.core.images import Preprocessing, preprocess_images
-from tpsr_ros.io.cdr_fields import ImageDecoder, TwistDecoder
 from tpsr_ros.io.images import decode_image
-from tpsr_ros.io.message_fields import image_to_array, stamp_of, twist_components
-from tpsr_ros.io.messages import ACTION_TYPE, IMAGE_TYPE, deserialize
+from tpsr_ros.io.message_fields import image_to_array, twist_components
 
 __all__ = [
     "REJECT_REASONS",
     "Frame",
     "Rejected",
-    "SimulatorInputs",
-    "SimulatorInputs",
+    "action_index",
     "robot_command",
     "simulator_action",
     "simulator_image",
@@ -85,10 +78,10 @@ def simulator_action(
         command = tuple(twist_components(msg, grid.components).tolist())
     except TpsrError as exc:
         raise Rejected("action", str(exc)) from None
-    return _action_index(command, cache, grid)
+    return action_index(command, cache, grid)
 
 
-def _action_index(
+def action_index(
     command: tuple[float, ...], cache: dict[tuple[float, ...], int], grid: ActionGrid
 ) -> int:
     """The grid index of a (finite) command, remembered in ``cache``."""
@@ -101,67 +94,6 @@ def _action_index(
         if len(cache) < ACTION_CACHE_SIZE:
             cache[command] = index
     return index
-
-
-class SimulatorInputs:
-    """Simulator images and executed actions from their CDR bytes: ``(stamp, observation)``
-    and ``(stamp, action index)``, or :class:`Rejected` (``undecodable`` when the bytes are
-    not a message).
-
-    A message laid out byte for byte as the last valid one of its input but for its stamp
-    and values (the same frame, encoding and size) is read at that one's offsets, as
-    offline tracking reads a bag (:mod:`tpsr_ros.io.cdr_fields`): it would pass the same
-    checks. Any other is deserialised and checked by :func:`simulator_image` or
-    :func:`simulator_action`, and its layout learnt.
-    """
-
-    def __init__(
-        self, shape: tuple[int, int], image_frame: str, action_frame: str, grid: ActionGrid
-    ) -> None:
-        self.shape, self.image_frame, self.action_frame, self.grid = (
-            shape, image_frame, action_frame, grid,
-        )  # fmt: skip
-        self._images = ImageDecoder(shape)
-        self._preprocessing = Preprocessing(*shape)  # image_to_observation's, made once
-        self._actions = TwistDecoder(grid.components)
-        self._indices: dict[tuple[float, ...], int] = {}
-
-    def image(self, data: bytes) -> tuple[int, np.ndarray]:
-        """Stamp and observation of an image message."""
-        known = self._images.decode_known(data)
-        if known is not None:
-            stamp, pixels = known
-            rgb = np.frombuffer(pixels, dtype=np.uint8).reshape(1, *self.shape, 3)
-            return stamp, preprocess_images(rgb, self._preprocessing)[0]
-        msg = _deserialize(data, IMAGE_TYPE)
-        observation = simulator_image(msg, self.shape, self.image_frame)
-        _learn(self._images.decode, data)
-        return stamp_of(msg), observation
-
-    def action(self, data: bytes) -> tuple[int, int]:
-        """Stamp and action index of an executed action message."""
-        known = self._actions.decode_known(data)
-        if known is not None:
-            stamp, command = known
-            return stamp, _action_index(command, self._indices, self.grid)
-        msg = _deserialize(data, ACTION_TYPE)
-        index = simulator_action(msg, self.action_frame, self._indices, self.grid)
-        _learn(self._actions.decode, data)
-        return stamp_of(msg), index
-
-
-def _deserialize(data: bytes, msgtype: str) -> Any:
-    try:
-        return deserialize(data, msgtype)
-    except MessageError as exc:
-        raise Rejected("undecodable", str(exc)) from None
-
-
-def _learn(decode: Callable[[bytes], Any], data: bytes) -> None:
-    """Learn the layout of a message that passed the checks (a stamp that is no time, which
-    only the layout's fast read refuses, leaves it to the checks again)."""
-    with contextlib.suppress(MessageError):
-        decode(data)
 
 
 def robot_command(msg: Any, codebook: ActionCodebook) -> tuple[int, float, np.ndarray]:

@@ -22,7 +22,6 @@ from tpsr_ros.filter_node.health import MIN_SHARE_SAMPLES, OK, WARN, HealthLedge
 from tpsr_ros.filter_node.inputs import (
     Frame,
     Rejected,
-    SimulatorInputs,
     robot_command,
 )
 from tpsr_ros.filter_node.params import (
@@ -36,6 +35,7 @@ from tpsr_ros.filter_node.params import (
     STATE_TOPIC,
     FilterNodeParams,
 )
+from tpsr_ros.filter_node.simulator_inputs import SimulatorInputs
 from tpsr_ros.filter_node.stepping import (
     Added,
     ExactPairing,
