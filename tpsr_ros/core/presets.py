@@ -14,6 +14,10 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
   rank 16 and operators pooled half-way, since its camera's view depends on a third
   coordinate, the heading, and on which way each action turns it (docs/results.md,
   "drive").
+- ``predictive``: ``best`` with ``P_TH``'s tests from the current step and the spectral
+  model refined through its filter (:mod:`tpsr_ros.core.refine`): on fresh seeds its
+  weakest runs lie far above ``best``'s where one image is ambiguous, its means level
+  within the noise (docs/results.md, "A predictive state").
 
 Options given explicitly (``learner fit --rank 5``, ``--set tpsr.rank=5``) change single
 fields of a preset; :func:`departures` names them, so a model records its preset and what
@@ -97,40 +101,34 @@ def _build(cls: type[Any], values: Mapping[str, Any], name: str) -> Any:
     return cls(**values)
 
 
+_BEST = Preset(
+    "best",
+    "the project's best: k-means centres, normalised history/test features, rank 8, "
+    "pooled action operators, observation whitening to 95 % of the variance (a robot "
+    "that turns: rank 16, 20 history/test dimensions, operators pooled half-way); "
+    "fitted Q in predictive units, 5 x 100 centres",
+    tpsr={
+        "center_selection": "kmeans",
+        "normalize_ht_features": True,
+        "rank": 8,
+        "action_pooling": 1.0,
+        "obs_variance": 0.95,
+    },
+    fqi={"state_scaling": "predictive", "ensemble": 5, "centers": 100},
+    turning_tpsr={"ht_dim": 20, "rank": 16, "action_pooling": 0.5},
+)
+
 PRESETS: Mapping[str, Preset] = MappingProxyType(
     {
-        "best": Preset(
-            "best",
-            "the project's best: k-means centres, normalised history/test features, rank 8, "
-            "pooled action operators, observation whitening to 95 % of the variance (a robot "
-            "that turns: rank 16, 20 history/test dimensions, operators pooled half-way); "
-            "fitted Q in predictive units, 5 x 100 centres",
-            tpsr={
-                "center_selection": "kmeans",
-                "normalize_ht_features": True,
-                "rank": 8,
-                "action_pooling": 1.0,
-                "obs_variance": 0.95,
-            },
-            fqi={"state_scaling": "predictive", "ensemble": 5, "centers": 100},
-            turning_tpsr={"ht_dim": 20, "rank": 16, "action_pooling": 0.5},
-        ),
-        "predictive": Preset(
-            "predictive",
-            "the project's best, made a predictive state: P_TH with the tests from the current "
-            "step (so B_ao propagates the state it defines), then the spectral model refined "
-            "through its filter (at most 30 L-BFGS iterations on predicting the next 10 images)",
-            tpsr={
-                "center_selection": "kmeans",
-                "normalize_ht_features": True,
-                "rank": 8,
-                "action_pooling": 1.0,
-                "obs_variance": 0.95,
-                "p_th_tests": "from-current",
-                "refine_epochs": 30,
-            },
-            fqi={"state_scaling": "predictive", "ensemble": 5, "centers": 100},
-            turning_tpsr={"ht_dim": 20, "rank": 16, "action_pooling": 0.5},
+        "best": _BEST,
+        "predictive": dataclasses.replace(
+            _BEST,
+            name="predictive",
+            summary="the project's best, made a predictive state: P_TH with the tests from the "
+            "current step (so B_ao propagates the state it defines), then the spectral model "
+            "refined through its filter (at most 30 L-BFGS iterations on predicting the next "
+            "10 images)",
+            tpsr={**_BEST.tpsr, "p_th_tests": "from-current", "refine_epochs": 30},
         ),
         "guide": Preset(
             "guide",
