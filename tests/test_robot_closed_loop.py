@@ -45,6 +45,7 @@ def test_the_grid_rules_cannot_close_a_lockstep_step_and_lockstep_does():
     lockstep.command(3)
     assert lockstep.add_image(S + 100_000_000, "same grid step").problem == "late"
     lockstep.command(4)
+    assert lockstep.episode_start(2 * S)  # the reset's stamp, after the last step's image
     lockstep.command(5)  # an ignored command, then the first of an episode: the last counts
     (step,) = lockstep.add_image(3 * S + 150_000_000, "on a grid time").steps
     assert (step.stamp, step.action) == (3 * S + 150_000_000, 5)
@@ -53,6 +54,64 @@ def test_the_grid_rules_cannot_close_a_lockstep_step_and_lockstep_does():
     assert lockstep.add_image(0, "back in time").jumped
     with pytest.raises(ConfigError, match="phase"):
         LockstepStepping(dataclasses.replace(GRID, phase_ns=None), jump_threshold_ns=S)
+
+
+def _episode_boundary(start_first: bool) -> list[tuple[str, object]]:
+    """Three steps, the last command (ignored by the robot), a reset at 4 s and the
+    node's command from b_*, then the episode's first image at 5 s: the episode start and
+    that image in either arrival order, as the node calls the stepping."""
+    lockstep = LockstepStepping(GRID, jump_threshold_ns=5 * S)
+    events: list[tuple[str, object]] = []
+
+    def steps(added):
+        events.extend(("step", (s.stamp, s.action, s.image)) for s in added.steps)
+
+    for k in (1, 2, 3):
+        lockstep.command(k)
+        steps(lockstep.add_image(k * S, f"image {k}"))
+    lockstep.command(4)  # answers step 3; the robot ignores it (the episode's end)
+
+    def start():
+        events.append(("restart", lockstep.episode_start(4 * S)))
+        lockstep.command(9)  # the node's command from b_*, sent on the restart
+        steps(lockstep.release())
+
+    if start_first:
+        start()
+        steps(lockstep.add_image(5 * S, "image 5"))
+    else:
+        steps(lockstep.add_image(5 * S, "image 5"))
+        start()
+    lockstep.command(6)
+    steps(lockstep.add_image(6 * S, "image 6"))
+    events.append(("counts", lockstep.counts()))
+    return events
+
+
+def test_lockstep_steps_do_not_depend_on_the_arrival_order_of_an_episode_start():
+    """Stamps decide: a start at 4 s applies to the image at 5 s whichever arrives first,
+    and that image takes the command of the restarted state, never the ignored one."""
+    first, second = _episode_boundary(True), _episode_boundary(False)
+    assert first == second
+    assert ("step", (5 * S + 150_000_000, 9, "image 5")) in first
+    assert ("restart", True) in first
+
+
+def test_lockstep_holds_an_image_after_a_gap_and_ignores_a_lagging_clock():
+    lockstep = LockstepStepping(GRID, jump_threshold_ns=5 * S)
+    lockstep.command(1)
+    assert lockstep.clock(S) is False
+    assert len(lockstep.add_image(S, "image 1").steps) == 1
+    for k in range(2, 12):  # the clock's messages lag the images by more than the bound
+        assert len(lockstep.add_image(k * S, f"image {k}").steps) == 1
+    assert lockstep.clock(2 * S) is False and lockstep.counts()["time_jumps"] == 0
+    assert lockstep.add_image(14 * S, "after a gap").steps == []  # held: a start may precede
+    assert lockstep.release().steps == []  # no start before it
+    (step,) = lockstep.flush().steps  # the lateness bound expired: the stream goes on
+    assert (step.stamp, step.action, step.image) == (14 * S + 150_000_000, 1, "after a gap")
+    assert lockstep.episode_start(13 * S) is False  # older than a stepped image: stale
+    assert lockstep.clock(20 * S) is False
+    assert lockstep.clock(0) is True  # the clock's own time jumped back: restart
 
 
 @pytest.fixture(scope="module")

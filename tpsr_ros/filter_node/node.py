@@ -193,6 +193,9 @@ class FilterNode(Node):
             self._ready_timer = self.create_timer(0.01, self._check_ready)
         if self.grid is not None:
             self.create_timer(min(0.1, p.max_latency / 4), self._flush_if_idle)
+        self._held_since: float | None = None  # lockstep: since when an image is held
+        if p.lockstep:
+            self.create_timer(min(0.1, p.max_latency / 4), self._flush_held)
         what = "pure filter" if self.policy is None else f"policy {p.policy}"
         how = "pairing"
         if self.spec is not None:
@@ -388,7 +391,22 @@ class FilterNode(Node):
             self._reinit(f"camera time jumped back to {stamp / _NS:.3f} s")
         if added.problem is not None:
             self._warn(self.image_topic, "late", f"image at {stamp / _NS:.3f} s makes no step")
+        if self.source.held is not None and self._held_since is None:
+            self._held_since = time.perf_counter()
         self._grid_steps(added.steps, start)
+
+    def _flush_held(self) -> None:
+        """An image held after a gap for ``max_latency`` with no episode start before it:
+        step it with the state it follows."""
+        assert isinstance(self.source, LockstepStepping)
+        if self.source.held is None:
+            self._held_since = None
+            return
+        if self._held_since is not None and (
+            time.perf_counter() - self._held_since >= self.params.max_latency
+        ):
+            self._held_since = None
+            self._grid_steps(self.source.flush().steps, time.perf_counter())
 
     def _on_lockstep_command(self, data: bytes) -> None:
         """The command input in lockstep: not read (the node's own commands are the
@@ -456,12 +474,18 @@ class FilterNode(Node):
         if msg is None:
             return
         stamp = m.stamp_of(msg)
+        lockstep = self.source if isinstance(self.source, LockstepStepping) else None
+        if lockstep is not None and lockstep.held is not None and lockstep.held[0] <= stamp:
+            self._grid_steps(lockstep.flush().steps, time.perf_counter())  # before the start
         if not self.source.episode_start(stamp):
             self.stale_resets += 1
             self.logger.debug(f"episode start at {stamp / _NS:.3f} s is not newer: ignored")
             return
         self._reinit(f"episode start at {stamp / _NS:.3f} s")
         self.resets += 1
+        if lockstep is not None:  # an image after the start that arrived before it
+            self._held_since = None
+            self._grid_steps(lockstep.release().steps, time.perf_counter())
 
     def _on_clock(self, data: bytes) -> None:
         msg = self._decode(data, m.CLOCK_TYPE, self.clock_topic)

@@ -329,9 +329,18 @@ class LockstepStepping:
 
     An image stamped ``s`` is the step at the first grid time at or after ``s`` (the grid
     step that takes it offline, as the next image comes at least a period later); its
-    action is the node's last command sent (:meth:`command`) before the image arrived. An
-    image not newer than the previous one, or whose grid time was already stepped, is
-    counted and dropped; an image before any command is a command gap.
+    action is the node's last command sent (:meth:`command`). An image not newer than the
+    previous one, or whose grid time was already stepped, is counted and dropped; an image
+    before any command is a command gap.
+
+    Stamps, not arrival order, decide where an episode starts: a start stamped ``t`` applies
+    to the first image stamped after ``t``, whichever of the two arrives first. An image
+    on the grid step right after the last one steps at once (a reset takes a stamp of its
+    own, so no start lies between them); an image after a gap is held until the start
+    before it arrives (:meth:`episode_start`, then :meth:`release` once the node has sent
+    the command of the restarted state) or until the node gives up waiting (:meth:`flush`,
+    after its lateness bound). ``/clock`` restarts the steps only when the clock's own time
+    jumps back: its messages travel on another topic and may lag the images.
     """
 
     def __init__(self, grid: GridConfig, *, jump_threshold_ns: int) -> None:
@@ -344,6 +353,11 @@ class LockstepStepping:
         self.action: int | None = None
         self.last_image: int | None = None
         self.last_step: int | None = None
+        self.last_clock: int | None = None
+        self.start: int | None = None
+        """Stamp of the newest episode start not yet followed by an image."""
+        self.held: tuple[int, Any] | None = None
+        """An image after a gap, waiting for the start before it (or the lateness bound)."""
         self.late = self.out_of_order = self.time_jumps = self.command_gaps = 0
 
     def step_time(self, stamp: int) -> int:
@@ -354,37 +368,78 @@ class LockstepStepping:
         """The node sent ``action``: the robot's next step executes it."""
         self.action = int(action)
 
+    def _restart(self) -> None:
+        self.last_image = self.last_step = self.start = None
+        self.held = None
+        self.time_jumps += 1
+
     def _jumped(self, stamp: int) -> bool:
         if self.last_image is None or stamp >= self.last_image - self.jump_threshold_ns:
             return False
-        self.last_image = self.last_step = None
-        self.time_jumps += 1
+        self._restart()
         return True
 
     def add_image(self, stamp: int, image: Any) -> Added:
-        """An image (any object holding it); the step it makes, if any."""
+        """An image (any object holding it); the step it makes, if any (none while held)."""
+        stamp = int(stamp)
         jumped = self._jumped(stamp)
-        if self.last_image is not None and stamp <= self.last_image:
+        newest = self.last_image if self.held is None else self.held[0]
+        if newest is not None and stamp <= newest:
             self.out_of_order += 1
             return Added(jumped=jumped, problem="late")
-        self.last_image = int(stamp)
+        released = self.flush().steps  # a newer image: the held one waited long enough
+        at = self.step_time(stamp)
+        first = self.start is not None and stamp > self.start
+        if self.last_step is not None and at > self.last_step + self.step_ns and not first:
+            self.held = (stamp, image)  # after a gap: an episode start may lie before it
+            return Added(released, jumped)
+        added = self._step(stamp, image)
+        return Added(released + added.steps, jumped, added.problem)
+
+    def _step(self, stamp: int, image: Any) -> Added:
+        self.last_image, self.start = stamp, None
         at = self.step_time(stamp)
         if self.last_step is not None and at <= self.last_step:
             self.late += 1
-            return Added(jumped=jumped, problem="late")
+            return Added(problem="late")
         if self.action is None:
             self.command_gaps += 1
-            return Added(jumped=jumped)
+            return Added()
         self.last_step = at
-        return Added([Step(at, self.action, image)], jumped)
+        return Added([Step(at, self.action, image)])
+
+    def release(self) -> Added:
+        """The held image if an episode start before it has arrived (call it once the
+        restarted state's command is sent: that command is the image's action)."""
+        if self.held is None or self.start is None or self.held[0] <= self.start:
+            return Added()
+        return self.flush()
+
+    def flush(self) -> Added:
+        """Step the held image now (the lateness bound expired: no start came before it)."""
+        if self.held is None:
+            return Added()
+        (stamp, image), self.held = self.held, None
+        return self._step(stamp, image)
 
     def episode_start(self, stamp: int) -> bool:
-        """A start message restarts the state (robot streams have no episodes)."""
+        """A start at ``stamp`` restarts the state unless an image after it was already
+        stepped (then it is stale: its episode's steps were taken as one stream)."""
+        stamp = int(stamp)
+        if self.last_image is not None and stamp < self.last_image:
+            if stamp >= self.last_image - self.jump_threshold_ns:
+                return False
+            self._restart()
+        self.start = stamp
         return True
 
     def clock(self, stamp: int) -> bool:
-        """``/clock``: a jump back restarts the steps."""
-        return self._jumped(stamp)
+        """``/clock``: a jump back of the clock's own time restarts the steps."""
+        last, self.last_clock = self.last_clock, int(stamp)
+        if last is None or stamp >= last - self.jump_threshold_ns:
+            return False
+        self._restart()
+        return True
 
     def counts(self) -> dict[str, int]:
         """Counters in the grid's keys (dropped images are the out-of-order and late ones)."""
