@@ -4,6 +4,8 @@ defaults, PCA, the floors and the ceiling of the headline, on the headline's fre
 
 The preset was chosen on four runs of the selection seeds in ``partial-strip``; its rows here
 come from ten runs on the headline's seeds in every environment, seeds it was not chosen on.
+In ``partial-strip`` the baselines that carry the past (:mod:`tpsr_ros.core.window_baselines`)
+stand beside it, run on the same seeds.
 """
 
 from __future__ import annotations
@@ -38,6 +40,30 @@ def _jobs() -> tuple[Job, ...]:
             *HEADLINE_SEEDS,
         )
         for env in ENVIRONMENTS
+    )
+
+
+BASELINE_ENVIRONMENTS = ("partial-strip",)
+"""Where the baselines that carry the past ran (one image does not tell where the robot is)."""
+
+
+def _baseline_jobs() -> tuple[Job, ...]:
+    return tuple(
+        experiment_job(
+            "baselines",
+            env,
+            "--episodes",
+            str(PREDICTIVE_EPISODES),
+            "--methods",
+            "stacked-pca",
+            "window",
+            "--set",
+            "stacked.k=1",
+            "--set",
+            "window.k=1",
+            *HEADLINE_SEEDS,
+        )
+        for env in BASELINE_ENVIRONMENTS
     )
 
 
@@ -76,7 +102,7 @@ def _render(section: Section, data: Data) -> list[str]:
         "|---|---|---|---|---|---|",
     ]
     verdicts = []
-    for job in section.jobs:
+    for job in _jobs():
         env = job.environment
         ours, base_rows = data[job], data[_defaults(env)]
         base = _entry(base_rows, "tpsr")
@@ -89,16 +115,34 @@ def _render(section: Section, data: Data) -> list[str]:
             ("floor: random actions", base_rows, RANDOM),
             ("ceiling: the true position", base_rows, TRUE_POSITION),
         ]
+        for baseline in _baseline_jobs():
+            if baseline.environment == env:
+                rows[3:3] = [
+                    (
+                        "stacked-frame PCA (k = 1), the defaults' planner",
+                        data[baseline],
+                        "stacked-pca",
+                    ),
+                    ("finite-window predictive state (k = 1), the same", data[baseline], "window"),
+                ]
         for name, source, method in rows:
             entry = _entry(source, method)
             versus = "-"
             if method == "tpsr" and source is ours and entry and base:
                 versus = judged(*comparison(entry, base))
-            restarts = _restarts(source, method) if method in ("tpsr", "pca") else "-"
+            restarts = _restarts(source, method) if method == "tpsr" else "-"
             lines.append(
                 f"| `{env}` | {name} | {cell(entry)} | {_weakest(source, method)} | "
                 f"{restarts} | {versus} |"
             )
+        for baseline in _baseline_jobs():
+            window = _entry(data[baseline], "window") if baseline.environment == env else None
+            if mine and window:
+                verdicts.append(
+                    f"- `{env}`: the finite-window predictive state (the last image and action "
+                    f"mapped to the next images) scores {window['mean']:.1f}, "
+                    f"{judged(*comparison(window, mine))} against the predictive TPSR."
+                )
         if mine and base:
             difference, sems = comparison(mine, base)
             verdicts.append(
@@ -117,11 +161,16 @@ PREDICTIVE_SECTION = Section(
     "from the current step (so that `B_ao` propagates the state it defines) and the "
     "spectral model is then refined through its own filter on predicting the next 10 "
     "images (`--preset predictive`; `tpsr_ros.core.refine`)? Chosen on four runs of the "
-    "selection seeds in `partial-strip`; measured here on fresh seeds in every environment.",
-    _jobs(),
+    "selection seeds in `partial-strip`; measured here on fresh seeds in every environment, "
+    "and in `partial-strip` beside two baselines that carry the past: PCA of the last image "
+    "stacked with the action that led to it, and a finite-window predictive state (a ridge "
+    "regression from the last image and action to the next 10 images, on its top 8 "
+    "directions; `tpsr_ros/core/window_baselines.py`), each with k = 1, chosen on the "
+    "selection seeds among 1, 2 and 4.",
+    (*_jobs(), *_baseline_jobs()),
     _render,
     "**Commands** (the headline's seeds):\n\n```sh\n"
-    + "\n".join(job.command for job in _jobs())
+    + "\n".join(job.command for job in (*_jobs(), *_baseline_jobs()))
     + "\n```",
 )
 """The section, with its jobs (one per environment) and renderer."""
