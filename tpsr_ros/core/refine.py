@@ -319,29 +319,20 @@ class RefineProblem:
         return float(np.sum(resid**2) / max(np.sum(y**2), 1e-300))
 
     # --- loss and gradient -----------------------------------------------------------------
-    def loss_and_grad(
-        self, theta: np.ndarray, batch: np.ndarray | None = None, readout: np.ndarray | None = None
-    ) -> tuple[float, np.ndarray]:
-        """The objective (module docstring) and its exact gradient; on the training windows
-        ``batch`` (indices) with a fixed ``readout`` for stochastic steps."""
+    def loss_and_grad(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """The objective (module docstring) and its exact gradient."""
         f = self.start.like(theta)
-        starts = self.train_starts if batch is None else self.train_starts[batch]
-        states, tape, rows = self._forward(f, starts)
+        states, tape, rows = self._forward(f, self.train_starts)
         w, r = self.window, states.shape[-1]
-        c = starts.size
+        c = self.train_starts.size
         scored = states[w:].transpose(1, 0, 2).reshape(-1, r)
         y = self._targets["train"]
-        if batch is not None:
-            y = y.reshape(self.train_starts.size, w, -1)[batch].reshape(c * w, -1)
         sst = max(float(np.sum(y**2)), 1e-300)
         if not np.isfinite(scored).all():
             return float("inf"), np.zeros_like(theta)
         squashed, slope = self._squash(scored)
         x = self._design(squashed)
-        if readout is None:
-            gram = x.T @ x
-            gram[np.diag_indices(r)] += self.ridge * x.shape[0]
-            readout = np.linalg.solve(gram, x.T @ y)
+        readout = self._readout(squashed, y)  # at its optimum: only the states carry gradient
         resid = y - x @ readout
         loss = (
             float(np.sum(resid**2)) + self.ridge * x.shape[0] * float(np.sum(readout[:r] ** 2))
