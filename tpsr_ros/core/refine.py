@@ -460,6 +460,6 @@ def refine_tpsr(
         "windows": int(problem.train_starts.size + problem.held_starts.size),
         "seconds": round(seconds, 3),
     }
-    info.setdefault("timings", {})["refinement"] = round(seconds, 6)
+    info["timings"] = {**info.get("timings", {}), "refinement": round(seconds, 6)}
     rest = model.B - start.operators()
     return replace(model, B=refined.operators() + rest, b_inf=refined.b_inf, fit_info=info)
