@@ -349,10 +349,10 @@ def _learn_states(
     if method == TRUE_POSITION:
         tracker = TruePositionTracker()
         return tracker, tracker.track(rl), 0
+    codes = config.sim_config().actions.codes  # the commands of the simulator's actions
     if method == "tpsr":
         # sizes set with --set stay as set; the preset's follow the data (core.sizing)
         given = departures(config.tpsr, preset_tpsr(config.preset, config.environment))
-        codes = config.sim_config().actions.codes  # for action-aware features
         model = fit_tpsr_trajectory(
             train, config.tpsr, sizing=Sizing(given), action_codes=codes
         )
@@ -362,7 +362,7 @@ def _learn_states(
             train.actions,
             n_actions=train.n_actions,
             config=config.stacked,
-            action_codes=config.sim_config().actions.codes,
+            action_codes=codes,
         )
     elif method == "window":
         model = fit_window(
@@ -371,7 +371,7 @@ def _learn_states(
             n_actions=train.n_actions,
             segments=train.segments,
             config=config.window,
-            action_codes=config.sim_config().actions.codes,
+            action_codes=codes,
         )
     else:
         model = fit_pca(train.observations, n_actions=train.n_actions, config=config.pca)

@@ -172,9 +172,7 @@ class WindowConfig:
 # --- step features and windows ---------------------------------------------------------
 
 
-def _action_table(
-    how: str, n_actions: int, action_codes: np.ndarray | None
-) -> np.ndarray:
+def _action_table(how: str, n_actions: int, action_codes: np.ndarray | None) -> np.ndarray:
     """``(n_actions, c)`` features of each action: the identity, or the commands' codes."""
     if n_actions < 1:
         raise DataError(f"a window baseline needs at least 1 action, not {n_actions}")
@@ -253,8 +251,37 @@ def _check_state(state: np.ndarray, dim: int) -> np.ndarray:
 # --- stacked PCA --------------------------------------------------------------------------
 
 
+class _StepFeatures:
+    """What both window models read of a step: its image's components and its action's
+    features (``obs_mean``, ``obs_components`` and ``action_table`` of the model)."""
+
+    obs_mean: np.ndarray
+    obs_components: np.ndarray
+    action_table: np.ndarray
+
+    @property
+    def step_dim(self) -> int:
+        """Features of one step: image components plus action features."""
+        return int(self.obs_components.shape[1] + self.action_table.shape[1])
+
+    @property
+    def n_actions(self) -> int:
+        """Number of actions."""
+        return int(self.action_table.shape[0])
+
+    @property
+    def obs_size(self) -> int:
+        """Observation length."""
+        return int(self.obs_mean.shape[0])
+
+    def _features(self, actions: np.ndarray, observations: np.ndarray) -> np.ndarray:
+        return _step_features(
+            self.obs_mean, self.obs_components, self.action_table, actions, observations
+        )
+
+
 @dataclass(frozen=True, eq=False)
-class StackedPCAModel:
+class StackedPCAModel(_StepFeatures):
     """A fitted stacked-PCA baseline: the state is the window of the last ``k`` steps.
 
     Attributes:
@@ -283,11 +310,6 @@ class StackedPCAModel:
             raise DataError(f"padding of shape {self.padding.shape}, not ({self.step_dim},)")
 
     @property
-    def step_dim(self) -> int:
-        """Features of one step: image components plus action features."""
-        return int(self.obs_components.shape[1] + self.action_table.shape[1])
-
-    @property
     def state_dim(self) -> int:
         """``k`` steps' features."""
         return int(self.config.k * self.step_dim)
@@ -297,24 +319,9 @@ class StackedPCAModel:
         """The planner sees the whole window."""
         return self.state_dim
 
-    @property
-    def n_actions(self) -> int:
-        """Number of actions."""
-        return int(self.action_table.shape[0])
-
-    @property
-    def obs_size(self) -> int:
-        """Observation length."""
-        return int(self.obs_mean.shape[0])
-
     def initial_state(self) -> np.ndarray:
         """The empty window: ``k`` padding steps."""
         return np.tile(self.padding, self.config.k)
-
-    def _features(self, actions: np.ndarray, observations: np.ndarray) -> np.ndarray:
-        return _step_features(
-            self.obs_mean, self.obs_components, self.action_table, actions, observations
-        )
 
     def update(
         self, state: np.ndarray, action: int, observation: np.ndarray
@@ -400,7 +407,7 @@ def fit_stacked_pca(
 
 
 @dataclass(frozen=True, eq=False)
-class WindowModel:
+class WindowModel(_StepFeatures):
     """A fitted finite-window predictive state: ``[p_t, buffer]`` (see the module's notes).
 
     Attributes:
@@ -442,11 +449,6 @@ class WindowModel:
             )
 
     @property
-    def step_dim(self) -> int:
-        """Features of one step: image components plus action features."""
-        return int(self.obs_components.shape[1] + self.action_table.shape[1])
-
-    @property
     def buffer_dim(self) -> int:
         """Values of the buffer: the newest ``k - 1`` steps' features."""
         return int((self.config.k - 1) * self.step_dim)
@@ -460,21 +462,6 @@ class WindowModel:
     def state_dim(self) -> int:
         """``dim`` plus the buffer."""
         return self.planner_dim + self.buffer_dim
-
-    @property
-    def n_actions(self) -> int:
-        """Number of actions."""
-        return int(self.action_table.shape[0])
-
-    @property
-    def obs_size(self) -> int:
-        """Observation length."""
-        return int(self.obs_mean.shape[0])
-
-    def _features(self, actions: np.ndarray, observations: np.ndarray) -> np.ndarray:
-        return _step_features(
-            self.obs_mean, self.obs_components, self.action_table, actions, observations
-        )
 
     def _states(self, windows: np.ndarray) -> np.ndarray:
         """``[p, buffer]`` of windows ``(T, k * m)``, row by row (bit-equal to one update)."""
@@ -627,9 +614,7 @@ def fit_window(
             "steps": int(obs.shape[0]),
             "regression_steps": int(x.shape[0]),
             "future_r2": round(explained, 6),
-            "future_r2_top_dim": round(
-                float(top.sum()) * (z.shape[0] - 1) / max(total, 1e-300), 6
-            ),
+            "future_r2_top_dim": round(float(top.sum()) * (z.shape[0] - 1) / max(total, 1e-300), 6),
             "timings": {"fit": round(time.perf_counter() - start, 6)},
         },
     )
