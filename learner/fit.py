@@ -46,16 +46,18 @@ from learner.options import (
     preset_from_args,
 )
 from tpsr_ros.cli import positive_float, positive_int
-from tpsr_ros.core.episodes import Trajectory, common_value, make_episodes
+from tpsr_ros.core.episodes import Trajectory, common_value, make_episodes, track_trajectory
 from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.core.presets import Preset, departures
 from tpsr_ros.core.sizing import Sizing, describe_sizing
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.streamed_fit import fit_pca_streamed, fit_tpsr_streamed
-from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel
+from tpsr_ros.core.view_readout import ViewReadout, fit_view_readout
 from tpsr_ros.io.bag_chunks import DEFAULT_CHUNK_STEPS, BagChunks, survey_bags
+from tpsr_ros.io.bag_streams import pose_frame_id
 from tpsr_ros.io.model_io import check_output_path, save_model
 from tpsr_ros.io.stream_defaults import check_fit_memory, grid_step_count
 from tpsr_ros.io.stream_spec import StreamSpec
@@ -264,8 +266,35 @@ def run(args: argparse.Namespace) -> int:
     }
     if isinstance(model, TPSRModel):  # enough data? episodes per action, recovery rate
         training["adequacy"] = _say_adequacy(assess(model, trajectory))
-    _write(model, output, training, spec, timings, preset=record, force=args.force)
+    view = _view_readout(model, trajectory, _decoded_pose_frame(args, topics))
+    _write(model, output, training, spec, timings, preset=record, view=view, force=args.force)
     return 0
+
+
+def _decoded_pose_frame(args: argparse.Namespace, topics: Topics) -> str:
+    """The frame of the training poses (the decoded pose's): the first bag's, else ``map``."""
+    if not topics.pose:
+        return "map"
+    child = args.pose_frame or DEFAULT_POSE_FRAME
+    return pose_frame_id(args.bags[0], topics.pose, child) or "map"
+
+
+def _view_readout(model: StateModel, trajectory: Trajectory, pose_frame: str) -> ViewReadout:
+    """The viewer's read-outs (next image, pose, state map) on the training states."""
+    tracked = track_trajectory(model, trajectory)
+    positions = trajectory.positions
+    view = fit_view_readout(
+        tracked.states,
+        trajectory.actions,
+        trajectory.observations,
+        trajectory.segments,
+        trajectory.n_actions,
+        positions=positions if np.isfinite(positions).any() else None,
+        pose_frame=pose_frame,
+    )
+    pose = "" if view.pose is None else f" and the pose (frame {pose_frame})"
+    _say(f"viewer read-outs: the next image for each action{pose}")
+    return view
 
 
 def _say_adequacy(adequacy: Adequacy) -> dict[str, Any]:
@@ -493,11 +522,14 @@ def _write(
     *,
     preset: dict[str, Any] | None,
     force: bool,
+    view: ViewReadout | None = None,
 ) -> None:
     """Write the model file, then print the summary (with the time writing took)."""
     _say(f"writing {output}")
     start = time.perf_counter()
-    save_model(model, output, training=training, inputs=spec, preset=preset, force=force)
+    save_model(
+        model, output, training=training, inputs=spec, preset=preset, view=view, force=force
+    )
     timings["writing"] = time.perf_counter() - start
     for line in summary_lines(model, training, timings, output):
         print(line)

@@ -41,6 +41,7 @@ __all__ = [
     "TRANSFORM_TYPE",
     "BagStreams",
     "fast_time",
+    "pose_frame_id",
     "pose_planar",
     "read_bag_streams",
     "where",
@@ -275,3 +276,24 @@ def fast_time(data: bytes, log_time_ns: int) -> int:
     """Header stamp read from the CDR bytes, or the log time where the stamp is zero."""
     stamp = header_stamp_ns(data)
     return stamp if stamp > 0 else int(log_time_ns)
+
+
+def pose_frame_id(path: Path, pose_topic: str, child_frame: str = DEFAULT_POSE_FRAME) -> str | None:
+    """The frame the ground-truth poses of ``pose_topic`` in the bag ``path`` are given in:
+    the first message's header frame (a ``TFMessage``: the parent of ``child_frame``), or
+    None when the bag has no such message."""
+    with BagReader(path) as reader:
+        msgtype = reader.topics_with_messages.get(pose_topic)
+        if msgtype not in POSE_TYPES:
+            return None
+        for _, _, data in reader.raw_messages([pose_topic]):
+            try:
+                msg = deserialize(data, msgtype)
+            except MessageError:
+                continue
+            if msgtype != TF_TYPE:
+                return str(msg.header.frame_id)
+            for transform in msg.transforms:
+                if transform.child_frame_id == child_frame:
+                    return str(transform.header.frame_id)
+    return None

@@ -8,6 +8,8 @@ entry ``metadata``, a 0-d unicode array holding a JSON object::
      variance, timings...}, "n_actions": 25, "observation": {"size": 768, ...},
      "training": {...bags, steps, episodes, stamps, environment, topics...},
      "input": {...} (models learned with --step-period only),
+     "view": {"points": 1000, "pose_dim": 0 | 2 | 4, "pose_frame": "map"} (models with the
+       viewer's read-outs: arrays view_image, view_axes, view_center, view_points[, view_pose]),
      "preset": {"name": "best", "changed": {...}[, "turning": true]} (descriptive; learner
        fit writes it),
      "created": "...", "software": {"tpsr_ros": "0.1.0", "numpy": "..."}}
@@ -39,6 +41,7 @@ from tpsr_ros.core.errors import ConfigError, ModelFormatError, TpsrError
 from tpsr_ros.core.pca_baseline import PCAModel
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.tpsr import TPSRModel
+from tpsr_ros.core.view_readout import ViewReadout
 from tpsr_ros.io.npz_archive import (
     ShapeRule,
     check_output_path,
@@ -89,6 +92,7 @@ def save_model(
     training: dict[str, Any] | None = None,
     inputs: StreamSpec | None = None,
     preset: dict[str, Any] | None = None,
+    view: ViewReadout | None = None,
     force: bool = False,
 ) -> Path:
     """Write ``model`` to ``path`` atomically.
@@ -96,7 +100,8 @@ def save_model(
     ``training`` describes the data (bags, stamps...); ``inputs`` the streams of a model
     learned on the step grid (stored as ``"input"``; checked against the model first);
     ``preset`` the named settings the fit started from and what its options changed
-    (``{"name": ..., "changed": {...}}``, shown by ``learner info``).
+    (``{"name": ..., "changed": {...}}``, shown by ``learner info``); ``view`` the viewer's
+    read-outs of its state (:mod:`tpsr_ros.core.view_readout`), outside its fingerprint.
     """
     if model.method not in METHODS:
         raise ModelFormatError(
@@ -127,7 +132,17 @@ def save_model(
         metadata["input"] = inputs.as_dict()
     if preset is not None:
         metadata["preset"] = preset
-    return write_archive(path, model.to_arrays(), metadata, force=force)
+    arrays = model.to_arrays()
+    if view is not None:
+        if view.center.shape != (model.state_dim,) or view.obs_size != model.obs_size:
+            raise ModelFormatError("the view read-out was fitted for another model's states")
+        metadata["view"] = {
+            "points": view.points.shape[0],
+            "pose_dim": 0 if view.pose is None else view.pose.shape[1],
+            "pose_frame": view.pose_frame,
+        }
+        arrays.update(view.to_arrays())
+    return write_archive(path, arrays, metadata, force=force)
 
 
 def _check_inputs(spec: StreamSpec, obs_size: int, n_actions: int, what: str) -> None:
@@ -185,6 +200,7 @@ def _expected_shapes(path: Path, metadata: dict[str, Any]) -> dict[str, ShapeRul
             "eigenvalues": (dim,),
             "explained_variance_ratio": (dim,),
             "n_actions": (),
+            **_view_shapes(path, metadata, k),
         }
     n_actions = metadata_size(path, metadata, "n_actions")
     r, d_o, d_ht, l_o = (
@@ -205,6 +221,29 @@ def _expected_shapes(path: Path, metadata: dict[str, Any]) -> dict[str, ShapeRul
     clip = parameters.get("state_clip_quantile", 0)
     if isinstance(clip, (int, float)) and not isinstance(clip, bool) and clip > 0:
         shapes["state_box"] = (2, r)
+    return shapes | _view_shapes(path, metadata, k)
+
+
+def _view_shapes(path: Path, metadata: dict[str, Any], k: int) -> dict[str, ShapeRule]:
+    """The shapes of the viewer's read-out arrays (none when the metadata has no ``view``)."""
+    view = metadata.get("view")
+    if view is None:
+        return {}
+    if not isinstance(view, dict) or not isinstance(view.get("pose_frame"), str):
+        raise ModelFormatError(f"the metadata of {str(path)!r} has an invalid 'view' entry")
+    r = metadata_size(path, metadata, "state_dim")
+    n_actions = metadata_size(path, metadata, "n_actions")
+    pose_dim = view.get("pose_dim")
+    if pose_dim not in (0, 2, 4) or isinstance(pose_dim, bool):
+        raise ModelFormatError(f"the 'view' entry of {str(path)!r} has pose_dim {pose_dim!r}")
+    shapes: dict[str, ShapeRule] = {
+        "view_image": (n_actions + 1, r + 1, k),
+        "view_axes": (r, 3),
+        "view_center": (r,),
+        "view_points": (metadata_size(path, view, "points"), 3),
+    }
+    if pose_dim:
+        shapes["view_pose"] = (r + 1, pose_dim)
     return shapes
 
 
@@ -248,6 +287,8 @@ class ModelFile:
     """The input streams of a model learned on the step grid; None: exact-stamp pairing."""
     fingerprint: str
     """:func:`model_fingerprint` of the model, what a policy names."""
+    view: ViewReadout | None = None
+    """The viewer's read-outs of the state; None for files written without them."""
 
     @property
     def training(self) -> dict[str, Any]:
@@ -289,8 +330,10 @@ def open_model(path: Path | str) -> ModelFile:
             )
         if not np.isfinite(arr).all():
             raise ModelFormatError(f"array {name!r} of {str(path)!r} contains non-finite values")
+    view_arrays = {name: arrays.pop(name) for name in list(arrays) if name.startswith("view_")}
     try:
         model = METHODS[method].from_arrays(arrays, metadata["parameters"], metadata["summary"])
+        view = _view_readout(view_arrays, metadata)
     except TpsrError as exc:
         raise ModelFormatError(f"{str(path)!r} is inconsistent: {exc}") from None
     except (KeyError, TypeError, ValueError) as exc:
@@ -300,7 +343,23 @@ def open_model(path: Path | str) -> ModelFile:
             f"{str(path)!r} declares {metadata['n_actions']} actions but its arrays hold "
             f"{model.n_actions}"
         )
-    return ModelFile(path, model, metadata, spec, model_fingerprint(model))
+    if view is not None and view.center.shape != (model.state_dim,):
+        raise ModelFormatError(f"{str(path)!r}: the view read-out does not fit the model's states")
+    return ModelFile(path, model, metadata, spec, model_fingerprint(model), view)
+
+
+def _view_readout(arrays: dict[str, np.ndarray], metadata: dict[str, Any]) -> ViewReadout | None:
+    """The viewer's read-outs from their arrays (shapes already checked), or None."""
+    if not arrays:
+        return None
+    return ViewReadout(
+        image=arrays["view_image"],
+        pose=arrays.get("view_pose"),
+        axes=arrays["view_axes"],
+        center=arrays["view_center"],
+        points=arrays["view_points"],
+        pose_frame=metadata["view"]["pose_frame"],
+    )
 
 
 def load_model(path: Path | str) -> TPSRModel | PCAModel:
