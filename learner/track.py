@@ -1,4 +1,5 @@
-"""``learner track MODEL BAG... -o STATES.csv|.npz``: the states a model tracks over bags, offline.
+"""``learner track MODEL BAG... -o STATES.csv|.npz [--mcap VIEW_BAG]``: the states a model
+tracks over bags, offline, and what the filter node's view shows of them.
 
 The reference the filter node is held to: replaying the bags through it publishes exactly
 these states on ``/tpsr/state`` (msgs_doc/filter_node.md). Bags are read as the model's
@@ -11,24 +12,52 @@ models, exact-stamp pairing for simulator models) and tracked with the model's p
 ``cos_heading,sin_heading`` where the robot turns), every number written to round-trip
 exactly (17 significant digits). ``.npz`` (no pickles): ``stamp_ns`` ``(T,)``, ``states``
 ``(T, r)``, ``recovered`` ``(T,)`` and, with a pose, ``positions`` ``(T, 2)`` or ``(T, 4)``.
+
+``--mcap VIEW_BAG``: a new rosbag2 MCAP bag with the bags' camera messages (as recorded)
+and, per tracked step, what the filter node publishes on ``/tpsr/state``,
+``/tpsr/predicted_image``, ``/tpsr/state_markers`` and ``/tpsr/decoded_pose`` (with
+``--policy``: the predicted image after the greedy action, and the actions' values), byte
+for byte, so one Foxglove layout shows the live robot and the recording.
 """
 
 from __future__ import annotations
 
 import argparse
+import heapq
 import io
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from learner.fit import add_topic_options
-from learner.inputs import far_commands_line, read_for_model, require_given_topics
-from tpsr_ros.core.episodes import track_trajectory
+from learner.inputs import (
+    far_commands_line,
+    read_for_model,
+    require_given_topics,
+    topics_from_args,
+)
+from tpsr_ros.cli import positive_int
+from tpsr_ros.core.episodes import Trajectory, track_trajectory
 from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.state_model import Track
+from tpsr_ros.io import messages as m
 from tpsr_ros.io.atomic import atomic_file
-from tpsr_ros.io.model_io import check_output_path, open_model
+from tpsr_ros.io.bag import BagReader, BagWriter, check_bag_path_free
+from tpsr_ros.io.filter_inputs import check_policy
+from tpsr_ros.io.model_io import ModelFile, check_output_path, open_model
+from tpsr_ros.io.policy import Policy, load_policy
+from tpsr_ros.io.view_messages import (
+    DECODED_POSE_TOPIC,
+    MARKERS_TYPE,
+    PREDICTED_IMAGE_TOPIC,
+    STATE_MARKERS_TOPIC,
+    ViewSettings,
+    view_messages,
+)
+from tpsr_ros.runtime.transport import pad_cdr
 
 __all__ = ["register", "run", "write_states"]
 
@@ -44,8 +73,22 @@ def register(subparsers: Any) -> None:
     parser.add_argument("model", type=Path, metavar="MODEL", help="model file (.npz)")
     parser.add_argument("bags", nargs="+", type=Path, metavar="BAG", help="rosbag2 MCAP bag(s)")
     parser.add_argument(
-        "-o", "--output", type=Path, required=True, metavar="STATES",
+        "-o", "--output", type=Path, metavar="STATES",
         help="states file to write: .csv or .npz",
+    )  # fmt: skip
+    parser.add_argument(
+        "--mcap", type=Path, metavar="VIEW_BAG",
+        help="also write a new MCAP bag of the camera and the filter node's view topics",
+    )  # fmt: skip
+    parser.add_argument(
+        "--policy", type=Path, metavar="POLICY",
+        help="with --mcap: the model's policy (predicted images after its greedy action, and "
+        "its action values), as the filter node has it",
+    )  # fmt: skip
+    parser.add_argument(
+        "--view-trail", type=positive_int, default=ViewSettings.trail, metavar="N",
+        help="with --mcap: states in the markers' trail (the filter node's view_trail; "
+        "default %(default)s)",
     )  # fmt: skip
     parser.add_argument("--force", action="store_true", help="overwrite an existing STATES")
     add_topic_options(parser.add_argument_group("topics"))
@@ -87,27 +130,128 @@ def write_states(
 
 def run(args: argparse.Namespace) -> int:
     """Read, track, write; say how many steps and restarts."""
-    if args.output.suffix not in FORMATS:
+    if args.output is None and args.mcap is None:
+        raise ConfigError("give -o STATES (.csv or .npz), --mcap VIEW_BAG, or both")
+    if args.policy is not None and args.mcap is None:
+        raise ConfigError("--policy shapes the view topics only: add --mcap VIEW_BAG")
+    if args.output is not None and args.output.suffix not in FORMATS:
         raise ConfigError(f"--output {str(args.output)!r}: write a .csv or .npz file")
-    output = check_output_path(args.output, force=args.force)
+    output = None if args.output is None else check_output_path(args.output, force=args.force)
+    if args.mcap is not None:
+        check_bag_path_free(args.mcap)
     require_given_topics(args.bags, args)
     model_file = open_model(args.model)
+    policy = None
+    if args.policy is not None:
+        policy = load_policy(args.policy)
+        check_policy(policy, model_file, str(args.policy))
+    if args.mcap is not None and model_file.view is None:
+        raise ConfigError(
+            f"model {str(args.model)!r} has no viewer read-outs (an older file or a streamed "
+            "fit): refit it with `learner fit` to write the view topics"
+        )
     trajectory = read_for_model(model_file, args.bags, args)
     tracked = track_trajectory(model_file.model, trajectory)
     if model_file.spec is not None:  # a robot model: the filter node's far_commands
         print(f"learner track: {far_commands_line(trajectory, model_file.spec)}", file=sys.stderr)
     positions = trajectory.positions
     has_pose = positions is not None and bool(np.isfinite(positions).any())
-    write_states(
-        output,
-        np.asarray(trajectory.stamps, dtype=np.int64),
-        tracked.states,
-        np.asarray(tracked.recovered, dtype=bool),
-        positions if has_pose else None,
-    )
+    written = []
+    if output is not None:
+        write_states(
+            output,
+            np.asarray(trajectory.stamps, dtype=np.int64),
+            tracked.states,
+            np.asarray(tracked.recovered, dtype=bool),
+            positions if has_pose else None,
+        )
+        written.append(str(output))
+    if args.mcap is not None:
+        spec = model_file.spec
+        image_topic = spec.image_topic if spec is not None else topics_from_args(args).image
+        write_view_bag(
+            args.mcap, model_file, args.bags, image_topic, trajectory, tracked, policy,
+            ViewSettings(trail=args.view_trail),
+        )  # fmt: skip
+        written.append(f"{args.mcap} (camera and view topics)")
     print(
-        f"wrote {output}: {len(trajectory)} steps in {len(trajectory.segment_bounds())} "
-        f"segment(s), {int(np.sum(tracked.recovered))} normaliser recoveries",
+        f"wrote {' and '.join(written)}: {len(trajectory)} steps in "
+        f"{len(trajectory.segment_bounds())} segment(s), {int(np.sum(tracked.recovered))} "
+        "normaliser recoveries",
         file=sys.stderr,
     )
     return 0
+
+
+def _view_records(
+    model_file: ModelFile,
+    trajectory: Trajectory,
+    tracked: Track,
+    policy: Policy | None,
+    settings: ViewSettings,
+) -> Iterator[tuple[int, int, str, bytes]]:
+    """``(stamp, order, topic, cdr)`` of the view topics, step by step, as the filter node
+    publishes them (the state, then the markers, the predicted image and the pose)."""
+    viewer = view_messages(model_file, settings)
+    assert viewer is not None
+    state_cdr = m.StateEncoder(model_file.model.state_dim)
+    order = 0
+    for stamp, state, observation in zip(
+        trajectory.stamps.tolist(), tracked.states, trajectory.observations, strict=True
+    ):
+        q_values = None if policy is None else policy.q.values(state)[0]
+        view = viewer.step(stamp, state, observation, q_values)
+        records = [("/tpsr/state", state_cdr(stamp, state))]
+        records += [("/" + STATE_MARKERS_TOPIC, markers) for markers in view.markers]
+        records.append(("/" + PREDICTED_IMAGE_TOPIC, view.predicted_image))
+        if view.decoded_pose is not None:
+            records.append(("/" + DECODED_POSE_TOPIC, view.decoded_pose))
+        for topic, data in records:  # as every transport delivers them: padded to 4 bytes
+            yield stamp, order, topic, pad_cdr(data)
+            order += 1
+
+
+def _camera_records(bags: list[Path], topic: str) -> Iterator[tuple[int, int, str, bytes]]:
+    """``(log time, -1, topic, cdr)`` of every camera message of ``bags``, bag by bag."""
+    for bag in bags:
+        with BagReader(bag) as reader:
+            for _, log_time, data in reader.raw_messages([topic]):
+                yield log_time, -1, topic, data
+
+
+def write_view_bag(
+    path: Path,
+    model_file: ModelFile,
+    bags: list[Path],
+    image_topic: str,
+    trajectory: Trajectory,
+    tracked: Track,
+    policy: Policy | None,
+    settings: ViewSettings | None = None,
+) -> None:
+    """The camera and the view topics of the tracked steps in a new MCAP bag at ``path``,
+    in time order (a camera message before the step of its stamp)."""
+    with BagReader(bags[0]) as reader:
+        camera_type = reader.topics_with_messages.get(image_topic)
+    if camera_type is None:
+        raise ConfigError(f"{bags[0]} has no messages on the camera topic {image_topic}")
+    viewer = view_messages(model_file)
+    assert viewer is not None
+    types = {
+        image_topic: camera_type,
+        "/tpsr/state": m.STATE_TYPE,
+        "/" + STATE_MARKERS_TOPIC: MARKERS_TYPE,
+        "/" + PREDICTED_IMAGE_TOPIC: m.IMAGE_TYPE,
+    }
+    if viewer.view.pose is not None:
+        types["/" + DECODED_POSE_TOPIC] = m.POSE_TYPE
+    records = heapq.merge(
+        _camera_records(bags, image_topic),
+        _view_records(model_file, trajectory, tracked, policy, settings or ViewSettings()),
+        key=lambda record: (record[0], record[1]),
+    )
+    with BagWriter(path) as writer:
+        for topic, msgtype in types.items():
+            writer.add_topic(topic, msgtype)
+        for stamp, _, topic, data in records:
+            writer.write(topic, stamp, data)

@@ -10,9 +10,12 @@ indices, a step source of :mod:`~tpsr_ros.filter_node.stepping` turns those into
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
+
+import numpy as np
 
 from tpsr_ros.core.actions import environment_grid
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
@@ -48,6 +51,15 @@ from tpsr_ros.io.filter_inputs import FilterInputs, check_policy, filter_inputs,
 from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.policy import load_policy
 from tpsr_ros.io.qos import CLOCK_QOS
+from tpsr_ros.io.view_messages import (
+    DECODED_POSE_TOPIC,
+    MARKERS_TYPE,
+    PREDICTED_IMAGE_TOPIC,
+    STATE_MARKERS_TOPIC,
+    ViewMessages,
+    ViewSettings,
+    view_messages,
+)
 from tpsr_ros.runtime import (
     DEFAULT_QOS,
     LATCHED_QOS,
@@ -73,6 +85,12 @@ PROG = "python -m tpsr_ros.filter_node"
 WARN_PERIOD_S = 5.0
 """At most one warning per topic and kind (rejection, drop, duplicate...) in this many seconds."""
 SETTLE_S = 0.25
+MARKERS_QOS = QoSProfile(
+    Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, History.KEEP_LAST, DEFAULT_QOS.depth
+)
+"""tpsr/state_markers: a viewer that joins late gets the last markers (the trail)."""
+IMAGE_ERROR_STEPS = 100
+"""Steps over which ``/diagnostics`` averages the predicted image's error."""
 """Once the command's subscribers are matched, time for their side of discovery to finish."""
 
 
@@ -185,6 +203,7 @@ class FilterNode(Node):
         self._pending_command: tuple[int, int | None] | None = None
         self._ready_since: float | None = None
         self.commands_ready = self.policy is None
+        self.viewer = self._viewer()
         self._create_endpoints(image_name, action_name)
         self._far_reported = (0, 0)  # far commands and command messages when last judged
         self._report_done()
@@ -207,6 +226,19 @@ class FilterNode(Node):
             f"{self.inputs.fingerprint[:12]}); {what}; {how} {self.image_topic} and "
             f"{self.action_topic}"
         )
+
+    def _viewer(self) -> ViewMessages | None:
+        """The view topics' messages (``view`` on and a model with the viewer's read-outs)."""
+        p: FilterNodeParams = self.params
+        if not p.view:
+            return None
+        if self.inputs.model_file.view is None:
+            self.logger.info(
+                f"{p.model} has no viewer read-outs (written by an older version or a streamed "
+                "fit): no view topics; refit it with `learner fit` to see them"
+            )
+            return None
+        return view_messages(self.inputs.model_file, ViewSettings(trail=p.view_trail))
 
     @property
     def source_step_ns(self) -> int:
@@ -232,6 +264,15 @@ class FilterNode(Node):
             else None
         )
         self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
+        if self.viewer is not None:
+            self.predicted_pub = self.create_publisher(PREDICTED_IMAGE_TOPIC, m.IMAGE_TYPE)
+            self.markers_pub = self.create_publisher(STATE_MARKERS_TOPIC, MARKERS_TYPE, MARKERS_QOS)
+            self.pose_pub = (
+                self.create_publisher(DECODED_POSE_TOPIC, m.POSE_TYPE)
+                if self.viewer.view.pose is not None
+                else None
+            )
+            self.image_errors: deque[float] = deque(maxlen=IMAGE_ERROR_STEPS)
         if self.cmd_pub is not None and self.cmd_pub.topic == self.action_topic:
             if self.spec is None:  # executed actions stamped per step, not commands
                 raise ConfigError(
@@ -467,7 +508,22 @@ class FilterNode(Node):
         self.state_pub.publish_raw(self._state_cdr(step.stamp, info.state))
         if self.policy is not None:
             self._command(info.state, step.stamp)
+        if self.viewer is not None:
+            self._view(step, info.state)
         self.latency.add(time.perf_counter() - start)
+
+    def _view(self, step: Step, state: Any) -> None:
+        """Publish the view topics of one step (the policy's Q-values with a policy)."""
+        assert self.viewer is not None
+        q_values = None if self.policy is None else self.policy.q.values(state)[0]
+        view = self.viewer.step(step.stamp, state, step.image, q_values)
+        for markers in view.markers:
+            self.markers_pub.publish_raw(markers)
+        self.predicted_pub.publish_raw(view.predicted_image)
+        if self.pose_pub is not None and view.decoded_pose is not None:
+            self.pose_pub.publish_raw(view.decoded_pose)
+        if view.image_error is not None:
+            self.image_errors.append(view.image_error)
 
     def _on_reset(self, data: bytes) -> None:
         msg = self._decode(data, m.POSE_TYPE, self.reset_topic)
@@ -571,7 +627,16 @@ class FilterNode(Node):
             "state_dim": self.model.state_dim,
             "model": self.inputs.fingerprint[:12],
             "policy": "none" if self.policy is None else self.params.policy,
+            **self._view_values(),
         }
+
+    def _view_values(self) -> dict[str, Any]:
+        """The predicted image's pixel RMS error against the image that came (the mean over
+        the last :data:`IMAGE_ERROR_STEPS` steps), with the view on."""
+        if self.viewer is None:
+            return {}
+        errors = self.image_errors
+        return {"predicted_image_rmse": float(np.mean(errors)) if errors else "none"}
 
     def health_status(self) -> tuple[int, str]:
         """Level and message of the next report: what got worse since the previous one.

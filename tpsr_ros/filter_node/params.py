@@ -110,6 +110,13 @@ class FilterNodeParams:
         "time at or after its stamp, with the node's last command as its action (the command "
         "input is not read)",
     )
+    view: bool = param(
+        True,
+        "publish what the state means for a person: tpsr/predicted_image, tpsr/state_markers "
+        "and (models fitted with a pose) tpsr/decoded_pose, for Foxglove and RViz (models "
+        "without the viewer's read-outs publish none)",
+    )
+    view_trail: int = param(100, "states in the tpsr/state_markers trail", minimum=1)
 
     def __post_init__(self) -> None:
         if self.queue_size < 1:
@@ -124,3 +131,5 @@ class FilterNodeParams:
             raise ConfigError(f"jump_threshold must be >= 0 s, got {self.jump_threshold}")
         if self.wait_for_subscribers < 0:
             raise ConfigError("wait_for_subscribers must be >= 0")
+        if self.view_trail < 1:
+            raise ConfigError(f"view_trail must be >= 1, got {self.view_trail}")

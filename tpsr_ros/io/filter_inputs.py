@@ -23,6 +23,7 @@ __all__ = [
     "check_policy",
     "filter_inputs",
     "input_topics",
+    "model_image_shape",
 ]
 
 IMAGE_TOPIC = "/camera/image_raw"
@@ -74,7 +75,7 @@ def _training_topics(model_file: ModelFile) -> set[tuple[str, str]]:
     return found
 
 
-def _image_shape(model_file: ModelFile) -> tuple[int, int]:
+def model_image_shape(model_file: ModelFile) -> tuple[int, int]:
     """The image size the model reads, refusing a model whose images are not ``H x W x 3``."""
     if model_file.spec is not None:
         prep = model_file.spec.preprocessing
@@ -131,7 +132,7 @@ def filter_inputs(
     ``/camera/image_raw`` runs a filter in ``/robot1`` on ``/robot1/camera/image_raw``). A
     model recording no topics is accepted.
     """
-    shape = _image_shape(model_file)
+    shape = model_image_shape(model_file)
     if check_topics:
         subscribed = (image_topic, action_topic)
         prefix = namespace.rstrip("/")

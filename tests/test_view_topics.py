@@ -1,0 +1,127 @@
+"""The view topics: read-outs that recover a known linear system, and the filter node's
+tpsr/predicted_image, tpsr/state_markers and tpsr/decoded_pose equal to what
+`learner track --mcap` writes for the same steps, byte for byte."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_filter_node import Harness, S, small  # noqa: F401  (the module fixture)
+
+from learner.cli import main as learner_main
+from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.view_readout import fit_view_readout, next_step_pairs
+from tpsr_ros.io import messages as m
+from tpsr_ros.io.bag import BagReader
+from tpsr_ros.io.model_io import open_model
+from tpsr_ros.io.view_messages import MARKERS_TYPE, ViewMessages
+
+VIEW_TOPICS = ("/tpsr/state", "/tpsr/state_markers", "/tpsr/predicted_image", "/tpsr/decoded_pose")
+
+
+def _linear_system(seed: int = 0, steps: int = 4000, r: int = 4, k: int = 12, actions: int = 3):
+    """States, actions, observations and positions of a system whose next observation is
+    exactly affine in the state for each action, and whose pose is affine in the state."""
+    rng = np.random.default_rng(seed)
+    states = rng.normal(size=(steps, r))
+    acts = rng.integers(0, actions, size=steps)
+    maps = rng.normal(size=(actions, r + 1, k))
+    observations = np.zeros((steps, k))
+    design = np.concatenate([states, np.ones((steps, 1))], axis=1)
+    observations[1:] = np.einsum("ti,tik->tk", design[:-1], maps[acts[1:]])
+    pose_map = rng.normal(size=(r + 1, 2))
+    positions = design @ pose_map
+    return states, acts, observations, positions, maps, pose_map
+
+
+def test_the_read_outs_recover_a_known_affine_system():
+    states, acts, obs, positions, maps, pose_map = _linear_system()
+    segments = np.zeros(len(states), dtype=np.int64)
+    view = fit_view_readout(states, acts, obs, segments, 3, positions=positions)
+    np.testing.assert_allclose(view.image[:3], maps, atol=1e-5)  # the guard ridge
+    np.testing.assert_allclose(view.pose, pose_map, atol=1e-5)
+    probe = np.array([0.3, -1.0, 0.5, 2.0])
+    np.testing.assert_allclose(
+        view.predicted_observation(probe, 1), np.append(probe, 1.0) @ maps[1], atol=1e-4
+    )
+    # the viewer's coordinates: unit spread along the three leading directions
+    spread = ((states - view.center) @ view.axes).std(axis=0, ddof=1)
+    np.testing.assert_allclose(spread, 1.0, rtol=1e-9)
+
+
+def test_pairs_never_cross_a_segment_and_too_little_data_is_refused():
+    segments = np.array([0, 0, 0, 1, 1, 2])
+    np.testing.assert_array_equal(next_step_pairs(segments), [0, 1, 3])
+    states, acts, obs, *_ = _linear_system(steps=6)
+    with pytest.raises(DataError, match="consecutive step pairs"):
+        fit_view_readout(states, acts, obs, segments, 3)
+
+
+def test_a_grey_model_predicts_an_rgb8_image_and_errors_are_in_pixels():
+    states, acts, obs, *_ = _linear_system(k=4)
+    view = fit_view_readout(states, acts, obs, np.zeros(len(states)), 3)
+    viewer = ViewMessages(view, (2, 2))  # 2x2 grey observations
+    first = viewer.step(S, states[0], obs[0])
+    second = viewer.step(2 * S, states[1], np.full(4, 0.5))
+    image = m.deserialize(first.predicted_image, m.IMAGE_TYPE)
+    assert (image.height, image.width, image.encoding) == (2, 2, "rgb8")
+    pixels = np.asarray(image.data).reshape(2, 2, 3)
+    assert (pixels[..., 0] == pixels[..., 2]).all()
+    assert first.image_error is None
+    expected = np.clip(view.predicted_observation(states[0], None), 0, 1)
+    assert second.image_error == pytest.approx(np.sqrt(np.mean((expected - 0.5) ** 2)) * 255)
+    assert len(first.markers) == 2 and len(second.markers) == 1  # the map, then the trail
+    cloud = m.deserialize(first.markers[0], MARKERS_TYPE).markers[0]
+    assert (cloud.ns, len(cloud.points)) == ("training_states", len(view.points))
+
+
+def _published(h: Harness) -> dict[str, list[bytes]]:
+    received: dict[str, list[bytes]] = {topic: [] for topic in VIEW_TOPICS}
+    types = dict(zip(VIEW_TOPICS, (m.STATE_TYPE, MARKERS_TYPE, m.IMAGE_TYPE, m.POSE_TYPE),
+                     strict=True))  # fmt: skip
+    for topic in VIEW_TOPICS:
+        h.feeder.create_subscription(topic, types[topic], received[topic].append, raw=True)
+    return received
+
+
+@pytest.mark.parametrize("with_policy", [False, True], ids=["filter", "policy"])
+def test_the_nodes_view_topics_equal_learner_track_mcap(small, with_policy, tmp_path):  # noqa: F811
+    policy = small["policy"] if with_policy else None
+    h = Harness(small["model"], policy, "view_trail:=7")
+    received = _published(h)
+    try:
+        for k in range(1, 41):
+            h.step(small["images"], small["actions"], k * S)
+        for _ in range(5):
+            h.feeder.spin_once(0.0)
+        values = h.values()
+    finally:
+        h.close()
+    assert isinstance(values["predicted_image_rmse"], float)
+    bag = tmp_path / "view"
+    args = ["track", str(small["model"]), str(small["tmp"] / "feed"), "--mcap", str(bag),
+            "--view-trail", "7"]  # fmt: skip
+    assert learner_main(args + (["--policy", str(policy)] if policy else [])) == 0
+    expected: dict[str, list[bytes]] = {topic: [] for topic in VIEW_TOPICS}
+    with BagReader(bag) as reader:
+        for topic, _, data in reader.raw_messages(list(VIEW_TOPICS)):
+            expected[topic].append(bytes(data))
+        assert reader.message_counts["/camera/image_raw"] == 40
+    assert len(expected["/tpsr/predicted_image"]) == 40
+    assert len(expected["/tpsr/state_markers"]) == 41  # the map at step 0, then one per step
+    for topic in VIEW_TOPICS:
+        assert [bytes(x) for x in received[topic]] == expected[topic], topic
+    markers = m.deserialize(expected["/tpsr/state_markers"][-1], MARKERS_TYPE).markers
+    names = [marker.ns for marker in markers]
+    assert names == ["trail", "state", *(["action_values"] if policy else [])]
+    assert len(markers[0].points) == 7
+
+
+def test_view_off_and_models_without_read_outs_publish_no_view(small, tmp_path):  # noqa: F811
+    h = Harness(small["model"], None, "view:=false")
+    try:
+        assert h.node.viewer is None and "predicted_image_rmse" not in h.values()
+    finally:
+        h.close()
+    model_file = open_model(small["model"])
+    assert model_file.view is not None and model_file.view.pose_frame == "map"
