@@ -13,8 +13,9 @@ from tpsr_ros.core.errors import DataError
 from tpsr_ros.core.view_readout import fit_view_readout, next_step_pairs
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagReader
+from tpsr_ros.io.marker_cdr import MarkerData, marker_array_cdr
 from tpsr_ros.io.model_io import open_model
-from tpsr_ros.io.view_messages import MARKERS_TYPE, ViewMessages
+from tpsr_ros.io.view_messages import MARKERS_TYPE, ViewMessages, ViewSettings
 
 VIEW_TOPICS = ("/tpsr/state", "/tpsr/state_markers", "/tpsr/predicted_image", "/tpsr/decoded_pose")
 
@@ -75,6 +76,19 @@ def test_a_grey_model_predicts_an_rgb8_image_and_errors_are_in_pixels():
     assert (cloud.ns, len(cloud.points)) == ("training_states", len(view.points))
 
 
+def test_the_trail_holds_the_last_states_in_order():
+    states, acts, obs, *_ = _linear_system(k=12)
+    view = fit_view_readout(states, acts, obs, np.zeros(len(states)), 3)
+    viewer = ViewMessages(view, (2, 2), settings=ViewSettings(trail=5, cloud_every=4))
+    for k in range(12):
+        step = viewer.step(k * S, states[k], obs[k])
+        assert len(step.markers) == (2 if k % 4 == 0 else 1)
+        trail = m.deserialize(step.markers[-1], MARKERS_TYPE).markers[0]
+        points = np.array([[p.x, p.y, p.z] for p in trail.points])
+        expected = [view.view_point(state) for state in states[max(0, k - 4) : k + 1]]
+        np.testing.assert_array_equal(points, expected)
+
+
 def _published(h: Harness) -> dict[str, list[bytes]]:
     received: dict[str, list[bytes]] = {topic: [] for topic in VIEW_TOPICS}
     types = dict(zip(VIEW_TOPICS, (m.STATE_TYPE, MARKERS_TYPE, m.IMAGE_TYPE, m.POSE_TYPE),
@@ -125,3 +139,50 @@ def test_view_off_and_models_without_read_outs_publish_no_view(small, tmp_path):
         h.close()
     model_file = open_model(small["model"])
     assert model_file.view is not None and model_file.view.pose_frame == "map"
+
+
+def _rosbags_marker(d: MarkerData):
+    """The same marker as a rosbags message (the generic serialiser's input)."""
+    t = m.jazzy_typestore().types
+
+    def color(c):
+        return t["std_msgs/msg/ColorRGBA"](r=float(c[0]), g=float(c[1]), b=float(c[2]),
+                                           a=float(c[3]))  # fmt: skip
+
+    def point(p):
+        return t["geometry_msgs/msg/Point"](x=float(p[0]), y=float(p[1]), z=float(p[2]))
+
+    empty = np.zeros(0, dtype=np.uint8)
+    return t["visualization_msgs/msg/Marker"](
+        header=m.header_msg(d.stamp_ns, d.frame_id), ns=d.ns, id=d.marker_id, type=d.kind,
+        action=0,
+        pose=t["geometry_msgs/msg/Pose"](
+            position=point(d.position),
+            orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)),
+        scale=t["geometry_msgs/msg/Vector3"](x=d.scale[0], y=d.scale[1], z=d.scale[2]),
+        color=color(d.color), lifetime=t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
+        frame_locked=False, points=[point(p) for p in d.points],
+        colors=[color(c) for c in d.colors], texture_resource="",
+        texture=t["sensor_msgs/msg/CompressedImage"](header=m.header_msg(0, ""), format="",
+                                                     data=empty),
+        uv_coordinates=[], text="", mesh_resource="",
+        mesh_file=t["visualization_msgs/msg/MeshFile"](filename="", data=empty),
+        mesh_use_embedded_materials=False,
+    )  # fmt: skip
+
+
+def test_the_marker_writer_gives_the_generic_serialisers_bytes():
+    rng = np.random.default_rng(4)
+    for _ in range(40):  # every alignment: strings, point and colour counts of 0..4
+        markers = [
+            MarkerData(
+                int(rng.integers(0, 10**12)), "tpsr"[: int(rng.integers(0, 5))],
+                "trail"[: int(rng.integers(0, 6))], j, int(rng.integers(0, 12)),
+                tuple(rng.normal(size=3)), tuple(rng.random(3)), tuple(rng.random(4)),
+                rng.normal(size=(int(rng.integers(0, 5)), 3)),
+                rng.random((int(rng.integers(0, 4)), 4)).astype(np.float32),
+            )
+            for j in range(int(rng.integers(0, 4)))
+        ]
+        msg = m.jazzy_typestore().types[MARKERS_TYPE](markers=[_rosbags_marker(d) for d in markers])
+        assert marker_array_cdr(markers) == m.serialize(msg, MARKERS_TYPE)

@@ -508,9 +508,9 @@ class FilterNode(Node):
         self.state_pub.publish_raw(self._state_cdr(step.stamp, info.state))
         if self.policy is not None:
             self._command(info.state, step.stamp)
+        self.latency.add(time.perf_counter() - start)  # to the state and the command
         if self.viewer is not None:
             self._view(step, info.state)
-        self.latency.add(time.perf_counter() - start)
 
     def _view(self, step: Step, state: Any) -> None:
         """Publish the view topics of one step (the policy's Q-values with a policy)."""

@@ -24,9 +24,8 @@ against o_k. The messages depend only on the steps given, in order.
 from __future__ import annotations
 
 import math
-from collections import deque
+import struct
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -34,6 +33,7 @@ from tpsr_ros.core.actions import environment_grid
 from tpsr_ros.core.view_readout import ViewReadout
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.filter_inputs import model_image_shape
+from tpsr_ros.io.marker_cdr import MarkerData, marker_array_cdr
 from tpsr_ros.io.model_io import ModelFile
 
 __all__ = [
@@ -51,8 +51,9 @@ PREDICTED_IMAGE_TOPIC = "tpsr/predicted_image"
 STATE_MARKERS_TOPIC = "tpsr/state_markers"
 DECODED_POSE_TOPIC = "tpsr/decoded_pose"
 MARKERS_TYPE = "visualization_msgs/msg/MarkerArray"
-MARKER_TYPE = "visualization_msgs/msg/Marker"
 VIEW_FRAME = "tpsr"
+_GREEN = (0.1, 0.8, 0.2, 1.0)
+_GREY = (0.5, 0.5, 0.5, 0.6)
 
 # visualization_msgs/msg/Marker constants
 _SPHERE, _LINE_STRIP, _LINE_LIST, _POINTS, _ADD = 2, 4, 5, 8, 0
@@ -88,59 +89,42 @@ class ViewStep:
     """Pixel RMS error of the previous step's predicted image against this step's image."""
 
 
-def _point(xyz: np.ndarray) -> Any:
-    return m.jazzy_typestore().types["geometry_msgs/msg/Point"](
-        x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2])
-    )
+class _TailEncoder:
+    """CDR of one stamped message type whose last field alone changes (with the stamp): a
+    template's bytes with the stamp and the final ``tail`` bytes replaced. Checked against
+    the generic serialiser at construction, like
+    :class:`~tpsr_ros.io.messages.StateEncoder`."""
+
+    def __init__(self, template: bytes, tail: int, probe: tuple[int, bytes, bytes]) -> None:
+        self._head, self._tail = template[:4], tail
+        self._middle = template[12 : len(template) - tail]
+        stamp, values, expected = probe
+        if self(stamp, values) != expected:
+            raise ValueError("the message layout is not the one the view's encoder writes")
+
+    def __call__(self, stamp_ns: int, tail: bytes) -> bytes:
+        if len(tail) != self._tail:
+            raise ValueError(f"{len(tail)} bytes for a tail of {self._tail}")
+        stamp = struct.pack("<iI", *m.split_stamp(stamp_ns))
+        return b"".join((self._head, stamp, self._middle, tail))
 
 
-def _color(r: float, g: float, b: float, a: float = 1.0) -> Any:
-    return m.jazzy_typestore().types["std_msgs/msg/ColorRGBA"](r=r, g=g, b=b, a=a)
+def _image_encoder(shape: tuple[int, int, int], frame_id: str) -> _TailEncoder:
+    """rgb8 images of ``shape``: the pixels end the message."""
+    zeros = np.zeros(shape, dtype=np.uint8)
+    probe = np.arange(zeros.size, dtype=np.uint8).reshape(shape)
+    expected = m.serialize(m.image_msg(1_500_000_002, probe, frame_id), m.IMAGE_TYPE)
+    template = m.serialize(m.image_msg(0, zeros, frame_id), m.IMAGE_TYPE)
+    return _TailEncoder(template, zeros.size, (1_500_000_002, probe.tobytes(), expected))
 
 
-
-def _marker(
-    stamp_ns: int, ns: str, marker_id: int, kind: int, *,
-    scale: tuple[float, float, float], color: Any, points: list[Any] | None = None,
-    colors: list[Any] | None = None, position: np.ndarray | None = None,
-) -> Any:  # fmt: skip
-    """One ``visualization_msgs/msg/Marker`` in the view frame (lifetime 0: until replaced)."""
-    t = m.jazzy_typestore().types
-    where = np.zeros(3) if position is None else position
-    pose = t["geometry_msgs/msg/Pose"](
-        position=_point(where),
-        orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
-    )
-    return t[MARKER_TYPE](
-        header=m.header_msg(stamp_ns, VIEW_FRAME),
-        ns=ns,
-        id=marker_id,
-        type=kind,
-        action=_ADD,
-        pose=pose,
-        scale=t["geometry_msgs/msg/Vector3"](x=scale[0], y=scale[1], z=scale[2]),
-        color=color,
-        lifetime=t["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
-        frame_locked=False,
-        points=points or [],
-        colors=colors or [],
-        texture_resource="",
-        texture=t["sensor_msgs/msg/CompressedImage"](
-            header=m.header_msg(0, ""), format="", data=np.zeros(0, dtype=np.uint8)
-        ),
-        uv_coordinates=[],
-        text="",
-        mesh_resource="",
-        mesh_file=t["visualization_msgs/msg/MeshFile"](
-            filename="", data=np.zeros(0, dtype=np.uint8)
-        ),
-        mesh_use_embedded_materials=False,
-    )
-
-
-def _marker_array(markers: list[Any]) -> bytes:
-    msg = m.jazzy_typestore().types[MARKERS_TYPE](markers=markers)
-    return m.serialize(msg, MARKERS_TYPE)
+def _pose_encoder(frame_id: str) -> _TailEncoder:
+    """Poses in ``frame_id``: position and orientation, 7 float64, end the message."""
+    pose = m.pose_msg(1_500_000_002, 1.5, -2.5, frame_id, 0.3)
+    expected = m.serialize(pose, m.POSE_TYPE)
+    values = expected[-56:]
+    return _TailEncoder(m.serialize(m.pose_msg(0, 0, 0, frame_id), m.POSE_TYPE), 56,
+                        (1_500_000_002, values, expected))  # fmt: skip
 
 
 def _directions(commands: np.ndarray | None, n_actions: int) -> np.ndarray:
@@ -182,15 +166,17 @@ class ViewMessages:
         self._pixels_shape = (height, width, channels)
         self.image_frame = image_frame
         self._directions = _directions(commands, view.n_actions)
-        self._trail: deque[Any] = deque(maxlen=self.settings.trail)
+        # the trail twice over: the last ``trail`` points are always one contiguous slice
+        self._trail = np.zeros((2 * self.settings.trail, 3))
+        self._image = _image_encoder((height, width, 3), image_frame)
+        self._pose_cdr = None if view.pose is None else _pose_encoder(view.pose_frame)
         self._steps = 0
         self._previous: np.ndarray | None = None  # the last prediction, in [0, 1]
-        self._green, self._grey = _color(0.1, 0.8, 0.2), _color(0.5, 0.5, 0.5, 0.6)
-        cloud = _marker(
-            0, "training_states", 0, _POINTS, scale=(0.02, 0.02, 0.0),
-            color=_color(0.6, 0.6, 0.6, 0.5), points=[_point(p) for p in view.points],
+        cloud = MarkerData(
+            0, VIEW_FRAME, "training_states", 0, _POINTS, scale=(0.02, 0.02, 0.0),
+            color=(0.6, 0.6, 0.6, 0.5), points=view.points,
         )  # fmt: skip
-        self.cloud = _marker_array([cloud])
+        self.cloud = marker_array_cdr([cloud])
         """The training states' message (constant: built once)."""
 
     def step(self, stamp_ns: int, state: np.ndarray, observation: np.ndarray,
@@ -205,7 +191,7 @@ class ViewMessages:
         pixels = np.rint(predicted * 255.0).astype(np.uint8).reshape(self._pixels_shape)
         if pixels.shape[2] == 1:
             pixels = np.repeat(pixels, 3, axis=2)
-        image = m.serialize(m.image_msg(stamp_ns, pixels, self.image_frame), m.IMAGE_TYPE)
+        image = self._image(stamp_ns, pixels.tobytes())
         markers = self._markers(stamp_ns, state, q_values)
         if self._steps % self.settings.cloud_every == 0:
             markers = (self.cloud, *markers)
@@ -216,44 +202,47 @@ class ViewMessages:
         self, stamp_ns: int, state: np.ndarray, q_values: np.ndarray | None
     ) -> tuple[bytes]:
         here = self.view.view_point(state)
-        self._trail.append(_point(here))
+        length = self.settings.trail
+        slot = self._steps % length
+        self._trail[slot] = self._trail[slot + length] = here
+        first = slot + 1 if self._steps >= length else 0
+        trail = self._trail[first : slot + 1] if first == 0 else self._trail[first : first + length]
         markers = [
-            _marker(stamp_ns, "trail", 0, _LINE_STRIP, scale=(0.02, 0.0, 0.0),
-                    color=_color(0.2, 0.6, 1.0, 0.8), points=list(self._trail)),
-            _marker(stamp_ns, "state", 0, _SPHERE, scale=(0.12, 0.12, 0.12),
-                    color=_color(1.0, 0.5, 0.0), position=here),
+            MarkerData(stamp_ns, VIEW_FRAME, "trail", 0, _LINE_STRIP, scale=(0.02, 0.0, 0.0),
+                       color=(0.2, 0.6, 1.0, 0.8), points=trail),
+            MarkerData(stamp_ns, VIEW_FRAME, "state", 0, _SPHERE, scale=(0.12, 0.12, 0.12),
+                       color=(1.0, 0.5, 0.0, 1.0), position=tuple(here.tolist())),
         ]  # fmt: skip
         if q_values is not None:
             markers.append(self._action_values(stamp_ns, here, q_values))
-        return (_marker_array(markers),)
+        return (marker_array_cdr(markers),)
 
-    def _action_values(self, stamp_ns: int, here: np.ndarray, q_values: np.ndarray) -> Any:
+    def _action_values(self, stamp_ns: int, here: np.ndarray, q_values: np.ndarray) -> MarkerData:
         """One line per action from the current state along its command, of length rising
         with its Q-value from 0.05 to 0.5; the greedy action's green, the others grey."""
         values = np.asarray(q_values, dtype=np.float64)
         low, high = float(values.min()), float(values.max())
         lengths = 0.05 + 0.45 * (values - low) / (high - low if high > low else 1.0)
-        tips = here + lengths[:, None] * self._directions
+        points = np.empty((2 * len(values), 3))
+        points[0::2] = here
+        points[1::2] = here + lengths[:, None] * self._directions
+        colors = np.tile(np.asarray(_GREY, dtype=np.float32), (2 * len(values), 1))
         greedy = int(np.argmax(values))
-        points, colors = [], []
-        for action, tip in enumerate(tips):
-            color = self._green if action == greedy else self._grey
-            points += [_point(here), _point(tip)]
-            colors += [color, color]
-        return _marker(
-            stamp_ns, "action_values", 0, _LINE_LIST, scale=(0.015, 0.0, 0.0),
-            color=self._green, points=points, colors=colors,
+        colors[2 * greedy : 2 * greedy + 2] = _GREEN
+        return MarkerData(
+            stamp_ns, VIEW_FRAME, "action_values", 0, _LINE_LIST, scale=(0.015, 0.0, 0.0),
+            color=_GREEN, points=points, colors=colors,
         )  # fmt: skip
 
     def _pose(self, stamp_ns: int, state: np.ndarray) -> bytes | None:
         pose = self.view.decoded_pose(state)
-        if pose is None:
+        if pose is None or self._pose_cdr is None:
             return None
-        heading = None
+        half = 0.0
         if pose.shape[0] == 4:  # cos, sin of the heading: its angle, whatever their norm
-            heading = math.atan2(float(pose[3]), float(pose[2]))
-        msg = m.pose_msg(stamp_ns, pose[0], pose[1], self.view.pose_frame, heading)
-        return m.serialize(msg, m.POSE_TYPE)
+            half = 0.5 * math.atan2(float(pose[3]), float(pose[2]))
+        values = (float(pose[0]), float(pose[1]), 0.0, 0.0, 0.0, np.sin(half), np.cos(half))
+        return self._pose_cdr(stamp_ns, struct.pack("<7d", *values))
 
 
 def view_messages(
