@@ -7,12 +7,14 @@ environment, a fitted-Q policy on 15000 more), built in a temporary directory fi
    the in-process bus; a feeder publishes pre-serialised image and action pairs (real
    simulator images, consecutive stamps) and the node is spun after each message, so each
    update is the whole node path: CDR decoding, validation, pairing, Algorithm 4, the
-   /tpsr/state message and the greedy /cmd_vel. Also the bare ``OnlineTracker.step``.
+   /tpsr/state message and the greedy /cmd_vel, and with the view on (the default) the view
+   topics after them. With the view on and off (alternating runs), and the p99 of each
+   step's whole node path. Also the bare ``OnlineTracker.step``.
 2. End-to-end latency over DDS at 100 Hz (target p99 < 10 ms): ``python -m
    tpsr_ros.filter_node`` as a child process; this process publishes the action and then
    the image of each step at 100 Hz and takes, when the step's /cmd_vel arrives, the time
-   since the image was published (one clock). Three runs of 300 steps; p50 and p99 of
-   each, and their medians.
+   since the image was published (one clock). Three runs of 300 steps with the view on
+   and three with it off; p50 and p99 of each, and their medians.
 """
 
 from __future__ import annotations
@@ -71,8 +73,12 @@ def _step_bytes(images: list, k: int) -> tuple[bytes, bytes]:
     return m.serialize(image, m.IMAGE_TYPE), m.serialize(action, m.ACTION_TYPE)
 
 
-def inproc_throughput(model: Path, policy: Path, images: list) -> tuple[list, list]:
-    """Updates per second of each run: (node path, bare tracker)."""
+def inproc_throughput(
+    model: Path, policy: Path, images: list, view: bool = True
+) -> tuple[list, list, list]:
+    """Per run: updates per second of the node path, p99 (ms) of one step's whole node
+    path (its second message's publish to the end of the node's spin), and of the bare
+    tracker."""
     from tpsr_ros.core.episodes import image_to_observation
     from tpsr_ros.core.online import OnlineTracker
     from tpsr_ros.filter_node import FilterNode
@@ -87,21 +93,28 @@ def inproc_throughput(model: Path, policy: Path, images: list) -> tuple[list, li
     action_pub = feeder.create_publisher("/action", m.ACTION_TYPE)
     feeder.create_subscription("/cmd_vel", m.TWIST_TYPE, lambda _: None, raw=True)
     quiet = parse_ros_args(["--disable-stdout-logs"])
-    options = NodeOptions.for_node(FilterNode, quiet, model=str(model), policy=str(policy))
+    options = NodeOptions.for_node(
+        FilterNode, quiet, model=str(model), policy=str(policy), view=view
+    )
     node = FilterNode(options, transport=InprocTransport("/tpsr_filter", bus))
     while not node.commands_ready:
         node.spin_once(0.01)
     data = [_step_bytes(images, k) for k in range(1, RUNS * STEPS_INPROC + 1)]
-    node_rates = []
+    node_rates, step_p99 = [], []
     for run in range(RUNS):
+        durations = np.empty(STEPS_INPROC)
         start = time.perf_counter()
-        for image, action in data[run * STEPS_INPROC : (run + 1) * STEPS_INPROC]:
+        for i, (image, action) in enumerate(data[run * STEPS_INPROC : (run + 1) * STEPS_INPROC]):
             image_pub.publish_raw(image)
             node.spin_once(0.0)
+            begin = time.perf_counter()
             action_pub.publish_raw(action)
             node.spin_once(0.0)
+            durations[i] = time.perf_counter() - begin
             feeder.transport.spin_once(0.0)
         node_rates.append(STEPS_INPROC / (time.perf_counter() - start))
+        step_p99.append(float(np.percentile(durations, 99) * 1e3))
+    assert (node.viewer is not None) == view
     assert node.tracker.steps == node.commands == RUNS * STEPS_INPROC
     node.close()
     feeder.close()
@@ -114,10 +127,12 @@ def inproc_throughput(model: Path, policy: Path, images: list) -> tuple[list, li
         for k in range(run * STEPS_INPROC + 1, (run + 1) * STEPS_INPROC + 1):
             tracker.step(k * S, (7 * k) % 25, observations[k % len(observations)])
         core_rates.append(STEPS_INPROC / (time.perf_counter() - start))
-    return node_rates, core_rates
+    return node_rates, step_p99, core_rates
 
 
-def dds_latency(model: Path, policy: Path, images: list, tmp: Path) -> list[np.ndarray]:
+def dds_latency(
+    model: Path, policy: Path, images: list, tmp: Path, view: bool = True
+) -> list[np.ndarray]:
     """Latencies (ms) of each run, image publish -> /cmd_vel received."""
     from tpsr_ros.io import messages as m
     from tpsr_ros.runtime import Node, NodeOptions
@@ -151,8 +166,9 @@ def dds_latency(model: Path, policy: Path, images: list, tmp: Path) -> list[np.n
     child = NodeProcess(
         "filter",
         "tpsr_ros.filter_node",
-        ["--ros-args", "-p", f"model:={model}", "-p", f"policy:={policy}"],
-        log_path=tmp / "filter.log",
+        ["--ros-args", "-p", f"model:={model}", "-p", f"policy:={policy}", "-p",
+         f"view:={str(view).lower()}"],
+        log_path=tmp / f"filter_view_{view}.log",
         env=env,
     )
     k = 0
@@ -208,39 +224,55 @@ def main() -> None:
 
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
             model, policy, images = _train(tmp)
-        node_rates, core_rates = inproc_throughput(model, policy, images)
-        for index, (ours, core) in enumerate(zip(node_rates, core_rates, strict=True)):
-            print(
-                f"   run {index + 1}: {STEPS_INPROC} updates  node {ours:.0f}/s  "
-                f"bare tracker {core:.0f}/s",
-                flush=True,
-            )
-        rate = statistics.median(node_rates)
+        figures = {}
+        for view in (True, False, True, False):  # alternating: drift in the machine's load
+            rates, p99s, core = inproc_throughput(model, policy, images, view)
+            figures.setdefault(view, ([], [], []))
+            for kept, new in zip(figures[view], (rates, p99s, core), strict=True):
+                kept.extend(new)
+            for ours, p99, bare in zip(rates, p99s, core, strict=True):
+                print(
+                    f"   view {'on ' if view else 'off'}: {STEPS_INPROC} updates  node "
+                    f"{ours:.0f}/s  step p99 {p99:.3f} ms  bare tracker {bare:.0f}/s",
+                    flush=True,
+                )
+        (on_rates, on_p99, core_rates), (off_rates, off_p99, _) = figures[True], figures[False]
+        rate = statistics.median(on_rates)
         print(
             f"filter updates in-process (node path: decode, pair, update, publish state and "
-            f"command): median {rate:.0f}/s (target >= 5000: "
-            f"{'met' if rate >= 5000 else 'NOT met'}); bare OnlineTracker.step: median "
-            f"{statistics.median(core_rates):.0f}/s",
+            f"command, then the view topics): median {rate:.0f}/s with the view on (target "
+            f">= 5000: {'met' if rate >= 5000 else 'NOT met'}), "
+            f"{statistics.median(off_rates):.0f}/s with it off; bare OnlineTracker.step: "
+            f"median {statistics.median(core_rates):.0f}/s",
             flush=True,
         )
-        runs = dds_latency(model, policy, images, tmp)
-        p50s, p99s = [], []
-        for index, ms in enumerate(runs):
-            p50, p99 = np.percentile(ms, [50, 99])
-            p50s.append(p50)
-            p99s.append(p99)
+        difference = statistics.median(on_p99) - statistics.median(off_p99)
+        print(
+            f"one step's whole node path in-process: median p99 {statistics.median(on_p99):.3f} "
+            f"ms with the view on, {statistics.median(off_p99):.3f} ms off (difference "
+            f"{difference:.3f} ms; target <= 1 ms: {'met' if difference <= 1 else 'NOT met'})",
+            flush=True,
+        )
+        for view in (True, False):
+            runs = dds_latency(model, policy, images, tmp, view)
+            p50s, p99s = [], []
+            for index, ms in enumerate(runs):
+                p50, p99 = np.percentile(ms, [50, 99])
+                p50s.append(p50)
+                p99s.append(p99)
+                print(
+                    f"   view {'on ' if view else 'off'} run {index + 1}: {len(ms)} steps at "
+                    f"{RATE_HZ:.0f} Hz  p50 {p50:.2f} ms  p99 {p99:.2f} ms  max {ms.max():.2f} ms",
+                    flush=True,
+                )
+            p99 = statistics.median(p99s)
             print(
-                f"   run {index + 1}: {len(ms)} steps at {RATE_HZ:.0f} Hz  p50 {p50:.2f} ms  "
-                f"p99 {p99:.2f} ms  max {ms.max():.2f} ms",
+                f"image publish -> /cmd_vel received over DDS (filter node in a child process, "
+                f"100 Hz, view {'on' if view else 'off'}): median p50 "
+                f"{statistics.median(p50s):.2f} ms, median p99 {p99:.2f} ms "
+                f"(target p99 < 10 ms: {'met' if p99 < 10 else 'NOT met'})",
                 flush=True,
             )
-        p99 = statistics.median(p99s)
-        print(
-            f"image publish -> /cmd_vel received over DDS (filter node in a child process, "
-            f"100 Hz): median p50 {statistics.median(p50s):.2f} ms, median p99 {p99:.2f} ms "
-            f"(target p99 < 10 ms: {'met' if p99 < 10 else 'NOT met'})",
-            flush=True,
-        )
 
 
 if __name__ == "__main__":

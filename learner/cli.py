@@ -35,6 +35,8 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "learner.study",
     "learner.report",
     "learner.memory",
+    "learner.view_study",
+    "learner.view_figure",
     "learner.demo",
 )
 

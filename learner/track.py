@@ -36,6 +36,7 @@ from learner.fit import add_topic_options
 from learner.inputs import (
     far_commands_line,
     read_for_model,
+    recorded_topic,
     require_given_topics,
     topics_from_args,
 )
@@ -167,13 +168,18 @@ def run(args: argparse.Namespace) -> int:
         )
         written.append(str(output))
     if args.mcap is not None:
-        spec = model_file.spec
-        image_topic = spec.image_topic if spec is not None else topics_from_args(args).image
+        spec, topics = model_file.spec, topics_from_args(args)
+        copied = [spec.image_topic if spec is not None else topics.image]
+        pose_topic = getattr(args, "pose_topic", None) or (
+            recorded_topic(model_file.metadata, "pose") if spec is not None else topics.pose
+        )
+        if pose_topic:
+            copied.append(pose_topic)
         write_view_bag(
-            args.mcap, model_file, args.bags, image_topic, trajectory, tracked, policy,
+            args.mcap, model_file, args.bags, copied, trajectory, tracked, policy,
             ViewSettings(trail=args.view_trail),
         )  # fmt: skip
-        written.append(f"{args.mcap} (camera and view topics)")
+        written.append(f"{args.mcap} (the camera, the ground truth and the view topics)")
     print(
         f"wrote {' and '.join(written)}: {len(trajectory)} steps in "
         f"{len(trajectory.segment_bounds())} segment(s), {int(np.sum(tracked.recovered))} "
@@ -211,11 +217,14 @@ def _view_records(
             order += 1
 
 
-def _camera_records(bags: list[Path], topic: str) -> Iterator[tuple[int, int, str, bytes]]:
-    """``(log time, -1, topic, cdr)`` of every camera message of ``bags``, bag by bag."""
+def _copied_records(
+    bags: list[Path], topics: list[str]
+) -> Iterator[tuple[int, int, str, bytes]]:
+    """``(log time, -1, topic, cdr)`` of every message on ``topics``, bag by bag."""
     for bag in bags:
         with BagReader(bag) as reader:
-            for _, log_time, data in reader.raw_messages([topic]):
+            present = [topic for topic in topics if topic in reader.topics_with_messages]
+            for topic, log_time, data in reader.raw_messages(present):
                 yield log_time, -1, topic, data
 
 
@@ -223,22 +232,28 @@ def write_view_bag(
     path: Path,
     model_file: ModelFile,
     bags: list[Path],
-    image_topic: str,
+    copied: list[str],
     trajectory: Trajectory,
     tracked: Track,
     policy: Policy | None,
     settings: ViewSettings | None = None,
 ) -> None:
-    """The camera and the view topics of the tracked steps in a new MCAP bag at ``path``,
-    in time order (a camera message before the step of its stamp)."""
-    with BagReader(bags[0]) as reader:
-        camera_type = reader.topics_with_messages.get(image_topic)
-    if camera_type is None:
-        raise ConfigError(f"{bags[0]} has no messages on the camera topic {image_topic}")
+    """The view topics of the tracked steps and the bags' messages on ``copied`` (the
+    camera first; the ground truth where a bag has it) in a new MCAP bag at ``path``, in
+    time order (a camera message before the step of its stamp)."""
+    types: dict[str, str] = {}
+    for bag in bags:
+        with BagReader(bag) as reader:
+            for topic in copied:
+                msgtype = reader.topics_with_messages.get(topic)
+                if msgtype is not None and types.setdefault(topic, msgtype) != msgtype:
+                    raise ConfigError(f"{topic} has type {msgtype} in {bag}, {types[topic]} before")
+    if copied[0] not in types:
+        raise ConfigError(f"the bags have no messages on the camera topic {copied[0]}")
+    present = list(types)
     viewer = view_messages(model_file)
     assert viewer is not None
-    types = {
-        image_topic: camera_type,
+    types |= {
         "/tpsr/state": m.STATE_TYPE,
         "/" + STATE_MARKERS_TOPIC: MARKERS_TYPE,
         "/" + PREDICTED_IMAGE_TOPIC: m.IMAGE_TYPE,
@@ -246,7 +261,7 @@ def write_view_bag(
     if viewer.view.pose is not None:
         types["/" + DECODED_POSE_TOPIC] = m.POSE_TYPE
     records = heapq.merge(
-        _camera_records(bags, image_topic),
+        _copied_records(bags, present),
         _view_records(model_file, trajectory, tracked, policy, settings or ViewSettings()),
         key=lambda record: (record[0], record[1]),
     )
