@@ -104,6 +104,9 @@ RECORDED_TOPICS = (
     "/sim/episode_start",
     "/sim/reset",
     "/tpsr/state",
+    "/tpsr/predicted_image",
+    "/tpsr/state_markers",
+    "/tpsr/decoded_pose",
     "/cmd_vel",
     "/diagnostics",
 )

@@ -209,6 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     states_png, paths_png = out / "states.png", out / "trajectories.png"
     learner_main(["plot", str(model), str(rl), "-o", str(states_png)])
     plot_trajectories(closed, paths_png, sim)
+    view_png = out / "view.png"
+    learner_main(["view-figure", str(closed), "-o", str(view_png), "--title",
+                  f"what the filter node showed in the closed loop ({env})"])  # fmt: skip
 
     _summary(out, headless, result, bounds, time.perf_counter() - began)
     return 0
@@ -266,12 +269,13 @@ def _summary(out: Path, headless: Any, result: Any, bounds: Bounds, seconds: flo
         ("policy_true_position.npz", "the ceiling: fitted Q on the true position"),
         (
             "bags/closed_loop",
-            "closed-loop recording: images, actions, /tpsr/state, /cmd_vel, "
-            "/reward, /ground_truth/pose, /diagnostics",
+            "closed-loop recording: images, actions, /tpsr/state and the view topics, "
+            "/cmd_vel, /reward, /ground_truth/pose, /diagnostics",
         ),
         ("logs/", "the nodes' logs"),
         ("states.png", "states over the RL run coloured by reward, true x and y"),
         ("trajectories.png", "closed-loop paths by trial, with the goal zone"),
+        ("view.png", "what the view topics showed at one closed-loop step (learner view-figure)"),
     ]:
         print(f"  {out / path}: {what}")
 
