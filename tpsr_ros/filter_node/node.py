@@ -506,16 +506,20 @@ class FilterNode(Node):
                 f"normaliser {info.normalizer:.3g} at {step.stamp / _NS:.3f} s: restarted from b_*",
             )
         self.state_pub.publish_raw(self._state_cdr(step.stamp, info.state))
+        q_values = None
         if self.policy is not None:
-            self._command(info.state, step.stamp)
+            greedy = None
+            if self.viewer is not None:  # the values once, for the command and the view
+                q_values = self.policy.q.values(info.state)[0]
+                greedy = int(np.argmax(q_values)) if np.isfinite(q_values).all() else None
+            self._command(info.state, step.stamp, greedy)
         self.latency.add(time.perf_counter() - start)  # to the state and the command
         if self.viewer is not None:
-            self._view(step, info.state)
+            self._view(step, info.state, q_values)
 
-    def _view(self, step: Step, state: Any) -> None:
-        """Publish the view topics of one step (the policy's Q-values with a policy)."""
+    def _view(self, step: Step, state: Any, q_values: Any) -> None:
+        """Publish the view topics of one step (``q_values``: the policy's, or None)."""
         assert self.viewer is not None
-        q_values = None if self.policy is None else self.policy.q.values(state)[0]
         view = self.viewer.step(step.stamp, state, step.image, q_values)
         for markers in view.markers:
             self.markers_pub.publish_raw(markers)
@@ -557,9 +561,11 @@ class FilterNode(Node):
         if self.policy is not None:
             self._command(self.tracker.state)
 
-    def _command(self, state: Any, stamp: int | None = None) -> None:
+    def _command(self, state: Any, stamp: int | None = None, greedy: int | None = None) -> None:
+        """Command the greedy action of ``state`` (``greedy`` when already known)."""
         assert self.policy is not None
-        self._pending_command = (self.policy.action(state), stamp)
+        action = self.policy.action(state) if greedy is None else greedy
+        self._pending_command = (action, stamp)
         if self.commands_ready:
             self._send_pending()
 

@@ -92,8 +92,9 @@ class _Writer:
         self.pack("iI", 4, *split_stamp(marker.stamp_ns))
         # from a 4-aligned offset on, these bytes depend on the names and numbers only
         self._put(_after_stamp(marker.frame_id, marker.ns, marker.marker_id, marker.kind))
-        self.pack("10d4fiI?", 8, *marker.position, 0.0, 0.0, 0.0, 1.0, *marker.scale,
-                  *marker.color, 0, 0, False)  # pose, scale, color, lifetime 0, frame_locked
+        self.pack("3d", 8, *marker.position)
+        # 8-aligned still: orientation, scale, color, lifetime 0, frame_locked
+        self._put(_after_position(marker.scale, marker.color))
         self.array(marker.points, "<f8", 8)
         self.array(marker.colors, "<f4", 4)
         self._put(_TAIL)  # the colours leave a 4-aligned offset; the tail needs no more
@@ -120,6 +121,14 @@ def _after_stamp(frame_id: str, ns: str, marker_id: int, kind: int) -> bytes:
     writer.string(ns)
     writer.pack("iii", 4, marker_id, kind, 0)  # id, type, action ADD
     return b"".join(writer.parts[1:])
+
+
+@functools.lru_cache(maxsize=64)
+def _after_position(
+    scale: tuple[float, float, float], color: tuple[float, float, float, float]
+) -> bytes:
+    """The bytes between a marker's position and its points, from an 8-aligned offset."""
+    return struct.pack("<7d4fiI?", 0.0, 0.0, 0.0, 1.0, *scale, *color, 0, 0, False)
 
 
 def _empty_tail() -> bytes:

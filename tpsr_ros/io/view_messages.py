@@ -166,6 +166,7 @@ class ViewMessages:
         self._pixels_shape = (height, width, channels)
         self.image_frame = image_frame
         self._directions = _directions(commands, view.n_actions)
+        self._line_colors = np.tile(np.asarray(_GREY, dtype=np.float32), (2 * view.n_actions, 1))
         # the trail twice over: the last ``trail`` points are always one contiguous slice
         self._trail = np.zeros((2 * self.settings.trail, 3))
         self._image = _image_encoder((height, width, 3), image_frame)
@@ -226,7 +227,7 @@ class ViewMessages:
         points = np.empty((2 * len(values), 3))
         points[0::2] = here
         points[1::2] = here + lengths[:, None] * self._directions
-        colors = np.tile(np.asarray(_GREY, dtype=np.float32), (2 * len(values), 1))
+        colors = self._line_colors.copy()
         greedy = int(np.argmax(values))
         colors[2 * greedy : 2 * greedy + 2] = _GREEN
         return MarkerData(
