@@ -32,10 +32,15 @@ from rosbags.interfaces import Qos
 from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.rosbag2.metadata import dump_qos_v9
 
-from tpsr_ros.core.errors import BagError, one_line
+from tpsr_ros.core.errors import BagError, MessageError, one_line
 from tpsr_ros.io.atomic import atomic_file
 from tpsr_ros.io.mcap_layout import check_mcap_layout
-from tpsr_ros.io.messages import deserialize, jazzy_typestore, serialize
+from tpsr_ros.io.messages import (
+    deserialize,
+    jazzy_typestore,
+    message_definition,
+    serialize,
+)
 from tpsr_ros.io.safe_yaml import YamlInputError, load_yaml
 
 __all__ = [
@@ -230,12 +235,11 @@ class BagWriter:
                     f"not {msgtype}"
                 )
             return
-        store = jazzy_typestore()
         try:
-            msgdef, _ = store.generate_msgdef(msgtype, ros_version=2)
-            rihs01 = store.hash_rihs01(msgtype)
-        except Exception as exc:  # rosbags raises its own types for unknown messages
-            raise BagError(f"cannot record {topic!r}: unknown type {msgtype!r} ({exc})") from None
+            msgdef = message_definition(msgtype)
+        except MessageError as exc:
+            raise BagError(f"cannot record {topic!r}: {exc}") from None
+        rihs01 = jazzy_typestore().hash_rihs01(msgtype)
         if msgtype not in self._schemas:
             self._schemas[msgtype] = writer.register_schema(msgtype, "ros2msg", msgdef.encode())
         offered = _dump_qos(list(qos))

@@ -51,6 +51,7 @@ __all__ = [
     "image_problem",
     "image_to_array",
     "jazzy_typestore",
+    "message_definition",
     "peek_stamp",
     "pose_msg",
     "pose_to_planar",
@@ -92,6 +93,19 @@ def jazzy_typestore() -> Typestore:
 
 def _t(name: str) -> Any:
     return jazzy_typestore().types[name]
+
+
+def message_definition(msgtype: str) -> str:
+    """Return the full ``ros2msg`` definition of ``msgtype``, its dependencies appended.
+
+    The schema text rosbag2 stores in MCAP files and Foxglove reads to decode CDR, from
+    the Jazzy typestore; an unknown type raises ``MessageError``.
+    """
+    try:
+        text, _ = jazzy_typestore().generate_msgdef(msgtype, ros_version=2)
+    except Exception as exc:  # rosbags raises its own types for unknown messages
+        raise MessageError(f"unknown message type {msgtype!r} ({exc})") from None
+    return str(text)
 
 
 def split_stamp(stamp_ns: int) -> tuple[int, int]:
