@@ -2,10 +2,11 @@
 
 colcon (which sets ``COLCON=1``) gets what an ament_python package installs besides the
 Python packages: the ament resource marker, package.xml, and the node executables
-``lib/tpsr_ros/{sim_node,filter_node,record,play}`` (setup.cfg puts scripts there), which
-``ros2 run tpsr_ros <node>`` starts, and ``share/tpsr_ros/launch/*.launch.xml`` for
-``ros2 launch tpsr_ros <file>``; also under ``colcon build --symlink-install``, which runs
-this file without pyproject.toml. pip installs get no console scripts: the nodes run
+``lib/tpsr_ros/{sim_node,filter_node,record,play,view}`` (setup.cfg puts scripts there),
+which ``ros2 run tpsr_ros <node>`` starts, ``share/tpsr_ros/launch/*.launch.xml`` for
+``ros2 launch tpsr_ros <file>``, and the viewers' layouts in ``share/tpsr_ros/layouts/``;
+also under ``colcon build --symlink-install``, which runs this file without
+pyproject.toml. pip installs get no console scripts: the nodes run
 with ``python -m``, and names like ``record`` and ``play`` do not belong in a venv's bin/.
 """
 
@@ -22,7 +23,9 @@ NODES = {
     "filter_node": "tpsr_ros.filter_node:main",
     "record": "tpsr_ros.record:main",
     "play": "tpsr_ros.play:main",
+    "view": "tpsr_ros.view:main",
 }
+LAYOUTS = "tpsr_ros/view/layouts"
 
 
 class _ColconDistribution(Distribution):
@@ -48,6 +51,7 @@ if os.environ.get("COLCON") == "1":
             ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
             (f"share/{PACKAGE}", ["package.xml"]),
             (f"share/{PACKAGE}/launch", sorted(str(f) for f in Path("launch").glob("*.xml"))),
+            (f"share/{PACKAGE}/layouts", sorted(str(f) for f in Path(LAYOUTS).glob("tpsr_view.*"))),
         ],
         "entry_points": {"console_scripts": [f"{k} = {v}" for k, v in NODES.items()]},
     }

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-NODES = ("sim_node", "filter_node", "record", "play")
+NODES = ("sim_node", "filter_node", "record", "play", "view")
 
 
 def _colcon() -> str | None:
@@ -86,6 +86,12 @@ def test_colcon_build_installs_runnable_node_executables(tmp_path):
     assert (install / "share" / "tpsr_ros" / "package.xml").is_file()
     launch = install / "share" / "tpsr_ros" / "launch" / "closed_loop.launch.xml"
     assert launch.read_bytes() == (ROOT / "launch" / "closed_loop.launch.xml").read_bytes()
+    layouts = ROOT / "tpsr_ros" / "view" / "layouts"
+    shipped = sorted(p.name for p in layouts.glob("tpsr_view.*"))
+    installed = install / "share" / "tpsr_ros" / "layouts"
+    assert shipped and sorted(p.name for p in installed.iterdir()) == shipped
+    for name in shipped:
+        assert (installed / name).read_bytes() == (layouts / name).read_bytes()
     (site,) = install.glob("lib/python3*/site-packages")
     assert {"tpsr_ros", "sim_node", "learner"} <= {p.name for p in site.iterdir()}
 
@@ -112,7 +118,7 @@ def test_colcon_build_installs_runnable_node_executables(tmp_path):
     )
     assert where.stdout.startswith(str(site)), where  # the installed copy, not the checkout
     for node, needle in (("filter_node", "model"), ("sim_node", "environment"),
-                         ("record", "--output"), ("play", "--rate")):
+                         ("record", "--output"), ("play", "--rate"), ("view", "--port")):
         result = subprocess.run(
             [str(install / "lib" / "tpsr_ros" / node), "--help"],
             capture_output=True, text=True, env=run_env, timeout=120, cwd=tmp_path,
