@@ -27,11 +27,12 @@ from tpsr_ros.runtime.backend import choose_backend, open_transport
 from tpsr_ros.runtime.diagnostics import DIAGNOSTICS_TYPE, status_values
 from tpsr_ros.runtime.launcher import Launch, NodeProcess
 from tpsr_ros.runtime.params import param_specs
+from tpsr_ros.view import ViewNode
 
 ROOT = Path(__file__).resolve().parent.parent
 LAUNCH = ROOT / "launch" / "closed_loop.launch.xml"
 NODE_CLASSES = {"sim_node": SimNode, "filter_node": FilterNode, "record": RecorderNode,
-                "play": PlayerNode}
+                "play": PlayerNode, "view": ViewNode}
 
 
 def test_the_executables_are_the_ones_colcon_installs():
@@ -67,6 +68,34 @@ def test_the_closed_loop_launch_file_names_real_nodes_and_parameters(tmp_path):
     assert "/tpsr/state" in recorder.args.topics and "/camera/image_raw" in recorder.args.topics
 
 
+def test_view_true_adds_the_view_node_and_the_recorder_records_the_view_topics(tmp_path):
+    args = {"model": "m.npz", "policy": "p.npz", "bag": str(tmp_path / "bag")}
+    nodes = parse_launch(LAUNCH, {**args, "view": "true", "view_port": "0"})
+    assert [n.executable for n in nodes] == ["record", "sim_node", "filter_node", "view"]
+    view = parse_node_args(ViewNode, nodes[-1].command()[2:], "prog")
+    assert view is not None and view.name == ViewNode.default_name and view.params.port == 0
+    recorder = parse_node_args(RecorderNode, nodes[0].command()[2:], "prog")
+    assert {"/tpsr/predicted_image", "/tpsr/state_markers", "/tpsr/decoded_pose"} <= set(
+        recorder.args.topics
+    )
+    assert [n.executable for n in parse_launch(LAUNCH, {**args, "view": "False"})] == [
+        "record", "sim_node", "filter_node"
+    ]
+
+
+@pytest.mark.parametrize(
+    "attributes, runs",
+    [("if='true'", True), ("if='1'", True), ("if='TRUE'", True), ("if='false'", False),
+     ("if='0'", False), ("unless='true'", False), ("unless='false'", True),
+     ("if='true' unless='true'", False), ("if='$(var on)'", True)],
+)
+def test_if_and_unless_select_nodes_as_ros2_launch_does(tmp_path, attributes, runs):
+    path = tmp_path / "x.launch.xml"
+    path.write_text("<launch><arg name='on' default='true'/>"
+                    f"<node pkg='tpsr_ros' exec='view' {attributes}/></launch>")
+    assert [n.executable for n in parse_launch(path, {})] == (["view"] if runs else [])
+
+
 @pytest.mark.parametrize(
     "overrides, text, message",
     [
@@ -80,6 +109,10 @@ def test_the_closed_loop_launch_file_names_real_nodes_and_parameters(tmp_path):
         ({}, "<launch><node pkg='tpsr_ros' exec='sim_node' name='$(var x)'/></launch>",
          "$(var x) has no value"),
         ({}, "<launch>", "cannot read launch file"),
+        ({}, "<launch><node pkg='tpsr_ros' exec='view' if='yes'/></launch>",
+         "condition 'yes' is not true, false, 1 or 0"),
+        ({}, "<launch><node pkg='turtlesim' exec='turtlesim_node' if='false'/></launch>",
+         "turtlesim/turtlesim_node is not one of this package's executables"),
     ],
 )
 def test_what_the_launcher_cannot_run_is_refused_in_one_line(tmp_path, overrides, text, message):

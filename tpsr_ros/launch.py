@@ -5,9 +5,11 @@ subset of ROS 2's XML launch format our launch files use, and refuses anything e
 one-line error:
 
 - ``<launch>`` holding ``<arg name= default= description=>`` and ``<node>`` elements;
-- ``<node pkg="tpsr_ros" exec= name= namespace= args= ros_args= output= on_exit=>`` with
-  ``<param name= value=>`` and ``<remap from= to=>`` children (``on_exit="shutdown"``: when
-  the node exits, for any reason, every node is stopped);
+- ``<node pkg="tpsr_ros" exec= name= namespace= args= ros_args= output= on_exit= if=
+  unless=>`` with ``<param name= value=>`` and ``<remap from= to=>`` children
+  (``on_exit="shutdown"``: when the node exits, for any reason, every node is stopped;
+  ``if``/``unless``: the node runs only when the value is, or is not, true, read as ROS 2
+  launch reads a condition: ``true``/``1`` or ``false``/``0``, any case);
 - ``$(var NAME)`` in any attribute value.
 
 Each node runs as ``python -m MODULE ARGS --ros-args -r __node:=NAME [-r __ns:=NS]
@@ -43,11 +45,15 @@ EXECUTABLES = {
     "filter_node": "tpsr_ros.filter_node",
     "record": "tpsr_ros.record",
     "play": "tpsr_ros.play",
+    "view": "tpsr_ros.view",
 }
 """Executables of the colcon package (``lib/tpsr_ros/<exec>``) and the module each runs."""
 
 _VAR = re.compile(r"\$\(var ([A-Za-z_][A-Za-z0-9_]*)\)")
-_NODE_ATTRS = {"pkg", "exec", "name", "namespace", "args", "ros_args", "output", "on_exit"}
+_NODE_ATTRS = {
+    "pkg", "exec", "name", "namespace", "args", "ros_args", "output", "on_exit", "if", "unless",
+}  # fmt: skip
+_CONDITION_VALUES = {"true": True, "1": True, "false": False, "0": False}
 
 
 class LaunchError(TpsrError):
@@ -93,6 +99,21 @@ def _attrs(element: ET.Element, allowed: set[str], required: set[str], where: st
         raise LaunchError(f"{where}: missing attribute(s) {', '.join(sorted(missing))}")
 
 
+def _condition(value: str, where: str) -> bool:
+    """Read a condition as ROS 2 launch does (``true``/``1``, ``false``/``0``, any case)."""
+    try:
+        return _CONDITION_VALUES[value.strip().lower()]
+    except KeyError:
+        raise LaunchError(f"{where}: condition {value!r} is not true, false, 1 or 0") from None
+
+
+def _runs(attributes: dict[str, str], where: str) -> bool:
+    """Whether a node's ``if``/``unless`` attributes (substituted) let it run."""
+    if "if" in attributes and not _condition(attributes["if"], f"{where} if"):
+        return False
+    return not ("unless" in attributes and _condition(attributes["unless"], f"{where} unless"))
+
+
 def parse_launch(path: Path | str, overrides: dict[str, str] | None = None) -> list[LaunchedNode]:
     """Return the nodes of launch file ``path``, ``overrides`` giving ``<arg>`` values."""
     path = Path(path)
@@ -131,6 +152,7 @@ def parse_launch(path: Path | str, overrides: dict[str, str] | None = None) -> l
         elif element.tag == "node":
             _attrs(element, _NODE_ATTRS, {"pkg", "exec"}, where)
             a = {k: sub(v, where) for k, v in element.attrib.items()}
+            runs = _runs(a, where)  # a node left out is still checked
             if a.get("on_exit", "shutdown") != "shutdown":
                 raise LaunchError(f"{where}: on_exit {a['on_exit']!r}: only 'shutdown' is read")
             if a["pkg"] != PACKAGE or a["exec"] not in EXECUTABLES:
@@ -150,18 +172,19 @@ def parse_launch(path: Path | str, overrides: dict[str, str] | None = None) -> l
                     remaps.append((sub(source, inner), sub(target, inner)))
                 else:
                     raise LaunchError(f"{inner}: unsupported element")
-            nodes.append(
-                LaunchedNode(
-                    name=a.get("name", a["exec"]),
-                    executable=a["exec"],
-                    namespace=a.get("namespace", ""),
-                    args=tuple(a.get("args", "").split()),
-                    params=tuple(params),
-                    remaps=tuple(remaps),
-                    ros_args=tuple(a.get("ros_args", "").split()),
-                    on_exit=a.get("on_exit", ""),
+            if runs:
+                nodes.append(
+                    LaunchedNode(
+                        name=a.get("name", a["exec"]),
+                        executable=a["exec"],
+                        namespace=a.get("namespace", ""),
+                        args=tuple(a.get("args", "").split()),
+                        params=tuple(params),
+                        remaps=tuple(remaps),
+                        ros_args=tuple(a.get("ros_args", "").split()),
+                        on_exit=a.get("on_exit", ""),
+                    )
                 )
-            )
         else:
             raise LaunchError(f"{where}: unsupported element")
     unknown = set(overrides) - declared
