@@ -33,6 +33,9 @@ __all__ = ["register", "run"]
 
 CAMERA_TOPIC = "/camera/image_raw"
 TRUE_POSE_TOPIC = "/ground_truth/pose"
+DEFAULT_STEP = 25
+"""The step drawn by default: half-way into the standard evaluation's first episode (50
+steps), the trail formed and the robot on its way (or the middle of a shorter bag)."""
 
 
 @dataclass
@@ -95,7 +98,8 @@ def _take_markers(recorded: _Recorded, msg: Any) -> None:
 
 
 def render(recorded: _Recorded, step: int | None, path: Path, title: str) -> int:
-    """Draw the figure at the ``step``-th predicted image (default: the middle); its stamp."""
+    """Draw the figure at the ``step``-th predicted image (default: :data:`DEFAULT_STEP`);
+    return its stamp."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -106,7 +110,7 @@ def render(recorded: _Recorded, step: int | None, path: Path, title: str) -> int
     usable = [s for s in stamps[:-1] if s in recorded.camera and following[s] in recorded.camera]
     if not usable:
         raise ConfigError("the bag has no step with its camera image and the next one")
-    index = len(usable) // 2 if step is None else step
+    index = min(DEFAULT_STEP, len(usable) // 2) if step is None else step
     if not 0 <= index < len(usable):
         raise ConfigError(f"--step {index}: the bag has {len(usable)} drawable steps")
     stamp = usable[index]
@@ -137,7 +141,7 @@ def render(recorded: _Recorded, step: int | None, path: Path, title: str) -> int
             for line, color in zip(lines, markers["colors"][::2], strict=True):
                 ax.plot(line[:, 0], line[:, 1], "-", color=color, lw=1.5)
     ax.set_title("tpsr/state_markers (leading two coordinates)", fontsize=10)
-    ax.legend(loc="upper right", fontsize=8)
+    ax.legend(loc="best", fontsize=8)
     ax.set_aspect("equal", adjustable="datalim")
     ax = fig.add_subplot(grid[1, 2])
     _draw_poses(ax, recorded, stamp)
@@ -173,7 +177,10 @@ def register(subparsers: Any) -> None:
     parser = subparsers.add_parser("view-figure", help=doc, description=__doc__)
     parser.add_argument("bag", type=Path, metavar="VIEW_BAG", help="bag with the view topics")
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="PNG")
-    parser.add_argument("--step", type=int, default=None, help="step to draw (default: middle)")
+    parser.add_argument(
+        "--step", type=int, default=None,
+        help=f"index of the step to draw (default: {DEFAULT_STEP}, or the middle of fewer)",
+    )  # fmt: skip
     parser.add_argument("--camera-topic", default=CAMERA_TOPIC, metavar="TOPIC")
     parser.add_argument("--title", default="what the filter node's view shows", metavar="TEXT")
     parser.add_argument("--force", action="store_true", help="overwrite an existing PNG")
