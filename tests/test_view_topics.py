@@ -4,8 +4,11 @@ tpsr/predicted_image, tpsr/state_markers and tpsr/decoded_pose equal to what
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
+from graph_support import fresh_domain, rclpy_available
 from test_filter_node import Harness, S, small  # noqa: F401  (the module fixture)
 
 from learner.cli import main as learner_main
@@ -16,6 +19,8 @@ from tpsr_ros.io.bag import BagReader
 from tpsr_ros.io.marker_cdr import MarkerData, marker_array_cdr
 from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.view_messages import MARKERS_TYPE, ViewMessages, ViewSettings
+from tpsr_ros.runtime import Node, NodeOptions
+from tpsr_ros.runtime.launcher import Launch
 
 VIEW_TOPICS = ("/tpsr/state", "/tpsr/state_markers", "/tpsr/predicted_image", "/tpsr/decoded_pose")
 
@@ -186,3 +191,48 @@ def test_the_marker_writer_gives_the_generic_serialisers_bytes():
         ]
         msg = m.jazzy_typestore().types[MARKERS_TYPE](markers=[_rosbags_marker(d) for d in markers])
         assert marker_array_cdr(markers) == m.serialize(msg, MARKERS_TYPE)
+
+
+@pytest.mark.slow
+@pytest.mark.rclpy
+@pytest.mark.skipif(not rclpy_available(), reason="rclpy (ROS 2) not importable")
+def test_a_replay_recorded_over_ros2_holds_the_view_track_mcap_writes(small, tmp_path, monkeypatch):  # noqa: F811
+    """The whole path a user takes: play a bag into the filter node over rclpy, record the
+    view topics with the recorder, and compare with `learner track --mcap`, byte for byte."""
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(fresh_domain(23)))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    monkeypatch.setenv("TPSR_TRANSPORT", "rclpy")
+    feed, recorded, expected_bag = small["tmp"] / "feed", tmp_path / "recorded", tmp_path / "view"
+    assert learner_main(["track", str(small["model"]), str(feed), "--mcap", str(expected_bag)]) == 0
+    probe = Node(NodeOptions(name="view_probe"))
+    images: list[bytes] = []
+    probe.create_subscription("/tpsr/predicted_image", m.IMAGE_TYPE, images.append, raw=True)
+    try:
+        with Launch(tmp_path / "logs", spin=probe.spin_once, timeout_s=60) as launch:
+            node = launch.start(
+                "filter", "tpsr_ros.filter_node", ["--ros-args", "-p", f"model:={small['model']}"]
+            )
+            recorder = launch.start("record", "tpsr_ros.record", ["-o", str(recorded),
+                                                                  *VIEW_TOPICS[1:]])  # fmt: skip
+            launch.wait("the filter's subscriptions", lambda: "pairing" in node.text())
+            launch.wait("the recorder's subscriptions", lambda: all(
+                f"subscribed to {topic} " in recorder.text() for topic in VIEW_TOPICS[1:]))
+            player = launch.start("play", "tpsr_ros.play", [
+                str(feed), "--rate", "20", "--topics", "/camera/image_raw", "/action",
+                "--wait-for-subscribers", "1", "--no-clock",
+            ])  # fmt: skip
+            deadline = time.monotonic() + 60
+            while len(images) < 40 and time.monotonic() < deadline:
+                probe.spin_once(0.05)
+            assert player.wait(30) == 0, player.text()
+            assert recorder.stop() == 0, recorder.text()
+            assert node.stop() == 0, node.text()
+    finally:
+        probe.close()
+    def messages(bag):
+        with BagReader(bag) as reader:
+            return {t: [bytes(d) for _, _, d in reader.raw_messages([t])] for t in VIEW_TOPICS[1:]}
+
+    received, expected = messages(recorded), messages(expected_bag)
+    assert len(received["/tpsr/predicted_image"]) == 40
+    assert received == expected
