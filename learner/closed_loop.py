@@ -421,10 +421,16 @@ def _recorded(robot: SimulatedRobot | None) -> list[str]:
 
 
 def _filter_args(
-    model_path: Path, policy_path: Path, record: Path | None, lockstep: bool = False
+    model_path: Path,
+    policy_path: Path,
+    record: Path | None,
+    lockstep: bool = False,
+    view: bool = False,
 ) -> list[str]:
     """Build the filter node's command line: the first command waits until its readers match
-    (``lockstep``: one step per image, for a model learned on a step grid)."""
+    (the driver's, the recorder's, the view's; ``lockstep``: one step per image, for a model
+    learned on a step grid)."""
+    readers = 1 + (record is not None) + view
     return [
         "--ros-args",
         "-p",
@@ -432,7 +438,7 @@ def _filter_args(
         "-p",
         f"policy:={policy_path}",
         "-p",
-        f"wait_for_subscribers:={2 if record is not None else 1}",
+        f"wait_for_subscribers:={readers}",
         *(["-p", "lockstep:=true"] if lockstep else []),
     ]
 
@@ -468,6 +474,7 @@ def run_closed_loop(
     on_step: Callable[[int], None] | None = None,
     say: Callable[[str], None] | None = None,
     camera_size: int | None = None,
+    view_port: int | None = None,
 ) -> ClosedLoopResult:
     """Run the standard protocol (guide 4.1-4.2) with the simulator and filter nodes as processes.
 
@@ -478,7 +485,8 @@ def run_closed_loop(
     new rewards as they arrive (for progress bars), ``on_trial`` after each trial, ``say``
     with stage lines. ``transport`` is ``rclpy`` or ``dds`` (default: ``TPSR_TRANSPORT``,
     else rclpy if importable, else dds). ``camera_size``: the simulator's camera for a model
-    learned from robot bags (default: the one the model records).
+    learned from robot bags (default: the one the model records). ``view_port``: also run
+    the view node (``python -m tpsr_ros.view``), serving the run to Foxglove on that port.
     """
     started = time.monotonic()
     say = say or (lambda text: None)
@@ -529,7 +537,13 @@ def run_closed_loop(
             say=say,
             robot=robot,
         )
-        filter_args = _filter_args(model_path, policy_path, record, lockstep=robot is not None)
+        if view_port is not None:
+            view = launch.start("tpsr_view", "tpsr_ros.view", ["--port", str(view_port)])
+            launch.wait("the view's server", lambda: "ws://" in view.text())
+            say(f"Foxglove: open a connection to ws://127.0.0.1:{view_port} (msgs_doc/view.md)")
+        filter_args = _filter_args(
+            model_path, policy_path, record, lockstep=robot is not None, view=view_port is not None
+        )
         state_stamp = (lambda stamp: stamp) if robot is None else robot.step_time
 
         def start_filter() -> None:

@@ -148,6 +148,16 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_preset_option(parser, "fit and fitted-Q (learner fit and learner policy)")
     parser.add_argument(
+        "--view",
+        nargs="?",
+        type=int,
+        const=8765,
+        default=None,
+        metavar="PORT",
+        help="serve the closed loop to Foxglove while it runs (python -m tpsr_ros.view; the "
+        "view extra), on PORT (default 8765)",
+    )
+    parser.add_argument(
         "--fit-option",
         action="append",
         default=[],
@@ -203,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
             log_dir=out / "logs",
             on_step=bar.update,
             say=lambda text: bar.write(f"      {text}", file=sys.stderr),
+            view_port=args.view,
         )
 
     _stage(7, "plots")
