@@ -236,3 +236,21 @@ def test_a_replay_recorded_over_ros2_holds_the_view_track_mcap_writes(small, tmp
     received, expected = messages(recorded), messages(expected_bag)
     assert len(received["/tpsr/predicted_image"]) == 40
     assert received == expected
+
+
+def test_every_topic_the_view_relays_is_published_with_its_type_by_a_documented_node():
+    """msgs_doc's Publishers tables are held to the nodes by test_msgs_doc; the view's
+    table (which the layouts are checked against) is held to them here."""
+    from test_msgs_doc import DOC, index_pages, sections, table
+
+    from tpsr_ros.view.topics import VIEW_TOPICS as RELAYED
+
+    published: dict[str, set[str]] = {}
+    for page in index_pages():
+        parts = sections((DOC / page).read_text())
+        if "Publishers" not in parts:
+            continue
+        for row in table(parts["Publishers"], ["topic", "type", "qos", "meaning"]) or []:
+            published.setdefault(row[0].strip("`"), set()).add(row[1].strip("`"))
+    for topic, msgtype in RELAYED.items():
+        assert msgtype in published.get(topic, set()), (topic, msgtype)

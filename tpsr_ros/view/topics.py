@@ -17,7 +17,8 @@ __all__ = ["MAP_FRAME", "MARKER_ARRAY_TYPE", "STATE_FRAME", "VIEW_TOPICS", "defa
 
 MARKER_ARRAY_TYPE: Final = "visualization_msgs/msg/MarkerArray"
 STATE_FRAME: Final = "tpsr"
-"""Frame of the state and its markers: the viewer's coordinates b0, b1, b2."""
+"""Frame of the state and its markers: the three leading principal coordinates of the
+training states, scaled to unit spread (:mod:`tpsr_ros.core.view_readout`)."""
 MAP_FRAME: Final = "map"
 """Frame of the simulator's poses and of the pose decoded from the state."""
 

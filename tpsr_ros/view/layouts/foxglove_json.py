@@ -38,7 +38,7 @@ def _split(direction: str, *items: tuple[float, fl.Content]) -> fl.SplitContaine
 
 def _state_markers() -> fl.ThreeDeePanel:
     return fl.ThreeDeePanel(
-        title="state space: b0, b1, b2 (trail, state, training states, action values)",
+        title="the state among the training states (leading principal coordinates)",
         config=fl.ThreeDeeConfig(
             follow_tf=STATE_FRAME,
             topics={
