@@ -43,7 +43,9 @@ from learner.inputs import (
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.episodes import Trajectory, track_trajectory
 from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.online import SWAP_STATES, track_with_swap
 from tpsr_ros.core.state_model import Track
+from tpsr_ros.core.units import STEP_NS
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.atomic import atomic_file
 from tpsr_ros.io.bag import BagReader, BagWriter, check_bag_path_free
@@ -91,6 +93,22 @@ def register(subparsers: Any) -> None:
         help="with --mcap: states in the markers' trail (the filter node's view_trail; "
         "default %(default)s)",
     )  # fmt: skip
+    swap = parser.add_argument_group(
+        "a model swap (the filter node's, offline: msgs_doc/filter_node.md, Model swaps)"
+    )
+    swap.add_argument(
+        "--swap-at", type=int, metavar="STAMP_NS",
+        help="track with --swap-model from the first step stamped at or after STAMP_NS",
+    )  # fmt: skip
+    swap.add_argument("--swap-model", type=Path, metavar="MODEL", help="the model swapped in")
+    swap.add_argument(
+        "--swap-state", choices=SWAP_STATES, default="replay",
+        help="its state: the last --swap-replay-steps re-filtered, or b_* (default %(default)s)",
+    )  # fmt: skip
+    swap.add_argument(
+        "--swap-replay-steps", type=positive_int, default=20, metavar="N",
+        help="steps re-filtered at the swap (default %(default)s)",
+    )  # fmt: skip
     parser.add_argument("--force", action="store_true", help="overwrite an existing STATES")
     add_topic_options(parser.add_argument_group("topics"))
     parser.set_defaults(run=run)
@@ -133,6 +151,10 @@ def run(args: argparse.Namespace) -> int:
     """Read, track, write; say how many steps and restarts."""
     if args.output is None and args.mcap is None:
         raise ConfigError("give -o STATES (.csv or .npz), --mcap VIEW_BAG, or both")
+    if (args.swap_at is None) != (args.swap_model is None):
+        raise ConfigError("a swap needs both --swap-at STAMP_NS and --swap-model MODEL")
+    if args.swap_at is not None and args.mcap is not None:
+        raise ConfigError("--mcap writes one model's view: drop --swap-at or --mcap")
     if args.policy is not None and args.mcap is None:
         raise ConfigError("--policy shapes the view topics only: add --mcap VIEW_BAG")
     if args.output is not None and args.output.suffix not in FORMATS:
@@ -153,6 +175,8 @@ def run(args: argparse.Namespace) -> int:
         )
     trajectory = read_for_model(model_file, args.bags, args)
     tracked = track_trajectory(model_file.model, trajectory)
+    if args.swap_at is not None:
+        tracked = _swapped(args, model_file, trajectory)
     if model_file.spec is not None:  # a robot model: the filter node's far_commands
         print(f"learner track: {far_commands_line(trajectory, model_file.spec)}", file=sys.stderr)
     positions = trajectory.positions
@@ -187,6 +211,26 @@ def run(args: argparse.Namespace) -> int:
         file=sys.stderr,
     )
     return 0
+
+
+def _swapped(args: argparse.Namespace, model_file: ModelFile, trajectory: Trajectory) -> Track:
+    """The states of the trajectory with the swap the options ask for, as the filter node
+    tracks them (:func:`~tpsr_ros.core.online.track_with_swap`)."""
+    second = open_model(args.swap_model)
+    if second.model.obs_size != model_file.model.obs_size or (
+        second.model.n_actions != model_file.model.n_actions
+    ):
+        raise ConfigError(f"--swap-model {args.swap_model} reads other observations or actions")
+    spec = model_file.spec
+    step_ns = int(spec.grid.step_ns) if spec is not None else STEP_NS
+    steps = list(
+        zip(trajectory.stamps.tolist(), trajectory.actions.tolist(), trajectory.observations,
+            strict=True)
+    )  # fmt: skip
+    replay = args.swap_replay_steps if args.swap_state == "replay" else 0
+    return track_with_swap(
+        model_file.model, second.model, steps, args.swap_at, step_ns=step_ns, replay_steps=replay
+    )
 
 
 def _view_records(

@@ -17,15 +17,17 @@ bit the offline ones for the same steps:
 
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from tpsr_ros.core.errors import ConfigError
-from tpsr_ros.core.state_model import StateModel
+from tpsr_ros.core.state_model import StateModel, Track
 from tpsr_ros.core.units import STEP_NS
 
-__all__ = ["OnlineTracker", "StepInfo"]
+__all__ = ["SWAP_STATES", "OnlineTracker", "Step", "StepInfo", "track_with_swap"]
 
 
 @dataclass(frozen=True)
@@ -70,6 +72,18 @@ class OnlineTracker:
         self.last_stamp = None
         self.reinits += 1
 
+    def swap(self, model: StateModel, replay: Sequence[Step] = ()) -> None:
+        """Track with ``model`` from the next step on, its state ``b_*`` re-filtered through
+        ``replay``, the last steps ``(stamp, action, observation)`` oldest first (none: the
+        next step starts from ``b_*``). The replayed steps are not counted again."""
+        self.model = model
+        self.state = model.initial_state()
+        self.last_stamp = None
+        counts = (self.steps, self.gaps, self.recoveries)
+        for stamp, action, observation in replay:
+            self.step(stamp, action, observation)
+        self.steps, self.gaps, self.recoveries = counts
+
     def step(self, stamp_ns: int, action: int, observation: np.ndarray) -> StepInfo:
         """Incorporate step ``(a_k, o_k)`` stamped ``stamp_ns``; return the new state."""
         started = self.last_stamp is None
@@ -82,3 +96,40 @@ class OnlineTracker:
         self.gaps += int(gap)
         self.recoveries += int(info.recovered)
         return StepInfo(new, started or gap, gap, info.recovered, info.normalizer)
+
+
+Step = tuple[int, int, np.ndarray]
+"""One step as the tracker takes it: stamp (ns), action index, observation."""
+
+SWAP_STATES = ("replay", "restart")
+"""What the state becomes at a model swap: the last steps re-filtered, or ``b_*``."""
+
+
+def track_with_swap(
+    first: StateModel,
+    second: StateModel,
+    steps: Sequence[Step],
+    swap_at_ns: int,
+    *,
+    step_ns: int = STEP_NS,
+    replay_steps: int = 20,
+) -> Track:
+    """The states of ``steps`` tracked with ``first`` and, from the first step stamped
+    at or after ``swap_at_ns``, with ``second`` after :meth:`OnlineTracker.swap` re-filtered
+    its last ``replay_steps`` steps (0: from ``b_*``): what the filter node publishes when
+    the swap comes between those two steps (the offline reference of a live swap)."""
+    tracker = OnlineTracker(first, step_ns)
+    recent: deque[Step] = deque(maxlen=max(replay_steps, 1))
+    states, normalizers, recovered = [], [], []
+    swapped = False
+    for stamp, action, observation in steps:
+        if not swapped and stamp >= swap_at_ns:
+            tracker.swap(second, list(recent) if replay_steps > 0 else [])
+            swapped = True
+        info = tracker.step(stamp, action, observation)
+        states.append(info.state)
+        normalizers.append(info.normalizer)
+        recovered.append(info.recovered)
+        if replay_steps > 0:
+            recent.append((stamp, action, observation))
+    return Track(np.array(states), np.array(normalizers), np.array(recovered, dtype=bool))

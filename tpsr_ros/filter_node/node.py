@@ -34,6 +34,8 @@ from tpsr_ros.filter_node.params import (
     COMMAND_TYPES,
     DIAGNOSTICS_TOPIC,
     IMAGE_TOPIC,
+    MODEL_INFO_TOPIC,
+    MODEL_UPDATE_TOPIC,
     RESET_TOPIC,
     STATE_TOPIC,
     FilterNodeParams,
@@ -45,6 +47,14 @@ from tpsr_ros.filter_node.stepping import (
     GridStepping,
     LockstepStepping,
     Step,
+)
+from tpsr_ros.filter_node.swap import (
+    MODEL_MESSAGE_TYPE,
+    ModelUpdate,
+    checked_inputs,
+    model_info,
+    parse_update,
+    string_msg,
 )
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.filter_inputs import FilterInputs, check_policy, filter_inputs, input_topics
@@ -204,7 +214,13 @@ class FilterNode(Node):
         self._ready_since: float | None = None
         self.commands_ready = self.policy is None
         self.viewer = self._viewer()
+        self.policy_name = p.policy or "none"
+        self.model_version: int | None = None
+        self.swaps = self.refused_swaps = 0
+        self._recent: deque[tuple[int, int, Any]] = deque(maxlen=p.swap_replay_steps)
+        self._first_stamp: int | None = None  # of the first step tracked with this model
         self._create_endpoints(image_name, action_name)
+        self._publish_model_info()
         self._far_reported = (0, 0)  # far commands and command messages when last judged
         self._report_done()
         self.create_timer(p.diagnostics_period, self.publish_diagnostics)
@@ -264,15 +280,12 @@ class FilterNode(Node):
             else None
         )
         self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
-        if self.viewer is not None:
-            self.predicted_pub = self.create_publisher(PREDICTED_IMAGE_TOPIC, m.IMAGE_TYPE)
-            self.markers_pub = self.create_publisher(STATE_MARKERS_TOPIC, MARKERS_TYPE, MARKERS_QOS)
-            self.pose_pub = (
-                self.create_publisher(DECODED_POSE_TOPIC, m.POSE_TYPE)
-                if self.viewer.view.pose is not None
-                else None
-            )
-            self.image_errors: deque[float] = deque(maxlen=IMAGE_ERROR_STEPS)
+        self.image_errors: deque[float] = deque(maxlen=IMAGE_ERROR_STEPS)
+        self.predicted_pub = self.markers_pub = self.pose_pub = None
+        self._view_publishers()
+        self.model_info_pub = self.create_publisher(
+            MODEL_INFO_TOPIC, MODEL_MESSAGE_TYPE, LATCHED_QOS
+        )
         if self.cmd_pub is not None and self.cmd_pub.topic == self.action_topic:
             if self.spec is None:  # executed actions stamped per step, not commands
                 raise ConfigError(
@@ -308,6 +321,19 @@ class FilterNode(Node):
         self.clock_topic = self.create_subscription(
             CLOCK_TOPIC, m.CLOCK_TYPE, self._on_clock, CLOCK_QOS, raw=True
         ).topic
+        self.model_update_topic = self.create_subscription(
+            MODEL_UPDATE_TOPIC, MODEL_MESSAGE_TYPE, self._on_model_update, LATCHED_QOS, raw=True
+        ).topic
+
+    def _view_publishers(self) -> None:
+        """The view topics' publishers the current viewer needs (created once each)."""
+        if self.viewer is None:
+            return
+        if self.predicted_pub is None:
+            self.predicted_pub = self.create_publisher(PREDICTED_IMAGE_TOPIC, m.IMAGE_TYPE)
+            self.markers_pub = self.create_publisher(STATE_MARKERS_TOPIC, MARKERS_TYPE, MARKERS_QOS)
+        if self.pose_pub is None and self.viewer.view.pose is not None:
+            self.pose_pub = self.create_publisher(DECODED_POSE_TOPIC, m.POSE_TYPE)
 
     # -- warnings and counters ------------------------------------------------------------
 
@@ -506,6 +532,10 @@ class FilterNode(Node):
                 f"normaliser {info.normalizer:.3g} at {step.stamp / _NS:.3f} s: restarted from b_*",
             )
         self.state_pub.publish_raw(self._state_cdr(step.stamp, info.state))
+        self._recent.append((step.stamp, step.action, step.image))
+        if self._first_stamp is None:
+            self._first_stamp = step.stamp
+            self._publish_model_info()
         q_values = None
         if self.policy is not None:
             greedy = None
@@ -520,6 +550,7 @@ class FilterNode(Node):
     def _view(self, step: Step, state: Any, q_values: Any) -> None:
         """Publish the view topics of one step (``q_values``: the policy's, or None)."""
         assert self.viewer is not None
+        assert self.markers_pub is not None and self.predicted_pub is not None
         view = self.viewer.step(step.stamp, state, step.image, q_values)
         for markers in view.markers:
             self.markers_pub.publish_raw(markers)
@@ -557,6 +588,7 @@ class FilterNode(Node):
 
     def _reinit(self, why: str) -> None:
         self.tracker.reinit()
+        self._recent.clear()  # a swap re-filters the current segment only
         self.logger.debug(f"{why}: state re-initialised to b_*")
         if self.policy is not None:
             self._command(self.tracker.state)
@@ -632,7 +664,10 @@ class FilterNode(Node):
             "last_stamp_s": "none" if last is None else f"{last / _NS:.9f}",
             "state_dim": self.model.state_dim,
             "model": self.inputs.fingerprint[:12],
-            "policy": "none" if self.policy is None else self.params.policy,
+            "policy": "none" if self.policy is None else self.policy_name,
+            "model_version": "none" if self.model_version is None else self.model_version,
+            "model_swaps": self.swaps,
+            "model_swaps_refused": self.refused_swaps,
             **self._view_values(),
         }
 
@@ -692,14 +727,14 @@ class FilterNode(Node):
         self.health.reported(counts, self.tracker.steps)
 
     def on_parameter_change(self, name: str, value: Any) -> str | None:
-        """``ros2 param set /tpsr_filter policy NEW``: swap the policy if it fits the model.
-
-        Checked exactly as at start-up (against the model opened then); every other
-        parameter is fixed at start-up.
-        """
+        """``ros2 param set /tpsr_filter model NEW`` swaps the model (:meth:`swap_model`),
+        ``... policy NEW`` the policy if it fits the model; every other parameter is fixed
+        at start-up."""
+        if name == "model":
+            return self.swap_model(ModelUpdate(str(value))) if value else "model cannot be empty"
         if name != "policy":
             return super().on_parameter_change(name, value)
-        if self.policy is None or not value:
+        if self.cmd_pub is None or not value:
             return (
                 "the policy can only be replaced by another one while the node runs (a pure "
                 "filter has no /cmd_vel publisher, and one with a policy keeps it); restart "
@@ -710,9 +745,78 @@ class FilterNode(Node):
             check_policy(policy, self.inputs.model_file, str(value))
         except TpsrError as exc:
             return str(exc)
-        self.policy = policy
+        self.policy, self.policy_name = policy, str(value)
         self.logger.info(f"policy {value} now chooses the commands")
         return None
+
+    # -- model swaps ------------------------------------------------------------------------
+
+    def _on_model_update(self, data: bytes) -> None:
+        msg = self._decode(data, MODEL_MESSAGE_TYPE, self.model_update_topic)
+        if msg is None:
+            return
+        try:
+            update = parse_update(str(msg.data))
+        except TpsrError as exc:
+            self.refused_swaps += 1
+            self.logger.warning(f"{self.model_update_topic}: refused: {exc}")
+            return
+        if update.fingerprint is not None and self.inputs.fingerprint.startswith(
+            update.fingerprint
+        ) and update.version == self.model_version:
+            return  # the latched announcement of the model already running
+        self.swap_model(update)
+
+    def swap_model(self, update: ModelUpdate) -> str | None:
+        """Run the model (and policy) of ``update`` from the next step on, at a step
+        boundary (callbacks run one at a time); its state re-filters the last
+        ``swap_replay_steps`` steps of the segment (``swap_state`` replay) or starts from
+        b_* (restart). A model the node cannot run is refused, the reason returned and
+        logged, and the old one keeps running."""
+        p: FilterNodeParams = self.params
+        current = replace(self.inputs, policy=self.policy)
+        try:
+            inputs, note = checked_inputs(
+                update, current, check_topics=p.check_topics, image_topic=self.image_topic,
+                action_topic=self.action_topic, namespace=self.namespace,
+            )  # fmt: skip
+        except TpsrError as exc:
+            self.refused_swaps += 1
+            self.logger.warning(
+                f"model {update.path} refused, {self.inputs.model_file.path} runs on: {exc}"
+            )
+            return str(exc)
+        replay = list(self._recent) if p.swap_state == "replay" else []
+        self.inputs, self.model = inputs, inputs.model
+        self.tracker.swap(self.model, replay)
+        if p.swap_state != "replay":
+            self._recent.clear()
+        if self.cmd_pub is not None:
+            self.policy = inputs.policy
+            if update.policy is not None:
+                self.policy_name = update.policy
+        self._state_cdr = m.StateEncoder(self.model.state_dim)
+        self.viewer = self._viewer()
+        self._view_publishers()
+        self.model_version, self._first_stamp = update.version, None
+        self.swaps += 1
+        self._publish_model_info()
+        self.logger.info(
+            f"model {update.path} ({inputs.fingerprint[:12]}, version {update.version}) runs "
+            f"from the next step; state: {p.swap_state}"
+            + (f" of {len(replay)} steps" if p.swap_state == "replay" else "")
+        )
+        if note is not None:
+            self.logger.warning(note)
+        return None
+
+    def _publish_model_info(self) -> None:
+        """Acknowledge the model in use on the latched ``tpsr/model_info``."""
+        text = model_info(
+            replace(self.inputs, policy=self.policy), version=self.model_version,
+            swaps=self.swaps, first_stamp_ns=self._first_stamp,
+        )  # fmt: skip
+        self.model_info_pub.publish(string_msg(text))
 
     def on_shutdown(self) -> None:
         """Log the totals."""

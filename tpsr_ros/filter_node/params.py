@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 
 from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.online import SWAP_STATES
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.stream_spec import TWIST_STAMPED_TYPE
 from tpsr_ros.runtime import param
@@ -22,6 +23,8 @@ __all__ = [
     "COMMAND_TYPES",
     "DIAGNOSTICS_TOPIC",
     "IMAGE_TOPIC",
+    "MODEL_INFO_TOPIC",
+    "MODEL_UPDATE_TOPIC",
     "RESET_TOPIC",
     "STATE_TOPIC",
     "FilterNodeParams",
@@ -34,6 +37,8 @@ CLOCK_TOPIC = "clock"
 STATE_TOPIC = "tpsr/state"
 CMD_VEL_TOPIC = "cmd_vel"
 DIAGNOSTICS_TOPIC = "/diagnostics"
+MODEL_UPDATE_TOPIC = "tpsr/model_update"
+MODEL_INFO_TOPIC = "tpsr/model_info"
 COMMAND_TYPES = {"twist": m.TWIST_TYPE, "twist_stamped": TWIST_STAMPED_TYPE}
 
 
@@ -117,6 +122,15 @@ class FilterNodeParams:
         "without the viewer's read-outs publish none)",
     )
     view_trail: int = param(100, "states in the tpsr/state_markers trail", minimum=1)
+    swap_state: str = param(
+        "replay",
+        "the state after a model swap: replay (the new model re-filters the last "
+        "swap_replay_steps steps) or restart (b_*)",
+        choices=SWAP_STATES,
+    )
+    swap_replay_steps: int = param(
+        20, "steps kept for re-filtering at a model swap (swap_state replay)", minimum=1
+    )
 
     def __post_init__(self) -> None:
         if self.queue_size < 1:
@@ -131,5 +145,7 @@ class FilterNodeParams:
             raise ConfigError(f"jump_threshold must be >= 0 s, got {self.jump_threshold}")
         if self.wait_for_subscribers < 0:
             raise ConfigError("wait_for_subscribers must be >= 0")
+        if self.swap_replay_steps < 1:
+            raise ConfigError(f"swap_replay_steps must be >= 1, got {self.swap_replay_steps}")
         if self.view_trail < 1:
             raise ConfigError(f"view_trail must be >= 1, got {self.view_trail}")
