@@ -20,7 +20,7 @@ import dataclasses
 import functools
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +47,7 @@ from learner.options import (
 )
 from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory, common_value, make_episodes, track_trajectory
-from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError, TpsrError
 from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.core.presets import Preset, departures
@@ -55,7 +55,7 @@ from tpsr_ros.core.sizing import Sizing, describe_sizing
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.streamed_fit import fit_pca_streamed, fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel
-from tpsr_ros.core.view_readout import ViewReadout, fit_view_readout
+from tpsr_ros.core.view_readout import ViewReadout, ViewSums, fit_view_readout, point_rows
 from tpsr_ros.io.bag_chunks import DEFAULT_CHUNK_STEPS, BagChunks, survey_bags
 from tpsr_ros.io.bag_streams import pose_frame_id
 from tpsr_ros.io.model_io import check_output_path, save_model
@@ -481,8 +481,51 @@ def _run_streamed(
         "reading_seconds": round(timings["reading bags"], 6),
         "fit_seconds": round(timings["fit"], 6),
     }  # fmt: skip
-    _write(model, output, training, spec, timings, preset=preset, force=args.force)
+    start = time.perf_counter()
+    try:
+        view: ViewReadout | None = _streamed_view(
+            model, reader.read_all(args.bags), int(info["steps"]),
+            _decoded_pose_frame(args, topics),
+        )  # fmt: skip
+    except TpsrError as exc:  # e.g. bags only the cluster's workers can read
+        view = None
+        _say(f"no viewer read-outs (the filter node will publish no view topics): {exc}")
+    timings["viewer read-outs"] = time.perf_counter() - start
+    _write(model, output, training, spec, timings, preset=preset, view=view, force=args.force)
     return 0
+
+
+def _streamed_view(
+    model: StateModel, chunks: Iterator[Trajectory], total_steps: int, pose_frame: str
+) -> ViewReadout:
+    """The viewer's read-outs in one more pass over the chunks, in this process: each chunk
+    tracked on from its segment's last state in the previous one, its sums added (the
+    same read-outs as in memory, to rounding)."""
+    rows = point_rows(total_steps)
+    sums: ViewSums | None = None
+    before: tuple[np.ndarray, int] | None = None
+    points, offset = [], 0
+    for chunk in chunks:
+        if sums is None:
+            sums = ViewSums(chunk.n_actions, model.state_dim, model.obs_size,
+                            chunk.positions.shape[1])  # fmt: skip
+        states = np.empty((len(chunk), model.state_dim))
+        for a, b in chunk.segment_bounds():
+            carried = before is not None and a == 0 and chunk.segments[0] == before[1]
+            initial = before[0] if carried and before is not None else None
+            states[a:b] = model.track(chunk.actions[a:b], chunk.observations[a:b], initial).states
+        sums.add(states, chunk.actions, chunk.observations, chunk.segments, chunk.positions,
+                 before)  # fmt: skip
+        mine = rows[(rows >= offset) & (rows < offset + len(chunk))]
+        points.append(states[mine - offset])
+        offset += len(chunk)
+        before = (states[-1], int(chunk.segments[-1]))
+    if sums is None:
+        raise ConfigError("the bags hold no steps for the viewer's read-outs")
+    view = sums.solve(np.concatenate(points), pose_frame)
+    pose = "" if view.pose is None else f" and the pose (frame {pose_frame})"
+    _say(f"viewer read-outs (one more pass): the next image for each action{pose}")
+    return view
 
 
 def _say_sizing(model: StateModel) -> None:

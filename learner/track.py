@@ -170,8 +170,8 @@ def run(args: argparse.Namespace) -> int:
         check_policy(policy, model_file, str(args.policy))
     if args.mcap is not None and model_file.view is None:
         raise ConfigError(
-            f"model {str(args.model)!r} has no viewer read-outs (an older file or a streamed "
-            "fit): refit it with `learner fit` to write the view topics"
+            f"model {str(args.model)!r} has no viewer read-outs (written before them): refit "
+            "it with `learner fit` to write the view topics"
         )
     trajectory = read_for_model(model_file, args.bags, args)
     tracked = track_trajectory(model_file.model, trajectory)

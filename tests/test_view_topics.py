@@ -254,3 +254,18 @@ def test_every_topic_the_view_relays_is_published_with_its_type_by_a_documented_
             published.setdefault(row[0].strip("`"), set()).add(row[1].strip("`"))
     for topic, msgtype in RELAYED.items():
         assert msgtype in published.get(topic, set()), (topic, msgtype)
+
+
+def test_a_streamed_fit_has_the_in_memory_read_outs(small, tmp_path):  # noqa: F811
+    """One more pass over the chunks, each tracked on from the previous chunk's last state,
+    gives the read-outs of the fit in memory (to rounding: the models agree to 1e-9)."""
+    bag = small["tmp"] / "train_3"
+    streamed = tmp_path / "streamed.npz"
+    args = ["fit", str(bag), "-o", str(streamed), "--stream", "--chunk-steps", "250",
+            "--obs-centers", "40", "--ht-centers", "80", "--rank", "3"]  # fmt: skip
+    assert learner_main(args) == 0
+    memory, chunked = open_model(small["model"]).view, open_model(streamed).view
+    assert memory is not None and chunked is not None
+    for name, array in memory.to_arrays().items():
+        other = chunked.to_arrays()[name]
+        np.testing.assert_allclose(other, array, rtol=1e-6, atol=1e-9 * np.abs(array).max())

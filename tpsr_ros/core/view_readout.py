@@ -18,17 +18,26 @@ model, its fingerprint and every policy untouched.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from tpsr_ros.core.errors import DataError, ModelFormatError
 
-__all__ = ["VIEW_POINTS", "ViewReadout", "fit_view_readout", "next_step_pairs"]
+__all__ = [
+    "VIEW_POINTS",
+    "ViewReadout",
+    "ViewSums",
+    "fit_view_readout",
+    "next_step_pairs",
+    "point_rows",
+]
 
 VIEW_POINTS = 1000
 """Training states kept for the viewer's point cloud (evenly spaced over the data)."""
 RIDGE = 1e-6
+FLAT = 1e-6
+"""A state direction whose spread is below this fraction of the largest is drawn flat."""
 """Ridge of every read-out, relative to the mean diagonal of its Gram matrix."""
 
 
@@ -113,27 +122,133 @@ def next_step_pairs(segments: np.ndarray) -> np.ndarray:
     return np.flatnonzero(segments[1:] == segments[:-1])
 
 
-def _ridge_solve(design: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """Least squares ``design @ W ~ targets`` with a small relative ridge (never singular)."""
-    gram = design.T @ design
+def _ridge_solve(gram: np.ndarray, cross: np.ndarray) -> np.ndarray:
+    """``W`` of the normal equations ``gram W = cross`` with a small relative ridge (never
+    singular)."""
+    gram = gram.copy()
     scale = max(float(np.trace(gram)) / gram.shape[0], np.finfo(float).tiny)
     gram[np.diag_indices_from(gram)] += RIDGE * scale
-    return np.linalg.solve(gram, design.T @ targets)
+    return np.linalg.solve(gram, cross)
 
 
-def _principal_axes(states: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and the three leading directions of ``states`` scaled to unit spread (missing
-    directions of a state of fewer than three dimensions, or of no spread, are zero)."""
-    center = states.mean(axis=0)
-    _, singular, vt = np.linalg.svd(states - center, full_matrices=False)
-    spread = singular / np.sqrt(max(len(states) - 1, 1))
-    axes = np.zeros((states.shape[1], 3))
-    keep = min(3, len(spread))
-    tiny = max(float(spread[0]) if len(spread) else 0.0, 1.0) * 1e-12
-    for i in range(keep):
-        if spread[i] > tiny:
-            axes[:, i] = vt[i] / spread[i]
-    return center, axes
+def _with_one(states: np.ndarray) -> np.ndarray:
+    return np.concatenate([states, np.ones((states.shape[0], 1))], axis=1)
+
+
+@dataclass
+class ViewSums:
+    """The read-outs' sufficient statistics, added chunk by chunk and merged across
+    workers, then solved once (:meth:`solve`): a fit over more steps than memory holds.
+
+    ``add`` takes a chunk of tracked steps; the pair of a chunk's last step and the next
+    chunk's first (same segment) is counted by passing the previous chunk's last state and
+    segment as ``before``.
+    """
+
+    n_actions: int
+    state_dim: int
+    obs_size: int
+    pose_dim: int = 0
+    image_gram: np.ndarray = field(init=False)
+    image_cross: np.ndarray = field(init=False)
+    image_pairs: np.ndarray = field(init=False)
+    pose_gram: np.ndarray = field(init=False)
+    pose_cross: np.ndarray = field(init=False)
+    state_sum: np.ndarray = field(init=False)
+    state_outer: np.ndarray = field(init=False)
+    states: int = 0
+
+    def __post_init__(self) -> None:
+        a, d, k = self.n_actions, self.state_dim + 1, self.obs_size
+        self.image_gram, self.image_cross = np.zeros((a, d, d)), np.zeros((a, d, k))
+        self.image_pairs = np.zeros(a, dtype=np.int64)
+        self.pose_gram, self.pose_cross = np.zeros((d, d)), np.zeros((d, max(self.pose_dim, 1)))
+        self.state_sum, self.state_outer = np.zeros(d - 1), np.zeros((d - 1, d - 1))
+
+    def add(
+        self,
+        states: np.ndarray,
+        actions: np.ndarray,
+        observations: np.ndarray,
+        segments: np.ndarray,
+        positions: np.ndarray | None = None,
+        before: tuple[np.ndarray, int] | None = None,
+    ) -> None:
+        """Count a chunk of steps (``before``: the previous chunk's last state and segment)."""
+        states = np.asarray(states, dtype=np.float64)
+        segments = np.asarray(segments)
+        pairs = next_step_pairs(segments)
+        design = _with_one(states[pairs])
+        following = np.asarray(observations, dtype=np.float64)[pairs + 1]
+        next_actions = np.asarray(actions, dtype=np.int64)[pairs + 1]
+        if before is not None and len(segments) and segments[0] == before[1]:
+            design = np.concatenate([_with_one(before[0][None]), design])
+            following = np.concatenate([np.asarray(observations[:1], dtype=np.float64),
+                                        following])  # fmt: skip
+            next_actions = np.concatenate([np.asarray(actions[:1], dtype=np.int64), next_actions])
+        for action in np.unique(next_actions):  # one product per action, never per step
+            rows = next_actions == action
+            self.image_gram[action] += design[rows].T @ design[rows]
+            self.image_cross[action] += design[rows].T @ following[rows]
+            self.image_pairs[action] += int(rows.sum())
+        if positions is not None and self.pose_dim:
+            known = np.isfinite(positions).all(axis=1)
+            with_one = _with_one(states[known])
+            self.pose_gram += with_one.T @ with_one
+            self.pose_cross += with_one.T @ np.asarray(positions, dtype=np.float64)[known]
+        self.state_sum += states.sum(axis=0)
+        self.state_outer += states.T @ states
+        self.states += states.shape[0]
+
+    def merge(self, other: ViewSums) -> ViewSums:
+        """The sums of both (the order of chunks never matters)."""
+        merged = ViewSums(self.n_actions, self.state_dim, self.obs_size, self.pose_dim)
+        for name in ("image_gram", "image_cross", "image_pairs", "pose_gram", "pose_cross",
+                     "state_sum", "state_outer"):  # fmt: skip
+            setattr(merged, name, getattr(self, name) + getattr(other, name))
+        merged.states = self.states + other.states
+        return merged
+
+    def solve(self, points: np.ndarray, pose_frame: str = "map") -> ViewReadout:
+        """The read-outs; ``points`` ``(n, r)`` the training states drawn as the map."""
+        r = self.state_dim
+        if self.image_pairs.sum() < r + 2:
+            raise DataError(
+                f"{int(self.image_pairs.sum())} consecutive step pairs cannot fit a read-out "
+                f"of a {r}-d state"
+            )
+        pooled = _ridge_solve(self.image_gram.sum(axis=0), self.image_cross.sum(axis=0))
+        image = np.repeat(pooled[None], self.n_actions + 1, axis=0)
+        for action in np.flatnonzero(self.image_pairs >= r + 2):
+            image[action] = _ridge_solve(self.image_gram[action], self.image_cross[action])
+        pose = None
+        if self.pose_dim and self.pose_gram[-1, -1] >= r + 2:  # the count of known poses
+            pose = _ridge_solve(self.pose_gram, self.pose_cross)
+        center, axes = self._principal_axes()
+        return ViewReadout(image, pose, axes, center, (points - center) @ axes, pose_frame)
+
+    def _principal_axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mean and the three leading directions of the states scaled to unit spread (each
+        pointing where its largest component is positive; missing ones, and flat ones, of
+        less than :data:`FLAT` of the largest spread, zero: rounding, not structure)."""
+        n = max(self.states, 1)
+        center = self.state_sum / n
+        cov = (self.state_outer - n * np.outer(center, center)) / max(n - 1, 1)
+        values, vectors = np.linalg.eigh((cov + cov.T) / 2)
+        order = np.argsort(values)[::-1][:3]
+        spread = np.sqrt(np.maximum(values[order], 0.0))
+        axes = np.zeros((self.state_dim, 3))
+        tiny = FLAT * (float(spread[0]) if len(spread) else 0.0)
+        for i, (column, width) in enumerate(zip(order, spread, strict=True)):
+            if width > tiny and width > 0:
+                vector = vectors[:, column]
+                axes[:, i] = np.sign(vector[np.argmax(np.abs(vector))]) * vector / width
+        return center, axes
+
+
+def point_rows(total: int, max_points: int = VIEW_POINTS) -> np.ndarray:
+    """The rows of ``total`` steps whose states the viewer draws: evenly spaced."""
+    return np.unique(np.linspace(0, total - 1, min(max_points, total)).round().astype(np.int64))
 
 
 def fit_view_readout(
@@ -147,7 +262,7 @@ def fit_view_readout(
     pose_frame: str = "map",
     max_points: int = VIEW_POINTS,
 ) -> ViewReadout:
-    """Fit the read-outs on tracked training states (module docstring).
+    """Fit the read-outs on tracked training states held in memory (module docstring).
 
     ``states[k]`` is the state after step k of a trajectory whose step k has action
     ``actions[k]`` and observation ``observations[k]``; steps of one ``segments`` value are
@@ -155,29 +270,8 @@ def fit_view_readout(
     action-blind read-out. ``positions`` ``(T, 2 | 4)`` (NaN where unknown) adds the pose.
     """
     states = np.asarray(states, dtype=np.float64)
-    t, r = states.shape
-    pairs = next_step_pairs(segments)
-    if len(pairs) < r + 2:
-        raise DataError(
-            f"{len(pairs)} consecutive step pairs cannot fit a read-out of a {r}-d state"
-        )
-    design = np.concatenate([states[pairs], np.ones((len(pairs), 1))], axis=1)
-    following = np.asarray(observations, dtype=np.float64)[pairs + 1]
-    next_actions = np.asarray(actions)[pairs + 1]
-    pooled = _ridge_solve(design, following)
-    image = np.repeat(pooled[None], n_actions + 1, axis=0)
-    for action in np.unique(next_actions):  # one solve per action, never per step
-        mask = next_actions == action
-        if 0 <= action < n_actions and mask.sum() >= r + 2:
-            image[action] = _ridge_solve(design[mask], following[mask])
-    pose = None
-    if positions is not None:
-        positions = np.asarray(positions, dtype=np.float64)
-        known = np.isfinite(positions).all(axis=1)
-        if known.sum() >= r + 2:
-            with_one = np.concatenate([states[known], np.ones((int(known.sum()), 1))], axis=1)
-            pose = _ridge_solve(with_one, positions[known])
-    center, axes = _principal_axes(states)
-    keep = np.unique(np.linspace(0, t - 1, min(max_points, t)).round().astype(np.int64))
-    points = (states[keep] - center) @ axes
-    return ViewReadout(image, pose, axes, center, points, pose_frame)
+    obs = np.asarray(observations, dtype=np.float64)
+    pose_dim = 0 if positions is None else int(np.asarray(positions).shape[1])
+    sums = ViewSums(n_actions, states.shape[1], obs.shape[1], pose_dim)
+    sums.add(states, actions, obs, segments, positions)
+    return sums.solve(states[point_rows(len(states), max_points)], pose_frame)

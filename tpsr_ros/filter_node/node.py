@@ -250,8 +250,8 @@ class FilterNode(Node):
             return None
         if self.inputs.model_file.view is None:
             self.logger.info(
-                f"{p.model} has no viewer read-outs (written by an older version or a streamed "
-                "fit): no view topics; refit it with `learner fit` to see them"
+                f"{self.inputs.model_file.path} has no viewer read-outs (written before them): "
+                "no view topics; refit it with `learner fit` to see them"
             )
             return None
         return view_messages(self.inputs.model_file, ViewSettings(trail=p.view_trail))
