@@ -4,8 +4,8 @@ defaults, PCA, the floors and the ceiling of the headline, on the headline's fre
 
 The preset was chosen on four runs of the selection seeds in ``partial-strip``; its rows here
 come from ten runs on the headline's seeds in every environment, seeds it was not chosen on.
-In ``partial-strip`` the baselines that carry the past (:mod:`tpsr_ros.core.window_baselines`)
-stand beside it, run on the same seeds.
+In every environment the baselines that carry the past
+(:mod:`tpsr_ros.core.window_baselines`) stand beside it, run on the same seeds.
 """
 
 from __future__ import annotations
@@ -43,8 +43,8 @@ def _jobs() -> tuple[Job, ...]:
     )
 
 
-BASELINE_ENVIRONMENTS = ("partial-strip",)
-"""Where the baselines that carry the past ran (one image does not tell where the robot is)."""
+BASELINE_ENVIRONMENTS = ENVIRONMENTS
+"""Where the baselines that carry the past ran: every environment."""
 
 
 def _baseline_jobs() -> tuple[Job, ...]:
@@ -162,7 +162,7 @@ PREDICTIVE_SECTION = Section(
     "spectral model is then refined through its own filter on predicting the next 10 "
     "images (`--preset predictive`; `tpsr_ros.core.refine`)? Chosen on four runs of the "
     "selection seeds in `partial-strip`; measured here on fresh seeds in every environment, "
-    "and in `partial-strip` beside two baselines that carry the past: PCA of the last image "
+    "beside two baselines that carry the past: PCA of the last image "
     "stacked with the action that led to it, and a finite-window predictive state (a ridge "
     "regression from the last image and action to the next 10 images, on its top 8 "
     "directions; `tpsr_ros/core/window_baselines.py`), each with k = 1, chosen on the "
