@@ -165,6 +165,43 @@ def test_the_filter_node_swaps_its_policy_at_runtime_only_for_one_that_fits(ros_
 
 
 @pytest.mark.slow
+def test_ros2_param_set_of_model_swaps_it_and_refuses_a_bad_one(ros_env, tmp_path):
+    """`ros2 param set /tpsr_filter model NEW` over real rclpy: a corrupt file is refused
+    with its reason and the old model runs on; a model of the same inputs is swapped in."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+    from test_filter_node import fit_small_model
+
+    from tpsr_ros.filter_node import FilterNode
+
+    first, second = fit_small_model(tmp_path), fit_small_model(tmp_path, seed=4)
+    corrupt = tmp_path / "corrupt.npz"
+    corrupt.write_bytes(b"not a model")
+    node = rclpy_node("f", FilterNode, "-p", f"model:={first}")
+    caller = rclpy_node("param_client")
+    try:
+        client = AsyncParameterClient(caller.transport.node, "/tpsr_filter")
+        assert spin_all((node, caller), client.services_are_ready)
+
+        def set_model(path) -> object:
+            future = client.set_parameters([Parameter("model", value=str(path))])
+            assert spin_all((node, caller), future.done)
+            (result,) = future.result().results
+            return result
+
+        running = node.inputs.fingerprint
+        refused = set_model(corrupt)
+        assert not refused.successful and "corrupt.npz" in refused.reason
+        assert node.inputs.fingerprint == running and node.refused_swaps == 1
+        assert set_model(second).successful
+        assert node.inputs.fingerprint != running and node.swaps == 1
+        assert node.params.model == str(second)
+    finally:
+        caller.close()
+        node.close()
+
+
+@pytest.mark.slow
 def test_why_the_dds_backend_serves_no_ros2_services_to_fast_dds_clients(mixed_pair):
     """A real rclpy (Fast DDS) service request reaches a plain Cyclone DDS reader of the
     service's request topic as the bare request: no correlation header in the payload, as
