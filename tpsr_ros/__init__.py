@@ -19,8 +19,9 @@ Names are imported on first use, so ``import tpsr_ros.core`` does not load the I
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from tpsr_ros.lazy import lazy_exports
 
 __version__ = "0.1.0"
 
@@ -108,14 +109,4 @@ if TYPE_CHECKING:
     from tpsr_ros.io.trajectory import iter_trajectory_chunks, read_trajectory
 
 
-def __getattr__(name: str) -> Any:
-    module = _API.get(name)
-    if module is None:
-        raise AttributeError(f"module 'tpsr_ros' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *__all__])
+__getattr__, __dir__ = lazy_exports(__name__, _API, __all__)

@@ -20,8 +20,9 @@ foxglove-sdk.
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from tpsr_ros.lazy import lazy_exports
 
 _API = {
     "ViewNode": "tpsr_ros.view.node",
@@ -39,14 +40,4 @@ if TYPE_CHECKING:
     from tpsr_ros.view.topics import MARKER_ARRAY_TYPE, VIEW_TOPICS
 
 
-def __getattr__(name: str) -> Any:
-    module = _API.get(name)
-    if module is None:
-        raise AttributeError(f"module 'tpsr_ros.view' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *__all__])
+__getattr__, __dir__ = lazy_exports(__name__, _API, __all__)
