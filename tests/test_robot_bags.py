@@ -22,7 +22,13 @@ from tpsr_ros.core.images import Preprocessing, preprocess_images
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr_episodes
 from tpsr_ros.io import messages as msgs
 from tpsr_ros.io.bag import BagReader, BagWriter
-from tpsr_ros.io.model_io import load_model, model_fingerprint, model_stream_spec, read_metadata
+from tpsr_ros.io.model_io import (
+    load_model,
+    model_fingerprint,
+    model_stream_spec,
+    open_model,
+    read_metadata,
+)
 from tpsr_ros.io.npz_archive import write_archive
 from tpsr_ros.io.streams import (
     FitOptions,
@@ -218,7 +224,9 @@ def test_a_model_whose_input_entry_is_wrong_is_refused(robot):
             "--actions", "25", "-o", str(model), *SMALL]
     assert main(argv) == 0
     metadata = read_metadata(model)
-    arrays = load_model(model).to_arrays()
+    opened = open_model(model)
+    assert opened.view is not None
+    arrays = {**opened.model.to_arrays(), **opened.view.to_arrays()}
     for change, reason in [
         ({"codebook": {**metadata["input"]["codebook"], "codes": [[1.0, 2.0]]}},
          "has 25 actions, but its codebook 1 codes"),
