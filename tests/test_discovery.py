@@ -142,7 +142,14 @@ def test_our_dds_nodes_across_processes_follow_the_range(ros_env, tmp_path, disc
     sim = start_sim(tmp_path, "dds")
     observer = Node(NodeOptions(name="observer"), transport=DdsTransport("observer", "/"))
     try:
-        topics, images = _observe(observer, 15 if found else 4)
+        if found:
+            topics, images = _observe(observer, 15)
+        else:  # once the simulator steps, 2 s in which nothing of it may arrive
+            deadline = time.monotonic() + 30
+            while "episode starts at" not in sim.text() and time.monotonic() < deadline:
+                observer.spin_once(0.05)
+            assert "episode starts at" in sim.text(), sim.text()
+            topics, images = _observe(observer, 2)
     finally:
         observer.close()
         assert sim.stop() == 0

@@ -128,14 +128,16 @@ def test_memory_steps_counts_from_the_first_identical_step():
 
 
 @pytest.mark.slow
-def test_memory_command(tmp_path):
+def test_memory_command(tmp_path, capsys):
+    from cli_support import run_entry
+
     from sim_node import SimConfig
     from sim_node.generate import generate_bag
 
     generate_bag(tmp_path / "train", SimConfig(environment="partial"), 3000, seed=2)
-    fit = [sys.executable, "-m", "learner", "fit", str(tmp_path / "train"), "-o",
-           str(tmp_path / "model.npz"), "--ht-centers", "200", "--obs-centers", "100"]
-    assert subprocess.run(fit, capture_output=True, timeout=120).returncode == 0
+    fit = ["fit", str(tmp_path / "train"), "-o", str(tmp_path / "model.npz"),
+           "--ht-centers", "200", "--obs-centers", "100"]
+    assert run_entry(fit, capsys)[0] == 0
     command = [sys.executable, "-m", "learner", "memory", str(tmp_path / "model.npz"),
                "--spread-steps", "500", "-o", str(tmp_path / "out")]
     result = subprocess.run(command, capture_output=True, text=True, timeout=120)
@@ -145,7 +147,7 @@ def test_memory_command(tmp_path):
     assert any(line.startswith("paths: memory") for line in lines)
     assert any(line.startswith("stand-still: memory") for line in lines)
     assert (tmp_path / "out" / "memory.png").stat().st_size > 20_000
-    bad = subprocess.run([*command[:5], "--environment", "full", "-o", str(tmp_path / "o2")],
-                         capture_output=True, text=True, timeout=120)
-    assert bad.returncode != 0 and bad.stderr.count("\n") == 1
-    assert "confuses positions" in bad.stderr
+    code, _, err = run_entry([*command[3:5], "--environment", "full", "-o", str(tmp_path / "o2")],
+                             capsys)
+    assert code != 0 and err.count("\n") == 1
+    assert "confuses positions" in err

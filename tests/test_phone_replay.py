@@ -1,7 +1,8 @@
 """A phone-like robot's bag (a jittery ~14 Hz JPEG camera, unstamped commands logged at the
 frame stamps) fits with only its topics and a step period, and its replay through the
 filter node gives exactly `learner track`'s states, first step included, on both backends
-at 0.5, 1 and 4 times its speed, with no image counted lost."""
+at half and four times its speed (slower and faster than recorded), with no image counted
+lost."""
 
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ def test_a_replay_at_any_rate_gives_learner_tracks_states(phone, backend, tmp_pa
     monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
     monkeypatch.setenv("TPSR_TRANSPORT", backend)
     expected = phone["expected"]
-    for rate in ("0.5", "1", "4"):
+    for rate in ("0.5", "4"):  # either side of real time
         states, log = replay_states(
             phone["model"], phone["bag"], [COMPRESSED_TOPIC, "/cmd_vel"], rate, len(expected),
             tmp_path / rate,
