@@ -134,12 +134,14 @@ def run_protocol(
     (:mod:`learner.floors`) for state-blind controllers. ``environment`` is a name (the
     default camera) or the simulator's whole configuration. ``execute`` maps the
     controller's action to the simulator's (a robot model's code to the action its command
-    snaps to); the tracker is updated with the controller's own action.
+    snaps to); the tracker is updated with the controller's own action. A tracker whose
+    ``sees_images`` is False (the floors, the true position) gets no camera images: the
+    simulator skips rendering them.
     """
     config = (
         environment if isinstance(environment, SimConfig) else SimConfig(environment=environment)
     )
-    env = RobotEnv(config, seed=seed)
+    env = RobotEnv(config, seed=seed, render=getattr(tracker, "sees_images", True))
     env.reset()  # the start-up reset of a freshly started sim_node
     trials = []
     for index, start in enumerate(starts):

@@ -51,6 +51,7 @@ class BlindTracker:
 
     representation: str = "none"
     fingerprint: str = "none"
+    sees_images: bool = False
 
     def start(self, image: np.ndarray, position: np.ndarray) -> np.ndarray:
         """The empty state."""

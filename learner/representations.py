@@ -86,6 +86,7 @@ class TruePositionTracker:
 
     representation: str = TRUE_POSITION
     fingerprint: str = TRUE_POSITION
+    sees_images: bool = False
 
     def start(self, image: np.ndarray, position: np.ndarray) -> np.ndarray:
         """The true start pose."""

@@ -102,11 +102,18 @@ def step_reward(config: SimConfig, position: np.ndarray, contact: np.ndarray) ->
     return reward.astype(np.float64), goal
 
 
+_NO_IMAGE = np.zeros((0, 0, 3), dtype=np.uint8)
+"""The observation of an environment that does not render."""
+
+
 class RobotEnv:
     """Mobile robot in the guide's room; observations are ``(16, 16, 3)`` uint8 images."""
 
-    def __init__(self, config: SimConfig | None = None, seed: int = 0) -> None:
+    def __init__(self, config: SimConfig | None = None, seed: int = 0, render: bool = True) -> None:
+        """``render`` False: observations are empty (for controllers that never look; the
+        dynamics, rewards and random streams are the same, as rendering draws nothing)."""
         self.config = config or SimConfig()
+        self._render = render
         self.camera = Camera(self.config)
         self._world = RoomWorld(
             self.config.room_size, self.config.robot_radius, self.config.physics_substeps
@@ -227,6 +234,8 @@ class RobotEnv:
         return self._observe(), float(reward), False, False, info
 
     def _observe(self) -> np.ndarray:
+        if not self._render:
+            return _NO_IMAGE
         if self.config.drives:
             return self.camera.render(self.position[None], headings=np.array([self.heading]))[0]
         if self._distractors is None:

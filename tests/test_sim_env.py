@@ -198,3 +198,20 @@ def test_bad_configuration_and_calls_are_refused():
         random_rollout(SimConfig(), 0, seed=0)
     with pytest.raises(ConfigError, match="seed"):
         RobotEnv(SimConfig(), seed=-1)
+
+
+@pytest.mark.parametrize("environment", ["distractors", "drive"])
+def test_an_environment_that_does_not_render_moves_and_rewards_the_same(environment):
+    """Controllers that never look (the floors, the true position) skip the camera: the
+    poses, rewards and random streams are those of the rendering simulator."""
+    config = SimConfig(environment=environment)
+    seen, blind = RobotEnv(config, seed=5), RobotEnv(config, seed=5, render=False)
+    for env in (seen, blind):
+        env.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(60):
+        action = int(rng.integers(seen.num_actions))
+        image, reward, _, _, info = seen.step(action)
+        empty, reward_blind, _, _, info_blind = blind.step(action)
+        assert reward == reward_blind and np.array_equal(info["pose"], info_blind["pose"])
+        assert image.size > 0 and empty.size == 0
