@@ -128,6 +128,8 @@ def test_the_view_relays_the_published_bytes_to_a_foxglove_client(capsys):
     view = ViewNode(NodeOptions.for_node(ViewNode, port=0), transport=InprocTransport("/v", bus))
     talker = Node(NodeOptions(name="talker"), transport=InprocTransport("/talker", bus))
     try:
+        assert capsys.readouterr().out == ""  # the address comes once the node spins
+        view.spin_once(0.05)
         url = capsys.readouterr().out.strip()
         assert url == f"ws://127.0.0.1:{view.server.port}" and view.server.port > 0
         state_pub = talker.create_publisher("/tpsr/state", m.STATE_TYPE)

@@ -111,7 +111,8 @@ class ViewNode(Node):
             self._relay = {t: self.server.channel(t, msgtype) for t, msgtype in self.topics.items()}
             relayed = ", ".join(f"{topic} ({t})" for topic, t in self.topics.items())
             self.logger.info(f"serving {self.server.url}; relaying {relayed}")
-            print(self.server.url, flush=True)
+            # announced once spinning: a client may then stop the node with SIGINT at once
+            self._announce = self.create_timer(0.001, self._print_address)
             self.discover()
             self.create_timer(DISCOVERY_PERIOD_S, self.discover)
         except BaseException:
@@ -135,6 +136,11 @@ class ViewNode(Node):
             self._qos[relay.topic] = relay.qos
             again = "re" if old is not None else ""
             self.logger.info(f"{again}subscribed to {relay.topic} ({relay.msgtype}; {relay.qos})")
+
+    def _print_address(self) -> None:
+        """Print the address (the one line on stdout) from the first spin, signals handled."""
+        self._announce.cancel()
+        print(self.server.url, flush=True)
 
     def on_shutdown(self) -> None:
         """Stop the server (clients see the connection close)."""
