@@ -21,10 +21,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(PY) -m learner.demo
 
-# the whole suite, one worker per core (pytest-xdist); tests/conftest.py pins BLAS to one
-# thread per worker
+# the whole suite in parallel (pytest-xdist): one worker per core and one more, since most
+# slow tests wait on node processes, discovery and real-time replays; idle workers steal
+# queued tests; tests/conftest.py pins BLAS to one thread per worker
+WORKERS ?= $(shell $(PYTHON) -c "import os; print((os.cpu_count() or 1) + 1)")
 test: $(STAMP)
-	$(PY) -m pytest -q -n auto
+	$(PY) -m pytest -q -n $(WORKERS) --dist worksteal
 
 # the fast tier while working: every test not marked slow
 check: $(STAMP)
