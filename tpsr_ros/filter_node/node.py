@@ -95,13 +95,13 @@ PROG = "python -m tpsr_ros.filter_node"
 WARN_PERIOD_S = 5.0
 """At most one warning per topic and kind (rejection, drop, duplicate...) in this many seconds."""
 SETTLE_S = 0.25
+"""Once the command's subscribers are matched, time for their side of discovery to finish."""
 MARKERS_QOS = QoSProfile(
     Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, History.KEEP_LAST, DEFAULT_QOS.depth
 )
 """tpsr/state_markers: a viewer that joins late gets the last markers (the trail)."""
 IMAGE_ERROR_STEPS = 100
 """Steps over which ``/diagnostics`` averages the predicted image's error."""
-"""Once the command's subscribers are matched, time for their side of discovery to finish."""
 
 
 def load_inputs(
@@ -795,6 +795,8 @@ class FilterNode(Node):
             self.policy = inputs.policy
             if update.policy is not None:
                 self.policy_name = update.policy
+        elif update.policy is not None:
+            note = f"a pure filter has no {CMD_VEL_TOPIC} publisher: policy {update.policy} unused"
         self._state_cdr = m.StateEncoder(self.model.state_dim)
         self.viewer = self._viewer()
         self._view_publishers()
