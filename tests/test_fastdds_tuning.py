@@ -108,3 +108,17 @@ def test_a_node_gets_the_larger_segment_unless_the_user_configured_fast_dds(user
         assert max(sizes) < 1024 * 1024  # Fast DDS's own 512 KiB (plus its bookkeeping)
     else:
         assert SHM_SEGMENT_BYTES <= max(sizes) < 2 * SHM_SEGMENT_BYTES
+
+
+def test_the_profile_announces_participants_every_half_second():
+    """A node started after another is discovered at the older one's next announcement."""
+    import xml.etree.ElementTree as ET
+
+    from tpsr_ros.runtime.fastdds_tuning import ANNOUNCEMENT_S, profile_xml
+
+    ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+    root = ET.fromstring(profile_xml())
+    lease = root.find("f:participant/f:rtps/f:builtin/f:discovery_config/f:leaseAnnouncement", ns)
+    assert lease is not None
+    seconds = int(lease.find("f:sec", ns).text) + int(lease.find("f:nanosec", ns).text) / 1e9
+    assert seconds == ANNOUNCEMENT_S == 0.5
