@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from tpsr_ros.core.episodes import Trajectory, track_trajectory
+from tpsr_ros.core.state_model import Track
 from tpsr_ros.core.tpsr import TPSRModel
 
 __all__ = [
@@ -131,9 +132,11 @@ def recorded_seconds(trajectory: Trajectory) -> float:
     return sum(spans) * 1e-9
 
 
-def assess(model: TPSRModel, trajectory: Trajectory) -> Adequacy:
-    """Track ``trajectory`` (the training data) with ``model`` and gather the figures."""
-    tracked = track_trajectory(model, trajectory)
+def assess(model: TPSRModel, trajectory: Trajectory, tracked: Track | None = None) -> Adequacy:
+    """Gather the figures of ``trajectory`` (the training data) tracked with ``model``
+    (``tracked``: those states when already tracked)."""
+    if tracked is None:
+        tracked = track_trajectory(model, trajectory)
     return Adequacy(
         training_episodes=int(model.fit_info.get("training_episodes", 0)),
         n_actions=int(model.n_actions),

@@ -52,7 +52,7 @@ from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.core.presets import Preset, departures
 from tpsr_ros.core.sizing import Sizing, describe_sizing
-from tpsr_ros.core.state_model import StateModel
+from tpsr_ros.core.state_model import StateModel, Track
 from tpsr_ros.core.streamed_fit import fit_pca_streamed, fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel
 from tpsr_ros.core.view_readout import ViewReadout, ViewSums, fit_view_readout, point_rows
@@ -264,9 +264,10 @@ def run(args: argparse.Namespace) -> int:
         "reading_seconds": round(timings["reading bags"], 6),
         "fit_seconds": round(timings["fit"], 6),
     }
+    tracked = track_trajectory(model, trajectory)  # once: the adequacy figures, the view
     if isinstance(model, TPSRModel):  # enough data? episodes per action, recovery rate
-        training["adequacy"] = _say_adequacy(assess(model, trajectory))
-    view = _view_readout(model, trajectory, _decoded_pose_frame(args, topics))
+        training["adequacy"] = _say_adequacy(assess(model, trajectory, tracked))
+    view = _view_readout(tracked, trajectory, _decoded_pose_frame(args, topics))
     _write(model, output, training, spec, timings, preset=record, view=view, force=args.force)
     return 0
 
@@ -279,9 +280,8 @@ def _decoded_pose_frame(args: argparse.Namespace, topics: Topics) -> str:
     return pose_frame_id(args.bags[0], topics.pose, child) or "map"
 
 
-def _view_readout(model: StateModel, trajectory: Trajectory, pose_frame: str) -> ViewReadout:
+def _view_readout(tracked: Track, trajectory: Trajectory, pose_frame: str) -> ViewReadout:
     """The viewer's read-outs (next image, pose, state map) on the training states."""
-    tracked = track_trajectory(model, trajectory)
     positions = trajectory.positions
     view = fit_view_readout(
         tracked.states,

@@ -295,14 +295,13 @@ def write_view_bag(
     if copied[0] not in types:
         raise ConfigError(f"the bags have no messages on the camera topic {copied[0]}")
     present = list(types)
-    viewer = view_messages(model_file)
-    assert viewer is not None
+    assert model_file.view is not None
     types |= {
         "/tpsr/state": m.STATE_TYPE,
         "/" + STATE_MARKERS_TOPIC: MARKERS_TYPE,
         "/" + PREDICTED_IMAGE_TOPIC: m.IMAGE_TYPE,
     }
-    if viewer.view.pose is not None:
+    if model_file.view.pose is not None:
         types["/" + DECODED_POSE_TOPIC] = m.POSE_TYPE
     records = heapq.merge(
         _copied_records(bags, present),

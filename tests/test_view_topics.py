@@ -269,3 +269,22 @@ def test_a_streamed_fit_has_the_in_memory_read_outs(small, tmp_path):  # noqa: F
     for name, array in memory.to_arrays().items():
         other = chunked.to_arrays()[name]
         np.testing.assert_allclose(other, array, rtol=1e-6, atol=1e-9 * np.abs(array).max())
+
+
+def test_sums_of_two_halves_merged_give_the_whole_ones():
+    from tpsr_ros.core.view_readout import ViewSums
+
+    states, acts, obs, positions, *_ = _linear_system(steps=600)
+    segments = np.repeat([0, 1], 300)
+    whole = ViewSums(3, states.shape[1], obs.shape[1], 2)
+    whole.add(states, acts, obs, segments, positions)
+    first, second = (ViewSums(3, states.shape[1], obs.shape[1], 2) for _ in range(2))
+    first.add(states[:250], acts[:250], obs[:250], segments[:250], positions[:250])
+    second.add(states[250:], acts[250:], obs[250:], segments[250:], positions[250:],
+               before=(states[249], int(segments[249])))  # fmt: skip
+    merged = first.merge(second)
+    np.testing.assert_array_equal(merged.image_pairs, whole.image_pairs)
+    for name in ("image_gram", "image_cross", "pose_gram", "pose_cross", "state_outer"):
+        np.testing.assert_allclose(getattr(merged, name), getattr(whole, name), rtol=1e-12)
+    points = states[:10]
+    np.testing.assert_allclose(merged.solve(points).image, whole.solve(points).image, rtol=1e-9)

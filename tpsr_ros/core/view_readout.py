@@ -36,9 +36,9 @@ __all__ = [
 VIEW_POINTS = 1000
 """Training states kept for the viewer's point cloud (evenly spaced over the data)."""
 RIDGE = 1e-6
+"""Ridge of every read-out, relative to the mean diagonal of its Gram matrix."""
 FLAT = 1e-6
 """A state direction whose spread is below this fraction of the largest is drawn flat."""
-"""Ridge of every read-out, relative to the mean diagonal of its Gram matrix."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -188,9 +188,10 @@ class ViewSums:
             next_actions = np.concatenate([np.asarray(actions[:1], dtype=np.int64), next_actions])
         for action in np.unique(next_actions):  # one product per action, never per step
             rows = next_actions == action
-            self.image_gram[action] += design[rows].T @ design[rows]
-            self.image_cross[action] += design[rows].T @ following[rows]
-            self.image_pairs[action] += int(rows.sum())
+            chosen = design[rows]
+            self.image_gram[action] += chosen.T @ chosen
+            self.image_cross[action] += chosen.T @ following[rows]
+            self.image_pairs[action] += chosen.shape[0]
         if positions is not None and self.pose_dim:
             known = np.isfinite(positions).all(axis=1)
             with_one = _with_one(states[known])
