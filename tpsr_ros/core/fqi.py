@@ -193,7 +193,7 @@ class QFunction:
         states = np.atleast_2d(states)
         if not np.isfinite(states).all():
             raise DataError("greedy policy called with a non-finite state")
-        return np.argmax(self.features(states) @ self.weights, axis=1)
+        return np.argmax(self.values(states), axis=1)
 
 
 def _to_units(

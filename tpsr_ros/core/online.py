@@ -119,17 +119,16 @@ def track_with_swap(
     its last ``replay_steps`` steps (0: from ``b_*``): what the filter node publishes when
     the swap comes between those two steps (the offline reference of a live swap)."""
     tracker = OnlineTracker(first, step_ns)
-    recent: deque[Step] = deque(maxlen=max(replay_steps, 1))
+    recent: deque[Step] = deque(maxlen=max(replay_steps, 0))  # 0 keeps nothing: b_*
     states, normalizers, recovered = [], [], []
     swapped = False
     for stamp, action, observation in steps:
         if not swapped and stamp >= swap_at_ns:
-            tracker.swap(second, list(recent) if replay_steps > 0 else [])
+            tracker.swap(second, list(recent))
             swapped = True
         info = tracker.step(stamp, action, observation)
         states.append(info.state)
         normalizers.append(info.normalizer)
         recovered.append(info.recovered)
-        if replay_steps > 0:
-            recent.append((stamp, action, observation))
+        recent.append((stamp, action, observation))
     return Track(np.array(states), np.array(normalizers), np.array(recovered, dtype=bool))

@@ -300,7 +300,10 @@ class RefineProblem:
         return np.column_stack([states, np.ones(states.shape[0])])
 
     def _readout(self, states: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        x = self._design(states)
+        return self._solve(self._design(states), targets)
+
+    def _solve(self, x: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """The ridge read-out of the design ``x`` (``[states, 1]``)."""
         gram = x.T @ x
         gram[np.diag_indices(x.shape[1] - 1)] += self.ridge * x.shape[0]
         return np.linalg.solve(gram, x.T @ targets)
@@ -332,7 +335,7 @@ class RefineProblem:
             return float("inf"), np.zeros_like(theta)
         squashed, slope = self._squash(scored)
         x = self._design(squashed)
-        readout = self._readout(squashed, y)  # at its optimum: only the states carry gradient
+        readout = self._solve(x, y)  # at its optimum: only the states carry gradient
         resid = y - x @ readout
         loss = (
             float(np.sum(resid**2)) + self.ridge * x.shape[0] * float(np.sum(readout[:r] ** 2))

@@ -23,6 +23,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tpsr_ros.core.errors import DataError, ModelFormatError
+from tpsr_ros.core.moments import Moments
+from tpsr_ros.core.tpsr_stages import action_sums
+from tpsr_ros.core.whitening import covariance_eigenpairs, flip_signs
 
 __all__ = [
     "VIEW_POINTS",
@@ -154,16 +157,14 @@ class ViewSums:
     image_pairs: np.ndarray = field(init=False)
     pose_gram: np.ndarray = field(init=False)
     pose_cross: np.ndarray = field(init=False)
-    state_sum: np.ndarray = field(init=False)
-    state_outer: np.ndarray = field(init=False)
-    states: int = 0
+    states: Moments = field(init=False)
 
     def __post_init__(self) -> None:
         a, d, k = self.n_actions, self.state_dim + 1, self.obs_size
         self.image_gram, self.image_cross = np.zeros((a, d, d)), np.zeros((a, d, k))
         self.image_pairs = np.zeros(a, dtype=np.int64)
         self.pose_gram, self.pose_cross = np.zeros((d, d)), np.zeros((d, max(self.pose_dim, 1)))
-        self.state_sum, self.state_outer = np.zeros(d - 1), np.zeros((d - 1, d - 1))
+        self.states = Moments.empty(d - 1)
 
     def add(
         self,
@@ -186,28 +187,23 @@ class ViewSums:
             following = np.concatenate([np.asarray(observations[:1], dtype=np.float64),
                                         following])  # fmt: skip
             next_actions = np.concatenate([np.asarray(actions[:1], dtype=np.int64), next_actions])
-        for action in np.unique(next_actions):  # one product per action, never per step
-            rows = next_actions == action
-            chosen = design[rows]
-            self.image_gram[action] += chosen.T @ chosen
-            self.image_cross[action] += chosen.T @ following[rows]
-            self.image_pairs[action] += chosen.shape[0]
+        counts = np.bincount(next_actions, minlength=self.n_actions)
+        self.image_gram += action_sums(design, design, next_actions, counts)
+        self.image_cross += action_sums(design, following, next_actions, counts)
+        self.image_pairs += counts
         if positions is not None and self.pose_dim:
             known = np.isfinite(positions).all(axis=1)
             with_one = _with_one(states[known])
             self.pose_gram += with_one.T @ with_one
             self.pose_cross += with_one.T @ np.asarray(positions, dtype=np.float64)[known]
-        self.state_sum += states.sum(axis=0)
-        self.state_outer += states.T @ states
-        self.states += states.shape[0]
+        self.states = self.states.merge(Moments.of(states))
 
     def merge(self, other: ViewSums) -> ViewSums:
         """The sums of both (the order of chunks never matters)."""
         merged = ViewSums(self.n_actions, self.state_dim, self.obs_size, self.pose_dim)
-        for name in ("image_gram", "image_cross", "image_pairs", "pose_gram", "pose_cross",
-                     "state_sum", "state_outer"):  # fmt: skip
+        for name in ("image_gram", "image_cross", "image_pairs", "pose_gram", "pose_cross"):
             setattr(merged, name, getattr(self, name) + getattr(other, name))
-        merged.states = self.states + other.states
+        merged.states = self.states.merge(other.states)
         return merged
 
     def solve(self, points: np.ndarray, pose_frame: str = "map") -> ViewReadout:
@@ -229,22 +225,20 @@ class ViewSums:
         return ViewReadout(image, pose, axes, center, (points - center) @ axes, pose_frame)
 
     def _principal_axes(self) -> tuple[np.ndarray, np.ndarray]:
-        """Mean and the three leading directions of the states scaled to unit spread (each
-        pointing where its largest component is positive; missing ones, and flat ones, of
-        less than :data:`FLAT` of the largest spread, zero: rounding, not structure)."""
-        n = max(self.states, 1)
-        center = self.state_sum / n
-        cov = (self.state_outer - n * np.outer(center, center)) / max(n - 1, 1)
-        values, vectors = np.linalg.eigh((cov + cov.T) / 2)
-        order = np.argsort(values)[::-1][:3]
-        spread = np.sqrt(np.maximum(values[order], 0.0))
-        axes = np.zeros((self.state_dim, 3))
-        tiny = FLAT * (float(spread[0]) if len(spread) else 0.0)
-        for i, (column, width) in enumerate(zip(order, spread, strict=True)):
-            if width > tiny and width > 0:
-                vector = vectors[:, column]
-                axes[:, i] = np.sign(vector[np.argmax(np.abs(vector))]) * vector / width
-        return center, axes
+        """Mean and the three leading directions of the states scaled to unit spread (signs
+        as :func:`~tpsr_ros.core.whitening.flip_signs` sets them; missing ones, and flat
+        ones, of less than :data:`FLAT` of the largest spread, zero: rounding, not
+        structure)."""
+        moments, r = self.states, self.state_dim
+        cov = moments.scatter / max(moments.count - 1, 1)
+        keep = min(3, r)
+        values, vectors, _ = covariance_eigenpairs(cov, keep)
+        (vectors,) = flip_signs(vectors[:, ::-1])  # largest first
+        spread = np.sqrt(np.maximum(values[::-1], 0.0))
+        flat = spread <= FLAT * spread[0]
+        axes = np.zeros((r, 3))
+        axes[:, :keep] = np.where(flat, 0.0, vectors / np.where(flat, 1.0, spread))
+        return moments.mean, axes
 
 
 def point_rows(total: int, max_points: int = VIEW_POINTS) -> np.ndarray:

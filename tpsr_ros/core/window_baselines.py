@@ -59,6 +59,7 @@ import numpy as np
 
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.fields import option
+from tpsr_ros.core.refine import TARGET_COMPONENTS
 from tpsr_ros.core.state_model import Track, UpdateInfo, check_actions, check_observations
 from tpsr_ros.core.whitening import Whitening, flip_signs
 
@@ -81,8 +82,6 @@ ACTION_FEATURES = ("code", "one-hot")
 FUTURE_STEPS = 10
 """Future images the ``window`` regression predicts (as the predictive planner scaling)."""
 
-TARGET_COMPONENTS = 10
-"""Principal components of each future image the ``window`` regression predicts."""
 
 
 def _positive_int(value: Any, what: str) -> None:
