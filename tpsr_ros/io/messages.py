@@ -43,10 +43,12 @@ __all__ = [
     "STATE_TYPE",
     "TWIST_TYPE",
     "RewardSample",
+    "StampedTemplate",
     "StateEncoder",
     "clock_msg",
     "deserialize",
     "header_stamp_ns",
+    "heading_quaternion",
     "image_msg",
     "image_problem",
     "image_to_array",
@@ -297,17 +299,21 @@ def twist_from_components(values: dict[str, float]) -> Any:
     )
 
 
+def heading_quaternion(heading: float | None) -> tuple[float, float]:
+    """``(z, w)`` of the rotation by ``heading`` rad about z (None: the identity)."""
+    half = 0.0 if heading is None else 0.5 * float(heading)
+    return float(np.sin(half)), float(np.cos(half))
+
+
 def pose_msg(
     stamp_ns: int, x: float, y: float, frame_id: str = "map", heading: float | None = None
 ) -> Any:
     """Ground-truth planar position as ``geometry_msgs/msg/PoseStamped``: the identity
     orientation (the planar robot's heading never changes), or ``heading`` (rad about z)."""
-    half = 0.0 if heading is None else 0.5 * float(heading)
+    z, w = heading_quaternion(heading)
     pose = _t("geometry_msgs/msg/Pose")(
         position=_t("geometry_msgs/msg/Point")(x=float(x), y=float(y), z=0.0),
-        orientation=_t("geometry_msgs/msg/Quaternion")(
-            x=0.0, y=0.0, z=float(np.sin(half)), w=float(np.cos(half))
-        ),
+        orientation=_t("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=z, w=w),
     )
     return _t(POSE_TYPE)(header=_header(stamp_ns, frame_id), pose=pose)
 
@@ -358,6 +364,28 @@ def state_msg(stamp_ns: int, state: np.ndarray, frame_id: str = "tpsr") -> Any:
     return _named_vector(stamp_ns, list(_state_names(state.size)), state, frame_id)
 
 
+class StampedTemplate:
+    """CDR of one stamped message type (a ``std_msgs/Header`` first) of which only the stamp
+    and a block of ``size`` bytes ending ``suffix`` bytes before the end change: a template's
+    bytes with those written in, byte for byte what :func:`serialize` gives for a layout
+    the user has checked (every encoder here checks a probe message when it is built)."""
+
+    def __init__(self, template: bytes, size: int, suffix: int = 0) -> None:
+        end = len(template) - suffix
+        self.size = int(size)
+        self.order = "<" if template[1] == 1 else ">"
+        self._head, self._tail = template[:4], template[end:]
+        self._middle = template[12 : end - size]
+        self._stamp = struct.Struct(self.order + "iI").pack
+
+    def __call__(self, stamp_ns: int, block: bytes) -> bytes:
+        """The message stamped ``stamp_ns`` holding ``block``."""
+        if len(block) != self.size:
+            raise MessageError(f"{len(block)} bytes for a block of {self.size}")
+        stamp = self._stamp(*split_stamp(stamp_ns))
+        return b"".join((self._head, stamp, self._middle, block, self._tail))
+
+
 class StateEncoder:
     """CDR of :func:`state_msg` messages of one state size and frame, byte for byte what
     :func:`serialize` gives, without building a message: the stamp and the values written
@@ -369,11 +397,8 @@ class StateEncoder:
         template = serialize(state_msg(0, np.zeros(self.size), frame_id), STATE_TYPE)
         # position's float64 values end the message but for the counts of the empty
         # velocity and effort sequences (a uint32 each)
-        values = len(template) - 8 - 8 * self.size
-        order = "<" if template[1] == 1 else ">"
-        self._head, self._middle, self._tail = template[:4], template[12:values], template[-8:]
-        self._stamp = struct.Struct(order + "iI").pack
-        self._dtype = np.dtype(order + "f8")
+        self._template = StampedTemplate(template, 8 * self.size, suffix=8)
+        self._dtype = np.dtype(self._template.order + "f8")
         stamp, probe = 1_500_000_002, np.arange(1.0, self.size + 1.0)
         if self(stamp, probe) != serialize(state_msg(stamp, probe, frame_id), STATE_TYPE):
             raise MessageError("the state message layout is not the one StateEncoder writes")
@@ -383,8 +408,7 @@ class StateEncoder:
         values = np.asarray(state, dtype=self._dtype).reshape(-1)
         if values.size != self.size:
             raise MessageError(f"a state of {values.size} values is not one of {self.size}")
-        stamp = self._stamp(*split_stamp(stamp_ns))
-        return b"".join((self._head, stamp, self._middle, values.tobytes(), self._tail))
+        return self._template(stamp_ns, values.tobytes())
 
 
 def state_to_array(msg: Any) -> np.ndarray:

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tpsr_ros.core.actions import environment_grid
+from tpsr_ros.core.errors import MessageError
 from tpsr_ros.core.view_readout import ViewReadout
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.filter_inputs import model_image_shape
@@ -89,42 +90,29 @@ class ViewStep:
     """Pixel RMS error of the previous step's predicted image against this step's image."""
 
 
-class _TailEncoder:
-    """CDR of one stamped message type whose last field alone changes (with the stamp): a
-    template's bytes with the stamp and the final ``tail`` bytes replaced. Checked against
-    the generic serialiser at construction, like
-    :class:`~tpsr_ros.io.messages.StateEncoder`."""
-
-    def __init__(self, template: bytes, tail: int, probe: tuple[int, bytes, bytes]) -> None:
-        self._head, self._tail = template[:4], tail
-        self._middle = template[12 : len(template) - tail]
-        stamp, values, expected = probe
-        if self(stamp, values) != expected:
-            raise ValueError("the message layout is not the one the view's encoder writes")
-
-    def __call__(self, stamp_ns: int, tail: bytes) -> bytes:
-        if len(tail) != self._tail:
-            raise ValueError(f"{len(tail)} bytes for a tail of {self._tail}")
-        stamp = struct.pack("<iI", *m.split_stamp(stamp_ns))
-        return b"".join((self._head, stamp, self._middle, tail))
+def _checked(template: bytes, size: int, stamp_ns: int, expected: bytes) -> m.StampedTemplate:
+    """The template encoder of a message whose last ``size`` bytes change, checked to give
+    ``expected`` (the generic serialiser's bytes of a probe stamped ``stamp_ns``)."""
+    encoder = m.StampedTemplate(template, size)
+    if encoder(stamp_ns, expected[-size:]) != expected:
+        raise MessageError("the message layout is not the one the view's encoder writes")
+    return encoder
 
 
-def _image_encoder(shape: tuple[int, int, int], frame_id: str) -> _TailEncoder:
+def _image_encoder(shape: tuple[int, int, int], frame_id: str) -> m.StampedTemplate:
     """rgb8 images of ``shape``: the pixels end the message."""
     zeros = np.zeros(shape, dtype=np.uint8)
     probe = np.arange(zeros.size, dtype=np.uint8).reshape(shape)
     expected = m.serialize(m.image_msg(1_500_000_002, probe, frame_id), m.IMAGE_TYPE)
     template = m.serialize(m.image_msg(0, zeros, frame_id), m.IMAGE_TYPE)
-    return _TailEncoder(template, zeros.size, (1_500_000_002, probe.tobytes(), expected))
+    return _checked(template, zeros.size, 1_500_000_002, expected)
 
 
-def _pose_encoder(frame_id: str) -> _TailEncoder:
+def _pose_encoder(frame_id: str) -> m.StampedTemplate:
     """Poses in ``frame_id``: position and orientation, 7 float64, end the message."""
-    pose = m.pose_msg(1_500_000_002, 1.5, -2.5, frame_id, 0.3)
-    expected = m.serialize(pose, m.POSE_TYPE)
-    values = expected[-56:]
-    return _TailEncoder(m.serialize(m.pose_msg(0, 0, 0, frame_id), m.POSE_TYPE), 56,
-                        (1_500_000_002, values, expected))  # fmt: skip
+    expected = m.serialize(m.pose_msg(1_500_000_002, 1.5, -2.5, frame_id, 0.3), m.POSE_TYPE)
+    template = m.serialize(m.pose_msg(0, 0, 0, frame_id), m.POSE_TYPE)
+    return _checked(template, 56, 1_500_000_002, expected)
 
 
 def _directions(commands: np.ndarray | None, n_actions: int) -> np.ndarray:
@@ -239,10 +227,11 @@ class ViewMessages:
         pose = self.view.decoded_pose(state)
         if pose is None or self._pose_cdr is None:
             return None
-        half = 0.0
+        heading = None
         if pose.shape[0] == 4:  # cos, sin of the heading: its angle, whatever their norm
-            half = 0.5 * math.atan2(float(pose[3]), float(pose[2]))
-        values = (float(pose[0]), float(pose[1]), 0.0, 0.0, 0.0, np.sin(half), np.cos(half))
+            heading = math.atan2(float(pose[3]), float(pose[2]))
+        z, w = m.heading_quaternion(heading)
+        values = (float(pose[0]), float(pose[1]), 0.0, 0.0, 0.0, z, w)
         return self._pose_cdr(stamp_ns, struct.pack("<7d", *values))
 
 
