@@ -11,7 +11,11 @@ import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["option"]
+import numpy as np
+
+from tpsr_ros.core.errors import ConfigError
+
+__all__ = ["check_positive_int", "config_dict", "config_from_dict", "option"]
 
 
 def option(
@@ -43,3 +47,24 @@ def option(
     if isinstance(default, list):
         default = tuple(default)
     return dataclasses.field(default=default, metadata=metadata)
+
+
+def check_positive_int(value: Any, what: str) -> None:
+    """Refuse anything but a positive integer (a bool is not one), naming ``what``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ConfigError(f"{what} must be a positive integer, not {value!r}")
+
+
+def config_dict(config: Any) -> dict[str, Any]:
+    """A frozen configuration dataclass's parameters as a JSON-serialisable dict."""
+    return {
+        k: (v.item() if isinstance(v, np.generic) else v)
+        for k, v in dataclasses.asdict(config).items()
+    }
+
+
+def config_from_dict(cls: Any, values: dict[str, Any], what: str) -> Any:
+    """``cls(**values)``; names ``cls`` does not have are refused, naming ``what``."""
+    if unknown := sorted(set(values) - {f.name for f in dataclasses.fields(cls)}):
+        raise ConfigError(f"unknown {what} parameters {unknown}")
+    return cls(**values)

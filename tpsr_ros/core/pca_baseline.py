@@ -11,13 +11,13 @@ evaluation, plots and the filter node treat it like a TPSR.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
 
-from tpsr_ros.core.errors import ConfigError, DataError
-from tpsr_ros.core.fields import option
+from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.fields import check_positive_int, config_dict, config_from_dict, option
 from tpsr_ros.core.state_model import Track, UpdateInfo, check_actions, check_observations
 from tpsr_ros.core.whitening import Whitening
 
@@ -33,23 +33,16 @@ class PCAConfig:
     )
 
     def __post_init__(self) -> None:
-        if (
-            isinstance(self.dim, bool)
-            or not isinstance(self.dim, (int, np.integer))
-            or self.dim < 1
-        ):
-            raise ConfigError(f"PCA dim must be a positive integer, not {self.dim!r}")
+        check_positive_int(self.dim, "PCA dim")
 
     def to_dict(self) -> dict[str, Any]:
         """Parameters as a JSON-serialisable dict."""
-        return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in asdict(self).items()}
+        return config_dict(self)
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> PCAConfig:
         """Inverse of :meth:`to_dict`; unknown names are refused."""
-        if unknown := sorted(set(values) - {f.name for f in fields(cls)}):
-            raise ConfigError(f"unknown PCA parameters {unknown}")
-        return cls(**values)
+        return config_from_dict(cls, values, "PCA")  # type: ignore[no-any-return]
 
 
 @dataclass(frozen=True, eq=False)

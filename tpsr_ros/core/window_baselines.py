@@ -52,13 +52,13 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import numpy as np
 
 from tpsr_ros.core.errors import ConfigError, DataError
-from tpsr_ros.core.fields import option
+from tpsr_ros.core.fields import check_positive_int, config_dict, config_from_dict, option
 from tpsr_ros.core.refine import TARGET_COMPONENTS
 from tpsr_ros.core.state_model import Track, UpdateInfo, check_actions, check_observations
 from tpsr_ros.core.whitening import Whitening, flip_signs
@@ -83,25 +83,9 @@ FUTURE_STEPS = 10
 """Future images the ``window`` regression predicts (as the predictive planner scaling)."""
 
 
-
-def _positive_int(value: Any, what: str) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ConfigError(f"{what} must be a positive integer, not {value!r}")
-
-
 def _check_actions_choice(value: Any, what: str) -> None:
     if value not in ACTION_FEATURES:
         raise ConfigError(f"{what} actions must be one of {list(ACTION_FEATURES)}, not {value!r}")
-
-
-def _plain(config: Any) -> dict[str, Any]:
-    return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in asdict(config).items()}
-
-
-def _from_dict(cls: Any, values: dict[str, Any], what: str) -> Any:
-    if unknown := sorted(set(values) - {f.name for f in fields(cls)}):
-        raise ConfigError(f"unknown {what} parameters {unknown}")
-    return cls(**values)
 
 
 @dataclass(frozen=True)
@@ -117,18 +101,18 @@ class StackedPCAConfig:
     )
 
     def __post_init__(self) -> None:
-        _positive_int(self.k, "stacked PCA k (steps in the window)")
-        _positive_int(self.dim, "stacked PCA dim (components of each image)")
+        check_positive_int(self.k, "stacked PCA k (steps in the window)")
+        check_positive_int(self.dim, "stacked PCA dim (components of each image)")
         _check_actions_choice(self.actions, "stacked PCA")
 
     def to_dict(self) -> dict[str, Any]:
         """Parameters as a JSON-serialisable dict."""
-        return _plain(self)
+        return config_dict(self)
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> StackedPCAConfig:
         """Inverse of :meth:`to_dict`; unknown names are refused."""
-        return _from_dict(cls, values, "stacked PCA")  # type: ignore[no-any-return]
+        return config_from_dict(cls, values, "stacked PCA")  # type: ignore[no-any-return]
 
 
 @dataclass(frozen=True)
@@ -148,9 +132,9 @@ class WindowConfig:
     )
 
     def __post_init__(self) -> None:
-        _positive_int(self.k, "window k (steps in the window)")
-        _positive_int(self.dim, "window dim (state dimension)")
-        _positive_int(self.components, "window components (of each image)")
+        check_positive_int(self.k, "window k (steps in the window)")
+        check_positive_int(self.dim, "window dim (state dimension)")
+        check_positive_int(self.components, "window components (of each image)")
         _check_actions_choice(self.actions, "window")
         ridge = self.ridge
         if isinstance(ridge, bool) or not isinstance(ridge, (int, float, np.floating)):
@@ -160,12 +144,12 @@ class WindowConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """Parameters as a JSON-serialisable dict."""
-        return _plain(self)
+        return config_dict(self)
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> WindowConfig:
         """Inverse of :meth:`to_dict`; unknown names are refused."""
-        return _from_dict(cls, values, "window")  # type: ignore[no-any-return]
+        return config_from_dict(cls, values, "window")  # type: ignore[no-any-return]
 
 
 # --- step features and windows ---------------------------------------------------------
