@@ -174,9 +174,10 @@ def run(args: argparse.Namespace) -> int:
             "it with `learner fit` to write the view topics"
         )
     trajectory = read_for_model(model_file, args.bags, args)
-    tracked = track_trajectory(model_file.model, trajectory)
     if args.swap_at is not None:
         tracked = _swapped(args, model_file, trajectory)
+    else:
+        tracked = track_trajectory(model_file.model, trajectory)
     if model_file.spec is not None:  # a robot model: the filter node's far_commands
         print(f"learner track: {far_commands_line(trajectory, model_file.spec)}", file=sys.stderr)
     positions = trajectory.positions

@@ -42,7 +42,9 @@ steps), the trail formed and the robot on its way (or the middle of a shorter ba
 class _Recorded:
     """The view bag's messages by stamp."""
 
-    camera: dict[int, np.ndarray] = field(default_factory=dict)
+    camera: dict[int, bytes] = field(default_factory=dict)
+    """The camera's CDR by stamp, decoded only for the two frames drawn (a robot's camera
+    may be large)."""
     predicted: dict[int, np.ndarray] = field(default_factory=dict)
     markers: dict[int, dict[str, Any]] = field(default_factory=dict)
     cloud: np.ndarray | None = None
@@ -62,11 +64,13 @@ def _read(path: Path, camera_topic: str) -> _Recorded:
                 "VIEW_BAG`, or record the filter node's tpsr/ topics"
             )
         for topic, _, data in reader.raw_messages([t for t in topics if t in types]):
+            if topic == camera_topic:
+                if types[topic] == m.IMAGE_TYPE:
+                    recorded.camera[m.header_stamp_ns(data)] = bytes(data)
+                continue
             msg = m.deserialize(data, types[topic])
             stamp = m.stamp_of(msg) if topic != "/" + STATE_MARKERS_TOPIC else None
-            if topic == camera_topic and types[topic] == m.IMAGE_TYPE:
-                recorded.camera[stamp] = m.image_to_array(msg)
-            elif topic == "/" + PREDICTED_IMAGE_TOPIC:
+            if topic == "/" + PREDICTED_IMAGE_TOPIC:
                 recorded.predicted[stamp] = m.image_to_array(msg)
             elif topic == "/" + STATE_MARKERS_TOPIC:
                 _take_markers(recorded, msg)
@@ -74,6 +78,11 @@ def _read(path: Path, camera_topic: str) -> _Recorded:
                 where = recorded.decoded if topic != TRUE_POSE_TOPIC else recorded.true
                 where[stamp] = (msg.pose.position.x, msg.pose.position.y)
     return recorded
+
+
+def _frame(data: bytes) -> np.ndarray:
+    """A camera message's pixels."""
+    return m.image_to_array(m.deserialize(data, m.IMAGE_TYPE))
 
 
 def _points(marker: Any) -> np.ndarray:
@@ -117,9 +126,9 @@ def render(recorded: _Recorded, step: int | None, path: Path, title: str) -> int
     fig = plt.figure(figsize=(11, 6.2))
     grid = fig.add_gridspec(2, 3, height_ratios=[1, 1.25])
     images = (
-        (recorded.camera[stamp], f"camera, step k (t = {stamp / 1e9:g} s)"),
+        (_frame(recorded.camera[stamp]), f"camera, step k (t = {stamp / 1e9:g} s)"),
         (recorded.predicted[stamp], "predicted at step k for step k+1"),
-        (recorded.camera[following[stamp]], "camera, step k+1"),
+        (_frame(recorded.camera[following[stamp]]), "camera, step k+1"),
     )
     for column, (image, label) in enumerate(images):
         ax = fig.add_subplot(grid[0, column])

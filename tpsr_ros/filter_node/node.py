@@ -217,7 +217,9 @@ class FilterNode(Node):
         self.policy_name = p.policy or "none"
         self.model_version: int | None = None
         self.swaps = self.refused_swaps = 0
-        self._recent: deque[tuple[int, int, Any]] = deque(maxlen=p.swap_replay_steps)
+        # the steps a swap re-filters (none kept when it restarts from b_*)
+        replayed = p.swap_replay_steps if p.swap_state == "replay" else 0
+        self._recent: deque[tuple[int, int, Any]] = deque(maxlen=replayed)
         self._first_stamp: int | None = None  # of the first step tracked with this model
         self._create_endpoints(image_name, action_name)
         self._publish_model_info()
@@ -786,11 +788,9 @@ class FilterNode(Node):
                 f"model {update.path} refused, {self.inputs.model_file.path} runs on: {exc}"
             )
             return str(exc)
-        replay = list(self._recent) if p.swap_state == "replay" else []
+        replay = list(self._recent)
         self.inputs, self.model = inputs, inputs.model
         self.tracker.swap(self.model, replay)
-        if p.swap_state != "replay":
-            self._recent.clear()
         if self.cmd_pub is not None:
             self.policy = inputs.policy
             if update.policy is not None:
