@@ -56,9 +56,14 @@ from tpsr_ros.core.episodes import Trajectory, track_trajectory
 from tpsr_ros.core.errors import ConfigError, DataError, TpsrError
 from tpsr_ros.core.fields import option
 from tpsr_ros.core.learn import fit_tpsr_trajectory
+from tpsr_ros.core.planning import (
+    FUTURE_FEATURES,
+    FUTURE_HORIZONS,
+    ObservationFeatures,
+    future_targets,
+)
 from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, action_sums
-from tpsr_ros.core.whitening import Whitening
 
 __all__ = [
     "CriterionConfig",
@@ -86,9 +91,12 @@ class CriterionConfig:
 
     holdout: float = option(0.25, "fraction of the steps (the last ones) held out of the fit")
     horizons: int = option(
-        10, "k: score predictions of the next 1..k observations (the planner's 1 / (1 - 0.9))"
+        FUTURE_HORIZONS,
+        "k: score predictions of the next 1..k observations (the planner's 1 / (1 - 0.9))",
     )
-    feature_dim: int = option(10, "principal components of the observations to predict")
+    feature_dim: int = option(
+        FUTURE_FEATURES, "principal components of the observations to predict"
+    )
     burn_in: int = option(20, "steps at the start of each held-out segment left unscored")
     ridge: float = option(1e-3, "ridge of the state-to-future regression (whitened units)")
     clip: float = option(
@@ -201,42 +209,6 @@ def split_trajectory(trajectory: Trajectory, holdout: float) -> tuple[Trajectory
             f"{len(trajectory)} steps are too few to hold out {holdout:.0%} of them for tuning"
         )
     return trajectory.rows(0, cut), trajectory.rows(cut, len(trajectory))
-
-
-@dataclass(frozen=True, eq=False)
-class ObservationFeatures:
-    """The fixed targets: top principal components of the training part's raw observations."""
-
-    pca: Whitening
-
-    @classmethod
-    def fit(cls, observations: np.ndarray, dim: int) -> ObservationFeatures:
-        """PCA of ``observations (T, k)`` keeping ``dim`` components (all ``k`` if fewer)."""
-        kept = min(dim, observations.shape[1])
-        return cls(Whitening.fit(observations, kept, what="observations for tuning targets"))
-
-    def transform(self, observations: np.ndarray) -> np.ndarray:
-        """Component scores ``(T, d)`` of the ``d`` components kept (not whitened)."""
-        scores: np.ndarray = (observations - self.pca.mean_) @ self.pca.components_
-        return scores
-
-
-def future_targets(
-    features: np.ndarray, segments: np.ndarray, horizons: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Targets ``(T, horizons, d)``: row ``s`` holds the features of steps ``s+1..s+k``.
-
-    Returns the targets and a ``(T,)`` mask of rows whose ``k`` future steps all lie in
-    the same segment (the rest hold zeros).
-    """
-    n, d = features.shape
-    targets = np.zeros((n, horizons, d))
-    valid = np.zeros(n, dtype=bool)
-    if n > horizons:
-        valid[: n - horizons] = segments[horizons:] == segments[: n - horizons]
-        for j in range(1, horizons + 1):
-            targets[: n - j, j - 1] = features[j:]
-    return targets, valid
 
 
 def _state_whitener(fit_states: np.ndarray, clip: float) -> Callable[[np.ndarray], np.ndarray]:

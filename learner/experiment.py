@@ -18,7 +18,7 @@ Every seed is derived from ``--seed``, the data size and the repetition and writ
 the CSV, so any row reruns alone (``--episodes N --first-repetition K --repetitions 1``).
 Repetitions run in parallel processes (one BLAS thread each). A fitted-Q fit that
 diverges or does not converge is refitted with ten times the ridge (up to 1.0,
-:func:`learner.planning.fit_q_on`); the ridge used is recorded.
+:func:`tpsr_ros.core.planning.fit_q_on`); the ridge used is recorded.
 """
 
 from __future__ import annotations
@@ -44,7 +44,6 @@ from learner.inputs import robot_turns
 from learner.measures import criterion_of, memory_of, tuned
 from learner.options import add_preset_option
 from learner.overrides import apply_overrides
-from learner.planning import fit_q_on, ridge_ladder
 from learner.plots import affine_r2, neighbour_position_error
 from learner.representations import ModelTracker, Tracker, TruePositionTracker
 from learner.simulated import SimSettings, random_trajectory
@@ -63,6 +62,7 @@ from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError, DivergenceError, TpsrError
 from tpsr_ros.core.fqi import FQIConfig, ignore_trailing
+from tpsr_ros.core.planning import fit_q_on, ridge_ladder
 from tpsr_ros.core.pca_baseline import PCAConfig, fit_pca
 from tpsr_ros.core.presets import DEFAULT_PRESET, departures, get_preset
 from tpsr_ros.core.sizing import Sizing

@@ -17,9 +17,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from learner.criterion import CriterionConfig, ObservationFeatures, future_targets
 from learner.fit import add_topic_options, topics_from_args
 from learner.inputs import (
     read_for_model,
@@ -44,102 +41,16 @@ from learner.rewards import (
 )
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.episodes import Trajectory
-from tpsr_ros.core.errors import DataError, DivergenceError
-from tpsr_ros.core.fqi import FQIConfig, QFunction, fit_q
+from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.fqi import FQIConfig
+from tpsr_ros.core.planning import MissingRewards
 from tpsr_ros.core.presets import departures
 from tpsr_ros.io.model_io import ModelFile, open_model
 from tpsr_ros.io.npz_archive import check_output_path
-from tpsr_ros.io.policy import TRUE_POSITION, Policy, save_policy
+from tpsr_ros.io.policy import TRUE_POSITION, Policy, policy_from_states, save_policy
 from tpsr_ros.io.trajectory import Topics, read_trajectory
 
-__all__ = [
-    "MAX_RIDGE",
-    "fit_policy",
-    "fit_q_on",
-    "future_pairs",
-    "register",
-    "ridge_ladder",
-    "run",
-    "transitions",
-]
-
-
-def transitions(
-    states: np.ndarray, trajectory: Trajectory, *, skip_unknown: bool = False
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(s_k, a_{k+1}, r_{k+1}, s_{k+1})`` for consecutive steps of each segment.
-
-    A step without a reward (NaN) is refused, or with ``skip_unknown`` its transition is
-    left out (a goal region's steps beyond the poses recorded); none left is refused.
-    """
-    if len(states) != len(trajectory):
-        raise DataError(f"{len(states)} states for {len(trajectory)} steps")
-    current = np.concatenate(
-        [np.arange(a, b - 1) for a, b in trajectory.segment_bounds() if b - a > 1] or [[]]
-    ).astype(np.int64)
-    following = current + 1
-    known = np.isfinite(trajectory.rewards[following])
-    if not known.all():
-        if not skip_unknown or not known.any():
-            raise DataError(
-                f"the RL bag lacks rewards for {int((~known).sum())} of {known.size} "
-                f"transitions; rewards are needed to plan: {REWARD_WAYS}"
-            )
-        current, following = current[known], following[known]
-    rewards = trajectory.rewards[following]
-    return states[current], trajectory.actions[following], rewards, states[following]
-
-
-def future_pairs(states: np.ndarray, trajectory: Trajectory) -> tuple[np.ndarray, np.ndarray]:
-    """States paired with the principal components of the observations that followed them.
-
-    For ``fqi.state_scaling=predictive``: the targets of ``learner tune``'s criterion
-    (the top 10 components of the trajectory's observations at each of the next 10 steps,
-    within a segment), so the planner weighs state directions by what they predict.
-    """
-    criterion = CriterionConfig()
-    pca = ObservationFeatures.fit(trajectory.observations, criterion.feature_dim)
-    targets, valid = future_targets(
-        pca.transform(trajectory.observations), trajectory.segments, criterion.horizons
-    )
-    return states[valid], targets[valid].reshape(int(valid.sum()), -1)
-
-
-MAX_RIDGE = 1.0
-"""Largest ridge :func:`fit_q_on` tries before it gives up on a diverging fitted Q."""
-
-
-def ridge_ladder(ridge: float) -> list[float]:
-    """Ridges :func:`fit_q_on` tries in turn: ``ridge``, ten times it, ... up to ``MAX_RIDGE``."""
-    ladder = [ridge]
-    while ridge * 10.0 ** len(ladder) <= MAX_RIDGE:
-        ladder.append(ridge * 10.0 ** len(ladder))
-    return ladder
-
-
-def fit_q_on(
-    states: np.ndarray, trajectory: Trajectory, config: FQIConfig, *, skip_unknown: bool = False
-) -> tuple[QFunction, FQIConfig, int]:
-    """Fitted Q on the transitions of ``states`` tracked over ``trajectory``.
-
-    A fit that diverges is refitted at the next ridge of :func:`ridge_ladder`. Returns
-    the Q-function, the configuration that fitted it (its ridge) and the number of
-    transitions; raises ``DivergenceError`` when every ridge diverges. ``skip_unknown``:
-    see :func:`transitions`.
-    """
-    s, a, r, s_next = transitions(states, trajectory, skip_unknown=skip_unknown)
-    futures = future_pairs(states, trajectory) if config.state_scaling == "predictive" else None
-    ladder = ridge_ladder(config.ridge)
-    for ridge in ladder:
-        attempt = dataclasses.replace(config, ridge=ridge)
-        try:
-            q = fit_q(s, a, r, s_next, trajectory.n_actions, attempt, futures=futures)
-        except DivergenceError as exc:
-            failure = exc
-            continue
-        return q, attempt, len(a)
-    tried = f"ridges {ladder[0]:g} to {ladder[-1]:g}" if len(ladder) > 1 else f"ridge {ladder[0]:g}"
-    raise DivergenceError(f"{failure} ({tried} tried)") from failure
+__all__ = ["fit_policy", "register", "run"]
 
 
 def fit_policy(
@@ -162,23 +73,24 @@ def fit_policy(
     """
     start = time.perf_counter()
     states = tracker.track(trajectory)
-    tracked = time.perf_counter()
-    q, config, n_transitions = fit_q_on(states, trajectory, config, skip_unknown=skip_unknown)
-    done = time.perf_counter()
-    return Policy(
-        q=q,
-        representation=tracker.representation,
-        model_fingerprint=tracker.fingerprint,
-        environment=environment,
-        metadata={
-            "model_path": model_path,
-            "fqi": config.to_dict(),
-            **({"preset": preset} if preset is not None else {}),
-            **({"rewards": rewards} if rewards is not None else {}),
-            "data": {**trajectory.summary(), "transitions": n_transitions},
-            "timing_s": {"tracking": tracked - start, "fitted_q": done - tracked},
-        },
-    )
+    try:
+        return policy_from_states(
+            states,
+            trajectory,
+            config,
+            representation=tracker.representation,
+            fingerprint=tracker.fingerprint,
+            environment=environment,
+            metadata={
+                "model_path": model_path,
+                **({"preset": preset} if preset is not None else {}),
+                **({"rewards": rewards} if rewards is not None else {}),
+            },
+            skip_unknown=skip_unknown,
+            tracking_s=time.perf_counter() - start,
+        )
+    except MissingRewards as exc:
+        raise DataError(f"{exc}: {REWARD_WAYS}") from None
 
 
 def register(subparsers: Any) -> None:

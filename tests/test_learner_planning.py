@@ -15,14 +15,7 @@ from learner.evaluate import EVALUATION_SEED, START_POSITIONS, STEPS, evaluate, 
 from learner.experiment import default_config, run_cell, run_experiment
 from learner.floors import BlindTracker, constant_floor, random_floor
 from learner.overrides import apply_overrides
-from learner.planning import (
-    MAX_RIDGE,
-    fit_policy,
-    fit_q_on,
-    future_pairs,
-    ridge_ladder,
-    transitions,
-)
+from learner.planning import fit_policy
 from learner.representations import TruePositionTracker, load_tracker
 from learner.simulated import random_trajectory
 from learner.tables import summarise
@@ -32,6 +25,13 @@ from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError, DivergenceError
 from tpsr_ros.core.fqi import FQIConfig, fit_q
 from tpsr_ros.core.pca_baseline import PCAConfig
+from tpsr_ros.core.planning import (
+    MAX_RIDGE,
+    fit_q_on,
+    future_pairs,
+    ridge_ladder,
+    transitions,
+)
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.io.policy import Policy, load_policy
 from tpsr_ros.io.trajectory import read_trajectory

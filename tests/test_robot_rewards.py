@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from cli_support import run_entry
 
-from learner.planning import transitions
 from learner.rewards import REWARD_WAYS, RewardSource, apply_rewards, check_reward_topic
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError, DataError, MessageError
+from tpsr_ros.core.planning import transitions
 from tpsr_ros.core.rewards import GoalRegion, step_reward_sums
 from tpsr_ros.io import messages as msgs
 from tpsr_ros.io.bag import BagReader, BagWriter

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,8 +26,10 @@ from typing import Any
 import numpy as np
 
 import tpsr_ros
+from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ModelFormatError
-from tpsr_ros.core.fqi import QFunction
+from tpsr_ros.core.fqi import FQIConfig, QFunction
+from tpsr_ros.core.planning import fit_q_on
 from tpsr_ros.io.npz_archive import ShapeRule, metadata_size, read_archive, write_archive
 
 __all__ = [
@@ -36,6 +39,7 @@ __all__ = [
     "TRUE_POSITION",
     "Policy",
     "load_policy",
+    "policy_from_states",
     "save_policy",
 ]
 
@@ -236,4 +240,39 @@ def load_policy(path: Path | str) -> Policy:
         model_fingerprint=fingerprint,
         environment=metadata.get("environment"),
         metadata={k: v for k, v in metadata.items() if k not in known},
+    )
+
+
+def policy_from_states(
+    states: np.ndarray,
+    trajectory: Trajectory,
+    config: FQIConfig,
+    *,
+    representation: str,
+    fingerprint: str,
+    environment: str | None,
+    metadata: dict[str, Any] | None = None,
+    skip_unknown: bool = False,
+    tracking_s: float = 0.0,
+) -> Policy:
+    """The greedy policy of fitted Q on ``states`` tracked over ``trajectory`` (with rewards).
+
+    The metadata record the fitted-Q configuration used (a larger ridge than ``config``'s
+    if the fit diverged: :func:`~tpsr_ros.core.planning.fit_q_on`), the data and the
+    timings, after the entries of ``metadata`` (model path, preset, reward source).
+    ``skip_unknown``: see :func:`~tpsr_ros.core.planning.transitions`.
+    """
+    start = time.perf_counter()
+    q, used, n_transitions = fit_q_on(states, trajectory, config, skip_unknown=skip_unknown)
+    return Policy(
+        q=q,
+        representation=representation,
+        model_fingerprint=fingerprint,
+        environment=environment,
+        metadata={
+            **(metadata or {}),
+            "fqi": used.to_dict(),
+            "data": {**trajectory.summary(), "transitions": n_transitions},
+            "timing_s": {"tracking": tracking_s, "fitted_q": time.perf_counter() - start},
+        },
     )
