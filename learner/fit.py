@@ -35,6 +35,7 @@ from learner.inputs import (
     environment_label,
     far_commands_line,
     fit_options_from_args,
+    read_for_model,
     require_given_topics,
     robot_turns,
     topics_from_args,
@@ -51,14 +52,15 @@ from tpsr_ros.core.errors import ConfigError, TpsrError
 from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.core.presets import Preset, departures
+from tpsr_ros.core.refit import fit_trajectory, view_of_track
 from tpsr_ros.core.sizing import Sizing, describe_sizing
 from tpsr_ros.core.state_model import StateModel, Track
 from tpsr_ros.core.streamed_fit import fit_pca_streamed, fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel
-from tpsr_ros.core.view_readout import ViewReadout, ViewSums, fit_view_readout, point_rows
+from tpsr_ros.core.view_readout import ViewReadout, ViewSums, point_rows
 from tpsr_ros.io.bag_chunks import DEFAULT_CHUNK_STEPS, BagChunks, survey_bags
 from tpsr_ros.io.bag_streams import pose_frame_id
-from tpsr_ros.io.model_io import check_output_path, save_model
+from tpsr_ros.io.model_io import check_output_path, open_model, save_model
 from tpsr_ros.io.stream_defaults import check_fit_memory, grid_step_count
 from tpsr_ros.io.stream_spec import StreamSpec
 from tpsr_ros.io.streams import (
@@ -127,6 +129,15 @@ def register(subparsers: Any) -> None:
         help="use only the first N episodes (guide |E|; default: all)",
     )
     parser.add_argument("--force", action="store_true", help="overwrite an existing MODEL")
+    parser.add_argument(
+        "--init-from",
+        type=Path,
+        default=None,
+        metavar="MODEL",
+        help="refit on the bags with MODEL's whitenings, kernel centres and settings (its "
+        "preset, sizes, topics and step grid; the rank follows the rank rule): the learner "
+        "node's refits, for a recording of its steps. TPSR options are refused with it",
+    )
     parser.add_argument(
         "--config",
         type=Path,
@@ -212,6 +223,8 @@ def run(args: argparse.Namespace) -> int:
         if taken := apply_config_inputs(args, file_inputs):
             _say(f"options from {args.config}: {', '.join(taken)}")
     require_given_topics(args.bags, args)
+    if args.init_from is not None:
+        return _run_init_from(args, output)
     stream_options = fit_options_from_args(args)
     # the options are checked before any bag is read (the preset's changes come after it)
     config_from_args(TPSRConfig, args, preset_from_args(args).tpsr_config(), file_values)
@@ -272,6 +285,60 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_init_from(args: argparse.Namespace, output: Path) -> int:
+    """``--init-from MODEL``: refit on the bags, read as MODEL's were, with its frozen basis."""
+    given = [
+        f"--{f.name.replace('_', '-')}"
+        for f in dataclasses.fields(TPSRConfig)
+        if getattr(args, f.name) is not None
+    ]
+    streamed = args.stream or args.workers is not None or args.scheduler is not None
+    refused = given + (["--config"] if args.config is not None else [])
+    refused += (["--method pca"] if args.method != "tpsr" else []) + (
+        ["--episodes"] if args.episodes is not None else []
+    )
+    refused += ["--stream/--workers/--scheduler"] if streamed else []
+    refused += ["--step-period"] if args.step_period is not None else []
+    if refused:
+        raise ConfigError(
+            f"--init-from refits with {args.init_from}'s settings, whitenings and centres on "
+            f"every step of the bags, in memory: {', '.join(refused)} cannot change them"
+        )
+    init = open_model(args.init_from)
+    basis = init.model.basis if isinstance(init.model, TPSRModel) else None
+    if basis is None:
+        raise ConfigError(
+            f"{args.init_from} holds no fit basis (a PCA model, or a TPSR written before "
+            "models kept their whitenings and centres): fit it again with `learner fit`"
+        )
+    _say(f"reading {len(args.bags)} bag(s) as {args.init_from}'s were read")
+    start = time.perf_counter()
+    trajectory = read_for_model(init, args.bags, args)
+    timings = {"reading bags": time.perf_counter() - start}
+    spec = init.spec
+    _say(f"{len(trajectory)} steps in {len(trajectory.segment_bounds())} segment(s)")
+    pose_frame = init.view.pose_frame if init.view is not None else "map"
+    start = time.perf_counter()
+    fitted = fit_trajectory(
+        trajectory, basis.config, basis=basis, progress=_say, pose_frame=pose_frame,
+        action_codes=None if spec is None else spec.codebook.codes,
+    )  # fmt: skip
+    timings["fit"] = fitted.seconds
+    _say_sizing(fitted.model)
+    training = {
+        **fitted.training(trajectory),
+        "reading_seconds": round(timings["reading bags"], 6),
+        "init_from": {"path": str(args.init_from), "fingerprint": init.fingerprint},
+    }
+    training["adequacy"] = _say_adequacy(assess(fitted.model, trajectory, fitted.tracked))
+    preset = init.metadata.get("preset")
+    _write(
+        fitted.model, output, training, spec, timings,
+        preset=preset if isinstance(preset, dict) else None, view=fitted.view, force=args.force,
+    )  # fmt: skip
+    return 0
+
+
 def _decoded_pose_frame(args: argparse.Namespace, topics: Topics) -> str:
     """The frame of the training poses (the decoded pose's): the first bag's, else ``map``."""
     if not topics.pose:
@@ -282,16 +349,7 @@ def _decoded_pose_frame(args: argparse.Namespace, topics: Topics) -> str:
 
 def _view_readout(tracked: Track, trajectory: Trajectory, pose_frame: str) -> ViewReadout:
     """The viewer's read-outs (next image, pose, state map) on the training states."""
-    positions = trajectory.positions
-    view = fit_view_readout(
-        tracked.states,
-        trajectory.actions,
-        trajectory.observations,
-        trajectory.segments,
-        trajectory.n_actions,
-        positions=positions if np.isfinite(positions).any() else None,
-        pose_frame=pose_frame,
-    )
+    view = view_of_track(tracked, trajectory, pose_frame)
     pose = "" if view.pose is None else f" and the pose (frame {pose_frame})"
     _say(f"viewer read-outs: the next image for each action{pose}")
     return view

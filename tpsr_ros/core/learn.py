@@ -23,6 +23,7 @@ import numpy as np
 
 from tpsr_ros.core.episodes import Episodes, Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.fit_basis import FitBasis
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.core.presets import DEFAULT_PRESET, get_preset
 from tpsr_ros.core.refine import refine_tpsr
@@ -98,10 +99,12 @@ def fit_tpsr_trajectory(
     sizing: Sizing | None = None,
     action_codes: np.ndarray | None = None,
     episodes: Episodes | None = None,
+    basis: FitBasis | None = None,
 ) -> TPSRModel:
     """The spectral TPSR of ``trajectory``'s episodes (Algorithm 3), then, with
     ``config.refine_epochs``, refined through its filter on the trajectory's steps
-    (:mod:`tpsr_ros.core.refine`); ``sizing`` and ``action_codes`` as in ``fit_tpsr``;
+    (:mod:`tpsr_ros.core.refine`); ``sizing``, ``action_codes`` and ``basis`` (a refit's
+    frozen whitenings and centres: the config is the basis's) as in ``run_fit``;
     ``episodes``: the trajectory's episodes when already cut."""
     if episodes is None:
         episodes = make_episodes(
@@ -112,8 +115,9 @@ def fit_tpsr_trajectory(
             stride=config.episode_stride,
         )
     model = fit_tpsr_episodes(
-        episodes, config=config, progress=progress, sizing=sizing, action_codes=action_codes
-    )
+        episodes, config=config, progress=progress, sizing=sizing, action_codes=action_codes,
+        basis=basis,
+    )  # fmt: skip
     if not model.config.refine_epochs:
         return model
     if progress is not None:

@@ -54,6 +54,7 @@ import numpy as np
 
 from tpsr_ros.core.action_features import standardised_codes
 from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.fit_basis import FitBasis
 from tpsr_ros.core.sizing import Sizing, size_to_data
 from tpsr_ros.core.state_box import box_episodes, episode_states, state_box
 from tpsr_ros.core.tpsr_config import TPSRConfig
@@ -171,6 +172,7 @@ def run_fit(
     progress: Progress | None = None,
     sizing: Sizing | None = None,
     action_codes: np.ndarray | None = None,
+    basis: FitBasis | None = None,
 ) -> TPSRModel:
     """Algorithms 1-3 (and the state box) on the data of ``engine``, stage by stage.
 
@@ -181,26 +183,45 @@ def run_fit(
     lowered to them, a rank it keeps (set on purpose) above them is refused; without
     ``sizing`` the config is used as given;
     ``action_codes`` are the commands of the actions for action-aware features (default:
-    the simulator's 25 velocity pairs).
+    the simulator's 25 velocity pairs);
+    ``basis`` whitenings and kernel centres to keep (:mod:`tpsr_ros.core.fit_basis`; a
+    refit): the fit runs with the basis's config (its sizes); a ``config`` given only
+    says the rank, which ``sizing`` may lower by the rank rule. Every model carries the
+    basis it was fitted with (``model.basis``).
     """
     cfg = config if config is not None else TPSRConfig()
+    if basis is not None:
+        cfg = basis.config if config is None else basis.fit_config(cfg.rank)
     watch = Stopwatch(progress)
     watch.stage(str(engine.stages["survey"]))
     survey = engine.survey(cfg)
     sized: dict[str, tuple[int, int]] = {}
-    if sizing is not None:
+    if basis is not None and survey.obs_size != basis.obs_size:
+        raise DataError(
+            f"the data's observations hold {survey.obs_size} values, the basis whitens "
+            f"{basis.obs_size}: refit only on data of the same camera and preprocessing"
+        )
+    if sizing is not None and basis is None:
         cfg, sized = size_to_data(cfg, survey.episodes, survey.obs_size, sizing)
     check_enough_episodes(survey.episodes, cfg)
     n_actions = survey.n_actions
     codes = standardised_codes(action_codes, n_actions) if cfg.uses_actions else None
     watch.stage("whitening")
-    whitenings = engine.whitenings(cfg, codes)
+    if basis is None:
+        whitenings = engine.whitenings(cfg, codes)
+    else:
+        whitenings = basis.whitenings(codes)
     if engine.stages.get("rows"):
         watch.stage(str(engine.stages["rows"]))
     engine.whiten(whitenings, cfg)
     watch.stage("kernel centres")
-    rows = engine.centre_rows()
-    centres = Centres(*kernel_centres(rows.history, rows.test, rows.observation, cfg))
+    if basis is None:
+        rows = engine.centre_rows()
+        centres = Centres(*kernel_centres(rows.history, rows.test, rows.observation, cfg))
+        chosen = replace(cfg, obs_dim=whitenings.obs.n_components)  # obs_variance's choice
+        basis = FitBasis(chosen, whitenings.history, whitenings.test, whitenings.obs, centres)
+    else:
+        centres = basis.centres
     start = training_start(cfg)
     check_action_counts(engine.action_counts(start, n_actions))
     if engine.stages.get("features"):
@@ -247,6 +268,7 @@ def run_fit(
         s_all,
         fit_info,
     )
+    model = replace(model, basis=basis)
     if cfg.state_clip_quantile == 0:
         return model
     watch = Stopwatch(progress)
@@ -332,7 +354,10 @@ class MemoryEngine:
         return whitenings
 
     def whiten(self, whitenings: Whitenings, cfg: TPSRConfig) -> None:
-        """Nothing left: :meth:`whitenings` whitened the rows as it fitted."""
+        """Whiten the rows with a basis's whitenings (:meth:`whitenings` whitened them as
+        it fitted)."""
+        if self._rows is None:
+            self._rows = whitenings.rows(self._data, cfg)
 
     def centre_rows(self) -> WhitenedRows:
         """Every row."""
@@ -425,6 +450,7 @@ def fit_tpsr(
     test_actions: np.ndarray | None = None,
     action_codes: np.ndarray | None = None,
     sizing: Sizing | None = None,
+    basis: FitBasis | None = None,
 ) -> TPSRModel:
     """Learn a TPSR from ``E`` episodes in memory (guide Algorithms 1-3; :func:`run_fit`).
 
@@ -445,6 +471,7 @@ def fit_tpsr(
         sizing: size the centres, whitening dimensions and rank to the data
             (:mod:`tpsr_ros.core.sizing`); the model's config and ``fit_info["sized"]``
             record what changed. None: the config's sizes as they are.
+        basis: whitenings and kernel centres to keep (a refit; :func:`run_fit`).
 
     Raises:
         DataError: non-finite or inconsistent data, too few episodes for the kernel
@@ -456,7 +483,9 @@ def fit_tpsr(
         history, observation, action, test, n_actions,
         history_actions=history_actions, test_actions=test_actions,
     )  # fmt: skip
-    return run_fit(engine, config, progress=progress, sizing=sizing, action_codes=action_codes)
+    return run_fit(
+        engine, config, progress=progress, sizing=sizing, action_codes=action_codes, basis=basis
+    )
 
 
 class EpisodeArrays(EpisodeRows, Protocol):
@@ -474,8 +503,10 @@ def fit_tpsr_episodes(
     progress: Progress | None = None,
     action_codes: np.ndarray | None = None,
     sizing: Sizing | None = None,
+    basis: FitBasis | None = None,
 ) -> TPSRModel:
-    """:func:`fit_tpsr` on the arrays of cut episodes (``action_codes``, ``sizing``: there)."""
+    """:func:`fit_tpsr` on the arrays of cut episodes (``action_codes``, ``sizing``,
+    ``basis``: there)."""
     return fit_tpsr(
         episodes.history,
         episodes.observation,
@@ -488,4 +519,5 @@ def fit_tpsr_episodes(
         test_actions=episodes.test_actions,
         action_codes=action_codes,
         sizing=sizing,
+        basis=basis,
     )

@@ -10,6 +10,7 @@ import numpy as np
 
 from tpsr_ros.core import filtering
 from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.fit_basis import FitBasis
 from tpsr_ros.core.state_model import Track, UpdateInfo
 from tpsr_ros.core.tpsr_config import TPSRConfig
 from tpsr_ros.core.whitening import Whitening
@@ -35,6 +36,9 @@ class TPSRModel:
         fit_info: JSON-serialisable diagnostics (sample counts, timings in seconds).
         state_box: ``(2, r)`` low and high bound of every state coordinate, or None (no
             clipping); present exactly when ``config.state_clip_quantile > 0``.
+        basis: the whitenings and kernel centres the fit chose (a refit keeps them:
+            :mod:`tpsr_ros.core.fit_basis`); None for models read from files without them.
+            Not among the arrays that define the filter (nor its fingerprint).
 
     """
 
@@ -51,6 +55,7 @@ class TPSRModel:
     explained_variance: dict[str, np.ndarray]
     fit_info: dict[str, Any] = field(default_factory=dict)
     state_box: np.ndarray | None = None
+    basis: FitBasis | None = None
 
     ARRAY_NAMES: ClassVar[tuple[str, ...]] = (
         "obs_mean",

@@ -10,6 +10,9 @@ entry ``metadata``, a 0-d unicode array holding a JSON object::
      "input": {...} (models learned with --step-period only),
      "view": {"points": 1000, "pose_dim": 0 | 2 | 4, "pose_frame": "map"} (models with the
        viewer's read-outs: arrays view_image, view_axes, view_center, view_points[, view_pose]),
+     "basis": {"rank": r, "history_width": w, "test_width": w} (TPSRs with the whitenings and
+       centres a refit keeps: arrays basis_{history,test,obs}_{mean,components,eigenvalues,
+       ratio}, basis_{history,test}_centers; :mod:`tpsr_ros.core.fit_basis`),
      "preset": {"name": "best", "changed": {...}[, "turning": true]} (descriptive; learner
        fit writes it),
      "created": "...", "software": {"tpsr_ros": "0.1.0", "numpy": "..."}}
@@ -30,7 +33,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import hashlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +41,7 @@ import numpy as np
 
 import tpsr_ros
 from tpsr_ros.core.errors import ConfigError, ModelFormatError, TpsrError
+from tpsr_ros.core.fit_basis import FitBasis, basis_shapes
 from tpsr_ros.core.pca_baseline import PCAModel
 from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.tpsr import TPSRModel
@@ -142,6 +146,10 @@ def save_model(
             "pose_frame": view.pose_frame,
         }
         arrays.update(view.to_arrays())
+    basis = getattr(model, "basis", None)
+    if basis is not None:
+        metadata["basis"] = basis.metadata()
+        arrays.update(basis.to_arrays())
     return write_archive(path, arrays, metadata, force=force)
 
 
@@ -221,7 +229,24 @@ def _expected_shapes(path: Path, metadata: dict[str, Any]) -> dict[str, ShapeRul
     clip = parameters.get("state_clip_quantile", 0)
     if isinstance(clip, (int, float)) and not isinstance(clip, bool) and clip > 0:
         shapes["state_box"] = (2, r)
-    return shapes | _view_shapes(path, metadata, k)
+    return shapes | _view_shapes(path, metadata, k) | _basis_shapes(path, metadata, k)
+
+
+def _basis_shapes(path: Path, metadata: dict[str, Any], k: int) -> dict[str, ShapeRule]:
+    """The shapes of a TPSR's frozen basis (none when the metadata has no ``basis``)."""
+    basis = metadata.get("basis")
+    if basis is None:
+        return {}
+    if not isinstance(basis, dict):
+        raise ModelFormatError(f"the metadata of {str(path)!r} has an invalid 'basis' entry")
+    for key in ("rank", "history_width", "test_width"):
+        metadata_size(path, basis, key)
+    parameters = metadata["parameters"]
+    for key in ("history_length", "test_length", "ht_dim", "obs_dim", "ht_centers"):
+        metadata_size(path, parameters, key)
+    if basis["rank"] > parameters["ht_centers"]:
+        raise ModelFormatError(f"the 'basis' entry of {str(path)!r} has a rank above its centres")
+    return dict(basis_shapes(parameters, basis, k))
 
 
 def _view_shapes(path: Path, metadata: dict[str, Any], k: int) -> dict[str, ShapeRule]:
@@ -331,9 +356,14 @@ def open_model(path: Path | str) -> ModelFile:
         if not np.isfinite(arr).all():
             raise ModelFormatError(f"array {name!r} of {str(path)!r} contains non-finite values")
     view_arrays = {name: arrays.pop(name) for name in list(arrays) if name.startswith("view_")}
+    basis_arrays = {name: arrays.pop(name) for name in list(arrays) if name.startswith("basis_")}
     try:
         model = METHODS[method].from_arrays(arrays, metadata["parameters"], metadata["summary"])
         view = _view_readout(view_arrays, metadata)
+        if basis_arrays and isinstance(model, TPSRModel):
+            basis_config = replace(model.config, rank=metadata["basis"]["rank"])
+            basis = FitBasis.from_arrays(basis_arrays, basis_config, model.obs_centers)
+            model = replace(model, basis=basis)
     except TpsrError as exc:
         raise ModelFormatError(f"{str(path)!r} is inconsistent: {exc}") from None
     except (KeyError, TypeError, ValueError) as exc:
