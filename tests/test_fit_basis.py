@@ -1,4 +1,4 @@
-"""The frozen fit basis: a refit keeps the whitenings and centres, and ``learner fit --init-from``."""
+"""The frozen fit basis: a refit keeps its whitenings and centres; `learner fit --init-from`."""
 
 from __future__ import annotations
 
