@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros.core.actions import environment_grid
+from tpsr_ros.core.actions import ActionGrid, environment_grid
 from tpsr_ros.core.episodes import (
     DEFAULT_ACTION_TOLERANCE,
     DEFAULT_IMAGE_SHAPE,
@@ -53,6 +53,11 @@ from tpsr_ros.io.messages import ACTION_TYPE, IMAGE_TYPE, POSE_TYPE, REWARD_TYPE
 __all__ = [
     "DEFAULT_CHUNK_STEPS",
     "REORDER_WINDOW",
+    "LateMessage",
+    "LiveSteps",
+    "RepeatedMessage",
+    "StampPairing",
+    "StepChunk",
     "Topics",
     "iter_trajectory_chunks",
     "read_trajectory",
@@ -140,8 +145,9 @@ class _Options:
 
 
 @dataclass(frozen=True)
-class _Steps:
-    """Consecutive steps of one bag, with pixels still uint8 (a chunk before conversion)."""
+class StepChunk:
+    """Consecutive steps of one bag or live stream, with pixels still uint8 (a chunk before
+    conversion to observations)."""
 
     stamps: np.ndarray  # (n,) int64
     pixels: np.ndarray  # (n, H, W, 3) uint8
@@ -154,10 +160,11 @@ class _Steps:
     n_actions: int  # of the bag's action grid
 
     def trajectory(self) -> Trajectory:
+        """The steps as a trajectory (pixels converted to observations)."""
         return _trajectory([self])
 
 
-def _trajectory(parts: Sequence[_Steps]) -> Trajectory:
+def _trajectory(parts: Sequence[StepChunk]) -> Trajectory:
     """One trajectory of ``parts`` in order (pixels converted once, after concatenating)."""
 
     def joined(name: str) -> np.ndarray:
@@ -187,6 +194,115 @@ def _trajectory(parts: Sequence[_Steps]) -> Trajectory:
 _IMAGE, _ACTION, _POSE, _REWARD = range(4)
 
 
+class LateMessage(Exception):
+    """A message whose stamp is already final (it cannot join its step any more)."""
+
+
+class RepeatedMessage(Exception):
+    """A second message of one kind with a stamp that already has one."""
+
+
+class StampPairing:
+    """A step's image, action, pose and reward paired by identical stamp as they stream past.
+
+    Stamps wait, with whatever of their four messages has arrived, until more than
+    ``window`` later stamps are pending; then the smallest becomes final (one per new
+    stamp). :meth:`add` returns the entries made final, ``(stamp, [image, action, pose,
+    reward])`` with None for what never came; :meth:`flush` makes every pending stamp final.
+    """
+
+    def __init__(self, window: int) -> None:
+        self.window = int(window)
+        self._pending: dict[int, list[Any]] = {}
+        self._heap: list[int] = []
+        self.final = -(2**63)
+        """The largest stamp made final."""
+
+    @property
+    def pending(self) -> int:
+        """Stamps waiting."""
+        return len(self._heap)
+
+    def add(self, kind: int, stamp: int, value: Any) -> list[tuple[int, list[Any]]]:
+        """Pair one message (``kind``: image 0, action 1, pose 2, reward 3); raise
+        :class:`LateMessage` or :class:`RepeatedMessage` for one that cannot be paired."""
+        entry = self._pending.get(stamp)
+        if entry is None:
+            if stamp <= self.final:
+                raise LateMessage(stamp)
+            entry = self._pending[stamp] = [None, None, None, None]
+            entry[kind] = value
+            heapq.heappush(self._heap, stamp)
+            if len(self._heap) > self.window:
+                self.final = heapq.heappop(self._heap)
+                return [(self.final, self._pending.pop(self.final))]
+            return []
+        if entry[kind] is not None:
+            raise RepeatedMessage(stamp)
+        entry[kind] = value
+        return []
+
+    def flush(self) -> list[tuple[int, list[Any]]]:
+        """Every pending stamp, made final in stamp order."""
+        finals = []
+        while self._heap:
+            self.final = heapq.heappop(self._heap)
+            finals.append((self.final, self._pending.pop(self.final)))
+        return finals
+
+
+@dataclass(frozen=True)
+class StepLayout:
+    """How final entries become arrays: image size, pose width, step period, action grid."""
+
+    image_shape: tuple[int, int]
+    pose_width: int
+    step_ns: int
+    grid: ActionGrid
+    action_tolerance: float
+
+
+def entry_steps(
+    buffer: Sequence[tuple[int, list[Any]]],
+    layout: StepLayout,
+    last_stamp: int | None,
+    segment: int,
+) -> StepChunk:
+    """Steps of final entries (each with an image and an action), their segments numbered
+    after ``segment``, a new one where a stamp is not ``step_ns`` after the one before
+    (``last_stamp``: the step before the first; None: a new segment). Raises the grid's
+    ``ConfigError`` for an action off the grid."""
+    count = len(buffer)
+    stamps = np.fromiter((s for s, _ in buffer), dtype=np.int64, count=count)
+    entries = [e for _, e in buffer]
+    height, width = layout.image_shape
+    pixels = np.frombuffer(b"".join(e[_IMAGE] for e in entries), dtype=np.uint8)
+    velocities = np.array([e[_ACTION] for e in entries], dtype=np.float64).reshape(count, 2)
+    no_pose = (np.nan,) * layout.pose_width
+    positions = np.array(
+        [no_pose if e[_POSE] is None else e[_POSE] for e in entries], dtype=np.float64
+    ).reshape(count, layout.pose_width)
+    rewards = np.array(
+        [np.nan if e[_REWARD] is None else e[_REWARD] for e in entries], dtype=np.float64
+    )
+    breaks = np.empty(count, dtype=bool)
+    breaks[0] = last_stamp is None or stamps[0] - last_stamp != layout.step_ns
+    breaks[1:] = np.diff(stamps) != layout.step_ns
+    segments = segment + np.cumsum(breaks, dtype=np.int64)
+    actions = layout.grid.indices(velocities, layout.action_tolerance)
+    return StepChunk(
+        stamps=stamps,
+        pixels=pixels.reshape(count, height, width, 3),
+        actions=actions,
+        velocities=velocities,
+        positions=positions,
+        rewards=rewards,
+        segments=segments,
+        source=None,
+        n_actions=len(layout.grid),
+    )
+
+
 class _BagSteps:
     """The steps of one bag, paired by stamp as its messages stream past (module docstring).
 
@@ -209,7 +325,7 @@ class _BagSteps:
         self.buffer: list[tuple[int, list[Any]]] = []
         self.chunk_limit = options.chunk_steps  # capped in bytes once the image size is known
 
-    def chunks(self) -> Iterator[_Steps]:
+    def chunks(self) -> Iterator[StepChunk]:
         """The bag's steps in stamp order, ``chunk_steps`` at a time."""
         topics = self.options.topics
         with BagReader(self.path) as reader:
@@ -232,11 +348,8 @@ class _BagSteps:
                 topics.pose: (_POSE, PoseDecoder(heading=drives)),
                 topics.reward: (_REWARD, RewardDecoder()),
             }
-            window = self.options.reorder_window  # until the image size is known
+            pairing = StampPairing(self.options.reorder_window)  # until the image size is known
             counts = [0, 0, 0, 0]
-            pending: dict[int, list[Any]] = {}
-            heap: list[int] = []
-            final = -(2**63)  # the largest stamp made final
             for topic, _, data in reader.raw_messages(present):
                 kind, decoder = decoders[topic]
                 try:
@@ -245,28 +358,21 @@ class _BagSteps:
                     raise self._bad_message(topic, counts[kind], data, exc) from None
                 counts[kind] += 1
                 if kind == _IMAGE and counts[_IMAGE] == 1:
-                    window, self.chunk_limit = self._window(), self._chunk_steps()
-                entry = pending.get(stamp)
-                if entry is None:
-                    if stamp <= final:
-                        raise self._too_late(topic, counts[kind] - 1, stamp, window)
-                    entry = pending[stamp] = [None, None, None, None]
-                    entry[kind] = value
-                    heapq.heappush(heap, stamp)
-                    if len(heap) > window:
-                        final = heapq.heappop(heap)
-                        if (chunk := self._finish(final, pending.pop(final))) is not None:
-                            yield chunk
-                elif entry[kind] is not None:
+                    pairing.window, self.chunk_limit = self._window(), self._chunk_steps()
+                try:
+                    finals = pairing.add(kind, stamp, value)
+                except LateMessage:
+                    raise self._too_late(topic, counts[kind] - 1, stamp, pairing.window) from None
+                except RepeatedMessage:
                     raise BagError(
                         f"bag {str(self.path)!r}, topic {topic!r}, message {counts[kind] - 1}: "
                         f"a second message with stamp {stamp} ns"
-                    )
-                else:
-                    entry[kind] = value
-            while heap:
-                final = heapq.heappop(heap)
-                if (chunk := self._finish(final, pending.pop(final))) is not None:
+                    ) from None
+                for final, entry in finals:
+                    if (chunk := self._finish(final, entry)) is not None:
+                        yield chunk
+            for final, entry in pairing.flush():
+                if (chunk := self._finish(final, entry)) is not None:
                     yield chunk
         if not self.buffer:
             raise DataError(
@@ -345,7 +451,7 @@ class _BagSteps:
             "(or the stamp repeats; a larger reorder_window of read_trajectory reads it)"
         )
 
-    def _finish(self, stamp: int, entry: list[Any]) -> _Steps | None:
+    def _finish(self, stamp: int, entry: list[Any]) -> StepChunk | None:
         """Make ``stamp`` final; return the full buffer if a new step needs the room."""
         image, velocity, pose, reward = entry
         if image is None or velocity is None:
@@ -364,31 +470,17 @@ class _BagSteps:
         self.buffer.append((stamp, entry))
         return chunk
 
-    def _take(self) -> _Steps:
+    def _take(self) -> StepChunk:
         """Empty the buffer into a chunk, numbering its segments after the previous one's."""
-        count = len(self.buffer)
-        stamps = np.fromiter((s for s, _ in self.buffer), dtype=np.int64, count=count)
-        entries = [e for _, e in self.buffer]
-        self.buffer = []
         assert self.images.shape is not None  # set by the first image decoded
-        height, width = self.images.shape
-        pixels = np.frombuffer(b"".join(e[_IMAGE] for e in entries), dtype=np.uint8)
-        velocities = np.array([e[_ACTION] for e in entries], dtype=np.float64).reshape(count, 2)
-        no_pose = (np.nan,) * self.pose_width
-        positions = np.array(
-            [no_pose if e[_POSE] is None else e[_POSE] for e in entries], dtype=np.float64
-        ).reshape(count, self.pose_width)
-        rewards = np.array(
-            [np.nan if e[_REWARD] is None else e[_REWARD] for e in entries], dtype=np.float64
-        )
-        breaks = np.empty(count, dtype=bool)
-        breaks[0] = self.last_stamp is None or stamps[0] - self.last_stamp != self.options.step_ns
-        breaks[1:] = np.diff(stamps) != self.options.step_ns
-        segments = self.segment + np.cumsum(breaks, dtype=np.int64)
-        self.segment, self.last_stamp = int(segments[-1]), int(stamps[-1])
+        layout = StepLayout(
+            self.images.shape, self.pose_width, self.options.step_ns, self.grid,
+            self.options.action_tolerance,
+        )  # fmt: skip
         try:
-            actions = self.grid.indices(velocities, self.options.action_tolerance)
+            steps = entry_steps(self.buffer, layout, self.last_stamp, self.segment)
         except ConfigError as exc:
+            velocities = np.array([e[_ACTION] for _, e in self.buffer], dtype=np.float64)
             with np.errstate(invalid="ignore"):
                 far = np.max(
                     [np.abs(velocities[:, i, None] - np.asarray(v)).min(axis=1)
@@ -398,24 +490,16 @@ class _BagSteps:
             first = int(np.argmax(~(far <= self.options.action_tolerance)))
             raise DataError(
                 f"bag {str(self.path)!r}, topic {self.options.topics.action!r}, the step at "
-                f"stamp {int(stamps[first])} ns: an action cannot be mapped to the simulator's "
-                f"{len(self.grid)} actions: {exc}"
+                f"stamp {int(self.buffer[first][0])} ns: an action cannot be mapped to the "
+                f"simulator's {len(self.grid)} actions: {exc}"
             ) from None
-        return _Steps(
-            stamps=stamps,
-            pixels=pixels.reshape(count, height, width, 3),
-            actions=actions,
-            velocities=velocities,
-            positions=positions,
-            rewards=rewards,
-            segments=segments,
-            source=None,
-            n_actions=len(self.grid),
-        )
+        self.buffer = []
+        self.segment, self.last_stamp = int(steps.segments[-1]), int(steps.stamps[-1])
+        return steps
 
 
 def _read_steps(bags: Sequence[Path | str], image_shape: tuple[int, int] | None,
-                options: _Options) -> Iterator[_Steps]:
+                options: _Options) -> Iterator[StepChunk]:
     images = ImageDecoder(image_shape)  # one shape for all bags
     segment = 0
     for bag in bags:
@@ -492,3 +576,102 @@ def read_trajectory(
     options = _options(bags, topics, step_ns, action_tolerance, require_ground_truth,
                        DEFAULT_CHUNK_STEPS, reorder_window, environment)
     return _trajectory(list(_read_steps(bags, image_shape, options)))
+
+
+class LiveSteps:
+    """A simulator's live streams made into steps exactly as a recording of them is read.
+
+    Raw CDR messages of the image, action, pose and reward topics go to :meth:`add` (in
+    any order within ``window`` stamps); they are decoded by the bag reader's decoders,
+    paired by :class:`StampPairing`, and a final stamp with an image and an action is a
+    step. :meth:`trajectory` gives the first steps as :func:`read_trajectory` gives them
+    for a bag holding those messages (segments, action indices, NaN for a missing pose or
+    reward). ``environment``: the simulator's (``drive`` reads its actions and heading);
+    None: the planar environments' 25 actions.
+    """
+
+    def __init__(
+        self,
+        environment: str | None,
+        *,
+        image_shape: tuple[int, int] | None = DEFAULT_IMAGE_SHAPE,
+        window: int = 10,
+        step_ns: int = STEP_NS,
+        action_tolerance: float = DEFAULT_ACTION_TOLERANCE,
+        topics: Topics | None = None,
+    ) -> None:
+        drives = environment == "drive"
+        self.environment = environment
+        self.topics = topics or Topics()
+        self.grid = environment_grid(environment)
+        self.images = ImageDecoder(image_shape)
+        self.decoders: dict[int, Any] = {
+            _IMAGE: self.images,
+            _ACTION: TwistDecoder(self.grid.components),
+            _POSE: PoseDecoder(heading=drives),
+            _REWARD: RewardDecoder(),
+        }
+        self.pose_width = 4 if drives else 2
+        self.step_ns = int(step_ns)
+        self.action_tolerance = float(action_tolerance)
+        self.pairing = StampPairing(window)
+        self.steps: list[tuple[int, list[Any]]] = []
+        self.unpaired = 0
+
+    IMAGE, ACTION, POSE, REWARD = _IMAGE, _ACTION, _POSE, _REWARD
+    """The kinds of message :meth:`add` takes."""
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+    def add(self, kind: int, data: bytes) -> int:
+        """Decode and pair one message; return how many steps it made final. Raises
+        ``MessageError`` (undecodable, or an action off the grid), :class:`LateMessage` or
+        :class:`RepeatedMessage`."""
+        stamp, value = self.decoders[kind].decode(data)
+        if kind == _ACTION:
+            try:  # refused here, not when a refit converts it
+                self.grid.indices(np.array([value], dtype=np.float64), self.action_tolerance)
+            except ConfigError as exc:
+                raise MessageError(f"an action off the simulator's grid: {exc}") from None
+        return self._keep(self.pairing.add(kind, stamp, value))
+
+    def flush(self) -> int:
+        """Make every pending stamp final (the streams paused); return the new steps."""
+        return self._keep(self.pairing.flush())
+
+    def _keep(self, finals: list[tuple[int, list[Any]]]) -> int:
+        before = len(self.steps)
+        for stamp, entry in finals:
+            if entry[_IMAGE] is None or entry[_ACTION] is None:
+                self.unpaired += 1
+            else:
+                self.steps.append((stamp, entry))
+        return len(self.steps) - before
+
+    def trajectory(self, steps: int | None = None) -> Trajectory:
+        """The first ``steps`` final steps (default: all) as one trajectory."""
+        return self.chunk(steps).trajectory()
+
+    def chunk(self, steps: int | None = None) -> StepChunk:
+        """The first ``steps`` final steps with pixels still uint8 (a compact copy to hand
+        to another process; its :meth:`StepChunk.trajectory` is :meth:`trajectory`)."""
+        buffer = self.steps if steps is None else self.steps[:steps]
+        if not buffer or self.images.shape is None:
+            raise DataError("no step has both an image and an action yet")
+        layout = StepLayout(
+            self.images.shape, self.pose_width, self.step_ns, self.grid, self.action_tolerance
+        )
+        source = {
+            "path": "live",
+            "steps": len(buffer),
+            "stamps_ns": [int(buffer[0][0]), int(buffer[-1][0])],
+            "environment": self.environment,
+            "topics": {
+                "image": self.topics.image,
+                "action": self.topics.action,
+                "pose": self.topics.pose,
+                "reward": self.topics.reward,
+            },
+        }
+        return replace(entry_steps(buffer, layout, None, -1), source=source)

@@ -1,0 +1,186 @@
+"""One refit of the learner node, free of ROS: steps in, model and policy files out.
+
+The node hands a :class:`RefitRequest` (the first ``N`` live steps, pixels still uint8) to
+a worker process, which runs :func:`refit` and returns a :class:`RefitResult`. The model
+is :func:`tpsr_ros.core.refit.fit_trajectory` of those steps, so it equals ``learner fit
+BAG`` (the first version, from the preset sized to the data) or ``learner fit BAG
+--init-from MODEL`` (every later one, on the first version's frozen basis) on a recording
+of the same steps. With rewards among the steps the fitted-Q policy of the preset is
+fitted on the same tracked states (``learner policy``'s planner).
+
+Files: every version is written to ``OUTPUT/versions/model-vNNNN.npz`` (and
+``policy-vNNNN.npz``), then copied over ``OUTPUT/model.npz`` (and ``policy.npz``); every
+write is atomic (a temporary file and a rename), so a reader sees a whole file or the one
+before. The announcement names the versioned files, which stay until ``keep`` newer
+versions exist, so a filter node loading one is never raced by the next refit. A new run
+into the same folder numbers its versions after the last one there and never removes an
+earlier run's files.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tpsr_ros.core.errors import ConfigError, TpsrError
+from tpsr_ros.core.presets import get_preset
+from tpsr_ros.core.refit import fit_trajectory
+from tpsr_ros.core.sizing import Sizing
+from tpsr_ros.core.tpsr import TPSRModel
+from tpsr_ros.io.atomic import atomic_file
+from tpsr_ros.io.model_io import model_fingerprint, open_model, save_model
+from tpsr_ros.io.policy import policy_from_states, save_policy
+from tpsr_ros.io.trajectory import StepChunk
+
+__all__ = ["RefitRequest", "RefitResult", "last_version", "refit", "versioned"]
+
+
+@dataclass(frozen=True, eq=False)
+class RefitRequest:
+    """What one refit fits and where it writes.
+
+    ``basis_model``: a model file whose basis (whitenings, centres, settings) the refit
+    keeps; None: the first fit, from ``preset`` sized to the steps.
+    """
+
+    steps: StepChunk
+    version: int
+    output: Path
+    preset: str
+    basis_model: Path | None = None
+    keep: int = 5
+    first_version: int = 1
+    """This run's first version: only its files are pruned."""
+    reward_topic: str = ""
+
+
+@dataclass(frozen=True)
+class RefitResult:
+    """What a refit wrote, for the announcement and the node's diagnostics."""
+
+    version: int
+    steps: int
+    model: Path
+    fingerprint: str
+    policy: Path | None
+    fit_seconds: float
+    total_seconds: float
+    note: str = ""
+    """Why no policy was written, when none was."""
+
+    def update(self) -> dict[str, Any]:
+        """The ``tpsr/model_update`` JSON object announcing this version."""
+        update: dict[str, Any] = {
+            "path": str(self.model),
+            "fingerprint": self.fingerprint,
+            "version": self.version,
+            "steps": self.steps,
+        }
+        if self.policy is not None:
+            update["policy"] = str(self.policy)
+        return update
+
+
+def versioned(output: Path, kind: str, version: int) -> Path:
+    """``OUTPUT/versions/<kind>-vNNNN.npz``."""
+    return output / "versions" / f"{kind}-v{version:04d}.npz"
+
+
+def refit(request: RefitRequest) -> RefitResult:
+    """Fit the request's steps, write the model (and policy) files, say what was written."""
+    start = time.perf_counter()
+    trajectory = request.steps.trajectory()
+    preset = get_preset(request.preset)
+    environment = trajectory.summary()["environment"]
+    turning = environment == "drive"
+    basis = None
+    record: dict[str, Any] = {"name": preset.name, "changed": {}}
+    if turning and preset.turning_tpsr:
+        record["turning"] = True
+    live: dict[str, Any] = {"version": request.version}
+    if request.basis_model is not None:
+        first = open_model(request.basis_model)
+        basis = first.model.basis if isinstance(first.model, TPSRModel) else None
+        if basis is None:
+            raise ConfigError(f"{request.basis_model} holds no fit basis to refit on")
+        preset_record = first.metadata.get("preset")
+        record = preset_record if isinstance(preset_record, dict) else record
+        live["init_from"] = {"path": str(request.basis_model), "fingerprint": first.fingerprint}
+    fitted = fit_trajectory(
+        trajectory, preset.tpsr_config(turning=turning), basis=basis, sizing=Sizing()
+    )
+    model = fitted.model
+    fingerprint = model_fingerprint(model)
+    output = Path(request.output)
+    (output / "versions").mkdir(parents=True, exist_ok=True)
+    model_path = versioned(output, "model", request.version)
+    training = {**fitted.training(trajectory), "live": live}
+    save_model(model, model_path, training=training, preset=record, view=fitted.view, force=True)
+    policy_path, note = None, ""
+    rewards = trajectory.rewards
+    if np.isfinite(rewards).any():
+        try:
+            policy = policy_from_states(
+                fitted.tracked.states,
+                trajectory,
+                preset.fqi_config(),
+                representation=model.method,
+                fingerprint=fingerprint,
+                environment=environment if isinstance(environment, str) else None,
+                metadata={
+                    "model_path": str(model_path),
+                    "preset": {"name": preset.name, "changed": {}},
+                    "rewards": {"topic": request.reward_topic},
+                },
+                skip_unknown=True,
+            )
+        except TpsrError as exc:  # no usable transitions, or fitted Q diverged throughout
+            note = f"no policy: {exc}"
+        else:
+            policy_path = versioned(output, "policy", request.version)
+            save_policy(policy, policy_path, force=True)
+    else:
+        note = "no policy: no step has a reward"
+    _publish(model_path, output / "model.npz")
+    if policy_path is not None:
+        _publish(policy_path, output / "policy.npz")
+    _prune(output, request.version, request.keep, request.first_version)
+    return RefitResult(
+        version=request.version,
+        steps=len(trajectory),
+        model=model_path,
+        fingerprint=fingerprint,
+        policy=policy_path,
+        fit_seconds=fitted.seconds,
+        total_seconds=time.perf_counter() - start,
+        note=note,
+    )
+
+
+def _publish(source: Path, target: Path) -> None:
+    """Copy ``source`` over ``target`` atomically."""
+    with source.open("rb") as src, atomic_file(target) as dst:
+        shutil.copyfileobj(src, dst)
+
+
+def _prune(output: Path, version: int, keep: int, first: int) -> None:
+    """Remove this run's versioned files (from version ``first`` on) more than ``keep``
+    versions old; an earlier run's stay."""
+    for kind in ("model", "policy"):
+        for old in range(first, version - keep + 1):
+            versioned(output, kind, old).unlink(missing_ok=True)
+
+
+def last_version(output: Path) -> int:
+    """The highest version in ``OUTPUT/versions`` (0: none), so a new run numbers after it."""
+    numbers = [0]
+    for path in (output / "versions").glob("*-v*.npz"):
+        number = path.stem.rpartition("-v")[2]
+        if number.isdigit():
+            numbers.append(int(number))
+    return max(numbers)
