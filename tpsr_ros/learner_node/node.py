@@ -191,8 +191,9 @@ class LearnerNode(Node):
             except MessageError as exc:
                 self._reject(topic, "undecodable", str(exc))
             except LateMessage as exc:
-                self._reject(topic, "late", f"stamp {exc} ns is already final (the step is kept "
-                             "without it; raise reorder_window if messages trail further)")
+                self._reject(topic, "late", f"a message of stamp {exc} ns came after its step "
+                             "was closed and is dropped (raise reorder_window or idle_flush if "
+                             "messages trail further)")
             except RepeatedMessage as exc:
                 self._reject(topic, "repeated", f"a second message with stamp {exc} ns ignored")
             self._start_refit()
