@@ -2,7 +2,7 @@
 
 colcon (which sets ``COLCON=1``) gets what an ament_python package installs besides the
 Python packages: the ament resource marker, package.xml, and the node executables
-``lib/tpsr_ros/{sim_node,filter_node,record,play,view}`` (setup.cfg puts scripts there),
+``lib/tpsr_ros/{sim_node,filter_node,learner_node,record,play,view}`` (setup.cfg puts scripts there),
 which ``ros2 run tpsr_ros <node>`` starts, ``share/tpsr_ros/launch/*.launch.xml`` for
 ``ros2 launch tpsr_ros <file>``, and the viewers' layouts in ``share/tpsr_ros/layouts/``;
 also under ``colcon build --symlink-install``, which runs this file without
@@ -21,6 +21,7 @@ PACKAGE = "tpsr_ros"
 NODES = {
     "sim_node": "sim_node.__main__:main",
     "filter_node": "tpsr_ros.filter_node:main",
+    "learner_node": "tpsr_ros.learner_node:main",
     "record": "tpsr_ros.record:main",
     "play": "tpsr_ros.play:main",
     "view": "tpsr_ros.view:main",

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-NODES = ("sim_node", "filter_node", "record", "play", "view")
+NODES = ("sim_node", "filter_node", "learner_node", "record", "play", "view")
 
 
 def _colcon() -> str | None:

@@ -132,11 +132,19 @@ def _view(tmp: Path, bus: InprocBus, ros_args: RosArgs) -> tuple[Node, set[str]]
     return ViewNode(options, transport=InprocTransport("/view", bus)), set()
 
 
+def _learner(tmp: Path, bus: InprocBus, ros_args: RosArgs) -> tuple[Node, set[str]]:
+    from tpsr_ros.learner_node import LearnerNode
+
+    options = NodeOptions.for_node(LearnerNode, ros_args, output=str(tmp / "live"))
+    return LearnerNode(options, transport=InprocTransport("/learner", bus)), set()
+
+
 FACTORIES: dict[str, Callable[[Path, InprocBus, RosArgs], tuple[Node, set[str]]]] = {
     "tpsr_ros.record:RecorderNode": _recorder,
     "tpsr_ros.play:PlayerNode": _player,
     "tpsr_ros.filter_node:FilterNode": _filter,
     "tpsr_ros.view:ViewNode": _view,
+    "tpsr_ros.learner_node:LearnerNode": _learner,
 }
 
 
