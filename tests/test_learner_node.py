@@ -59,12 +59,16 @@ class Harness:
         self.bus = InprocBus()
         self.feeder = Node(NodeOptions(name="feeder"), transport=InprocTransport("/f", self.bus))
         self.pubs = {t: self.feeder.create_publisher(t, ty) for t, ty in TOPICS.items()}
+        self.pubs_update = self.feeder.create_publisher(
+            "/tpsr/model_update", "std_msgs/msg/String", LATCHED_QOS
+        )
+        self.also_spin: Node | None = None  # another node on the bus (a filter node)
         self.updates: list[dict] = []
         self.diagnostics: list = []
         self.levels: list[int] = []  # of every /diagnostics report
         self.feeder.create_subscription(
             "/tpsr/model_update", "std_msgs/msg/String",
-            lambda msg: self.updates.append(json.loads(msg.data)), LATCHED_QOS,
+            self._on_update, LATCHED_QOS,
         )  # fmt: skip
         self.feeder.create_subscription(
             "/diagnostics", DIAGNOSTICS_TYPE, self._on_diagnostics
@@ -79,6 +83,11 @@ class Harness:
         self.log = io.StringIO()
         self.node.logger.stream = self.log
 
+    def _on_update(self, msg) -> None:
+        update = json.loads(msg.data)
+        if "version" in update:  # the learner node's, not the test's own
+            self.updates.append(update)
+
     def _on_diagnostics(self, msg) -> None:
         self.diagnostics.append(msg)
         self.levels.append(int(msg.status[0].level))
@@ -91,6 +100,9 @@ class Harness:
                     self.spin(0.02)
             self.pubs[topic].publish_raw(data)
             self.node.spin_once(0.0)
+            if self.also_spin is not None:
+                self.also_spin.spin_once(0.0)
+                self.feeder.spin_once(0.0)
         deadline = time.monotonic() + 120
         while wait_for is not None and len(self.updates) < wait_for:
             assert time.monotonic() < deadline, self.log.getvalue()
@@ -98,6 +110,8 @@ class Harness:
 
     def spin(self, timeout: float) -> None:
         self.node.spin_once(timeout)
+        if self.also_spin is not None:
+            self.also_spin.spin_once(0.0)
         self.feeder.spin_once(0.0)
 
     def values(self) -> dict:
@@ -264,3 +278,48 @@ def test_an_init_models_basis_is_kept_from_the_first_version(bag, tmp_path, caps
     first = open_model(h.updates[0]["path"])
     np.testing.assert_array_equal(first.model.obs_centers, open_model(start).model.obs_centers)
     assert first.training["live"]["init_from"]["path"] == str(start)
+
+
+@pytest.mark.slow
+def test_a_filter_node_waits_for_the_first_version_and_swaps_in_the_rest(bag, tmp_path):
+    from tpsr_ros.filter_node import FilterNode
+    from tpsr_ros.filter_node.swap import string_msg
+
+    h = Harness(tmp_path / "out")
+    options = NodeOptions.for_node(
+        FilterNode, parse_ros_args(["-p", "wait_for_model:=true", "-p", "view:=false"])
+    )
+    filter_node = FilterNode(options, transport=InprocTransport("/tpsr_filter", h.bus))
+    filter_node.logger.stream = h.log
+    states: list[int] = []
+    infos: list[dict] = []
+    h.feeder.create_subscription("/tpsr/state", m.STATE_TYPE,
+                                 lambda msg: states.append(m.stamp_of(msg)))  # fmt: skip
+    h.feeder.create_subscription(
+        "/tpsr/model_info", "std_msgs/msg/String",
+        lambda msg: infos.append(json.loads(msg.data)), LATCHED_QOS,
+    )  # fmt: skip
+    h.also_spin = filter_node
+    messages = _messages(bag)
+    cut = 4 * 1250  # the messages of the first 1250 steps: three versions
+    corrupt = tmp_path / "corrupt.npz"
+    corrupt.write_bytes(b"PK not a model")
+    try:
+        h.feed(messages[:cut], wait_for=3)
+        h.pubs_update.publish(string_msg(json.dumps({"path": str(corrupt)})))
+        h.spin(0.05)
+        refused_at = states[-1]
+        h.feed(messages[cut:], wait_for=4)
+        for _ in range(5):
+            h.spin(0.02)
+        values = filter_node.diagnostics_values()
+    finally:
+        filter_node.close()
+        h.close()
+    assert [i["version"] for i in infos if i["first_stamp_ns"] is None] == [1, 2, 3, 4]
+    assert infos[-1]["fingerprint"] == h.updates[-1]["fingerprint"]
+    assert values["model_swaps"] == 3 and values["model_swaps_refused"] == 1
+    assert "corrupt.npz refused" in h.log.getvalue()
+    step = 10**9
+    assert np.all(np.diff(states) == step)  # from the first version on, no step missed
+    assert states[-1] == STEPS * step and refused_at < states[-1]

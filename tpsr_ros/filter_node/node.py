@@ -153,22 +153,68 @@ class FilterNode(Node):
     )
 
     @classmethod
-    def preflight(cls, options: NodeOptions) -> FilterInputs:
+    def preflight(cls, options: NodeOptions) -> FilterInputs | None:
         """Open and check the model and policy before joining the graph (once: the node's
-        :meth:`setup` takes what this opened)."""
+        :meth:`setup` takes what this opened); None: no model yet, wait for one."""
+        if not options.params.model and options.params.wait_for_model:
+            return None
+        return cls._checked(options, options.params)
+
+    @classmethod
+    def _checked(cls, options: NodeOptions, params: FilterNodeParams) -> FilterInputs:
         # Node.resolve_topic needs only the options, name and namespace: use it unbound
         # so the check sees exactly the names setup() will subscribe.
         probe = object.__new__(cls)
         probe.options, probe.name, probe.namespace = options, options.name, options.namespace
-        return _open_inputs(options.params, probe.resolve_topic, options.namespace)
+        return _open_inputs(params, probe.resolve_topic, options.namespace)
 
     def setup(self) -> None:
+        """Take the checked model and policy and start; with none (``wait_for_model``),
+        wait for the first announced on ``tpsr/model_update``."""
+        prepared = self.prepared
+        inputs = prepared if isinstance(prepared, FilterInputs) else self.preflight(self.options)
+        self.model_version: int | None = None
+        if inputs is not None:
+            self._start(inputs)
+            return
+        self._waiting = self.create_subscription(
+            MODEL_UPDATE_TOPIC, MODEL_MESSAGE_TYPE, self._on_first_model, LATCHED_QOS, raw=True
+        )
+        self.logger.info(f"no model yet: waiting for one on {self._waiting.topic}")
+
+    def _on_first_model(self, data: bytes) -> None:
+        """The first announced model: open and check it as at start-up, then start."""
+        try:
+            update = parse_update(str(m.deserialize(data, MODEL_MESSAGE_TYPE).data))
+        except TpsrError as exc:
+            self.logger.warning(f"{self._waiting.topic}: refused, still waiting: {exc}")
+            return
+        if (refused := self._first_model(update)) is not None:
+            self.logger.warning(f"{self._waiting.topic}: refused, still waiting: {refused}")
+
+    def _first_model(self, update: ModelUpdate) -> str | None:
+        """Start with ``update``'s model and policy, checked as at start-up (the reason
+        it cannot run, else None)."""
+        try:
+            params = replace(self.params, model=update.path, policy=update.policy or "")
+            inputs = self._checked(self.options, params)
+            if update.fingerprint and not inputs.fingerprint.startswith(update.fingerprint):
+                raise ConfigError(
+                    f"{update.path} has fingerprint {inputs.fingerprint[:12]}, not the "
+                    f"announced {update.fingerprint[:12]}"
+                )
+        except TpsrError as exc:
+            return str(exc)
+        self._waiting.destroy()
+        self.params = params
+        self.model_version = update.version  # its latched announcement is not a swap
+        self._start(inputs)
+        return None
+
+    def _start(self, inputs: FilterInputs) -> None:
         """Take the checked model and policy; create the endpoints and timers."""
         p: FilterNodeParams = self.params
-        prepared = self.prepared
-        self.inputs = (
-            prepared if isinstance(prepared, FilterInputs) else self.preflight(self.options)
-        )
+        self.inputs = inputs
         image_name, action_name = input_topics(self.inputs.model_file) or (
             IMAGE_TOPIC,
             ACTION_TOPIC,
@@ -215,7 +261,6 @@ class FilterNode(Node):
         self.commands_ready = self.policy is None
         self.viewer = self._viewer()
         self.policy_name = p.policy or "none"
-        self.model_version: int | None = None
         self.swaps = self.refused_swaps = 0
         # the steps a swap re-filters (none kept when it restarts from b_*)
         replayed = p.swap_replay_steps if p.swap_state == "replay" else 0
@@ -732,6 +777,11 @@ class FilterNode(Node):
         """``ros2 param set /tpsr_filter model NEW`` swaps the model (:meth:`swap_model`),
         ``... policy NEW`` the policy if it fits the model; every other parameter is fixed
         at start-up."""
+        if not hasattr(self, "inputs"):  # waiting for a first model
+            if name == "model" and value:
+                return self._first_model(ModelUpdate(str(value), policy=self.params.policy or None))
+            if name == "policy":
+                return None  # taken with the model
         if name == "model":
             return self.swap_model(ModelUpdate(str(value))) if value else "model cannot be empty"
         if name != "policy":
@@ -822,6 +872,9 @@ class FilterNode(Node):
 
     def on_shutdown(self) -> None:
         """Log the totals."""
+        if not hasattr(self, "tracker"):
+            self.logger.info("stopped while waiting for a model")
+            return
         problems = ", ".join(f"{k} {v}" for k, v in self._problem_counts().items() if v)
         self.logger.info(
             f"tracked {self.tracker.steps} steps, {self.resets} resets, {self.commands} "

@@ -46,7 +46,9 @@ COMMAND_TYPES = {"twist": m.TWIST_TYPE, "twist_stamped": TWIST_STAMPED_TYPE}
 class FilterNodeParams:
     """Parameters of ``python -m tpsr_ros.filter_node``."""
 
-    model: str = param("", "model file (.npz) written by `learner fit` (required)")
+    model: str = param(
+        "", "model file (.npz) written by `learner fit` (required unless wait_for_model)"
+    )
     policy: str = param(
         "", "policy file written by `learner policy` for this model; empty: a pure filter"
     )
@@ -130,6 +132,11 @@ class FilterNodeParams:
     )
     swap_replay_steps: int = param(
         20, "steps kept for re-filtering at a model swap (swap_state replay)", minimum=1
+    )
+    wait_for_model: bool = param(
+        False,
+        "with no model given, wait for the first one announced on tpsr/model_update (the "
+        "learner node's) and start with it and its policy",
     )
 
     def __post_init__(self) -> None:
