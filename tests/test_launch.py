@@ -20,9 +20,10 @@ from tpsr_ros.filter_node import FilterNode
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagReader
 from tpsr_ros.launch import EXECUTABLES, LaunchError, parse_launch
+from tpsr_ros.learner_node import LearnerNode
 from tpsr_ros.play import PlayerNode
 from tpsr_ros.record import RecorderNode
-from tpsr_ros.runtime import Node, NodeOptions, parse_node_args
+from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions, parse_node_args
 from tpsr_ros.runtime.backend import choose_backend, open_transport
 from tpsr_ros.runtime.diagnostics import DIAGNOSTICS_TYPE, status_values
 from tpsr_ros.runtime.launcher import Launch, NodeProcess
@@ -32,7 +33,8 @@ from tpsr_ros.view import ViewNode
 ROOT = Path(__file__).resolve().parent.parent
 LAUNCH = ROOT / "launch" / "closed_loop.launch.xml"
 NODE_CLASSES = {"sim_node": SimNode, "filter_node": FilterNode, "record": RecorderNode,
-                "play": PlayerNode, "view": ViewNode}
+                "play": PlayerNode, "view": ViewNode, "learner_node": LearnerNode}
+LEARN_ONLINE = ROOT / "launch" / "learn_online.launch.xml"
 
 
 def test_the_executables_are_the_ones_colcon_installs():
@@ -126,6 +128,63 @@ def test_what_the_launcher_cannot_run_is_refused_in_one_line(tmp_path, overrides
 
 
 @pytest.mark.slow
+def test_the_learn_online_launch_file_names_real_nodes_and_parameters(tmp_path):
+    nodes = parse_launch(LEARN_ONLINE, {"output": str(tmp_path / "live"), "steps": "500"})
+    assert [n.executable for n in nodes] == ["learner_node", "filter_node", "sim_node"]
+    parsed = {}
+    for node in nodes:
+        cls = NODE_CLASSES[node.executable]
+        options = parse_node_args(cls, node.command()[2:], "prog")
+        assert options is not None and options.name == cls.default_name
+        parsed[node.executable] = options.params
+    assert parsed["learner_node"].output == str(tmp_path / "live")
+    assert parsed["learner_node"].environment == parsed["sim_node"].environment == "full"
+    assert parsed["filter_node"].wait_for_model and not parsed["filter_node"].model
+    assert (parsed["sim_node"].mode, parsed["sim_node"].steps) == ("explore", 500)
+
+
+@pytest.mark.slow
+def test_the_learn_online_launch_file_learns_and_the_filter_swaps(tmp_path, monkeypatch):
+    """The simulator explores, the learner node announces versions, the filter node starts
+    with the first and acknowledges the next on /tpsr/model_info (seen in the graph)."""
+    import json
+
+    output = tmp_path / "live"
+    monkeypatch.delenv("TPSR_TRANSPORT", raising=False)
+    backend, _ = choose_backend()
+    for key, value in {
+        "ROS_DOMAIN_ID": str(fresh_domain(23)),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "CYCLONEDDS_URI": LOOPBACK,
+        "PYTHONUNBUFFERED": "1",
+    }.items():
+        monkeypatch.setenv(key, value)
+    probe = Node(NodeOptions(name="learn_probe"),
+                 transport=open_transport(backend, "learn_probe", "/"))
+    infos: list[dict] = []
+    probe.create_subscription(
+        "/tpsr/model_info", "std_msgs/msg/String",
+        lambda msg: infos.append(json.loads(msg.data)), LATCHED_QOS,
+    )  # fmt: skip
+    try:
+        with Launch(tmp_path, spin=probe.spin_once, timeout_s=120) as launch:
+            proc = launch.start("launch", "tpsr_ros.launch", [
+                str(LEARN_ONLINE), f"output:={output}", "rate:=100", "steps:=1200",
+                "warmup_steps:=400", "refit_steps:=300",
+            ])  # fmt: skip
+            launch.wait("the filter node's acknowledgement of version 2",
+                        lambda: any(i.get("version") == 2 for i in infos))  # fmt: skip
+            code = proc.stop(timeout_s=60)
+    finally:
+        probe.close()
+    text = proc.text()
+    assert code == 0, text
+    assert "[tpsr_learner] " in text and "v1: " in text, text[-6000:]
+    assert "no model yet: waiting" in text
+    assert infos[-1]["swaps"] >= 1 and infos[-1]["version"] >= 2
+    assert (output / "model.npz").is_file() and (output / "policy.npz").is_file()
+
+
 def test_the_launch_file_runs_the_closed_loop(tmp_path, monkeypatch):
     """The launch file's closed loop runs its episode; its end is seen in the graph.
 

@@ -43,6 +43,7 @@ PACKAGE = "tpsr_ros"
 EXECUTABLES = {
     "sim_node": "sim_node",
     "filter_node": "tpsr_ros.filter_node",
+    "learner_node": "tpsr_ros.learner_node",
     "record": "tpsr_ros.record",
     "play": "tpsr_ros.play",
     "view": "tpsr_ros.view",
