@@ -33,6 +33,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "learner.closed_loop_cli",
     "learner.experiment",
     "learner.study",
+    "learner.competence",
     "learner.report",
     "learner.memory",
     "learner.view_study",

@@ -32,6 +32,7 @@ __all__ = [
     "plot_summary",
     "pooled_floors",
     "read_csv",
+    "score_statistics",
     "summarise",
     "write_csv",
 ]
@@ -79,7 +80,7 @@ class Row:
     """``learner tune``'s criterion of the run's TPSR configuration (``--criterion``)."""
 
 
-def _statistics(scores: np.ndarray) -> dict[str, Any]:
+def score_statistics(scores: np.ndarray) -> dict[str, Any]:
     """Runs, failed runs (non-finite scores), mean, median and SEM of the finite ones."""
     ok = scores[np.isfinite(scores)]
     return {
@@ -104,7 +105,7 @@ def pooled_floors(rows: Sequence[Row]) -> dict[str, dict[str, Any]]:
         scores = np.array([r.score for r in rows if r.method == method])
         if len(scores):
             sizes = len({r.episodes for r in rows if r.method == method})
-            pooled[method] = {"method": method, "sizes": sizes, **_statistics(scores)}
+            pooled[method] = {"method": method, "sizes": sizes, **score_statistics(scores)}
     return pooled
 
 
@@ -121,7 +122,7 @@ def summarise(rows: Sequence[Row]) -> list[dict[str, Any]]:
     keys = sorted({(r.method, r.episodes) for r in rows}, key=lambda k: (METHODS.index(k[0]), k[1]))
     for method, episodes in keys:
         scores = np.array([r.score for r in rows if (r.method, r.episodes) == (method, episodes)])
-        table.append({"method": method, "episodes": episodes, **_statistics(scores)})
+        table.append({"method": method, "episodes": episodes, **score_statistics(scores)})
     floors = [f for f in pooled_floors(rows).values() if np.isfinite(f["mean"])]
     best = max(floors, key=lambda t: t["mean"], default=None)
     for entry in table:

@@ -201,6 +201,80 @@ def test_ros2_param_set_of_model_swaps_it_and_refuses_a_bad_one(ros_env, tmp_pat
         node.close()
 
 
+def _trigger(nodes, caller, service: str) -> object:
+    """Call a ``std_srvs/srv/Trigger`` service over rclpy; its response."""
+    from std_srvs.srv import Trigger
+
+    client = caller.transport.node.create_client(Trigger, service)
+    assert spin_all((*nodes, caller), client.service_is_ready)
+    future = client.call_async(Trigger.Request())
+    assert spin_all((*nodes, caller), future.done, timeout=60)
+    return future.result()
+
+
+@pytest.mark.slow
+def test_reload_model_reads_the_model_file_again_and_refuses_a_corrupt_one(ros_env, tmp_path):
+    """The filter node's ``~/reload_model`` Trigger over real rclpy: after the file at its
+    ``model`` path is replaced, the new model runs; a corrupt file is refused with its
+    reason in the response and the old model runs on."""
+    import shutil
+
+    from test_filter_node import fit_small_model
+
+    from tpsr_ros.filter_node import FilterNode
+
+    first, second = fit_small_model(tmp_path), fit_small_model(tmp_path, seed=4)
+    path = tmp_path / "live.npz"
+    shutil.copyfile(first, path)
+    node = rclpy_node("f", FilterNode, "-p", f"model:={path}")
+    caller = rclpy_node("trigger_client")
+    try:
+        assert node.reload_service == "/tpsr_filter/reload_model"
+        running = node.inputs.fingerprint
+        shutil.copyfile(second, path)
+        response = _trigger((node,), caller, "/tpsr_filter/reload_model")
+        assert response.success and node.inputs.fingerprint != running
+        assert node.inputs.fingerprint[:12] in response.message
+        path.write_bytes(b"not a model")
+        refused = _trigger((node,), caller, "/tpsr_filter/reload_model")
+        assert not refused.success and "not a readable model file" in refused.message
+        assert node.swaps == 1 and node.refused_swaps == 1
+    finally:
+        caller.close()
+        node.close()
+
+
+@pytest.mark.slow
+def test_the_learner_nodes_refit_service_refits_on_the_steps_so_far(ros_env, tmp_path):
+    """The learner node's ``~/refit`` Trigger over real rclpy, with steps fed in-process."""
+    from test_learner_node import TOPICS, _messages
+
+    from sim_node import SimConfig
+    from sim_node.generate import generate_bag
+    from tpsr_ros.io.trajectory import LiveSteps
+    from tpsr_ros.learner_node import LearnerNode
+
+    generate_bag(tmp_path / "run", SimConfig(environment="full"), 700, seed=2)
+    node = rclpy_node("l", LearnerNode, "-p", f"output:={tmp_path / 'out'}",
+                      "-p", "warmup_steps:=5000")  # fmt: skip
+    caller = rclpy_node("trigger_client")
+    try:
+        kinds = dict(zip(TOPICS, (LiveSteps.IMAGE, LiveSteps.ACTION, LiveSteps.POSE,
+                                  LiveSteps.REWARD), strict=True))  # fmt: skip
+        for topic, data in _messages(tmp_path / "run"):
+            node.live.add(kinds[topic], data)
+        node.live.flush()
+        response = _trigger((node,), caller, "/tpsr_learner/refit")
+        assert response.success and "refit of 700 steps started (v1)" in response.message
+        busy = _trigger((node,), caller, "/tpsr_learner/refit")
+        assert not busy.success and "is running" in busy.message
+        assert spin_all((node, caller), lambda: node.last_result is not None, timeout=60)
+        assert node.last_result.steps == 700 and node.next_due == 700 + 1000
+    finally:
+        caller.close()
+        node.close()
+
+
 @pytest.mark.slow
 def test_why_the_dds_backend_serves_no_ros2_services_to_fast_dds_clients(mixed_pair):
     """A real rclpy (Fast DDS) service request reaches a plain Cyclone DDS reader of the

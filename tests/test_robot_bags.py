@@ -226,7 +226,9 @@ def test_a_model_whose_input_entry_is_wrong_is_refused(robot):
     metadata = read_metadata(model)
     opened = open_model(model)
     assert opened.view is not None
-    arrays = {**opened.model.to_arrays(), **opened.view.to_arrays()}
+    arrays = {
+        **opened.model.to_arrays(), **opened.view.to_arrays(), **opened.model.basis.to_arrays()
+    }
     for change, reason in [
         ({"codebook": {**metadata["input"]["codebook"], "codes": [[1.0, 2.0]]}},
          "has 25 actions, but its codebook 1 codes"),

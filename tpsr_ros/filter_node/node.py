@@ -100,6 +100,8 @@ MARKERS_QOS = QoSProfile(
     Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, History.KEEP_LAST, DEFAULT_QOS.depth
 )
 """tpsr/state_markers: a viewer that joins late gets the last markers (the trail)."""
+RELOAD_SERVICE = "~/reload_model"
+"""The ``std_srvs/srv/Trigger`` service that reads the model files again (rclpy only)."""
 IMAGE_ERROR_STEPS = 100
 """Steps over which ``/diagnostics`` averages the predicted image's error."""
 
@@ -371,6 +373,7 @@ class FilterNode(Node):
         self.model_update_topic = self.create_subscription(
             MODEL_UPDATE_TOPIC, MODEL_MESSAGE_TYPE, self._on_model_update, LATCHED_QOS, raw=True
         ).topic
+        self.reload_service = self.create_trigger_service(RELOAD_SERVICE, self.reload_model)
 
     def _view_publishers(self) -> None:
         """The view topics' publishers the current viewer needs (created once each)."""
@@ -818,6 +821,19 @@ class FilterNode(Node):
         ) and update.version == self.model_version:
             return  # the latched announcement of the model already running
         self.swap_model(update)
+
+    def reload_model(self) -> tuple[bool, str]:
+        """``~/reload_model`` (``std_srvs/srv/Trigger``): read the ``model`` (and ``policy``)
+        files again and swap them in, e.g. after a refit replaced them; the response says
+        what runs, or why the new file was refused and the old model runs on."""
+        p: FilterNodeParams = self.params
+        before = self.inputs.fingerprint
+        refused = self.swap_model(ModelUpdate(p.model, policy=p.policy or None))
+        if refused is not None:
+            return False, f"refused, {before[:12]} runs on: {refused}"
+        now = self.inputs.fingerprint
+        same = " (the same model, its state re-filtered)" if now == before else ""
+        return True, f"{p.model} runs: {now[:12]}{same}"
 
     def swap_model(self, update: ModelUpdate) -> str | None:
         """Run the model (and policy) of ``update`` from the next step on, at a step

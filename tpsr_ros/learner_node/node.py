@@ -57,6 +57,8 @@ TOPICS = {
     LiveSteps.REWARD: ("reward", m.REWARD_TYPE),
 }
 """The simulator's topics the node learns from, by kind (relative: they follow the namespace)."""
+REFIT_SERVICE = "~/refit"
+"""The ``std_srvs/srv/Trigger`` service that refits on the steps so far (rclpy only)."""
 POLL_S = 0.05
 """Seconds between looks at the refit in progress and at the streams' silence."""
 WARN_PERIOD_S = 5.0
@@ -170,6 +172,7 @@ class LearnerNode(Node):
             MODEL_UPDATE_TOPIC, MODEL_MESSAGE_TYPE, LATCHED_QOS
         )
         self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
+        self.refit_service = self.create_trigger_service(REFIT_SERVICE, self.refit_now)
         # spawn: the worker starts clean of the middleware's threads and sockets
         self.worker = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
         self.create_timer(POLL_S, self._poll)
@@ -219,6 +222,15 @@ class LearnerNode(Node):
 
     # -- refits ---------------------------------------------------------------------------
 
+    def refit_now(self) -> tuple[bool, str]:
+        """``~/refit`` (``std_srvs/srv/Trigger``): refit on every step so far, now."""
+        if self.job is not None:
+            return False, f"a refit of {self.job_steps} steps is running; ask again after it"
+        if len(self.live) < 2:
+            return False, f"{len(self.live)} steps so far: too few to fit"
+        self._submit(len(self.live))
+        return True, f"refit of {self.job_steps} steps started (v{self.version + 1})"
+
     def _start_refit(self) -> None:
         """Hand the steps to the worker when a refit is due and none is running."""
         if self.job is not None or len(self.live) < self.next_due:
@@ -226,9 +238,13 @@ class LearnerNode(Node):
         step = self.params.refit_steps
         while len(self.live) >= self.next_due + step:  # behind: the latest due point only
             self.next_due += step
-        self.job_steps = self.next_due
+        self._submit(self.next_due)
+
+    def _submit(self, steps: int) -> None:
+        """Refit on the first ``steps`` steps in the worker."""
+        self.job_steps = steps
         request = RefitRequest(
-            self.live.chunk(self.next_due), self.version + 1, self.output, self.params.preset,
+            self.live.chunk(steps), self.version + 1, self.output, self.params.preset,
             basis_model=self.basis_model, keep=self.params.keep_versions,
             first_version=self.first_version, reward_topic=self.live.topics.reward,
         )  # fmt: skip

@@ -61,6 +61,8 @@ __all__ = [
 ]
 
 _MAX_WAIT_S = 0.1  # bound on one blocking wait, so signals are handled promptly
+TRIGGER_TYPE = "std_srvs/srv/Trigger"
+"""The service type of :meth:`Node.create_trigger_service`."""
 
 class Logger:
     """ROS-style console logger: ``[INFO] [1700000000.123456789] [node]: message``."""
@@ -124,7 +126,7 @@ class Logger:
 class EndpointInfo:
     """A publisher or subscription a node created (for msgs_doc checks and tools)."""
 
-    kind: str  # "publisher" | "subscription"
+    kind: str  # "publisher" | "subscription" | "service"
     topic: str
     msgtype: str
     qos: QoSProfile
@@ -450,6 +452,17 @@ class Node:
         sub._handle = self.transport.create_subscription(resolved, msgtype, qos, on_bytes)
         self._endpoints.append(EndpointInfo("subscription", resolved, msgtype, qos))
         return sub
+
+    def create_trigger_service(
+        self, name: str, callback: Callable[[], tuple[bool, str]]
+    ) -> str | None:
+        """Serve ``std_srvs/srv/Trigger`` on ``name`` (``~/x``: under the node's name) where
+        the middleware has services (rclpy); the resolved name, or None without services."""
+        resolved = self.resolve_topic(name)
+        if not self.transport.create_trigger_service(resolved, callback):
+            return None
+        self._endpoints.append(EndpointInfo("service", resolved, TRIGGER_TYPE, DEFAULT_QOS))
+        return resolved
 
     def create_timer(self, period_s: float, callback: Callable[[], None]) -> Timer:
         """Call ``callback`` every ``period_s`` seconds while spinning."""

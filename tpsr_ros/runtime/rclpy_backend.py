@@ -35,6 +35,7 @@ from tpsr_ros.runtime.transport import (
     SubscriptionHandle,
     TopicEndpoint,
     Transport,
+    TriggerCallback,
     pad_cdr,
 )
 
@@ -278,6 +279,17 @@ class RclpyTransport(Transport):
         except UnsupportedEventTypeError:  # an rmw without the events: gaps only
             handle.subscription = self.node.create_subscription(*args, raw=True)
         return handle
+
+    def create_trigger_service(self, name: str, callback: TriggerCallback) -> bool:
+        from std_srvs.srv import Trigger
+
+        def on_request(request: Any, response: Any) -> Any:
+            self._dispatched += 1
+            response.success, response.message = callback()
+            return response
+
+        self.node.create_service(Trigger, name, on_request)
+        return True
 
     def spin_once(self, timeout_s: float) -> int:
         start = self._dispatched

@@ -26,12 +26,15 @@ __all__ = [
     "SubscriptionHandle",
     "TopicEndpoint",
     "Transport",
+    "TriggerCallback",
     "pad_cdr",
 ]
 
 BytesCallback = Callable[[bytes], None]
 ParameterCheck = Callable[[str, object], "str | None"]
 """``check(name, value)``: None to accept a runtime parameter change, else the reason."""
+TriggerCallback = Callable[[], "tuple[bool, str]"]
+"""A ``std_srvs/srv/Trigger`` request's handler: ``(success, message)`` of the response."""
 
 
 def pad_cdr(data: bytes | bytearray | memoryview) -> bytes:
@@ -132,6 +135,13 @@ class Transport(ABC):
     @abstractmethod
     def publishers(self) -> list[TopicEndpoint]:
         """Every publisher currently visible in the graph (remote and local)."""
+
+    def create_trigger_service(self, name: str, callback: TriggerCallback) -> bool:
+        """Serve ``std_srvs/srv/Trigger`` on fully qualified ``name``: each request calls
+        ``callback()`` in the spinning thread (between callbacks, like a message) and its
+        ``(success, message)`` is the response. False: this backend has no services (rclpy
+        has; the Cyclone DDS and in-process backends offer topics only)."""
+        return False
 
     def declare_parameters(  # noqa: B027
         self, params: list[tuple[ParamSpec, object]], check: ParameterCheck | None = None

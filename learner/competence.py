@@ -1,0 +1,157 @@
+"""``learner competence``: how soon the learner node's versions plan well (time to competence).
+
+The learner node's version ``n`` is the refit of the first ``warmup + (n - 1) * refit``
+live steps on version 1's basis, with the preset's fitted-Q policy on the same tracked
+states (msgs_doc/learner_node.md). This command makes exactly those versions without a
+middleware and scores each: for every run it generates the simulator's exploring run as a
+bag (:func:`sim_node.generate.generate_bag`, the messages ``sim_node`` publishes), feeds
+its messages to :class:`~tpsr_ros.io.trajectory.LiveSteps` as the node's subscriptions do,
+runs the node's own refit (:func:`tpsr_ros.learner_node.refits.refit`) at every due point
+and scores the version's policy by the standard evaluation (``learner evaluate``).
+
+The CSV (``competence_<environment>.csv``) has the experiments' columns
+(:class:`learner.tables.Row`), one row per version: ``method`` ``tpsr``, ``episodes`` the
+live steps the version was fitted on, ``repetition`` the run, ``train_seed`` the run's
+simulator seed, ``rl_seed`` 0 (the policy plans on the same steps), ``fit_seconds`` the
+TPSR fit, and in ``parameters`` the version, the whole refit's seconds, the warm-up and
+the refit period.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from learner.tables import Row, write_csv
+from sim_node import SimConfig
+from tpsr_ros.cli import positive_int
+from tpsr_ros.core.errors import ConfigError
+
+__all__ = ["DEFAULT_STEPS", "competence_rows", "register", "run"]
+
+DEFAULT_STEPS = 12000
+"""Live steps of a run: 20 minutes at 10 Hz."""
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``competence`` subcommand."""
+    doc = "score the learner node's versions on the simulator's exploring runs (time to competence)"
+    parser = subparsers.add_parser(
+        "competence", help=doc, description=doc[0].upper() + doc[1:] + ". "
+        + __doc__.split("\n\n")[1].replace("%", "%%"),
+    )  # fmt: skip
+    parser.add_argument("--environment", required=True, help="the simulator environment")
+    parser.add_argument("--steps", type=positive_int, default=DEFAULT_STEPS,
+                        help="live steps of each run (default: %(default)s)")  # fmt: skip
+    parser.add_argument("--warmup-steps", type=positive_int, default=1000,
+                        help="the learner node's warmup_steps (default: %(default)s)")  # fmt: skip
+    parser.add_argument("--refit-steps", type=positive_int, default=1000,
+                        help="the learner node's refit_steps (default: %(default)s)")  # fmt: skip
+    parser.add_argument("--runs", type=positive_int, default=10,
+                        help="independent runs (default: %(default)s)")  # fmt: skip
+    parser.add_argument("--seed", type=int, default=31,
+                        help="simulator seed of the first run; run k uses seed + k "
+                        "(default: %(default)s)")  # fmt: skip
+    parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing CSV")
+    parser.add_argument("--workers", type=positive_int, default=1,
+                        help="runs in parallel processes (default: %(default)s)")  # fmt: skip
+    parser.set_defaults(run=run)
+
+
+def command_of(args: argparse.Namespace) -> str:
+    """The command that reruns these runs (recorded in every row)."""
+    parts = ["python -m learner competence", "--environment", args.environment]
+    defaults = {"steps": DEFAULT_STEPS, "warmup_steps": 1000, "refit_steps": 1000,
+                "runs": 10, "seed": 31}  # fmt: skip
+    for name, default in defaults.items():
+        if getattr(args, name) != default:
+            parts += [f"--{name.replace('_', '-')}", str(getattr(args, name))]
+    return " ".join(parts)
+
+
+def competence_rows(
+    environment: str, steps: int, warmup: int, refit_every: int, run: int, seed: int,
+    command: str,
+) -> list[Row]:
+    """One run: every version the learner node would make of the run's steps, scored."""
+    from learner.evaluate import evaluate
+    from learner.representations import ModelTracker
+    from sim_node.generate import generate_bag
+    from tpsr_ros.io.bag import BagReader
+    from tpsr_ros.io.model_io import open_model
+    from tpsr_ros.io.policy import load_policy
+    from tpsr_ros.io.trajectory import LiveSteps, Topics
+    from tpsr_ros.learner_node.refits import RefitRequest, refit
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="competence_") as tmp:
+        bag = Path(tmp) / "run"
+        generate_bag(bag, SimConfig(environment=environment), steps, seed=seed)
+        topics = Topics()
+        kinds = {topics.image: 0, topics.action: 1, topics.pose: 2, topics.reward: 3}
+        live = LiveSteps(environment)
+        with BagReader(bag) as reader:
+            for topic, _, data in reader.raw_messages(list(kinds)):
+                live.add(kinds[topic], data)
+        live.flush()
+        basis = None
+        for version, due in enumerate(range(warmup, len(live) + 1, refit_every), start=1):
+            result = refit(RefitRequest(
+                live.chunk(due), version, Path(tmp) / "out", "best", basis_model=basis, keep=1,
+            ))  # fmt: skip
+            basis = result.model
+            score, status = float("nan"), result.note or "ok"
+            if result.policy is not None:
+                model_file = open_model(result.model)
+                tracker = ModelTracker(model_file.model, model_file.fingerprint)
+                evaluation = evaluate(load_policy(result.policy), tracker, environment)
+                score = evaluation.score
+                trials = ";".join(f"{t.reward:g}" for t in evaluation.trials)
+            else:
+                trials = ""
+            rows.append(Row(
+                environment=environment, method="tpsr", episodes=due, repetition=run,
+                train_seed=seed, rl_seed=0, score=score, trial_rewards=trials,
+                fit_seconds=round(result.fit_seconds, 6), fqi_ridge=float("nan"),
+                recoveries=0, r2_x=float("nan"), r2_y=float("nan"), status=status,
+                parameters=json.dumps({
+                    "version": version, "refit_seconds": round(result.total_seconds, 6),
+                    "warmup_steps": warmup, "refit_steps": refit_every,
+                }),
+                preset="best", command=command,
+            ))  # fmt: skip
+            print(f"learner competence: {environment} run {run} v{version} ({due} steps): "
+                  f"{score:.1f}", file=sys.stderr, flush=True)  # fmt: skip
+    return rows
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run every run (in parallel processes), then write the CSV."""
+    SimConfig(environment=args.environment)  # an unknown environment is refused here
+    path = args.output / f"competence_{args.environment}.csv"
+    if path.exists() and not args.force:
+        raise ConfigError(f"{path} already exists; use --force to overwrite it")
+    args.output.mkdir(parents=True, exist_ok=True)
+    command = command_of(args)
+    jobs = [
+        (args.environment, args.steps, args.warmup_steps, args.refit_steps, run, args.seed + run,
+         command)
+        for run in range(args.runs)
+    ]  # fmt: skip
+    if args.workers == 1:
+        results = [competence_rows(*job) for job in jobs]
+    else:
+        os.environ.setdefault("OMP_NUM_THREADS", "1")  # one BLAS thread per process
+        with ProcessPoolExecutor(args.workers) as pool:
+            results = list(pool.map(competence_rows, *zip(*jobs, strict=True)))
+    rows = [row for run_rows in results for row in run_rows]
+    write_csv(rows, path)
+    print(f"wrote {path}: {len(rows)} versions of {args.runs} runs", file=sys.stderr)
+    return 0
