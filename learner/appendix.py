@@ -19,6 +19,7 @@ import numpy as np
 from scipy.stats import spearmanr
 
 from learner.camera_study import CAMERA_SECTION
+from learner.competence_section import COMPETENCE_SECTION
 from learner.experiment import preset_tpsr
 from learner.jobs import GUIDE_ENVIRONMENTS, SELECTION_SEEDS, Job, experiment_job, study_job
 from learner.overrides import convert
@@ -439,6 +440,7 @@ SECTIONS: tuple[Section, ...] = (
     *_PLANNER,
     *_FIT_SWITCHES,
     PREDICTIVE_SECTION,
+    COMPETENCE_SECTION,
     Section(
         "tuning",
         "Tuning: `learner tune` against the defaults",
