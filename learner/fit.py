@@ -49,12 +49,11 @@ from learner.options import (
 from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory, common_value, make_episodes, track_trajectory
 from tpsr_ros.core.errors import ConfigError, TpsrError
-from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
 from tpsr_ros.core.presets import Preset, departures
 from tpsr_ros.core.refit import fit_trajectory, view_of_track
 from tpsr_ros.core.sizing import Sizing, describe_sizing
-from tpsr_ros.core.state_model import StateModel, Track
+from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.streamed_fit import fit_pca_streamed, fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel
 from tpsr_ros.core.view_readout import ViewReadout, ViewSums, point_rows
@@ -256,17 +255,22 @@ def run(args: argparse.Namespace) -> int:
     )
     start = time.perf_counter()
     model: StateModel
+    pose_frame = _decoded_pose_frame(args, topics)
     if args.method == "tpsr":
         codes = None if spec is None else spec.codebook.codes  # action-aware features
-        model = fit_tpsr_trajectory(
+        fitted = fit_trajectory(
             trajectory, tpsr_config, episodes=episodes, max_episodes=args.episodes,
-            progress=_say, action_codes=codes, sizing=args.sizing,
+            progress=_say, action_codes=codes, sizing=args.sizing, pose_frame=pose_frame,
         )  # fmt: skip
+        model, tracked, view = fitted.model, fitted.tracked, fitted.view
+        timings["fit"] = fitted.seconds
         _say_sizing(model)
     else:
         _say("PCA")
         model = fit_pca(episodes.steps(), n_actions=trajectory.n_actions, config=pca_config)
-    timings["fit"] = time.perf_counter() - start
+        timings["fit"] = time.perf_counter() - start
+        tracked = track_trajectory(model, trajectory)  # once: the adequacy figures, the view
+        view = view_of_track(tracked, trajectory, pose_frame)
 
     training = {
         **trajectory.summary(),
@@ -277,10 +281,9 @@ def run(args: argparse.Namespace) -> int:
         "reading_seconds": round(timings["reading bags"], 6),
         "fit_seconds": round(timings["fit"], 6),
     }
-    tracked = track_trajectory(model, trajectory)  # once: the adequacy figures, the view
     if isinstance(model, TPSRModel):  # enough data? episodes per action, recovery rate
         training["adequacy"] = _say_adequacy(assess(model, trajectory, tracked))
-    view = _view_readout(tracked, trajectory, _decoded_pose_frame(args, topics))
+    _say_view(view)
     _write(model, output, training, spec, timings, preset=record, view=view, force=args.force)
     return 0
 
@@ -331,6 +334,7 @@ def _run_init_from(args: argparse.Namespace, output: Path) -> int:
         "init_from": {"path": str(args.init_from), "fingerprint": init.fingerprint},
     }
     training["adequacy"] = _say_adequacy(assess(fitted.model, trajectory, fitted.tracked))
+    _say_view(fitted.view)
     preset = init.metadata.get("preset")
     _write(
         fitted.model, output, training, spec, timings,
@@ -347,12 +351,10 @@ def _decoded_pose_frame(args: argparse.Namespace, topics: Topics) -> str:
     return pose_frame_id(args.bags[0], topics.pose, child) or "map"
 
 
-def _view_readout(tracked: Track, trajectory: Trajectory, pose_frame: str) -> ViewReadout:
-    """The viewer's read-outs (next image, pose, state map) on the training states."""
-    view = view_of_track(tracked, trajectory, pose_frame)
-    pose = "" if view.pose is None else f" and the pose (frame {pose_frame})"
+def _say_view(view: ViewReadout) -> None:
+    """Say what the viewer's read-outs (fitted on the training states) show."""
+    pose = "" if view.pose is None else f" and the pose (frame {view.pose_frame})"
     _say(f"viewer read-outs: the next image for each action{pose}")
-    return view
 
 
 def _say_adequacy(adequacy: Adequacy) -> dict[str, Any]:

@@ -1,7 +1,7 @@
 """One TPSR fit of a whole trajectory as ``learner fit`` makes it, for a first fit and a refit.
 
 ``learner fit BAG`` (in memory), ``learner fit BAG --init-from MODEL`` and the learner node
-fit through :func:`fit_trajectory`, so the node's model after ``T`` live steps equals the
+all fit through :func:`fit_trajectory`, so the node's model after ``T`` live steps equals the
 command's on a recording of those steps: the episodes cut from every step, the preset
 sized to the data (a first fit) or the frozen basis of an earlier fit (a refit:
 :mod:`tpsr_ros.core.fit_basis`), the refinement the config asks for, then the training
@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from tpsr_ros.core.episodes import Trajectory, make_episodes, track_trajectory
+from tpsr_ros.core.episodes import Episodes, Trajectory, make_episodes, track_trajectory
 from tpsr_ros.core.fit_basis import FitBasis
 from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.sizing import Sizing
@@ -58,20 +58,25 @@ def fit_trajectory(
     action_codes: np.ndarray | None = None,
     pose_frame: str = "map",
     progress: Progress | None = None,
+    episodes: Episodes | None = None,
+    max_episodes: int | None = None,
 ) -> TrajectoryFit:
     """Fit ``trajectory`` with ``config`` (sized by ``sizing``), or refit it on ``basis``
     (then ``config`` is the basis's and only the rank rule applies); track its steps once.
 
     ``action_codes``: a robot model's codebook commands (action-aware features);
-    ``pose_frame``: the frame of the training poses, for the decoded pose.
+    ``pose_frame``: the frame of the training poses, for the decoded pose; ``episodes``:
+    the trajectory's episodes when already cut (at most ``max_episodes`` of them).
     """
     start = time.perf_counter()
     cfg = basis.config if basis is not None else config
-    episodes = make_episodes(
-        trajectory, cfg.history_length, cfg.test_length, stride=cfg.episode_stride
-    )
+    if episodes is None:
+        episodes = make_episodes(
+            trajectory, cfg.history_length, cfg.test_length, max_episodes=max_episodes,
+            stride=cfg.episode_stride,
+        )  # fmt: skip
     model = fit_tpsr_trajectory(
-        trajectory, cfg, episodes=episodes, progress=progress,
+        trajectory, cfg, episodes=episodes, max_episodes=max_episodes, progress=progress,
         sizing=Sizing() if basis is not None else sizing,
         action_codes=action_codes, basis=basis,
     )  # fmt: skip
