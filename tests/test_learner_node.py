@@ -323,3 +323,23 @@ def test_a_filter_node_waits_for_the_first_version_and_swaps_in_the_rest(bag, tm
     step = 10**9
     assert np.all(np.diff(states) == step)  # from the first version on, no step missed
     assert states[-1] == STEPS * step and refused_at < states[-1]
+
+
+@pytest.mark.slow
+def test_a_worker_that_dies_is_replaced_and_the_next_refit_runs(bag, tmp_path):
+    messages = _messages(bag)
+    h = Harness(tmp_path / "out")
+    try:
+        fed = 0
+        while h.node.job is None:  # until the warm-up's steps are final and its refit starts
+            h.feed(messages[fed : fed + 1])
+            fed += 1
+        for process in list(h.node.worker._processes.values()):
+            process.kill()  # as the kernel's out-of-memory killer would
+        while h.node.failures == 0:
+            h.spin(0.02)
+        h.feed(messages[fed:], wait_for=1)
+    finally:
+        h.close()
+    assert "BrokenProcessPool" in h.log.getvalue()
+    assert h.updates[0]["steps"] == WARMUP + REFIT and h.updates[0]["version"] == 1

@@ -22,10 +22,12 @@ import json
 import multiprocessing
 import time
 from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from tpsr_ros.core.episodes import DEFAULT_IMAGE_SHAPE
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.presets import DEFAULT_PRESET, PRESETS
 from tpsr_ros.core.tpsr import TPSRModel
@@ -145,7 +147,7 @@ class LearnerNode(Node):
         self.output = Path(p.output)
         self.output.mkdir(parents=True, exist_ok=True)
         names = {kind: self.resolve_topic(name) for kind, (name, _) in TOPICS.items()}
-        image_shape = (16, 16) if init is None else model_image_shape(init)
+        image_shape = DEFAULT_IMAGE_SHAPE if init is None else model_image_shape(init)
         environment = p.environment or (init.environment if init is not None else None)
         self.live = LiveSteps(
             environment or None, image_shape=image_shape, window=p.reorder_window,
@@ -173,8 +175,7 @@ class LearnerNode(Node):
         )
         self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
         self.refit_service = self.create_trigger_service(REFIT_SERVICE, self.refit_now)
-        # spawn: the worker starts clean of the middleware's threads and sockets
-        self.worker = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+        self.worker = _worker()
         self.create_timer(POLL_S, self._poll)
         self.create_timer(p.diagnostics_period, self.publish_diagnostics)
         start = "the preset " + p.preset if init is None else f"the basis of {p.init_model}"
@@ -255,12 +256,17 @@ class LearnerNode(Node):
         self.next_due = self.job_steps + self.params.refit_steps
         try:
             result = job.result()
-        except (TpsrError, OSError) as exc:
+        except Exception as exc:  # noqa: BLE001 - any failure of a refit leaves the node running
+            restarted = ""
+            if isinstance(exc, BrokenProcessPool):  # the worker died (out of memory?): anew
+                self.worker, restarted = _worker(), " (a new worker process is started)"
             self.failures += 1
-            self.last_error = str(exc) or type(exc).__name__
+            self.last_error = (
+                str(exc) if isinstance(exc, TpsrError) else f"{type(exc).__name__}: {exc}"
+            )
             self.logger.error(
-                f"the refit of {self.job_steps} steps failed: {exc}; the next is due at "
-                f"{self.next_due} steps"
+                f"the refit of {self.job_steps} steps failed: {self.last_error}{restarted}; "
+                f"the next is due at {self.next_due} steps"
             )
             return
         self.last_error = ""
@@ -311,6 +317,12 @@ class LearnerNode(Node):
     def on_shutdown(self) -> None:
         """Let a running refit finish its files (each write is atomic), then stop the worker."""
         self.worker.shutdown(wait=True, cancel_futures=True)
+
+
+def _worker() -> ProcessPoolExecutor:
+    """One worker process for the refits; spawned, so it starts clean of the middleware's
+    threads and sockets."""
+    return ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
 
 
 def main(argv: list[str] | None = None) -> None:
