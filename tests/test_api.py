@@ -67,3 +67,25 @@ def test_fit_arrays_with_the_defaults_sizes_them_to_a_small_system() -> None:
         fit(actions)
     turning = fit(actions, observations, turning=True)  # a robot whose actions turn it
     assert turning.config.action_pooling == 0.5 and turning.fit_info["sized"]["rank"][0] == 16
+
+
+def test_a_config_given_is_sized_where_it_keeps_the_default_presets_values() -> None:
+    """fit(a, o) and fit(a, o, <the default preset's config>) are one model; a field set
+    apart from the preset is kept as set, and a rank set above what the data support is
+    refused, as `learner fit` treats its options."""
+    from dataclasses import replace
+
+    from tpsr_ros.core.presets import DEFAULT_PRESET, get_preset
+    from tpsr_ros.io.model_io import model_fingerprint
+
+    rng = np.random.default_rng(0)
+    actions = rng.integers(0, 2, size=1500)
+    observations = np.eye(6)[np.cumsum(actions) % 6] + 0.1 * rng.normal(size=(1500, 6))
+    preset = get_preset(DEFAULT_PRESET).tpsr_config()
+    default = fit(actions, observations)
+    assert model_fingerprint(fit(actions, observations, preset)) == model_fingerprint(default)
+    assert default.fit_info["sized"]["ht_centers"] == [1000, 250]
+    chosen = fit(actions, observations, replace(preset, ht_centers=100))
+    assert chosen.config.ht_centers == 100 and "ht_centers" not in chosen.fit_info["sized"]
+    with pytest.raises(DataError, match="rank 12 is above"):
+        fit(actions, observations, replace(preset, rank=12))

@@ -12,7 +12,10 @@ states with Algorithm 4: ``model.update(state, action, observation)`` for one st
 Without a config the fit takes the default preset (:mod:`tpsr_ros.core.presets`) with its
 sizes fitted to the data (:mod:`tpsr_ros.core.sizing`: a few hundred steps cannot carry a
 thousand kernel centres); ``model.fit_info["sized"]`` says what changed. A config given
-is used exactly as given.
+is sized the same way, except the fields where it departs from the default preset: those
+were set on purpose and are kept (a rank above what the data support is refused), as
+``learner fit`` keeps its options. So ``fit(a, o)`` and ``fit(a, o, <the default preset's
+config>)`` are the same model.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from tpsr_ros.core.episodes import Episodes, Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.fit_basis import FitBasis
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel, fit_pca
-from tpsr_ros.core.presets import DEFAULT_PRESET, get_preset
+from tpsr_ros.core.presets import DEFAULT_PRESET, departures, get_preset
 from tpsr_ros.core.refine import refine_tpsr
 from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import Progress, TPSRConfig, TPSRModel, fit_tpsr_episodes
@@ -53,7 +56,8 @@ def fit(
             :class:`Episodes` already cut (then without ``observations``).
         observations: ``(T, k)`` observations, one per action (``o_k`` seen after ``a_k``).
             ``fit(trajectory, config)`` is accepted too.
-        config: :class:`TPSRConfig` or :class:`PCAConfig`, used as given; None: the default
+        config: :class:`TPSRConfig` (sized to the data but where it departs from the
+            default preset) or :class:`PCAConfig` (used as given); None: the default
             preset's TPSR, sized to the data (with its turning robot's changes if
             ``turning``: for a robot whose actions turn it, e.g. ``cmd_vel``'s angular.z).
         max_episodes: cut only the first episodes of a trajectory (guide ``|E|``).
@@ -72,6 +76,9 @@ def fit(
             config = replace(config, refine_epochs=0)
     if not isinstance(config, (TPSRConfig, PCAConfig)):
         raise ConfigError(f"config must be a TPSRConfig or PCAConfig, not {type(config).__name__}")
+    if sizing is None and isinstance(config, TPSRConfig):  # what departs was set on purpose
+        reference = get_preset(DEFAULT_PRESET).tpsr_config(turning=turning)
+        sizing = Sizing(departures(config, reference))
     if isinstance(data, Trajectory) and isinstance(config, TPSRConfig):
         return fit_tpsr_trajectory(
             data, config, max_episodes=max_episodes, progress=progress, sizing=sizing
