@@ -9,7 +9,8 @@ of the same steps. With rewards among the steps the fitted-Q policy of the prese
 fitted on the same tracked states (``learner policy``'s planner).
 
 Files: every version is written to ``OUTPUT/versions/model-vNNNN.npz`` (and
-``policy-vNNNN.npz``), then copied over ``OUTPUT/model.npz`` (and ``policy.npz``); every
+``policy-vNNNN.npz``), then copied over ``OUTPUT/model.npz`` (and ``policy.npz``, which a
+version without a policy removes, so the two never belong to different models); every
 write is atomic (a temporary file and a rename), so a reader sees a whole file or the one
 before. The announcement names the versioned files, which stay until ``keep`` newer
 versions exist, so a filter node loading one is never raced by the next refit. A new run
@@ -149,6 +150,8 @@ def refit(request: RefitRequest) -> RefitResult:
     _publish(model_path, output / "model.npz")
     if policy_path is not None:
         _publish(policy_path, output / "policy.npz")
+    else:  # the last one was another model's (it stays in versions/ while kept)
+        (output / "policy.npz").unlink(missing_ok=True)
     _prune(output, request.version, request.keep, request.first_version)
     return RefitResult(
         version=request.version,
