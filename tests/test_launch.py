@@ -128,6 +128,21 @@ def test_what_the_launcher_cannot_run_is_refused_in_one_line(tmp_path, overrides
 
 
 @pytest.mark.slow
+def _graph_probe(monkeypatch, name: str, domain_seed: int) -> Node:
+    """A node on the default middleware in a fresh local domain, which the launched nodes
+    (children of this process) share."""
+    monkeypatch.delenv("TPSR_TRANSPORT", raising=False)
+    backend, _ = choose_backend()
+    for key, value in {
+        "ROS_DOMAIN_ID": str(fresh_domain(domain_seed)),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "CYCLONEDDS_URI": LOOPBACK,
+        "PYTHONUNBUFFERED": "1",
+    }.items():
+        monkeypatch.setenv(key, value)
+    return Node(NodeOptions(name=name), transport=open_transport(backend, name, "/"))
+
+
 def test_the_learn_online_launch_file_names_real_nodes_and_parameters(tmp_path):
     nodes = parse_launch(LEARN_ONLINE, {"output": str(tmp_path / "live"), "steps": "500"})
     assert [n.executable for n in nodes] == ["learner_node", "filter_node", "sim_node"]
@@ -150,17 +165,7 @@ def test_the_learn_online_launch_file_learns_and_the_filter_swaps(tmp_path, monk
     import json
 
     output = tmp_path / "live"
-    monkeypatch.delenv("TPSR_TRANSPORT", raising=False)
-    backend, _ = choose_backend()
-    for key, value in {
-        "ROS_DOMAIN_ID": str(fresh_domain(23)),
-        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-        "CYCLONEDDS_URI": LOOPBACK,
-        "PYTHONUNBUFFERED": "1",
-    }.items():
-        monkeypatch.setenv(key, value)
-    probe = Node(NodeOptions(name="learn_probe"),
-                 transport=open_transport(backend, "learn_probe", "/"))
+    probe = _graph_probe(monkeypatch, "learn_probe", 23)
     infos: list[dict] = []
     probe.create_subscription(
         "/tpsr/model_info", "std_msgs/msg/String",
@@ -199,17 +204,7 @@ def test_the_launch_file_runs_the_closed_loop(tmp_path, monkeypatch):
     model = fit_small_model(tmp_path)
     policy = random_policy(model, tmp_path / "policy.npz")
     bag = tmp_path / "bag"
-    monkeypatch.delenv("TPSR_TRANSPORT", raising=False)
-    backend, _ = choose_backend()
-    for key, value in {
-        "ROS_DOMAIN_ID": str(fresh_domain(19)),
-        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-        "CYCLONEDDS_URI": LOOPBACK,
-        "PYTHONUNBUFFERED": "1",
-    }.items():
-        monkeypatch.setenv(key, value)
-    probe = Node(NodeOptions(name="launch_probe"),
-                 transport=open_transport(backend, "launch_probe", "/"))
+    probe = _graph_probe(monkeypatch, "launch_probe", 19)
     reports: list[dict[str, str]] = []
     recorded: list[dict[str, str]] = []
     probe.create_subscription(
