@@ -24,6 +24,9 @@ def test_steps_to_competence_is_each_runs_first_version_at_the_threshold():
         _row(2, 1000, 10.0), _row(2, 2000, math.nan),  # never (a version without a policy)
     ]  # fmt: skip
     assert steps_to_competence(rows, 423.0) == [2000.0, 1000.0, math.inf]
+    assert steps_to_competence(rows, 423.0, lasting=True) == [math.inf, 1000.0, math.inf]
+    rows.append(_row(0, 4000, 450.0))  # run 0 regains it, and keeps it to its last version
+    assert steps_to_competence(rows, 423.0, lasting=True) == [4000.0, 1000.0, math.inf]
 
 
 @pytest.mark.slow
