@@ -1,4 +1,4 @@
-"""learner competence: the learner node's versions of an exploring run, scored; time to competence."""
+"""learner competence: the learner node's versions of an exploring run, scored; competence."""
 
 from __future__ import annotations
 
