@@ -78,6 +78,8 @@ def _argument(job: Job, name: str, default: str = "") -> str:
 def _fake_rows(job: Job, rng: np.random.Generator) -> list[Row]:
     """Rows shaped like those the job's command writes, with random scores."""
     environment = _argument(job, "--environment")
+    if job.argv[0] == "competence":  # versions every 1000 live steps, three runs
+        return _rows(environment, {"tpsr": rng.normal(420, 30, 3)}, range(1000, 12001, 1000))
     sizes = (2000, 8000) if job.argv[0] == "experiment" and "--episodes" not in job.argv else (
         int(_argument(job, "--episodes")),
     )
@@ -86,8 +88,6 @@ def _fake_rows(job: Job, rng: np.random.Generator) -> list[Row]:
         start = job.argv.index("--methods") + 1
         methods = list(itertools.takewhile(lambda m: not m.startswith("--"), job.argv[start:]))
     extra = {"memory": 0.0, "memory_distance": 0.01} if "--memory" in job.argv else {}
-    if job.argv[0] == "competence":  # versions every 1000 live steps, three runs
-        return _rows(environment, {"tpsr": rng.normal(420, 30, 3)}, range(1000, 12001, 1000))
     if job.argv[0] == "experiment":
         tune = {"tune": {"candidates": 24, "seconds": 50.0}} if "--tune" in job.argv else {}
         parameters = json.dumps({"tpsr": {"rank": 8}, **tune})
