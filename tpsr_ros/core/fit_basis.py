@@ -113,10 +113,6 @@ class FitBasis:
             "test_width": int(self.centres.test.shape[1]),
         }
 
-    def array_shapes(self) -> dict[str, tuple[int, ...]]:
-        """The shape of every array of :meth:`to_arrays`."""
-        return {name: array.shape for name, array in self.to_arrays().items()}
-
     @classmethod
     def from_arrays(
         cls,
