@@ -19,6 +19,10 @@ stamp is already final may be refused with a ``BagError`` naming it (it cannot b
 the steps before it may already be handed out). Memory is bounded by the pending stamps'
 message bytes plus one chunk: both are capped in bytes (:data:`PENDING_BYTES`,
 :data:`CHUNK_BYTES`), so large images get a shorter window and smaller chunks.
+
+Live streams are paired the same way (:class:`StampPairing`, the decoders, the conversion
+of :func:`entry_steps`): :class:`LiveSteps` takes a simulator's messages as they arrive (the
+learner node) and gives the trajectory a recording of them would give.
 """
 
 from __future__ import annotations
