@@ -132,7 +132,7 @@ def inproc_throughput(
 
 def dds_latency(
     model: Path, policy: Path, images: list, tmp: Path, view: bool = True,
-    learner: bool = False,
+    learner: bool = False, learner_warmup: int = 200,
 ) -> list[np.ndarray]:
     """Latencies (ms) of each run, image publish -> /cmd_vel received; ``learner``: with a
     learner node beside the filter node, refitting on the same images and actions."""
@@ -178,8 +178,8 @@ def dds_latency(
         beside = NodeProcess(
             "learner",
             "tpsr_ros.learner_node",
-            ["--ros-args", "-p", f"output:={tmp / 'learner_live'}", "-p", "warmup_steps:=200",
-             "-p", "refit_steps:=200"],
+            ["--ros-args", "-p", f"output:={tmp / 'learner_live'}",
+             "-p", f"warmup_steps:={learner_warmup}", "-p", "refit_steps:=200"],
             log_path=tmp / "learner.log",
             env=env,
         )

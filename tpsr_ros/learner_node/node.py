@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import time
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -61,6 +62,10 @@ TOPICS = {
 """The simulator's topics the node learns from, by kind (relative: they follow the namespace)."""
 REFIT_SERVICE = "~/refit"
 """The ``std_srvs/srv/Trigger`` service that refits on the steps so far (rclpy only)."""
+WORKER_NICENESS = 19
+"""How much lower the refit worker's scheduling priority is than the node's."""
+BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+"""The BLAS libraries' thread-count variables, set to 1 for the refit worker."""
 POLL_S = 0.05
 """Seconds between looks at the refit in progress and at the streams' silence."""
 WARN_PERIOD_S = 5.0
@@ -320,9 +325,25 @@ class LearnerNode(Node):
 
 
 def _worker() -> ProcessPoolExecutor:
-    """One worker process for the refits; spawned, so it starts clean of the middleware's
-    threads and sockets."""
-    return ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+    """One worker process for the refits, started now: spawned, so it starts clean of the
+    middleware's threads and sockets; at a lower priority (niceness
+    :data:`WORKER_NICENESS`) and with one BLAS thread, so the nodes beside it (the filter
+    node's steps) go first on the robot's cores."""
+    pool = ProcessPoolExecutor(
+        1, mp_context=multiprocessing.get_context("spawn"),
+        initializer=os.nice, initargs=(WORKER_NICENESS,),
+    )  # fmt: skip
+    saved = {name: os.environ.get(name) for name in BLAS_THREADS}
+    os.environ.update(dict.fromkeys(BLAS_THREADS, "1"))  # read by the child as it starts
+    try:
+        pool.submit(os.getpid)  # spawns the process here, with this environment
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+    return pool
 
 
 def main(argv: list[str] | None = None) -> None:
