@@ -115,19 +115,12 @@ def live_run(tmp: Path) -> None:
 def refit_times(tmp: Path) -> None:
     from sim_node import SimConfig
     from sim_node.generate import generate_bag
-    from tpsr_ros.io.bag import BagReader
-    from tpsr_ros.io.trajectory import LiveSteps, Topics
+    from tpsr_ros.io.trajectory import LiveSteps
     from tpsr_ros.learner_node.refits import RefitRequest, refit
 
     bag = tmp / "steps"
     generate_bag(bag, SimConfig(environment="full"), max(SIZES), seed=5)
-    topics = Topics()
-    kinds = {topics.image: 0, topics.action: 1, topics.pose: 2, topics.reward: 3}
-    live = LiveSteps("full")
-    with BagReader(bag) as reader:
-        for topic, _, data in reader.raw_messages(list(kinds)):
-            live.add(kinds[topic], data)
-    live.flush()
+    live = LiveSteps.of_bag(bag, "full")
     first = refit(RefitRequest(live.chunk(WARMUP), 1, tmp / "out", "best"))
     for size in SIZES:
         fits, totals = [], []

@@ -33,10 +33,13 @@ from sim_node import SimConfig
 from tpsr_ros.cli import positive_int
 from tpsr_ros.core.errors import ConfigError
 
-__all__ = ["DEFAULT_STEPS", "competence_rows", "register", "run"]
+__all__ = ["DEFAULTS", "DEFAULT_STEPS", "competence_rows", "register", "run"]
 
 DEFAULT_STEPS = 12000
 """Live steps of a run: 20 minutes at 10 Hz."""
+DEFAULTS = {"steps": DEFAULT_STEPS, "warmup_steps": 1000, "refit_steps": 1000, "runs": 10,
+            "seed": 31}  # fmt: skip
+"""The options' defaults: the learner node's, ten runs, fresh seeds."""
 
 
 def register(subparsers: Any) -> None:
@@ -47,15 +50,15 @@ def register(subparsers: Any) -> None:
         + __doc__.split("\n\n")[1].replace("%", "%%"),
     )  # fmt: skip
     parser.add_argument("--environment", required=True, help="the simulator environment")
-    parser.add_argument("--steps", type=positive_int, default=DEFAULT_STEPS,
+    parser.add_argument("--steps", type=positive_int, default=DEFAULTS["steps"],
                         help="live steps of each run (default: %(default)s)")  # fmt: skip
-    parser.add_argument("--warmup-steps", type=positive_int, default=1000,
+    parser.add_argument("--warmup-steps", type=positive_int, default=DEFAULTS["warmup_steps"],
                         help="the learner node's warmup_steps (default: %(default)s)")  # fmt: skip
-    parser.add_argument("--refit-steps", type=positive_int, default=1000,
+    parser.add_argument("--refit-steps", type=positive_int, default=DEFAULTS["refit_steps"],
                         help="the learner node's refit_steps (default: %(default)s)")  # fmt: skip
-    parser.add_argument("--runs", type=positive_int, default=10,
+    parser.add_argument("--runs", type=positive_int, default=DEFAULTS["runs"],
                         help="independent runs (default: %(default)s)")  # fmt: skip
-    parser.add_argument("--seed", type=int, default=31,
+    parser.add_argument("--seed", type=int, default=DEFAULTS["seed"],
                         help="simulator seed of the first run; run k uses seed + k "
                         "(default: %(default)s)")  # fmt: skip
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR")
@@ -68,9 +71,7 @@ def register(subparsers: Any) -> None:
 def command_of(args: argparse.Namespace) -> str:
     """The command that reruns these runs (recorded in every row)."""
     parts = ["python -m learner competence", "--environment", args.environment]
-    defaults = {"steps": DEFAULT_STEPS, "warmup_steps": 1000, "refit_steps": 1000,
-                "runs": 10, "seed": 31}  # fmt: skip
-    for name, default in defaults.items():
+    for name, default in DEFAULTS.items():
         if getattr(args, name) != default:
             parts += [f"--{name.replace('_', '-')}", str(getattr(args, name))]
     return " ".join(parts)
@@ -84,23 +85,16 @@ def competence_rows(
     from learner.evaluate import evaluate
     from learner.representations import ModelTracker
     from sim_node.generate import generate_bag
-    from tpsr_ros.io.bag import BagReader
     from tpsr_ros.io.model_io import open_model
     from tpsr_ros.io.policy import load_policy
-    from tpsr_ros.io.trajectory import LiveSteps, Topics
+    from tpsr_ros.io.trajectory import LiveSteps
     from tpsr_ros.learner_node.refits import RefitRequest, refit
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="competence_") as tmp:
         bag = Path(tmp) / "run"
         generate_bag(bag, SimConfig(environment=environment), steps, seed=seed)
-        topics = Topics()
-        kinds = {topics.image: 0, topics.action: 1, topics.pose: 2, topics.reward: 3}
-        live = LiveSteps(environment)
-        with BagReader(bag) as reader:
-            for topic, _, data in reader.raw_messages(list(kinds)):
-                live.add(kinds[topic], data)
-        live.flush()
+        live = LiveSteps.of_bag(bag, environment)
         basis = None
         for version, due in enumerate(range(warmup, len(live) + 1, refit_every), start=1):
             result = refit(RefitRequest(

@@ -139,12 +139,7 @@ def learned(bag, tmp_path_factory):
 
 
 def test_live_steps_are_the_steps_read_from_a_recording(bag):
-    live = LiveSteps("full")
-    kinds = dict(zip(TOPICS, range(4), strict=True))
-    for topic, data in _messages(bag):
-        live.add(kinds[topic], data)
-    live.flush()
-    got, expected = live.trajectory(), read_trajectory([bag])
+    got, expected = LiveSteps.of_bag(bag, "full").trajectory(), read_trajectory([bag])
     for name in ("stamps", "observations", "actions", "velocities", "positions", "rewards",
                  "segments"):  # fmt: skip
         np.testing.assert_array_equal(getattr(got, name), getattr(expected, name), name)

@@ -625,6 +625,20 @@ class LiveSteps:
     IMAGE, ACTION, POSE, REWARD = _IMAGE, _ACTION, _POSE, _REWARD
     """The kinds of message :meth:`add` takes."""
 
+    @classmethod
+    def of_bag(cls, bag: Path | str, environment: str | None) -> LiveSteps:
+        """Every message of a simulator bag's step topics fed in log order, as a node
+        subscribing them during the recording got them (then flushed)."""
+        live = cls(environment)
+        topics = live.topics
+        kinds = {topics.image: _IMAGE, topics.action: _ACTION, topics.pose: _POSE,
+                 topics.reward: _REWARD}  # fmt: skip
+        with BagReader(Path(bag)) as reader:
+            for topic, _, data in reader.raw_messages(list(kinds)):
+                live.add(kinds[topic], data)
+        live.flush()
+        return live
+
     def __len__(self) -> int:
         return len(self.steps)
 
