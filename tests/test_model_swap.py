@@ -153,3 +153,24 @@ def test_replay_and_restart_give_different_states_after_the_swap(small, second, 
     replayed, restarted = (_offline(small, second, tmp_path, s) for s in ("replay", "restart"))
     np.testing.assert_array_equal(replayed[:20], restarted[:20])
     assert not np.array_equal(replayed[20], restarted[20])
+
+
+def test_a_waiting_node_starts_with_the_model_set_and_refuses_a_bad_one(small, tmp_path):  # noqa: F811
+    """wait_for_model: ``ros2 param set ... model`` starts it, checked as at start-up."""
+    from tpsr_ros.filter_node import FilterNode
+    from tpsr_ros.runtime import NodeOptions, parse_ros_args
+    from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
+
+    options = NodeOptions.for_node(FilterNode, parse_ros_args(["-p", "wait_for_model:=true"]))
+    node = FilterNode(options, transport=InprocTransport("/tpsr_filter", InprocBus()))
+    try:
+        assert not hasattr(node, "inputs")
+        corrupt = tmp_path / "corrupt.npz"
+        corrupt.write_bytes(b"not a model")
+        assert "not a readable model file" in node.on_parameter_change("model", str(corrupt))
+        assert not hasattr(node, "inputs")
+        assert node.on_parameter_change("model", str(small["model"])) is None
+        assert node.inputs.fingerprint == open_model(small["model"]).fingerprint
+        assert node.swaps == 0 and node.params.model == str(small["model"])
+    finally:
+        node.close()
