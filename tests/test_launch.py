@@ -174,8 +174,8 @@ def test_the_learn_online_launch_file_learns_and_the_filter_swaps(tmp_path, monk
     try:
         with Launch(tmp_path, spin=probe.spin_once, timeout_s=120) as launch:
             proc = launch.start("launch", "tpsr_ros.launch", [
-                str(LEARN_ONLINE), f"output:={output}", "rate:=150", "steps:=900",
-                "warmup_steps:=300", "refit_steps:=200",
+                str(LEARN_ONLINE), f"output:={output}", "rate:=150",
+                "warmup_steps:=300", "refit_steps:=200",  # the simulator runs until stopped
             ])  # fmt: skip
             launch.wait("the filter node's acknowledgement of version 2",
                         lambda: any(i.get("version") == 2 for i in infos))  # fmt: skip
