@@ -156,14 +156,27 @@ def test_replay_and_restart_give_different_states_after_the_swap(small, second, 
 
 
 def test_a_waiting_node_starts_with_the_model_set_and_refuses_a_bad_one(small, tmp_path):  # noqa: F811
-    """wait_for_model: ``ros2 param set ... model`` starts it, checked as at start-up."""
+    """wait_for_model: ``/diagnostics`` says it waits (STALE); ``ros2 param set ... model``
+    starts it, checked as at start-up."""
     from tpsr_ros.filter_node import FilterNode
-    from tpsr_ros.runtime import NodeOptions, parse_ros_args
+    from tpsr_ros.runtime import Node, NodeOptions, parse_ros_args
+    from tpsr_ros.runtime.diagnostics import DIAGNOSTICS_TYPE
     from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
 
-    options = NodeOptions.for_node(FilterNode, parse_ros_args(["-p", "wait_for_model:=true"]))
-    node = FilterNode(options, transport=InprocTransport("/tpsr_filter", InprocBus()))
+    bus = InprocBus()
+    options = NodeOptions.for_node(
+        FilterNode, parse_ros_args(["-p", "wait_for_model:=true", "-p", "diagnostics_period:=0.02"])
+    )
+    node = FilterNode(options, transport=InprocTransport("/tpsr_filter", bus))
+    probe = Node(NodeOptions(name="probe"), transport=InprocTransport("/probe", bus))
+    reports: list = []
+    probe.create_subscription("/diagnostics", DIAGNOSTICS_TYPE, reports.append)
     try:
+        while not reports:
+            node.spin_once(0.02)
+            probe.spin_once(0.0)
+        (status,) = reports[-1].status
+        assert status.level == 3 and "waiting for one on /tpsr/model_update" in status.message
         assert not hasattr(node, "inputs")
         corrupt = tmp_path / "corrupt.npz"
         corrupt.write_bytes(b"not a model")
@@ -172,5 +185,11 @@ def test_a_waiting_node_starts_with_the_model_set_and_refuses_a_bad_one(small, t
         assert node.on_parameter_change("model", str(small["model"])) is None
         assert node.inputs.fingerprint == open_model(small["model"]).fingerprint
         assert node.swaps == 0 and node.params.model == str(small["model"])
+        reports.clear()
+        while not reports:
+            node.spin_once(0.02)
+            probe.spin_once(0.0)
+        assert reports[-1].status[0].level != 3  # the tracking report, no longer waiting
     finally:
+        probe.close()
         node.close()

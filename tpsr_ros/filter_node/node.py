@@ -21,7 +21,14 @@ from tpsr_ros.core.actions import environment_grid
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.online import OnlineTracker
 from tpsr_ros.core.units import NS_PER_S as _NS
-from tpsr_ros.filter_node.health import MIN_SHARE_SAMPLES, OK, WARN, HealthLedger, Throttle
+from tpsr_ros.filter_node.health import (
+    MIN_SHARE_SAMPLES,
+    OK,
+    STALE,
+    WARN,
+    HealthLedger,
+    Throttle,
+)
 from tpsr_ros.filter_node.inputs import (
     Frame,
     Rejected,
@@ -182,7 +189,20 @@ class FilterNode(Node):
         self._waiting = self.create_subscription(
             MODEL_UPDATE_TOPIC, MODEL_MESSAGE_TYPE, self._on_first_model, LATCHED_QOS, raw=True
         )
+        self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
+        self._waiting_report = self.create_timer(
+            self.params.diagnostics_period, self._report_waiting
+        )
         self.logger.info(f"no model yet: waiting for one on {self._waiting.topic}")
+
+    def _report_waiting(self) -> None:
+        """``/diagnostics`` while no model runs yet: STALE, saying where one is awaited."""
+        status = diagnostic_status(
+            STALE, f"{self.name}: state tracking",
+            f"no model yet: waiting for one on {self._waiting.topic}", {"model": "none"},
+            hardware_id="tpsr",
+        )  # fmt: skip
+        self.diagnostics_pub.publish(diagnostic_array(self.now_ns(), [status]))
 
     def _on_first_model(self, data: bytes) -> None:
         """The first announced model: open and check it as at start-up, then start."""
@@ -208,6 +228,7 @@ class FilterNode(Node):
         except TpsrError as exc:
             return str(exc)
         self._waiting.destroy()
+        self._waiting_report.cancel()
         self.params = params
         self.model_version = update.version  # its latched announcement is not a swap
         self._start(inputs)
@@ -328,7 +349,8 @@ class FilterNode(Node):
             if self.policy is not None
             else None
         )
-        self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
+        if not hasattr(self, "diagnostics_pub"):  # a node that waited for its model has one
+            self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
         self.image_errors: deque[float] = deque(maxlen=IMAGE_ERROR_STEPS)
         self.predicted_pub = self.markers_pub = self.pose_pub = None
         self._view_publishers()
