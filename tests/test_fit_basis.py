@@ -133,6 +133,7 @@ def bags(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_learner_fit_init_from_is_the_refit_of_the_bag_on_the_models_basis(bags, capsys):
     first = bags / "first.npz"
     code, _, stderr = run_entry(["fit", str(bags / "short"), "-o", str(first)], capsys)

@@ -261,6 +261,7 @@ def test_an_init_model_without_a_basis_or_for_a_robot_is_refused(bag, tmp_path):
         LearnerNode.preflight(NodeOptions.for_node(LearnerNode, parse_ros_args([])))
 
 
+@pytest.mark.slow
 def test_an_init_models_basis_is_kept_from_the_first_version(bag, tmp_path, capsys):
     start = save_model(fit_trajectory(read_trajectory([bag]).rows(0, 900),
                                       PRESETS["best"].tpsr_config(), sizing=Sizing()).model,
