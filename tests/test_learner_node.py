@@ -35,7 +35,7 @@ TOPICS = {
     "/ground_truth/pose": m.POSE_TYPE,
     "/reward": m.REWARD_TYPE,
 }
-STEPS, WARMUP, REFIT = 1500, 600, 300
+STEPS, WARMUP, REFIT = 1200, 600, 200
 IDLE = 2.0
 """The harness waits for each refit between steps: the streams' pause must not close a step."""
 
@@ -149,7 +149,7 @@ def test_live_steps_are_the_steps_read_from_a_recording(bag):
 def test_a_version_at_every_due_point_announced_with_its_files(learned):
     updates = learned["updates"]
     assert [u["version"] for u in updates] == [1, 2, 3, 4]
-    assert [u["steps"] for u in updates] == [600, 900, 1200, 1500]
+    assert [u["steps"] for u in updates] == [600, 800, 1000, 1200]
     for update in updates:
         model = open_model(update["path"])
         assert model.fingerprint == update["fingerprint"]
@@ -297,7 +297,7 @@ def test_a_filter_node_waits_for_the_first_version_and_swaps_in_the_rest(bag, tm
     )  # fmt: skip
     h.also_spin = filter_node
     messages = _messages(bag)
-    cut = 4 * 1250  # the messages of the first 1250 steps: three versions
+    cut = 4 * 1050  # the messages of the first 1050 steps: three versions
     corrupt = tmp_path / "corrupt.npz"
     corrupt.write_bytes(b"PK not a model")
     try:
@@ -334,7 +334,7 @@ def test_a_worker_that_dies_is_replaced_and_the_next_refit_runs(bag, tmp_path):
             process.kill()  # as the kernel's out-of-memory killer would
         while h.node.failures == 0:
             h.spin(0.02)
-        h.feed(messages[fed:], wait_for=1)
+        h.feed(messages[fed : 4 * (WARMUP + REFIT + 11)], wait_for=1)
     finally:
         h.close()
     assert "BrokenProcessPool" in h.log.getvalue()
