@@ -48,7 +48,7 @@ import os
 import random
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -85,7 +85,7 @@ from tpsr_ros.runtime import (
 )
 from tpsr_ros.runtime.backend import choose_backend, open_transport
 from tpsr_ros.runtime.dds import LAST_SAFE_DOMAIN_ID
-from tpsr_ros.runtime.launcher import Launch, LaunchError
+from tpsr_ros.runtime.launcher import Launch, LaunchError, environ_overrides
 
 __all__ = [
     "RECORDED_TOPICS",
@@ -159,20 +159,6 @@ def format_trial(index: int, trial: Trial) -> str:
 def _pick_domain() -> int:
     """A random domain id in 1..101 (0 is every ROS 2 system's default)."""
     return random.SystemRandom().randrange(1, LAST_SAFE_DOMAIN_ID + 1)
-
-
-@contextlib.contextmanager
-def _environment(overrides: dict[str, str]) -> Iterator[None]:
-    saved = {k: os.environ.get(k) for k in overrides}
-    os.environ.update(overrides)
-    try:
-        yield
-    finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
 
 
 class _Driver:
@@ -343,7 +329,7 @@ def _join_free_domain(
     for _ in range(8):
         domain = domain_id if domain_id is not None else _pick_domain()
         try:
-            with _environment({**network, "ROS_DOMAIN_ID": str(domain)}):
+            with environ_overrides({**network, "ROS_DOMAIN_ID": str(domain)}):
                 driver = _Driver(backend, watch_all=watch_all, image_topic=image_topic)
         except TpsrError as exc:
             if domain_id is not None:

@@ -49,6 +49,7 @@ from tpsr_ros.runtime.diagnostics import (
     diagnostic_array,
     diagnostic_status,
 )
+from tpsr_ros.runtime.launcher import environ_overrides
 
 __all__ = ["PROG", "LearnerNode", "LearnerNodeParams", "main"]
 
@@ -333,16 +334,8 @@ def _worker() -> ProcessPoolExecutor:
         1, mp_context=multiprocessing.get_context("spawn"),
         initializer=os.nice, initargs=(WORKER_NICENESS,),
     )  # fmt: skip
-    saved = {name: os.environ.get(name) for name in BLAS_THREADS}
-    os.environ.update(dict.fromkeys(BLAS_THREADS, "1"))  # read by the child as it starts
-    try:
+    with environ_overrides(dict.fromkeys(BLAS_THREADS, "1")):  # read by the child as it starts
         pool.submit(os.getpid)  # spawns the process here, with this environment
-    finally:
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
     return pool
 
 

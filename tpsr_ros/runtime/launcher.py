@@ -29,14 +29,14 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import IO
 
 from tpsr_ros.core.errors import TpsrError
 
-__all__ = ["Launch", "LaunchError", "NodeProcess"]
+__all__ = ["Launch", "LaunchError", "NodeProcess", "environ_overrides"]
 
 # Run a module so that it gets SIGTERM when its parent dies (Linux prctl PR_SET_PDEATHSIG),
 # then exactly as `python -m MODULE ARGS...`.
@@ -287,3 +287,19 @@ class Launch:
         traceback: TracebackType | None,
     ) -> None:
         self.stop()
+
+
+@contextlib.contextmanager
+def environ_overrides(overrides: Mapping[str, str]) -> Iterator[None]:
+    """``os.environ`` with ``overrides`` set inside the block, as it was after it: what the
+    processes started inside inherit."""
+    saved = {key: os.environ.get(key) for key in overrides}
+    os.environ.update(overrides)
+    try:
+        yield
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
