@@ -65,6 +65,14 @@ class Throttle:
         """How many warnings of ``key`` were held back since the last one let through."""
         return self.suppressed.pop(key, 0)
 
+    def warning(self, key: tuple[str, str], message: str) -> str | None:
+        """``message`` (with how many were held back since the last) if one of ``key`` may
+        be logged now, else None."""
+        if not self(key):
+            return None
+        held = self.take_suppressed(key)
+        return message + (f" ({held} more since the last warning)" if held else "")
+
 
 class HealthLedger:
     """What the node's ``/diagnostics`` report says, kept without ROS.

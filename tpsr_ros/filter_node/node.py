@@ -410,11 +410,8 @@ class FilterNode(Node):
     # -- warnings and counters ------------------------------------------------------------
 
     def _warn(self, topic: str, kind: str, message: str) -> None:
-        key = (topic, kind)
-        if self._throttle(key):
-            held = self._throttle.take_suppressed(key)
-            more = f" ({held} more since the last warning)" if held else ""
-            self.logger.warning(f"{topic}: {message}{more}")
+        if (text := self._throttle.warning((topic, kind), f"{topic}: {message}")) is not None:
+            self.logger.warning(text)
 
     def _reject(self, topic: str, reason: str, detail: str) -> None:
         self.health.reject(reason)

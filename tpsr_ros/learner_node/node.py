@@ -212,11 +212,8 @@ class LearnerNode(Node):
 
     def _reject(self, topic: str, reason: str, detail: str) -> None:
         self.rejected[reason] += 1
-        key = (topic, reason)
-        if self._throttle(key):
-            held = self._throttle.take_suppressed(key)
-            more = f" ({held} more since the last warning)" if held else ""
-            self.logger.warning(f"{topic}: {detail}{more}")
+        if (text := self._throttle.warning((topic, reason), f"{topic}: {detail}")) is not None:
+            self.logger.warning(text)
 
     def _poll(self) -> None:
         """Collect a finished refit; make waiting steps final once the streams pause."""
