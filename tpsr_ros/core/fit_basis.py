@@ -10,6 +10,11 @@ refitted on a longer recording of the same robot (the learner node's refits, ``l
 then the basis's: its whitening dimensions and centres are kept, and the rank follows the
 rank rule from the rank the first fit was asked for (``requested_rank``).
 
+A first fit also keeps a :class:`Sketch` of ``P_TH``: its leading left and right singular
+vectors, a few more than the rank asked for. A refit that projects its features on them
+reduces its data to sums of fixed size that merge and decay, and solves them without
+another pass (:mod:`tpsr_ros.core.fit_statistics`).
+
 Its arrays are stored beside the model's (``basis_*``) and, like the viewer's read-outs,
 outside the model's fingerprint: they are not needed to filter.
 """
@@ -23,15 +28,58 @@ import numpy as np
 
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.tpsr_config import TPSRConfig
+from tpsr_ros.core.tpsr_stages import top_singular_triplets
 from tpsr_ros.core.whitened import Centres, Whitenings
 from tpsr_ros.core.whitening import Whitening
 
-__all__ = ["WHITENING_PARTS", "FitBasis", "basis_shapes"]
+__all__ = ["SKETCH_MARGIN", "WHITENING_PARTS", "FitBasis", "Sketch", "basis_shapes"]
 
 WHITENING_PARTS = ("mean", "components", "eigenvalues", "ratio")
 """The arrays stored for each whitening (``Whitening``'s four fields, in order)."""
 
 _WHITENINGS = ("history", "test", "obs")
+
+SKETCH_MARGIN = 16
+"""Singular vectors of ``P_TH`` a sketch keeps beyond the rank asked for: room for the
+leading directions of more data to lie in its span (measured in the learner node's tests:
+a refit from the sums and one from the steps agree to the noise)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Sketch:
+    """Orthonormal bases of the leading test and history directions of a first fit's ``P_TH``.
+
+    ``test`` ``(l_T + 1, w)`` and ``history`` ``(l_H + 1, w)``: the top ``w`` left and right
+    singular vectors. A refit's features are projected on them before they are summed, so
+    its sums have the fixed size ``w x w`` whatever the data (``P_TH``'s exact SVD is the
+    sketch's when ``w`` spans its whole range).
+    """
+
+    test: np.ndarray
+    history: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("test", "history"):
+            basis = getattr(self, name)
+            if basis.ndim != 2 or not 1 <= basis.shape[1] <= basis.shape[0]:
+                raise DataError(f"the sketch's {name} basis of shape {basis.shape} is not (l, w)")
+        if self.test.shape[1] != self.history.shape[1]:
+            raise DataError(
+                f"the sketch keeps {self.test.shape[1]} test and {self.history.shape[1]} history "
+                "directions: they must be as many"
+            )
+
+    @property
+    def width(self) -> int:
+        """The directions ``w`` kept on each side."""
+        return int(self.test.shape[1])
+
+    @classmethod
+    def of(cls, p_th: np.ndarray, rank: int, seed: int = 0) -> Sketch:
+        """The top ``rank + SKETCH_MARGIN`` singular vectors of ``p_th`` (all, when fewer)."""
+        width = min(int(rank) + SKETCH_MARGIN, min(p_th.shape))
+        u, _, v = top_singular_triplets(p_th, width, seed=seed)
+        return cls(np.ascontiguousarray(u), np.ascontiguousarray(v))
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,6 +95,8 @@ class FitBasis:
     test: Whitening
     obs: Whitening
     centres: Centres
+    sketch: Sketch | None = None
+    """``P_TH``'s leading directions (None: a basis stored before sketches were kept)."""
 
     def __post_init__(self) -> None:
         cfg = self.config
@@ -74,6 +124,17 @@ class FitBasis:
         for name, (found, expected) in shapes.items():
             if found != expected:
                 raise DataError(f"the basis has {found} {name} centres, its config {expected}")
+        if self.sketch is not None:
+            expected_rows = (cfg.ht_centers + 1, cfg.ht_centers + 1)
+            if (self.sketch.test.shape[0], self.sketch.history.shape[0]) != expected_rows:
+                raise DataError(
+                    f"the sketch's bases have {self.sketch.test.shape[0]} and "
+                    f"{self.sketch.history.shape[0]} rows, the features {cfg.ht_centers + 1}"
+                )
+            if self.sketch.width < cfg.rank:
+                raise DataError(
+                    f"the sketch keeps {self.sketch.width} directions, fewer than rank {cfg.rank}"
+                )
 
     @property
     def obs_size(self) -> int:
@@ -103,15 +164,21 @@ class FitBasis:
         }
         arrays["basis_history_centers"] = self.centres.history
         arrays["basis_test_centers"] = self.centres.test
+        if self.sketch is not None:
+            arrays["basis_sketch_test"] = self.sketch.test
+            arrays["basis_sketch_history"] = self.sketch.history
         return arrays
 
     def metadata(self) -> dict[str, Any]:
         """What the arrays' shapes follow from, beyond the model's parameters."""
-        return {
+        metadata = {
             "rank": int(self.config.rank),
             "history_width": int(self.centres.history.shape[1]),
             "test_width": int(self.centres.test.shape[1]),
         }
+        if self.sketch is not None:
+            metadata["sketch_width"] = self.sketch.width
+        return metadata
 
     @classmethod
     def from_arrays(
@@ -129,7 +196,10 @@ class FitBasis:
         centres = Centres(
             arrays["basis_history_centers"], arrays["basis_test_centers"], obs_centers
         )
-        return cls(config, centres=centres, **whitenings)
+        sketch = None
+        if "basis_sketch_test" in arrays:
+            sketch = Sketch(arrays["basis_sketch_test"], arrays["basis_sketch_history"])
+        return cls(config, centres=centres, sketch=sketch, **whitenings)
 
 
 def _fields(whitening: Whitening) -> tuple[np.ndarray, ...]:
@@ -161,4 +231,7 @@ def basis_shapes(
         })  # fmt: skip
     shapes["basis_history_centers"] = (l_ht, int(basis["history_width"]))
     shapes["basis_test_centers"] = (l_ht, int(basis["test_width"]))
+    if "sketch_width" in basis:
+        shapes["basis_sketch_test"] = (l_ht + 1, int(basis["sketch_width"]))
+        shapes["basis_sketch_history"] = (l_ht + 1, int(basis["sketch_width"]))
     return shapes

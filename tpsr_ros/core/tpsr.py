@@ -54,7 +54,7 @@ import numpy as np
 
 from tpsr_ros.core.action_features import standardised_codes
 from tpsr_ros.core.errors import ConfigError, DataError
-from tpsr_ros.core.fit_basis import FitBasis
+from tpsr_ros.core.fit_basis import FitBasis, Sketch
 from tpsr_ros.core.sizing import Sizing, size_to_data
 from tpsr_ros.core.state_box import box_episodes, episode_states, state_box
 from tpsr_ros.core.tpsr_config import TPSRConfig
@@ -215,6 +215,7 @@ def run_fit(
         watch.stage(str(engine.stages["rows"]))
     engine.whiten(whitenings, cfg)
     watch.stage("kernel centres")
+    first_fit = basis is None
     if basis is None:
         rows = engine.centre_rows()
         centres = Centres(*kernel_centres(rows.history, rows.test, rows.observation, cfg))
@@ -232,6 +233,8 @@ def run_fit(
     watch.stage("SVD")
     free_rank = sizing is not None and "rank" not in sizing.fixed
     u, s, v, s_all, usable = truncated_svd(p_th, cfg, refuse=not free_rank)
+    if basis.sketch is None and first_fit:  # what a refit from sums projects on
+        basis = replace(basis, sketch=Sketch.of(p_th, basis.config.rank, seed=cfg.seed))
     del p_th
     supported = supported_rank(s_all, n_train, usable)
     if sizing is not None and cfg.rank > supported:  # the rank rule (tpsr_stages)

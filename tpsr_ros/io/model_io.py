@@ -10,9 +10,11 @@ entry ``metadata``, a 0-d unicode array holding a JSON object::
      "input": {...} (models learned with --step-period only),
      "view": {"points": 1000, "pose_dim": 0 | 2 | 4, "pose_frame": "map"} (models with the
        viewer's read-outs: arrays view_image, view_axes, view_center, view_points[, view_pose]),
-     "basis": {"rank": r, "history_width": w, "test_width": w} (TPSRs with the whitenings and
-       centres a refit keeps: arrays basis_{history,test,obs}_{mean,components,eigenvalues,
-       ratio}, basis_{history,test}_centers; :mod:`tpsr_ros.core.fit_basis`),
+     "basis": {"rank": r, "history_width": w, "test_width": w[, "sketch_width": s]} (TPSRs
+       with the whitenings and centres a refit keeps: arrays basis_{history,test,obs}_{mean,
+       components,eigenvalues,ratio}, basis_{history,test}_centers[, the sketch of P_TH a
+       refit from statistics projects on: basis_sketch_{test,history}];
+       :mod:`tpsr_ros.core.fit_basis`),
      "preset": {"name": "best", "changed": {...}[, "turning": true]} (descriptive; learner
        fit writes it),
      "created": "...", "software": {"tpsr_ros": "0.1.0", "numpy": "..."}}
@@ -241,6 +243,8 @@ def _basis_shapes(path: Path, metadata: dict[str, Any], k: int) -> dict[str, Sha
         raise ModelFormatError(f"the metadata of {str(path)!r} has an invalid 'basis' entry")
     for key in ("rank", "history_width", "test_width"):
         metadata_size(path, basis, key)
+    if "sketch_width" in basis:
+        metadata_size(path, basis, "sketch_width")
     parameters = metadata["parameters"]
     for key in ("history_length", "test_length", "ht_dim", "obs_dim", "ht_centers"):
         metadata_size(path, parameters, key)
