@@ -138,6 +138,15 @@ def register(subparsers: Any) -> None:
         "node's refits, for a recording of its steps. TPSR options are refused with it",
     )
     parser.add_argument(
+        "--forgetting",
+        type=float,
+        default=None,
+        metavar="LAMBDA",
+        help="with --init-from: weigh each episode by LAMBDA ** (its age in steps before the "
+        "last step), in (0, 1], as the learner node's parameter forgetting does "
+        "(default 1: every episode alike)",
+    )
+    parser.add_argument(
         "--config",
         type=Path,
         default=None,
@@ -224,6 +233,10 @@ def run(args: argparse.Namespace) -> int:
     require_given_topics(args.bags, args)
     if args.init_from is not None:
         return _run_init_from(args, output)
+    if args.forgetting is not None:
+        raise ConfigError(
+            "--forgetting weighs a refit's statistics: give the model to refit with --init-from"
+        )
     stream_options = fit_options_from_args(args)
     # the options are checked before any bag is read (the preset's changes come after it)
     config_from_args(TPSRConfig, args, preset_from_args(args).tpsr_config(), file_values)
@@ -307,6 +320,8 @@ def _run_init_from(args: argparse.Namespace, output: Path) -> int:
             f"--init-from refits with {args.init_from}'s settings, whitenings and centres on "
             f"every step of the bags, in memory: {', '.join(refused)} cannot change them"
         )
+    if args.forgetting is not None and not 0 < args.forgetting <= 1:
+        raise ConfigError(f"--forgetting must lie in (0, 1], not {args.forgetting}")
     init = open_model(args.init_from)
     basis = init.model.basis if isinstance(init.model, TPSRModel) else None
     if basis is None:
@@ -322,9 +337,10 @@ def _run_init_from(args: argparse.Namespace, output: Path) -> int:
     _say(f"{len(trajectory)} steps in {len(trajectory.segment_bounds())} segment(s)")
     pose_frame = init.view.pose_frame if init.view is not None else "map"
     start = time.perf_counter()
+    forgetting = 1.0 if args.forgetting is None else args.forgetting
     fitted = fit_trajectory(
         trajectory, basis.config, basis=basis, progress=_say, pose_frame=pose_frame,
-        action_codes=None if spec is None else spec.codebook.codes,
+        action_codes=None if spec is None else spec.codebook.codes, forgetting=forgetting,
     )  # fmt: skip
     timings["fit"] = fitted.seconds
     _say_sizing(fitted.model)

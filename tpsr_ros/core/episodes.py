@@ -259,6 +259,12 @@ class Episodes:
     def __len__(self) -> int:
         return int(self.action.shape[0])
 
+    def take(self, index: np.ndarray) -> Episodes:
+        """The episodes ``index`` (indices or a boolean mask), in that order."""
+        per_episode = ("history", "observation", "action", "test", "stamps", "positions",
+                       "rewards", "history_actions", "test_actions")  # fmt: skip
+        return replace(self, **{name: getattr(self, name)[index] for name in per_episode})
+
     def steps(self) -> np.ndarray:
         """Every observation of the episodes once, ``(E (m + 1 + n), k)`` (for the PCA baseline)."""
         k = self.observation.shape[1]

@@ -33,7 +33,7 @@ from tpsr_ros.core.refine import refine_tpsr
 from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import Progress, TPSRConfig, TPSRModel, fit_tpsr_episodes
 
-__all__ = ["fit", "fit_tpsr_trajectory"]
+__all__ = ["fit", "fit_tpsr_trajectory", "refined_on_trajectory"]
 
 Config = TPSRConfig | PCAConfig
 
@@ -125,6 +125,18 @@ def fit_tpsr_trajectory(
         episodes, config=config, progress=progress, sizing=sizing, action_codes=action_codes,
         basis=basis,
     )  # fmt: skip
+    return refined_on_trajectory(model, trajectory, episodes, max_episodes, progress)
+
+
+def refined_on_trajectory(
+    model: TPSRModel,
+    trajectory: Trajectory,
+    episodes: Episodes,
+    max_episodes: int | None = None,
+    progress: Progress | None = None,
+) -> TPSRModel:
+    """``model`` refined through its filter on the steps its ``episodes`` (of
+    ``trajectory``) use, when its config asks for it (``refine_epochs``); else itself."""
     if not model.config.refine_epochs:
         return model
     if progress is not None:

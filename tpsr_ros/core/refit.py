@@ -6,25 +6,96 @@ command's on a recording of those steps: the episodes cut from every step, the p
 sized to the data (a first fit) or the frozen basis of an earlier fit (a refit:
 :mod:`tpsr_ros.core.fit_basis`), the refinement the config asks for, then the training
 states tracked once for the viewer's read-outs.
+
+A refit on a basis with a sketch of ``P_TH`` (every first fit keeps one) sums its episodes'
+statistics (:class:`SummedSteps`, :mod:`tpsr_ros.core.fit_statistics`) and solves them. Given
+the statistics of an earlier refit of the same run, it sums only the episodes that are new
+since, after decaying the old sums by ``forgetting`` per step: the learner node's refits
+then cost the new steps, not all of them, and equal one pass over the whole recording.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from tpsr_ros.core.episodes import Episodes, Trajectory, make_episodes, track_trajectory
+from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.fit_basis import FitBasis
-from tpsr_ros.core.learn import fit_tpsr_trajectory
+from tpsr_ros.core.fit_statistics import FitStatistics, forgetting_weights
+from tpsr_ros.core.learn import fit_tpsr_trajectory, refined_on_trajectory
 from tpsr_ros.core.sizing import Sizing
+from tpsr_ros.core.state_box import box_episodes, episode_states, state_box
 from tpsr_ros.core.state_model import Track
 from tpsr_ros.core.tpsr import Progress, TPSRConfig, TPSRModel
 from tpsr_ros.core.view_readout import ViewReadout, fit_view_readout
 
-__all__ = ["TrajectoryFit", "fit_trajectory", "view_of_track"]
+__all__ = ["SummedSteps", "TrajectoryFit", "fit_trajectory", "view_of_track"]
+
+
+@dataclass(frozen=True, eq=False)
+class SummedSteps:
+    """A refit's statistics and what they hold: the first ``steps`` steps of a run, aged at
+    its last one, up to the episode whose current step has the stamp ``last_stamp``."""
+
+    statistics: FitStatistics
+    steps: int
+    last_stamp: int | None
+    forgetting: float = 1.0
+
+    @classmethod
+    def of(
+        cls,
+        trajectory: Trajectory,
+        episodes: Episodes,
+        basis: FitBasis,
+        *,
+        forgetting: float = 1.0,
+        previous: SummedSteps | None = None,
+        action_codes: np.ndarray | None = None,
+    ) -> SummedSteps:
+        """The statistics of ``episodes`` (cut from ``trajectory``) on ``basis``, each weighted
+        by ``forgetting ** age``; with ``previous`` (of a shorter start of the same run) only
+        the episodes after it are summed, and its sums aged to the trajectory's end."""
+        steps = len(trajectory)
+        if previous is None:
+            stats = FitStatistics.empty(basis, episodes.n_actions, action_codes)
+            new = np.ones(len(episodes), dtype=bool)
+        else:
+            if previous.steps > steps or previous.forgetting != forgetting:
+                raise ConfigError(
+                    f"statistics of {previous.steps} steps (forgetting {previous.forgetting}) "
+                    f"do not continue into {steps} steps with forgetting {forgetting}"
+                )
+            stats = previous.statistics.decayed(forgetting ** (steps - previous.steps))
+            new = (
+                np.ones(len(episodes), dtype=bool) if previous.last_stamp is None
+                else episodes.stamps > previous.last_stamp
+            )  # fmt: skip
+        added = episodes.take(new)
+        ages = (steps - 1) - np.searchsorted(trajectory.stamps, added.stamps)
+        stats = stats.partial_fit(added, forgetting_weights(ages, forgetting))
+        last = int(added.stamps[-1]) if len(added) else (previous and previous.last_stamp)
+        return cls(stats, steps, last, forgetting)
+
+    def model(self, episodes: Episodes) -> TPSRModel:
+        """The solved TPSR, with the state box its config asks for (from ``episodes``)."""
+        model = self.statistics.solve()
+        if self.forgetting != 1.0:
+            model.fit_info["forgetting"] = self.forgetting
+        quantile = self.statistics.basis.config.state_clip_quantile
+        if quantile == 0:
+            return model
+        chosen = box_episodes(len(episodes))
+        states = episode_states(
+            model, episodes.history[chosen], episodes.history_actions[chosen],
+            episodes.action[chosen], episodes.observation[chosen],
+        )  # fmt: skip
+        config = replace(model.config, state_clip_quantile=quantile)
+        return replace(model, config=config, state_box=state_box(states, quantile))
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,6 +107,8 @@ class TrajectoryFit:
     view: ViewReadout
     episodes: int
     seconds: float
+    summed: SummedSteps | None = None
+    """A refit's statistics, to continue with more steps (None: a two-pass fit)."""
 
     def training(self, trajectory: Trajectory) -> dict[str, Any]:
         """The model file's description of its training data (as ``learner fit`` writes it)."""
@@ -60,30 +133,54 @@ def fit_trajectory(
     progress: Progress | None = None,
     episodes: Episodes | None = None,
     max_episodes: int | None = None,
+    forgetting: float = 1.0,
+    previous: SummedSteps | None = None,
 ) -> TrajectoryFit:
     """Fit ``trajectory`` with ``config`` (sized by ``sizing``), or refit it on ``basis``
     (then ``config`` is the basis's and only the rank rule applies); track its steps once.
 
     ``action_codes``: a robot model's codebook commands (action-aware features);
     ``pose_frame``: the frame of the training poses, for the decoded pose; ``episodes``:
-    the trajectory's episodes when already cut (at most ``max_episodes`` of them).
+    the trajectory's episodes when already cut (at most ``max_episodes`` of them). A refit
+    on a basis with a sketch solves statistics (:class:`SummedSteps`): ``forgetting`` weighs
+    each episode by ``forgetting ** age`` (1: alike), ``previous`` continues an earlier
+    refit's statistics of the same run.
     """
     start = time.perf_counter()
     cfg = basis.config if basis is not None else config
+    from_statistics = basis is not None and basis.sketch is not None
+    if not from_statistics and (forgetting != 1.0 or previous is not None):
+        raise ConfigError(
+            "forgetting and continued statistics refit on the basis of a first fit, with its "
+            "sketch of P_TH (a model written before sketches were kept has none: fit it anew)"
+        )
     if episodes is None:
         episodes = make_episodes(
             trajectory, cfg.history_length, cfg.test_length, max_episodes=max_episodes,
             stride=cfg.episode_stride,
         )  # fmt: skip
-    model = fit_tpsr_trajectory(
-        trajectory, cfg, episodes=episodes, max_episodes=max_episodes, progress=progress,
-        sizing=Sizing() if basis is not None else sizing,
-        action_codes=action_codes, basis=basis,
-    )  # fmt: skip
+    summed = None
+    if from_statistics:
+        assert basis is not None
+        if progress is not None:
+            progress("statistics")
+        summed = SummedSteps.of(
+            trajectory, episodes, basis, forgetting=forgetting, previous=previous,
+            action_codes=action_codes,
+        )  # fmt: skip
+        model = refined_on_trajectory(
+            summed.model(episodes), trajectory, episodes, max_episodes, progress
+        )
+    else:
+        model = fit_tpsr_trajectory(
+            trajectory, cfg, episodes=episodes, max_episodes=max_episodes, progress=progress,
+            sizing=Sizing() if basis is not None else sizing,
+            action_codes=action_codes, basis=basis,
+        )  # fmt: skip
     seconds = time.perf_counter() - start
     tracked = track_trajectory(model, trajectory)
     view = view_of_track(tracked, trajectory, pose_frame)
-    return TrajectoryFit(model, tracked, view, len(episodes), seconds)
+    return TrajectoryFit(model, tracked, view, len(episodes), seconds, summed)
 
 
 def view_of_track(tracked: Track, trajectory: Trajectory, pose_frame: str) -> ViewReadout:
