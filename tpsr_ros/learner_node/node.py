@@ -9,10 +9,12 @@ steps of them exactly as ``learner fit`` reads a recording of them
 ``refit_steps`` more, a worker process refits on the steps so far
 (:mod:`~tpsr_ros.learner_node.refits`): the first version fits the preset sized to the
 warm-up (or, with ``init_model``, keeps that model's whitenings and centres), every later
-one keeps the first's, so version ``n`` is ``learner fit BAG --init-from MODEL`` on a
-recording of its steps. Each version is written atomically to ``DIR`` and announced on the
-latched ``tpsr/model_update`` (JSON: path, fingerprint, version, steps, policy), which the
-filter node swaps in at a step boundary. The subscriptions never wait for a refit: it runs
+one keeps the first's and continues the last one's statistics (only the steps since are
+summed; with ``forgetting`` below 1 older steps weigh less), so version ``n`` is ``learner
+fit BAG --init-from MODEL [--forgetting F]`` on a recording of its steps. Each version is
+written atomically to ``DIR`` and announced on the latched ``tpsr/model_update`` (JSON:
+path, fingerprint, version, steps, policy), which the filter node swaps in at a step
+boundary. The subscriptions never wait for a refit: it runs
 in another process, and the node only hands it the steps and reads its answer.
 """
 
@@ -31,6 +33,7 @@ from typing import Any
 from tpsr_ros.core.episodes import DEFAULT_IMAGE_SHAPE
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.presets import DEFAULT_PRESET, PRESETS
+from tpsr_ros.core.refit import SummedSteps
 from tpsr_ros.core.tpsr import TPSRModel
 from tpsr_ros.filter_node.health import Throttle
 from tpsr_ros.filter_node.params import DIAGNOSTICS_TOPIC, MODEL_UPDATE_TOPIC
@@ -104,6 +107,11 @@ class LearnerNodeParams:
         0.5, "s without a message after which the steps waiting for late messages are final",
         positive=True,
     )  # fmt: skip
+    forgetting: float = param(
+        1.0, "weight of a step one step older in every refit after the first, in (0, 1] "
+        "(1: every step alike; 0.9995: a step 1386 steps old weighs half); the policy is "
+        "fitted on the last 3 / (1 - forgetting) steps",
+    )  # fmt: skip
     keep_versions: int = param(
         5, "versioned files of this run kept in output/versions (older ones are removed)",
         minimum=1,
@@ -130,6 +138,8 @@ class LearnerNode(Node):
         output = Path(p.output)
         if output.exists() and not output.is_dir():
             raise ConfigError(f"output {p.output} exists and is not a folder")
+        if not 0.0 < p.forgetting <= 1.0:
+            raise ConfigError(f"forgetting must lie in (0, 1], not {p.forgetting}")
         if not p.init_model:
             return None
         init = open_model(p.init_model)
@@ -169,6 +179,7 @@ class LearnerNode(Node):
         self.job: Future[RefitResult] | None = None
         self.job_steps = 0
         self.last_result: RefitResult | None = None
+        self.summed: SummedSteps | None = None  # the last refit's statistics, continued
         self.failures = 0
         self.last_error = ""  # of the last refit, when it failed
         self.rejected: dict[str, int] = {"undecodable": 0, "late": 0, "repeated": 0}
@@ -251,6 +262,7 @@ class LearnerNode(Node):
             self.live.chunk(steps), self.version + 1, self.output, self.params.preset,
             basis_model=self.basis_model, keep=self.params.keep_versions,
             first_version=self.first_version, reward_topic=self.live.topics.reward,
+            forgetting=self.params.forgetting, previous=self.summed,
         )  # fmt: skip
         self.job = self.worker.submit(refit, request)
 
@@ -275,6 +287,7 @@ class LearnerNode(Node):
         self.last_error = ""
         self.version = result.version
         self.basis_model = result.model  # every version carries the basis it was fitted on
+        self.summed = result.summed
         self.last_result = result
         self.update_pub.publish(string_msg(json.dumps(result.update(), sort_keys=True)))
         policy = f", policy {result.policy.name}" if result.policy is not None else ""
@@ -301,6 +314,8 @@ class LearnerNode(Node):
             "refits_failed": self.failures,
             "last_refit_s": "none" if last is None else last.total_seconds,
             "last_fit_s": "none" if last is None else last.fit_seconds,
+            "forgetting": self.params.forgetting,
+            "last_policy_steps": "none" if last is None else last.policy_steps,
         }
 
     def publish_diagnostics(self) -> None:

@@ -8,6 +8,12 @@ BAG`` (the first version, from the preset sized to the data) or ``learner fit BA
 of the same steps. With rewards among the steps the fitted-Q policy of the preset is
 fitted on the same tracked states (``learner policy``'s planner).
 
+A refit solves statistics (:class:`~tpsr_ros.core.refit.SummedSteps`): the request carries
+the last refit's, so only the steps since are summed, and with ``forgetting`` below 1 every
+episode weighs ``forgetting ** age``. The policy is then fitted on the last
+:func:`policy_horizon` steps only: under a world that changes, the old steps' transitions
+would teach it the old world.
+
 Files: every version is written to ``OUTPUT/versions/model-vNNNN.npz`` (and
 ``policy-vNNNN.npz``), then copied over ``OUTPUT/model.npz`` (and ``policy.npz``, which a
 version without a policy removes, so the two never belong to different models); every
@@ -20,6 +26,7 @@ earlier run's files.
 
 from __future__ import annotations
 
+import math
 import shutil
 import time
 from dataclasses import dataclass
@@ -30,7 +37,7 @@ import numpy as np
 
 from tpsr_ros.core.errors import ConfigError, TpsrError
 from tpsr_ros.core.presets import get_preset
-from tpsr_ros.core.refit import fit_trajectory
+from tpsr_ros.core.refit import SummedSteps, fit_trajectory
 from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import TPSRModel
 from tpsr_ros.io.atomic import atomic_file
@@ -38,7 +45,7 @@ from tpsr_ros.io.model_io import model_fingerprint, open_model, save_model
 from tpsr_ros.io.policy import policy_from_states, save_policy
 from tpsr_ros.io.trajectory import StepChunk
 
-__all__ = ["RefitRequest", "RefitResult", "last_version", "refit", "versioned"]
+__all__ = ["RefitRequest", "RefitResult", "last_version", "policy_horizon", "refit", "versioned"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -58,6 +65,9 @@ class RefitRequest:
     first_version: int = 1
     """This run's first version: only its files are pruned."""
     reward_topic: str = ""
+    forgetting: float = 1.0
+    previous: SummedSteps | None = None
+    """The statistics of the last refit of this run (None: sum every step)."""
 
 
 @dataclass(frozen=True)
@@ -73,6 +83,10 @@ class RefitResult:
     total_seconds: float
     note: str = ""
     """Why no policy was written, when none was."""
+    summed: SummedSteps | None = None
+    """The statistics the model solves, for the next refit to continue (None: a first fit)."""
+    policy_steps: int = 0
+    """The last steps the policy was fitted on."""
 
     def update(self) -> dict[str, Any]:
         """The ``tpsr/model_update`` JSON object announcing this version."""
@@ -85,6 +99,14 @@ class RefitResult:
         if self.policy is not None:
             update["policy"] = str(self.policy)
         return update
+
+
+def policy_horizon(steps: int, forgetting: float) -> int:
+    """The last steps a policy is fitted on: all without forgetting, else those weighing at
+    least ``e^-3`` (5 %): ``3 / (1 - forgetting)`` steps."""
+    if forgetting >= 1.0:
+        return steps
+    return min(steps, math.ceil(3.0 / (1.0 - forgetting)))
 
 
 def versioned(output: Path, kind: str, version: int) -> Path:
@@ -112,9 +134,13 @@ def refit(request: RefitRequest) -> RefitResult:
         preset_record = first.metadata.get("preset")
         record = preset_record if isinstance(preset_record, dict) else record
         live["init_from"] = {"path": str(request.basis_model), "fingerprint": first.fingerprint}
+    if request.forgetting != 1.0:
+        live["forgetting"] = request.forgetting
     fitted = fit_trajectory(
-        trajectory, preset.tpsr_config(turning=turning), basis=basis, sizing=Sizing()
-    )
+        trajectory, preset.tpsr_config(turning=turning), basis=basis, sizing=Sizing(),
+        forgetting=request.forgetting if basis is not None else 1.0,
+        previous=request.previous if basis is not None else None,
+    )  # fmt: skip
     model = fitted.model
     fingerprint = model_fingerprint(model)
     output = Path(request.output)
@@ -123,12 +149,13 @@ def refit(request: RefitRequest) -> RefitResult:
     training = {**fitted.training(trajectory), "live": live}
     save_model(model, model_path, training=training, preset=record, view=fitted.view, force=True)
     policy_path, note = None, ""
-    rewards = trajectory.rewards
-    if np.isfinite(rewards).any():
+    horizon = policy_horizon(len(trajectory), request.forgetting)
+    recent = trajectory.rows(len(trajectory) - horizon, len(trajectory))
+    if np.isfinite(recent.rewards).any():
         try:
             policy = policy_from_states(
-                fitted.tracked.states,
-                trajectory,
+                fitted.tracked.states[len(trajectory) - horizon :],
+                recent,
                 preset.fqi_config(),
                 representation=model.method,
                 fingerprint=fingerprint,
@@ -146,7 +173,9 @@ def refit(request: RefitRequest) -> RefitResult:
             policy_path = versioned(output, "policy", request.version)
             save_policy(policy, policy_path, force=True)
     else:
-        note = "no policy: no step has a reward"
+        note = "no policy: no step has a reward" if horizon == len(trajectory) else (
+            f"no policy: none of the last {horizon} steps has a reward"
+        )  # fmt: skip
     _publish(model_path, output / "model.npz")
     if policy_path is not None:
         _publish(policy_path, output / "policy.npz")
@@ -162,6 +191,8 @@ def refit(request: RefitRequest) -> RefitResult:
         fit_seconds=fitted.seconds,
         total_seconds=time.perf_counter() - start,
         note=note,
+        summed=fitted.summed,
+        policy_steps=horizon if policy_path is not None else 0,
     )
 
 
