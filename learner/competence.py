@@ -9,12 +9,17 @@ its messages to :class:`~tpsr_ros.io.trajectory.LiveSteps` as the node's subscri
 runs the node's own refit (:func:`tpsr_ros.learner_node.refits.refit`) at every due point
 and scores the version's policy by the standard evaluation (``learner evaluate``).
 
+With ``--switch-to ROOM --switch-at N`` the room changes under the robot after ``N`` live
+steps (:func:`sim_node.generate.generate_bag`'s ``then``), and each version is scored in the
+room of its last step; ``--forgetting F`` is the learner node's parameter. The CSV is then
+``switch_<environment>_<room>_f<F>.csv``.
+
 The CSV (``competence_<environment>.csv``) has the experiments' columns
 (:class:`learner.tables.Row`), one row per version: ``method`` ``tpsr``, ``episodes`` the
 live steps the version was fitted on, ``repetition`` the run, ``train_seed`` the run's
 simulator seed, ``rl_seed`` 0 (the policy plans on the same steps), ``fit_seconds`` the
-TPSR fit, and in ``parameters`` the version, the whole refit's seconds, the warm-up and
-the refit period.
+TPSR fit, and in ``parameters`` the version, the whole refit's seconds, the warm-up, the
+refit period, the forgetting factor and, with a switch, the room the version was scored in.
 """
 
 from __future__ import annotations
@@ -38,8 +43,8 @@ __all__ = ["DEFAULTS", "DEFAULT_STEPS", "competence_rows", "register", "run"]
 DEFAULT_STEPS = 12000
 """Live steps of a run: 20 minutes at 10 Hz."""
 DEFAULTS = {"steps": DEFAULT_STEPS, "warmup_steps": 1000, "refit_steps": 1000, "runs": 10,
-            "seed": 31}  # fmt: skip
-"""The options' defaults: the learner node's, ten runs, fresh seeds."""
+            "seed": 31, "forgetting": 1.0, "switch_to": None, "switch_at": None}  # fmt: skip
+"""The options' defaults: the learner node's, ten runs, fresh seeds, one room."""
 
 
 def register(subparsers: Any) -> None:
@@ -61,6 +66,25 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--seed", type=int, default=DEFAULTS["seed"],
                         help="simulator seed of the first run; run k uses seed + k "
                         "(default: %(default)s)")  # fmt: skip
+    parser.add_argument(
+        "--forgetting",
+        type=float,
+        default=DEFAULTS["forgetting"],
+        help="the learner node's forgetting, in (0, 1] (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--switch-to",
+        default=None,
+        metavar="ROOM",
+        help="the environment the room changes to after --switch-at steps",
+    )
+    parser.add_argument(
+        "--switch-at",
+        type=positive_int,
+        default=None,
+        metavar="STEPS",
+        help="live steps before the room changes (with --switch-to)",
+    )
     parser.add_argument("-o", "--output", type=Path, required=True, metavar="DIR")
     parser.add_argument("--force", action="store_true", help="overwrite an existing CSV")
     parser.add_argument("--workers", type=positive_int, default=1,
@@ -78,10 +102,18 @@ def command_of(args: argparse.Namespace) -> str:
 
 
 def competence_rows(
-    environment: str, steps: int, warmup: int, refit_every: int, run: int, seed: int,
+    environment: str,
+    steps: int,
+    warmup: int,
+    refit_every: int,
+    run: int,
+    seed: int,
     command: str,
+    forgetting: float = 1.0,
+    switch: tuple[str, int] | None = None,
 ) -> list[Row]:
-    """One run: every version the learner node would make of the run's steps, scored."""
+    """One run: every version the learner node would make of the run's steps, scored
+    (``switch``: the room and the step it changes at)."""
     from learner.evaluate import evaluate
     from learner.representations import ModelTracker
     from sim_node.generate import generate_bag
@@ -93,19 +125,23 @@ def competence_rows(
     rows = []
     with tempfile.TemporaryDirectory(prefix="competence_") as tmp:
         bag = Path(tmp) / "run"
-        generate_bag(bag, SimConfig(environment=environment), steps, seed=seed)
+        first_steps = steps if switch is None else switch[1]
+        then = None if switch is None else (SimConfig(environment=switch[0]), steps - switch[1])
+        generate_bag(bag, SimConfig(environment=environment), first_steps, seed=seed, then=then)
         live = LiveSteps.of_bag(bag, environment)
-        basis = None
+        basis, summed = None, None
         for version, due in enumerate(range(warmup, len(live) + 1, refit_every), start=1):
             result = refit(RefitRequest(
                 live.chunk(due), version, Path(tmp) / "out", "best", basis_model=basis, keep=1,
+                forgetting=forgetting, previous=summed,
             ))  # fmt: skip
-            basis = result.model
+            basis, summed = result.model, result.summed  # as the node continues them
+            room = environment if switch is None or due <= switch[1] else switch[0]
             score, status = float("nan"), result.note or "ok"
             if result.policy is not None:
                 model_file = open_model(result.model)
                 tracker = ModelTracker(model_file.model, model_file.fingerprint)
-                evaluation = evaluate(load_policy(result.policy), tracker, environment)
+                evaluation = evaluate(load_policy(result.policy), tracker, room)
                 score = evaluation.score
                 trials = ";".join(f"{t.reward:g}" for t in evaluation.trials)
             else:
@@ -118,25 +154,44 @@ def competence_rows(
                 parameters=json.dumps({
                     "version": version, "refit_seconds": round(result.total_seconds, 6),
                     "warmup_steps": warmup, "refit_steps": refit_every,
+                    "forgetting": forgetting, "room": room,
+                    **({} if switch is None else {"switch_to": switch[0],
+                                                  "switch_at": switch[1]}),
                 }),
                 preset="best", command=command,
             ))  # fmt: skip
-            print(f"learner competence: {environment} run {run} v{version} ({due} steps): "
-                  f"{score:.1f}", file=sys.stderr, flush=True)  # fmt: skip
+            print(f"learner competence: {environment} run {run} v{version} ({due} steps, "
+                  f"{room}): {score:.1f}", file=sys.stderr, flush=True)  # fmt: skip
     return rows
 
 
 def run(args: argparse.Namespace) -> int:
     """Run every run (in parallel processes), then write the CSV."""
     SimConfig(environment=args.environment)  # an unknown environment is refused here
-    path = args.output / f"competence_{args.environment}.csv"
+    if not 0.0 < args.forgetting <= 1.0:
+        raise ConfigError(f"--forgetting must lie in (0, 1], not {args.forgetting}")
+    switch = None
+    if (args.switch_to is None) != (args.switch_at is None):
+        raise ConfigError("--switch-to and --switch-at go together")
+    if args.switch_to is not None:
+        SimConfig(environment=args.switch_to)
+        if not args.warmup_steps <= args.switch_at < args.steps:
+            raise ConfigError(
+                f"--switch-at {args.switch_at} must lie between the warm-up "
+                f"({args.warmup_steps}) and the run's end ({args.steps})"
+            )
+        switch = (args.switch_to, args.switch_at)
+        name = f"switch_{args.environment}_{args.switch_to}_f{args.forgetting:g}.csv"
+    else:
+        name = f"competence_{args.environment}.csv"
+    path = args.output / name
     if path.exists() and not args.force:
         raise ConfigError(f"{path} already exists; use --force to overwrite it")
     args.output.mkdir(parents=True, exist_ok=True)
     command = command_of(args)
     jobs = [
         (args.environment, args.steps, args.warmup_steps, args.refit_steps, run, args.seed + run,
-         command)
+         command, args.forgetting, switch)
         for run in range(args.runs)
     ]  # fmt: skip
     if args.workers == 1:

@@ -21,6 +21,7 @@ from sim_node.options import add_vertical_half_extent_option
 from sim_node.rollout import Rollout, iter_random_rollout
 from sim_node.topics import SimTopics
 from tpsr_ros.cli import ArgumentParser, positive_int, run_cli
+from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.io.bag import BagWriter, check_bag_path_free
 from tpsr_ros.progress import progress_bar
 
@@ -29,9 +30,11 @@ __all__ = ["generate_bag", "main"]
 PROG = "python -m sim_node.generate"
 
 
-def _write_chunk(
-    writer: BagWriter, topics: SimTopics, part: Rollout, config: SimConfig
-) -> None:
+SWITCH_SEED_OFFSET = 1_000_003
+"""Added to a run's seed for its random streams after the room changes (``then``)."""
+
+
+def _write_chunk(writer: BagWriter, topics: SimTopics, part: Rollout, config: SimConfig) -> None:
     """Write every message of the chunk's steps, in step order (CDR built per chunk)."""
     payloads = chunk_payloads(topics, part, config)
     order = list(topics.types())
@@ -48,10 +51,18 @@ def generate_bag(
     *,
     topics: SimTopics | None = None,
     progress: bool = False,
+    then: tuple[SimConfig, int] | None = None,
 ) -> int:
-    """Simulate ``steps`` random steps and write them to a new bag; returns messages written."""
+    """Simulate ``steps`` random steps and write them to a new bag; returns messages written.
+
+    ``then`` (another room's config and a number of steps): the room changes under the
+    robot after ``steps`` steps, and the run goes on there from the robot's last position,
+    its stamps continuing (its random streams drawn from ``seed + SWITCH_SEED_OFFSET``).
+    """
     topics = topics or SimTopics()
     check_bag_path_free(output)
+    if then is not None and then[0].drives != config.drives:
+        raise ConfigError("a run changes rooms only between rooms of the same robot and actions")
     with BagWriter(output) as writer:
         settings = {
             "environment": config.environment.value,
@@ -73,6 +84,16 @@ def generate_bag(
             for part in iter_random_rollout(config, steps, seed):
                 _write_chunk(writer, topics, part, config)
                 bar.update(len(part))
+        if then is not None:
+            after, more = then
+            after = dataclasses.replace(after, start_time_ns=int(part.stamps_ns[-1]))
+            start = tuple(part.positions[-1].tolist())
+            writer.set_custom_data(
+                "tpsr_ros.switch", json.dumps({"after_steps": steps, "environment":
+                                               after.environment.value, "steps": more})
+            )  # fmt: skip
+            for part in iter_random_rollout(after, more, seed + SWITCH_SEED_OFFSET, start=start):
+                _write_chunk(writer, topics, part, after)
         return writer.message_count
 
 
@@ -93,13 +114,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.seed < 0:
         parser.error(f"argument --seed: {args.seed} is negative")
-    config = SimConfig(
-        environment=args.environment, vertical_half_extent=args.vertical_half_extent
-    )
+    config = SimConfig(environment=args.environment, vertical_half_extent=args.vertical_half_extent)
     start = time.perf_counter()
-    count = generate_bag(
-        args.output, config, args.steps, args.seed, progress=not args.quiet
-    )
+    count = generate_bag(args.output, config, args.steps, args.seed, progress=not args.quiet)
     elapsed = time.perf_counter() - start
     if not args.quiet:
         print(

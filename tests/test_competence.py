@@ -56,3 +56,42 @@ def test_learner_competence_refuses_an_unknown_environment(tmp_path, capsys):
     )
     assert code != 0 and "moon" in stderr
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_a_room_change_scores_each_version_in_the_room_of_its_last_step(tmp_path, capsys):
+    argv = ["competence", "--environment", "full", "--steps", "600", "--warmup-steps", "300",
+            "--refit-steps", "150", "--runs", "1", "--switch-to", "distractors",
+            "--switch-at", "400", "--forgetting", "0.995", "-o", str(tmp_path)]  # fmt: skip
+    code, _, stderr = run_entry(argv, capsys)
+    assert code == 0, stderr
+    rows = read_csv(tmp_path / "switch_full_distractors_f0.995.csv")
+    parameters = [json.loads(r.parameters) for r in rows]
+    assert [(r.episodes, p["room"]) for r, p in zip(rows, parameters, strict=True)] == [
+        (300, "full"),
+        (450, "distractors"),
+        (600, "distractors"),
+    ]
+    assert {(p["forgetting"], p["switch_to"], p["switch_at"]) for p in parameters} == {
+        (0.995, "distractors", 400)
+    }
+    assert rows[0].command.endswith("--forgetting 0.995 --switch-to distractors --switch-at 400")
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--switch-to", "distractors"], "go together"),
+        (["--switch-to", "distractors", "--switch-at", "500"], "must lie between"),
+        (["--switch-to", "moon", "--switch-at", "200"], "moon"),
+        (["--forgetting", "0"], "(0, 1]"),
+    ],
+)
+def test_learner_competence_refuses_a_room_change_it_cannot_make(
+    tmp_path, capsys, options, message
+):
+    argv = ["competence", "--environment", "full", "--steps", "400", "--warmup-steps", "100",
+            *options, "-o", str(tmp_path)]  # fmt: skip
+    code, _, stderr = run_entry(argv, capsys)
+    assert code != 0 and message in stderr, stderr
+    assert not list(tmp_path.iterdir())
