@@ -134,8 +134,9 @@ def register(subparsers: Any) -> None:
         default=None,
         metavar="MODEL",
         help="refit on the bags with MODEL's whitenings, kernel centres and settings (its "
-        "preset, sizes, topics and step grid; the rank follows the rank rule): the learner "
-        "node's refits, for a recording of its steps. TPSR options are refused with it",
+        "preset, sizes, topics and step grid; the rank follows the rank rule), the state "
+        "coordinates rotated to MODEL's: the learner node's refit after MODEL, for a "
+        "recording of its steps. TPSR options are refused with it",
     )
     parser.add_argument(
         "--forgetting",
@@ -341,6 +342,7 @@ def _run_init_from(args: argparse.Namespace, output: Path) -> int:
     fitted = fit_trajectory(
         trajectory, basis.config, basis=basis, progress=_say, pose_frame=pose_frame,
         action_codes=None if spec is None else spec.codebook.codes, forgetting=forgetting,
+        align_to=init.model,
     )  # fmt: skip
     timings["fit"] = fitted.seconds
     _say_sizing(fitted.model)

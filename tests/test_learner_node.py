@@ -174,10 +174,11 @@ def test_the_first_version_is_learner_fit_of_its_steps(bag, learned):
 
 @pytest.mark.slow
 def test_the_last_version_is_learner_fit_init_from_on_a_recording(bag, learned, tmp_path, capsys):
-    first, last = learned["updates"][0], learned["updates"][-1]
+    """The last version refits on the basis of the one it replaces, in its coordinates."""
+    replaced, last = learned["updates"][-2], learned["updates"][-1]
     out = tmp_path / "offline.npz"
     code, _, stderr = run_entry(
-        ["fit", str(bag), "--init-from", first["path"], "-o", str(out)], capsys
+        ["fit", str(bag), "--init-from", replaced["path"], "-o", str(out)], capsys
     )
     assert code == 0, stderr
     offline, live = open_model(out).model, open_model(last["path"]).model

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from tpsr_ros.core.alignment import ALIGN_STEPS, align_model
 from tpsr_ros.core.episodes import Episodes, Trajectory, make_episodes, track_trajectory
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.fit_basis import FitBasis
@@ -135,6 +136,7 @@ def fit_trajectory(
     max_episodes: int | None = None,
     forgetting: float = 1.0,
     previous: SummedSteps | None = None,
+    align_to: TPSRModel | None = None,
 ) -> TrajectoryFit:
     """Fit ``trajectory`` with ``config`` (sized by ``sizing``), or refit it on ``basis``
     (then ``config`` is the basis's and only the rank rule applies); track its steps once.
@@ -144,7 +146,9 @@ def fit_trajectory(
     the trajectory's episodes when already cut (at most ``max_episodes`` of them). A refit
     on a basis with a sketch solves statistics (:class:`SummedSteps`): ``forgetting`` weighs
     each episode by ``forgetting ** age`` (1: alike), ``previous`` continues an earlier
-    refit's statistics of the same run.
+    refit's statistics of the same run. ``align_to``: the model the fit replaces, whose
+    state coordinates the fit's are rotated to (:mod:`tpsr_ros.core.alignment`, over the
+    last :data:`~tpsr_ros.core.alignment.ALIGN_STEPS` steps both track).
     """
     start = time.perf_counter()
     cfg = basis.config if basis is not None else config
@@ -179,8 +183,23 @@ def fit_trajectory(
         )  # fmt: skip
     seconds = time.perf_counter() - start
     tracked = track_trajectory(model, trajectory)
+    if align_to is not None:
+        model, tracked = _aligned(model, tracked, align_to, trajectory)
     view = view_of_track(tracked, trajectory, pose_frame)
     return TrajectoryFit(model, tracked, view, len(episodes), seconds, summed)
+
+
+def _aligned(
+    model: TPSRModel, tracked: Track, reference: TPSRModel, trajectory: Trajectory
+) -> tuple[TPSRModel, Track]:
+    """``model`` and its tracked states in the coordinates closest to ``reference``'s."""
+    window = slice(max(0, len(trajectory) - ALIGN_STEPS), len(trajectory))
+    old = track_trajectory(reference, trajectory).states[window]
+    model, rotation, record = align_model(model, tracked.states[window], old)
+    model.fit_info["aligned"] = record
+    if rotation is None:
+        return model, tracked
+    return model, tracked._replace(states=tracked.states @ rotation)
 
 
 def view_of_track(tracked: Track, trajectory: Trajectory, pose_frame: str) -> ViewReadout:

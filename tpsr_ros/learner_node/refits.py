@@ -4,13 +4,16 @@ The node hands a :class:`RefitRequest` (the first ``N`` live steps, pixels still
 a worker process, which runs :func:`refit` and returns a :class:`RefitResult`. The model
 is :func:`tpsr_ros.core.refit.fit_trajectory` of those steps, so it equals ``learner fit
 BAG`` (the first version, from the preset sized to the data) or ``learner fit BAG
---init-from MODEL`` (every later one, on the first version's frozen basis) on a recording
-of the same steps. With rewards among the steps the fitted-Q policy of the preset is
+--init-from LAST`` (every later one: ``LAST`` the version it replaces, whose frozen basis,
+from the first version, it keeps) on a recording of the same steps. With rewards among the steps the fitted-Q policy of the preset is
 fitted on the same tracked states (``learner policy``'s planner).
 
-A refit solves statistics (:class:`~tpsr_ros.core.refit.SummedSteps`): the request carries
-the last refit's, so only the steps since are summed, and with ``forgetting`` below 1 every
-episode weighs ``forgetting ** age``. The policy is then fitted on the last
+A version's state coordinates are rotated to those of the model it replaces (the last
+version, or ``init_model``: :mod:`tpsr_ros.core.alignment`), so the state a filter node
+publishes does not jump at a swap. A refit solves statistics
+(:class:`~tpsr_ros.core.refit.SummedSteps`): the request carries the last refit's, so only
+the steps since are summed, and with ``forgetting`` below 1 every episode weighs
+``forgetting ** age``. The policy is then fitted on the last
 :func:`policy_horizon` steps only: under a world that changes, the old steps' transitions
 would teach it the old world.
 
@@ -121,25 +124,27 @@ def refit(request: RefitRequest) -> RefitResult:
     preset = get_preset(request.preset)
     environment = trajectory.summary()["environment"]
     turning = environment == "drive"
-    basis = None
+    basis, replaced = None, None  # the model this version replaces: basis, state coordinates
     record: dict[str, Any] = {"name": preset.name, "changed": {}}
     if turning and preset.turning_tpsr:
         record["turning"] = True
     live: dict[str, Any] = {"version": request.version}
     if request.basis_model is not None:
-        first = open_model(request.basis_model)
-        basis = first.model.basis if isinstance(first.model, TPSRModel) else None
+        opened = open_model(request.basis_model)
+        replaced = opened.model if isinstance(opened.model, TPSRModel) else None
+        basis = None if replaced is None else replaced.basis
         if basis is None:
             raise ConfigError(f"{request.basis_model} holds no fit basis to refit on")
-        preset_record = first.metadata.get("preset")
+        preset_record = opened.metadata.get("preset")
         record = preset_record if isinstance(preset_record, dict) else record
-        live["init_from"] = {"path": str(request.basis_model), "fingerprint": first.fingerprint}
+        live["init_from"] = {"path": str(request.basis_model), "fingerprint": opened.fingerprint}
     if request.forgetting != 1.0:
         live["forgetting"] = request.forgetting
     fitted = fit_trajectory(
         trajectory, preset.tpsr_config(turning=turning), basis=basis, sizing=Sizing(),
         forgetting=request.forgetting if basis is not None else 1.0,
         previous=request.previous if basis is not None else None,
+        align_to=replaced,
     )  # fmt: skip
     model = fitted.model
     fingerprint = model_fingerprint(model)
