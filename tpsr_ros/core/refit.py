@@ -79,7 +79,10 @@ class SummedSteps:
         added = episodes.take(new)
         ages = (steps - 1) - np.searchsorted(trajectory.stamps, added.stamps)
         stats = stats.partial_fit(added, forgetting_weights(ages, forgetting))
-        last = int(added.stamps[-1]) if len(added) else (previous and previous.last_stamp)
+        if len(added):
+            last: int | None = int(added.stamps[-1])
+        else:  # no episode completed since
+            last = None if previous is None else previous.last_stamp
         return cls(stats, steps, last, forgetting)
 
     def model(self, episodes: Episodes) -> TPSRModel:
