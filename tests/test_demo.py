@@ -23,7 +23,8 @@ def test_the_demo_runs_end_to_end(tmp_path):
     (out / "stale.txt").write_text("from an earlier run")  # the directory is recreated
     proc = subprocess.run(
         [sys.executable, "-m", "learner.demo", "--output", str(out),
-         "--domain-id", str(fresh_domain())],
+         "--domain-id", str(fresh_domain()),
+         "--train-steps", "6000", "--rl-steps", "6000"],  # every stage, on a quarter of the data
         capture_output=True,
         text=True,
         timeout=280,
