@@ -15,6 +15,7 @@ from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.fit_basis import SKETCH_MARGIN, Sketch
 from tpsr_ros.core.fit_statistics import FitStatistics, forgetting_weights
+from tpsr_ros.core.learn import fit
 from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr, fit_tpsr_episodes
 
@@ -78,6 +79,39 @@ def test_with_a_sketch_of_the_whole_range_the_statistics_solve_to_the_two_pass_f
         np.testing.assert_allclose(
             got, want, rtol=1e-8, atol=1e-10 * np.abs(want).max(), err_msg=name
         )
+
+
+def test_the_statistics_of_a_first_fits_own_data_on_its_sketch_solve_to_it():
+    """The sketch holds the first fit's leading directions of P_TH: its own data's
+    statistics give back the same filter, to rounding."""
+    data = _trajectory(3000, seed=10)
+    model = fit(data)
+    episodes = make_episodes(data, 1, 1)
+    again = FitStatistics.empty(model.basis, 4).partial_fit(episodes).solve()
+    assert again.config == model.config
+    for name in ("b_star", "b_inf", "B"):
+        got, want = getattr(again, name), getattr(model, name)
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+    states = model.track(data.actions, data.observations).states
+    np.testing.assert_allclose(
+        again.track(data.actions, data.observations).states, states, rtol=0,
+        atol=1e-9 * np.abs(states).max(),
+    )  # fmt: skip
+
+
+def test_the_sketch_compresses_the_spectrum_of_more_data(first):
+    """On more data the sketch's singular values are those of the whole P_TH compressed:
+    none above them (interlacing), the leading ones close."""
+    episodes = _episodes(_trajectory(9000, seed=11))
+    sketched = FitStatistics.empty(first.basis, 4).partial_fit(episodes).solve()
+    whole = fit_tpsr_episodes(
+        episodes, config=first.basis.config, basis=replace(first.basis, sketch=None),
+        sizing=Sizing(),
+    )  # fmt: skip
+    r = min(sketched.state_dim, whole.state_dim)
+    values, reference = sketched.singular_values[:r], whole.singular_values[:r]
+    assert (values <= reference * (1 + 1e-9)).all()
+    np.testing.assert_allclose(values[:2], reference[:2], rtol=0.01)
 
 
 def test_statistics_of_chunks_merge_to_those_of_all_the_data(first, monkeypatch):

@@ -7,11 +7,15 @@ sized to the data (a first fit) or the frozen basis of an earlier fit (a refit:
 :mod:`tpsr_ros.core.fit_basis`), the refinement the config asks for, then the training
 states tracked once for the viewer's read-outs.
 
-A refit on a basis with a sketch of ``P_TH`` (every first fit keeps one) sums its episodes'
-statistics (:class:`SummedSteps`, :mod:`tpsr_ros.core.fit_statistics`) and solves them. Given
-the statistics of an earlier refit of the same run, it sums only the episodes that are new
-since, after decaying the old sums by ``forgetting`` per step: the learner node's refits
-then cost the new steps, not all of them, and equal one pass over the whole recording.
+A refit that forgets (``forgetting`` below 1) sums its episodes' statistics on the basis's
+sketch of ``P_TH`` (every first fit keeps one; :class:`SummedSteps`,
+:mod:`tpsr_ros.core.fit_statistics`), each weighted by ``forgetting ** age``, and solves
+them. Given the statistics of an earlier refit of the same run, it sums only the episodes
+that are new since, after decaying the old sums: the learner node's refits then cost the
+new steps, and equal one pass over the whole recording. A refit that keeps every step
+alike runs the two passes of the first fit on the basis, the whole ``P_TH`` and no sketch:
+in ``partial-strip`` the sketch's refits scored below the two-pass refits of the same
+steps (:data:`~tpsr_ros.core.fit_basis.SKETCH_MARGIN`).
 """
 
 from __future__ import annotations
@@ -147,16 +151,17 @@ def fit_trajectory(
     ``action_codes``: a robot model's codebook commands (action-aware features);
     ``pose_frame``: the frame of the training poses, for the decoded pose; ``episodes``:
     the trajectory's episodes when already cut (at most ``max_episodes`` of them). A refit
-    on a basis with a sketch solves statistics (:class:`SummedSteps`): ``forgetting`` weighs
-    each episode by ``forgetting ** age`` (1: alike), ``previous`` continues an earlier
-    refit's statistics of the same run. ``align_to``: the model the fit replaces, whose
-    state coordinates the fit's are rotated to (:mod:`tpsr_ros.core.alignment`, over the
-    last :data:`~tpsr_ros.core.alignment.ALIGN_STEPS` steps both track).
+    with ``forgetting`` below 1 solves statistics on the basis's sketch
+    (:class:`SummedSteps`), each episode weighted by ``forgetting ** age``; ``previous``
+    continues an earlier such refit's statistics of the same run. ``align_to``: the model
+    the fit replaces, whose state coordinates the fit's are rotated to
+    (:mod:`tpsr_ros.core.alignment`, over the last
+    :data:`~tpsr_ros.core.alignment.ALIGN_STEPS` steps both track).
     """
     start = time.perf_counter()
     cfg = basis.config if basis is not None else config
-    from_statistics = basis is not None and basis.sketch is not None
-    if not from_statistics and (forgetting != 1.0 or previous is not None):
+    from_statistics = forgetting != 1.0 or previous is not None
+    if from_statistics and (basis is None or basis.sketch is None):
         raise ConfigError(
             "forgetting and continued statistics refit on the basis of a first fit, with its "
             "sketch of P_TH (a model written before sketches were kept has none: fit it anew)"

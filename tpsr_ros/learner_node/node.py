@@ -9,9 +9,10 @@ steps of them exactly as ``learner fit`` reads a recording of them
 ``refit_steps`` more, a worker process refits on the steps so far
 (:mod:`~tpsr_ros.learner_node.refits`): the first version fits the preset sized to the
 warm-up (or, with ``init_model``, keeps that model's whitenings and centres), every later
-one keeps the first's and continues the last one's statistics (only the steps since are
-summed; with ``forgetting`` below 1 older steps weigh less), so version ``n`` is ``learner
-fit BAG --init-from MODEL [--forgetting F]`` on a recording of its steps. Each version is
+one keeps the first's and takes the state coordinates of the one before (with
+``forgetting`` below 1 older steps weigh less, and a refit continues the last one's
+statistics: only the steps since are summed), so version ``n`` is ``learner fit BAG
+--init-from PREVIOUS [--forgetting F]`` on a recording of its steps. Each version is
 written atomically to ``DIR`` and announced on the latched ``tpsr/model_update`` (JSON:
 path, fingerprint, version, steps, policy), which the filter node swaps in at a step
 boundary. The subscriptions never wait for a refit: it runs

@@ -4,18 +4,18 @@ The node hands a :class:`RefitRequest` (the first ``N`` live steps, pixels still
 a worker process, which runs :func:`refit` and returns a :class:`RefitResult`. The model
 is :func:`tpsr_ros.core.refit.fit_trajectory` of those steps, so it equals ``learner fit
 BAG`` (the first version, from the preset sized to the data) or ``learner fit BAG
---init-from LAST`` (every later one: ``LAST`` the version it replaces, whose frozen basis,
-from the first version, it keeps) on a recording of the same steps. With rewards among the steps the fitted-Q policy of the preset is
-fitted on the same tracked states (``learner policy``'s planner).
+--init-from LAST [--forgetting F]`` (every later one: ``LAST`` the version it replaces,
+whose frozen basis, from the first version, it keeps) on a recording of the same steps.
+With rewards among the steps the fitted-Q policy of the preset is fitted on the same
+tracked states (``learner policy``'s planner).
 
 A version's state coordinates are rotated to those of the model it replaces (the last
 version, or ``init_model``: :mod:`tpsr_ros.core.alignment`), so the state a filter node
-publishes does not jump at a swap. A refit solves statistics
-(:class:`~tpsr_ros.core.refit.SummedSteps`): the request carries the last refit's, so only
-the steps since are summed, and with ``forgetting`` below 1 every episode weighs
-``forgetting ** age``. The policy is then fitted on the last
-:func:`policy_horizon` steps only: under a world that changes, the old steps' transitions
-would teach it the old world.
+publishes does not jump at a swap. With ``forgetting`` below 1 a refit solves statistics
+(:class:`~tpsr_ros.core.refit.SummedSteps`) in which every episode weighs
+``forgetting ** age``: the request carries the last refit's, so only the steps since are
+summed, and the policy is fitted on the last :func:`policy_horizon` steps only (under a
+world that changes, the old steps' transitions would teach it the old world).
 
 Files: every version is written to ``OUTPUT/versions/model-vNNNN.npz`` (and
 ``policy-vNNNN.npz``), then copied over ``OUTPUT/model.npz`` (and ``policy.npz``, which a
