@@ -174,7 +174,13 @@ def run(args: argparse.Namespace) -> int:
     if (args.switch_to is None) != (args.switch_at is None):
         raise ConfigError("--switch-to and --switch-at go together")
     if args.switch_to is not None:
-        SimConfig(environment=args.switch_to)
+        if (
+            SimConfig(environment=args.switch_to).drives
+            != SimConfig(environment=args.environment).drives
+        ):
+            raise ConfigError(
+                "a run changes rooms only between rooms of the same robot and actions"
+            )
         if not args.warmup_steps <= args.switch_at < args.steps:
             raise ConfigError(
                 f"--switch-at {args.switch_at} must lie between the warm-up "

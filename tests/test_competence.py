@@ -84,6 +84,7 @@ def test_a_room_change_scores_each_version_in_the_room_of_its_last_step(tmp_path
         (["--switch-to", "distractors"], "go together"),
         (["--switch-to", "distractors", "--switch-at", "500"], "must lie between"),
         (["--switch-to", "moon", "--switch-at", "200"], "moon"),
+        (["--switch-to", "drive", "--switch-at", "200"], "same robot"),
         (["--forgetting", "0"], "(0, 1]"),
     ],
 )
