@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import time
 from pathlib import Path
 
@@ -25,6 +26,7 @@ from tpsr_ros.io.model_io import model_fingerprint, open_model, save_model
 from tpsr_ros.io.policy import load_policy
 from tpsr_ros.io.trajectory import LiveSteps, read_trajectory
 from tpsr_ros.learner_node import LearnerNode
+from tpsr_ros.learner_node import node as learner_node
 from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions, parse_ros_args
 from tpsr_ros.runtime.diagnostics import DIAGNOSTICS_TYPE, status_values
 from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
@@ -38,6 +40,36 @@ TOPICS = {
 STEPS, WARMUP, REFIT = 1200, 600, 200
 IDLE = 2.0
 """The harness waits for each refit between steps: the streams' pause must not close a step."""
+
+
+WORKER_NICENESS = learner_node.WORKER_NICENESS
+
+
+@pytest.fixture(scope="module", autouse=True)
+def refits_at_the_tests_priority():
+    """The harness waits for every refit, so its worker runs at this process's priority here:
+    at niceness 19 it waits for idle cores, and beside the other test workers' tests a refit
+    of 1 s CPU took up to a minute. The node's own niceness is checked by
+    test_the_refit_worker_runs_at_the_lowest_priority_with_one_blas_thread."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(learner_node, "WORKER_NICENESS", 0)
+        yield
+
+
+def test_the_refit_worker_runs_at_the_lowest_priority_with_one_blas_thread(monkeypatch):
+    monkeypatch.setattr(learner_node, "WORKER_NICENESS", WORKER_NICENESS)
+    for variable in learner_node.BLAS_THREADS:
+        monkeypatch.setenv(variable, "4")  # the node's own environment: not the worker's
+    pool = learner_node._worker()
+    try:
+        pid = pool.submit(os.getpid).result(timeout=60)
+        niceness = os.getpriority(os.PRIO_PROCESS, pid)  # while the worker is up
+        threads = [pool.submit(os.getenv, v).result(timeout=60) for v in learner_node.BLAS_THREADS]
+    finally:
+        pool.shutdown()
+    assert WORKER_NICENESS == 19
+    assert niceness == min(19, os.getpriority(os.PRIO_PROCESS, 0) + 19)
+    assert threads == ["1", "1", "1"] and os.environ["OPENBLAS_NUM_THREADS"] == "4"
 
 
 @pytest.fixture(scope="module")
