@@ -21,10 +21,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(PY) -m learner.demo
 
-# the whole suite in parallel (pytest-xdist): one worker per core and one more, since most
-# slow tests wait on node processes, discovery and real-time replays; idle workers steal
-# queued tests; tests/conftest.py pins BLAS to one thread per worker
-WORKERS ?= $(shell $(PYTHON) -c "import os; print((os.cpu_count() or 1) + 1)")
+# the whole suite in parallel (pytest-xdist): one worker per core; idle workers steal queued
+# tests; tests/conftest.py pins BLAS to one thread per worker. Not one more worker for the
+# tests that wait on node processes, discovery and real-time replays: their nodes, timers
+# and middleware threads cost CPU for every second they run, and a third worker on two cores
+# stretched those seconds (613 s of CPU and 319 s for the suite; two workers: 506 s and 307 s)
+WORKERS ?= $(shell $(PYTHON) -c "import os; print(os.cpu_count() or 1)")
 test: $(STAMP)
 	$(PY) -m pytest -q -n $(WORKERS) --dist worksteal
 
