@@ -17,7 +17,7 @@ import numpy as np
 from learner.floors import CONSTANT, RANDOM
 from learner.jobs import ENVIRONMENTS, HEADLINE_SEEDS, Job, experiment_job
 from learner.sections import Data, Section, cell, comparison, judged
-from learner.tables import Row, summarise
+from learner.tables import Row, pooled_floors, summarise
 from tpsr_ros.io.policy import TRUE_POSITION
 
 __all__ = ["PREDICTIVE_EPISODES", "PREDICTIVE_SECTION"]
@@ -80,8 +80,10 @@ def _entry(rows: list[Row], method: str) -> dict | None:
     return found[0] if found else None
 
 
-def _weakest(rows: list[Row], method: str) -> str:
-    scores = [r.score for r in _at_size(rows, method) if math.isfinite(r.score)]
+def _weakest(rows: list[Row], method: str, *, pooled: bool = False) -> str:
+    """The lowest run at the section's data size (``pooled``: at any, as a floor's runs)."""
+    runs = [r for r in rows if r.method == method] if pooled else _at_size(rows, method)
+    scores = [r.score for r in runs if math.isfinite(r.score)]
     return f"{min(scores):.1f}" if scores else "-"
 
 
@@ -95,7 +97,8 @@ def _render(section: Section, data: Data) -> list[str]:
         f"Ten runs per environment at {PREDICTIVE_EPISODES} episodes (24000 recorded steps) on "
         "the headline's seeds; the other rows are the headline's own runs of the same seeds. "
         "Cells: mean / median / SEM; weakest: the lowest run; restarts: the median number of "
-        "normaliser recoveries over the RL trajectory; the difference to the defaults' TPSR "
+        "normaliser recoveries over the RL trajectory; the floors: pooled over every data "
+        "size, as in the headline (they use no data); the difference to the defaults' TPSR "
         "in SEMs of the difference.",
         "",
         "| environment | representation | score | weakest run | restarts | vs the defaults' TPSR |",
@@ -125,15 +128,16 @@ def _render(section: Section, data: Data) -> list[str]:
                     ),
                     ("finite-window predictive state (k = 1), the same", data[baseline], "window"),
                 ]
+        floors = pooled_floors(base_rows)  # blind to the state: one measurement per room
         for name, source, method in rows:
-            entry = _entry(source, method)
+            entry = floors.get(method) if method in floors else _entry(source, method)
             versus = "-"
             if method == "tpsr" and source is ours and entry and base:
                 versus = judged(*comparison(entry, base))
             restarts = _restarts(source, method) if method == "tpsr" else "-"
+            weakest = _weakest(source, method, pooled=method in floors)
             lines.append(
-                f"| `{env}` | {name} | {cell(entry)} | {_weakest(source, method)} | "
-                f"{restarts} | {versus} |"
+                f"| `{env}` | {name} | {cell(entry)} | {weakest} | {restarts} | {versus} |"
             )
         for baseline in _baseline_jobs():
             window = _entry(data[baseline], "window") if baseline.environment == env else None
