@@ -11,8 +11,9 @@ and scores the version's policy by the standard evaluation (``learner evaluate``
 
 With ``--switch-to ROOM --switch-at N`` the room changes under the robot after ``N`` live
 steps (:func:`sim_node.generate.generate_bag`'s ``then``), and each version is scored in the
-room of its last step; ``--forgetting F`` is the learner node's parameter. The CSV is then
-``switch_<environment>_<room>_f<F>.csv``.
+room of its last step; ``--forgetting F`` and ``--new-basis-steps N`` are the learner node's
+parameters. The CSV is then ``switch_<environment>_<room>_f<F>.csv``; with new bases, the
+name ends in ``_b<N>`` before ``.csv``.
 
 The CSV (``competence_<environment>.csv``) has the experiments' columns
 (:class:`learner.tables.Row`), one row per version: ``method`` ``tpsr``, ``episodes`` the
@@ -43,7 +44,8 @@ __all__ = ["DEFAULTS", "DEFAULT_STEPS", "competence_rows", "register", "run"]
 DEFAULT_STEPS = 12000
 """Live steps of a run: 20 minutes at 10 Hz."""
 DEFAULTS = {"steps": DEFAULT_STEPS, "warmup_steps": 1000, "refit_steps": 1000, "runs": 10,
-            "seed": 31, "forgetting": 1.0, "switch_to": None, "switch_at": None}  # fmt: skip
+            "seed": 31, "forgetting": 1.0, "new_basis_steps": 0, "switch_to": None,
+            "switch_at": None}  # fmt: skip
 """The options' defaults: the learner node's, ten runs, fresh seeds, one room."""
 
 
@@ -71,6 +73,13 @@ def register(subparsers: Any) -> None:
         type=float,
         default=DEFAULTS["forgetting"],
         help="the learner node's forgetting, in (0, 1] (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--new-basis-steps",
+        type=int,
+        default=DEFAULTS["new_basis_steps"],
+        metavar="N",
+        help="the learner node's new_basis_steps (default: %(default)s: never a new basis)",
     )
     parser.add_argument(
         "--switch-to",
@@ -111,6 +120,7 @@ def competence_rows(
     command: str,
     forgetting: float = 1.0,
     switch: tuple[str, int] | None = None,
+    new_basis_steps: int = 0,
 ) -> list[Row]:
     """One run: every version the learner node would make of the run's steps, scored
     (``switch``: the room and the step it changes at)."""
@@ -120,7 +130,7 @@ def competence_rows(
     from tpsr_ros.io.model_io import open_model
     from tpsr_ros.io.policy import load_policy
     from tpsr_ros.io.trajectory import LiveSteps
-    from tpsr_ros.learner_node.refits import RefitRequest, refit
+    from tpsr_ros.learner_node.refits import RefitRequest, new_basis_due, refit
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="competence_") as tmp:
@@ -129,13 +139,16 @@ def competence_rows(
         then = None if switch is None else (SimConfig(environment=switch[0]), steps - switch[1])
         generate_bag(bag, SimConfig(environment=environment), first_steps, seed=seed, then=then)
         live = LiveSteps.of_bag(bag, environment)
-        basis, summed = None, None
+        basis, summed, basis_at = None, None, None
         for version, due in enumerate(range(warmup, len(live) + 1, refit_every), start=1):
             result = refit(RefitRequest(
                 live.chunk(due), version, Path(tmp) / "out", "best", basis_model=basis, keep=1,
                 forgetting=forgetting, previous=summed,
+                new_basis=new_basis_due(due, basis_at, new_basis_steps),
             ))  # fmt: skip
             basis, summed = result.model, result.summed  # as the node continues them
+            if result.basis_steps:
+                basis_at = due
             room = environment if switch is None or due <= switch[1] else switch[0]
             score, status = float("nan"), result.note or "ok"
             if result.policy is not None:
@@ -155,6 +168,8 @@ def competence_rows(
                     "version": version, "refit_seconds": round(result.total_seconds, 6),
                     "warmup_steps": warmup, "refit_steps": refit_every,
                     "forgetting": forgetting, "room": room,
+                    **({} if not new_basis_steps else {"new_basis_steps": new_basis_steps,
+                                                       "basis_steps": result.basis_steps}),
                     **({} if switch is None else {"switch_to": switch[0],
                                                   "switch_at": switch[1]}),
                 }),
@@ -170,6 +185,9 @@ def run(args: argparse.Namespace) -> int:
     SimConfig(environment=args.environment)  # an unknown environment is refused here
     if not 0.0 < args.forgetting <= 1.0:
         raise ConfigError(f"--forgetting must lie in (0, 1], not {args.forgetting}")
+    if args.new_basis_steps < 0:
+        raise ConfigError(f"--new-basis-steps must be 0 or more, not {args.new_basis_steps}")
+    suffix = f"_b{args.new_basis_steps}" if args.new_basis_steps else ""
     switch = None
     if (args.switch_to is None) != (args.switch_at is None):
         raise ConfigError("--switch-to and --switch-at go together")
@@ -187,9 +205,9 @@ def run(args: argparse.Namespace) -> int:
                 f"({args.warmup_steps}) and the run's end ({args.steps})"
             )
         switch = (args.switch_to, args.switch_at)
-        name = f"switch_{args.environment}_{args.switch_to}_f{args.forgetting:g}.csv"
+        name = f"switch_{args.environment}_{args.switch_to}_f{args.forgetting:g}{suffix}.csv"
     else:
-        name = f"competence_{args.environment}.csv"
+        name = f"competence_{args.environment}{suffix}.csv"
     path = args.output / name
     if path.exists() and not args.force:
         raise ConfigError(f"{path} already exists; use --force to overwrite it")
@@ -197,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
     command = command_of(args)
     jobs = [
         (args.environment, args.steps, args.warmup_steps, args.refit_steps, run, args.seed + run,
-         command, args.forgetting, switch)
+         command, args.forgetting, switch, args.new_basis_steps)
         for run in range(args.runs)
     ]  # fmt: skip
     if args.workers == 1:

@@ -60,12 +60,14 @@ def test_learner_competence_refuses_an_unknown_environment(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_a_room_change_scores_each_version_in_the_room_of_its_last_step(tmp_path, capsys):
+    """With a new basis 300 steps after the one in use: the last version fits one."""
     argv = ["competence", "--environment", "full", "--steps", "600", "--warmup-steps", "300",
             "--refit-steps", "150", "--runs", "1", "--switch-to", "distractors",
-            "--switch-at", "400", "--forgetting", "0.995", "-o", str(tmp_path)]  # fmt: skip
+            "--switch-at", "400", "--forgetting", "0.995", "--new-basis-steps", "300",
+            "-o", str(tmp_path)]  # fmt: skip
     code, _, stderr = run_entry(argv, capsys)
     assert code == 0, stderr
-    rows = read_csv(tmp_path / "switch_full_distractors_f0.995.csv")
+    rows = read_csv(tmp_path / "switch_full_distractors_f0.995_b300.csv")
     parameters = [json.loads(r.parameters) for r in rows]
     assert [(r.episodes, p["room"]) for r, p in zip(rows, parameters, strict=True)] == [
         (300, "full"),
@@ -75,7 +77,10 @@ def test_a_room_change_scores_each_version_in_the_room_of_its_last_step(tmp_path
     assert {(p["forgetting"], p["switch_to"], p["switch_at"]) for p in parameters} == {
         (0.995, "distractors", 400)
     }
-    assert rows[0].command.endswith("--forgetting 0.995 --switch-to distractors --switch-at 400")
+    assert [p["basis_steps"] for p in parameters] == [300, 0, 600]  # the first fit's, a new one
+    assert rows[0].command.endswith(
+        "--forgetting 0.995 --new-basis-steps 300 --switch-to distractors --switch-at 400"
+    )
 
 
 @pytest.mark.parametrize(
@@ -86,6 +91,7 @@ def test_a_room_change_scores_each_version_in_the_room_of_its_last_step(tmp_path
         (["--switch-to", "moon", "--switch-at", "200"], "moon"),
         (["--switch-to", "drive", "--switch-at", "200"], "same robot"),
         (["--forgetting", "0"], "(0, 1]"),
+        (["--new-basis-steps", "-1"], "0 or more"),
     ],
 )
 def test_learner_competence_refuses_a_room_change_it_cannot_make(

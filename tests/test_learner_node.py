@@ -38,6 +38,8 @@ TOPICS = {
     "/reward": m.REWARD_TYPE,
 }
 STEPS, WARMUP, REFIT = 1200, 600, 200
+NEW_BASIS = 400
+"""The ``learned`` node's new_basis_steps: version 3 (1000 steps) fits a new basis."""
 IDLE = 2.0
 """The harness waits for each refit between steps: the streams' pause must not close a step."""
 
@@ -161,7 +163,7 @@ class Harness:
 def learned(bag, tmp_path_factory):
     """Every message of the bag fed to a learner node: its versions and its output folder."""
     output = tmp_path_factory.mktemp("learned") / "out"
-    h = Harness(output)
+    h = Harness(output, f"new_basis_steps:={NEW_BASIS}")
     try:
         h.feed(_messages(bag), wait_for=1 + (STEPS - WARMUP) // REFIT)
         values = h.values()
@@ -217,6 +219,26 @@ def test_the_last_version_is_learner_fit_init_from_on_a_recording(bag, learned, 
     for name, array in offline.to_arrays().items():
         np.testing.assert_allclose(live.to_arrays()[name], array, rtol=0, atol=1e-9)
     assert open_model(last["path"]).training["live"]["init_from"]["fingerprint"] is not None
+
+
+@pytest.mark.slow
+def test_a_new_basis_is_learner_fit_of_its_steps_in_the_coordinates_before(bag, learned):
+    """Version 3, 400 steps after the first's basis, fits a new one as ``learner fit`` does on
+    its 1000 steps, rotated to version 2's states; version 4 keeps it."""
+    _, second, third, fourth = (open_model(u["path"]) for u in learned["updates"])
+    steps = read_trajectory([bag]).rows(0, 1000)
+    expected = fit_trajectory(
+        steps, PRESETS["best"].tpsr_config(), sizing=Sizing(), align_to=second.model
+    ).model
+    assert "skipped" not in expected.fit_info["aligned"]  # rotated: the same rank
+    for name, array in expected.to_arrays().items():
+        np.testing.assert_allclose(third.model.to_arrays()[name], array, rtol=0, atol=1e-9)
+    assert third.training["live"]["new_basis_steps"] == 1000
+    assert "new_basis_steps" not in fourth.training["live"]
+    bases = [m.model.basis for m in (second, third, fourth)]
+    assert not np.array_equal(bases[0].obs.components_, bases[1].obs.components_)
+    np.testing.assert_array_equal(bases[1].obs.components_, bases[2].obs.components_)
+    assert learned["values"]["basis_fitted_at_steps"] == "1000"
 
 
 @pytest.mark.slow

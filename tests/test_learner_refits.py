@@ -1,5 +1,6 @@
-"""The learner node's refits continue their statistics, forget old steps when asked, and
-equal `learner fit --init-from --forgetting` on a recording of the same steps."""
+"""The learner node's refits continue their statistics, forget old steps when asked, fit a
+new basis when due, and equal `learner fit --init-from --forgetting` on a recording of the
+same steps."""
 
 from __future__ import annotations
 
@@ -12,10 +13,11 @@ from sim_node.generate import generate_bag
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.presets import PRESETS
 from tpsr_ros.core.refit import fit_trajectory
+from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.policy import load_policy
 from tpsr_ros.io.trajectory import LiveSteps
-from tpsr_ros.learner_node.refits import RefitRequest, policy_horizon, refit
+from tpsr_ros.learner_node.refits import RefitRequest, new_basis_due, policy_horizon, refit
 
 STEPS, FORGETTING = 1200, 0.995
 
@@ -98,3 +100,46 @@ def test_forgetting_is_refused_out_of_range_and_without_a_model_to_refit(bag, ca
     first_steps = LiveSteps.of_bag(bag, "full").chunk(600).trajectory()
     with pytest.raises(ConfigError, match="forgetting and continued statistics refit on the basis"):
         fit_trajectory(first_steps, PRESETS["best"].tpsr_config(), forgetting=0.9)
+
+
+def test_a_new_basis_is_due_so_many_steps_after_the_one_in_use():
+    assert not new_basis_due(5000, 1000, 0)  # 0: never
+    assert not new_basis_due(1000, None, 2000)  # no basis yet: the first fit makes one
+    assert not new_basis_due(2999, 1000, 2000)
+    assert new_basis_due(3000, 1000, 2000)
+
+
+@pytest.mark.slow
+def test_a_new_basis_fits_the_steps_the_policy_plans_on_and_the_next_refit_keeps_it(
+    versions, tmp_path
+):
+    live, _, (_, _, third) = versions
+    horizon = policy_horizon(STEPS, FORGETTING)
+    new = refit(RefitRequest(
+        live.chunk(STEPS), 5, tmp_path, "best", basis_model=third.model,
+        forgetting=FORGETTING, previous=third.summed, new_basis=True,
+    ))  # fmt: skip
+    assert new.basis_steps == new.policy_steps == horizon < STEPS and new.summed is None
+    # learner fit of the last `horizon` steps, in the coordinates of the model it replaces
+    recent = live.chunk(STEPS).trajectory().rows(STEPS - horizon, STEPS)
+    expected = fit_trajectory(
+        recent, PRESETS["best"].tpsr_config(), sizing=Sizing(),
+        align_to=open_model(third.model).model,
+    ).model  # fmt: skip
+    model = open_model(new.model).model
+    for name, array in expected.to_arrays().items():
+        np.testing.assert_allclose(model.to_arrays()[name], array, rtol=0, atol=1e-9)
+    # the next refit keeps the new basis and sums every step on it anew
+    after = refit(RefitRequest(
+        live.chunk(STEPS), 6, tmp_path, "best", basis_model=new.model, forgetting=FORGETTING,
+    ))  # fmt: skip
+    assert after.basis_steps == 0 and after.summed.steps == STEPS
+    np.testing.assert_array_equal(
+        open_model(after.model).model.basis.obs.components_, model.basis.obs.components_
+    )
+
+
+def test_a_new_basis_needs_a_model_to_replace(bag, tmp_path):
+    live = LiveSteps.of_bag(bag, "full")
+    with pytest.raises(ConfigError, match="a new basis replaces a model"):
+        refit(RefitRequest(live.chunk(600), 1, tmp_path, "best", new_basis=True))

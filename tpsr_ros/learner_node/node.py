@@ -12,11 +12,13 @@ warm-up (or, with ``init_model``, keeps that model's whitenings and centres), ev
 one keeps the first's and takes the state coordinates of the one before (with
 ``forgetting`` below 1 older steps weigh less, and a refit continues the last one's
 statistics: only the steps since are summed), so version ``n`` is ``learner fit BAG
---init-from PREVIOUS [--forgetting F]`` on a recording of its steps. Each version is
-written atomically to ``DIR`` and announced on the latched ``tpsr/model_update`` (JSON:
-path, fingerprint, version, steps, policy), which the filter node swaps in at a step
-boundary. The subscriptions never wait for a refit: it runs
-in another process, and the node only hands it the steps and reads its answer.
+--init-from PREVIOUS [--forgetting F]`` on a recording of its steps. With
+``new_basis_steps`` N, the first refit N steps after the basis in use was fitted fits a new
+one on its last steps, as ``learner fit`` does, in the coordinates of the one before. Each
+version is written atomically to ``DIR`` and announced on the latched ``tpsr/model_update``
+(JSON: path, fingerprint, version, steps, policy), which the filter node swaps in at a step
+boundary. The subscriptions never wait for a refit: it runs in another process, and the
+node only hands it the steps and reads its answer.
 """
 
 from __future__ import annotations
@@ -43,7 +45,13 @@ from tpsr_ros.io import messages as m
 from tpsr_ros.io.filter_inputs import model_image_shape
 from tpsr_ros.io.model_io import ModelFile, open_model
 from tpsr_ros.io.trajectory import LateMessage, LiveSteps, RepeatedMessage, Topics
-from tpsr_ros.learner_node.refits import RefitRequest, RefitResult, last_version, refit
+from tpsr_ros.learner_node.refits import (
+    RefitRequest,
+    RefitResult,
+    last_version,
+    new_basis_due,
+    refit,
+)
 from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions, param, run_node
 from tpsr_ros.runtime.diagnostics import (
     DIAGNOSTICS_TYPE,
@@ -113,6 +121,12 @@ class LearnerNodeParams:
         "(1: every step alike; 0.9995: a step 1386 steps old weighs half); the policy is "
         "fitted on the last 3 / (1 - forgetting) steps",
     )  # fmt: skip
+    new_basis_steps: int = param(
+        0, "steps after which a refit fits new whitenings and kernel centres on the last 3 / "
+        "(1 - forgetting) steps (every step without forgetting), rotated to the version it "
+        "replaces; the refits after it keep them (0: every refit keeps the first's)",
+        minimum=0,
+    )  # fmt: skip
     keep_versions: int = param(
         5, "versioned files of this run kept in output/versions (older ones are removed)",
         minimum=1,
@@ -181,6 +195,7 @@ class LearnerNode(Node):
         self.job_steps = 0
         self.last_result: RefitResult | None = None
         self.summed: SummedSteps | None = None  # the last refit's statistics, continued
+        self.basis_at = None if init is None else 0  # steps when the basis in use was fitted
         self.failures = 0
         self.last_error = ""  # of the last refit, when it failed
         self.rejected: dict[str, int] = {"undecodable": 0, "late": 0, "repeated": 0}
@@ -264,6 +279,7 @@ class LearnerNode(Node):
             basis_model=self.basis_model, keep=self.params.keep_versions,
             first_version=self.first_version, reward_topic=self.live.topics.reward,
             forgetting=self.params.forgetting, previous=self.summed,
+            new_basis=new_basis_due(steps, self.basis_at, self.params.new_basis_steps),
         )  # fmt: skip
         self.job = self.worker.submit(refit, request)
 
@@ -289,6 +305,8 @@ class LearnerNode(Node):
         self.version = result.version
         self.basis_model = result.model  # every version carries the basis it was fitted on
         self.summed = result.summed
+        if result.basis_steps:
+            self.basis_at = result.steps
         self.last_result = result
         self.update_pub.publish(string_msg(json.dumps(result.update(), sort_keys=True)))
         policy = f", policy {result.policy.name}" if result.policy is not None else ""
@@ -317,6 +335,8 @@ class LearnerNode(Node):
             "last_fit_s": "none" if last is None else last.fit_seconds,
             "forgetting": self.params.forgetting,
             "last_policy_steps": "none" if last is None else last.policy_steps,
+            "new_basis_steps": self.params.new_basis_steps,
+            "basis_fitted_at_steps": "none" if self.basis_at is None else self.basis_at,
         }
 
     def publish_diagnostics(self) -> None:

@@ -17,6 +17,12 @@ publishes does not jump at a swap. With ``forgetting`` below 1 a refit solves st
 summed, and the policy is fitted on the last :func:`policy_horizon` steps only (under a
 world that changes, the old steps' transitions would teach it the old world).
 
+A frozen basis cannot follow a world that changes what the camera sees: its whitenings and
+centres describe the first steps. A request with ``new_basis`` fits a new one, as ``learner
+fit`` does, on the last :func:`policy_horizon` steps (every step without forgetting), rotated
+to the model it replaces; the refits after it keep it and sum their statistics anew
+(:func:`new_basis_due` says when the node asks for one).
+
 Files: every version is written to ``OUTPUT/versions/model-vNNNN.npz`` (and
 ``policy-vNNNN.npz``), then copied over ``OUTPUT/model.npz`` (and ``policy.npz``, which a
 version without a policy removes, so the two never belong to different models); every
@@ -48,7 +54,15 @@ from tpsr_ros.io.model_io import model_fingerprint, open_model, save_model
 from tpsr_ros.io.policy import policy_from_states, save_policy
 from tpsr_ros.io.trajectory import StepChunk
 
-__all__ = ["RefitRequest", "RefitResult", "last_version", "policy_horizon", "refit", "versioned"]
+__all__ = [
+    "RefitRequest",
+    "RefitResult",
+    "last_version",
+    "new_basis_due",
+    "policy_horizon",
+    "refit",
+    "versioned",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -71,6 +85,9 @@ class RefitRequest:
     forgetting: float = 1.0
     previous: SummedSteps | None = None
     """The statistics of the last refit of this run (None: sum every step)."""
+    new_basis: bool = False
+    """Fit a new basis on the last :func:`policy_horizon` steps instead of keeping
+    ``basis_model``'s (whose state coordinates the new one's are rotated to)."""
 
 
 @dataclass(frozen=True)
@@ -90,6 +107,8 @@ class RefitResult:
     """The statistics the model solves, for the next refit to continue (None: a first fit)."""
     policy_steps: int = 0
     """The last steps the policy was fitted on."""
+    basis_steps: int = 0
+    """The last steps this refit fitted a new basis on (0: it kept its model's)."""
 
     def update(self) -> dict[str, Any]:
         """The ``tpsr/model_update`` JSON object announcing this version."""
@@ -112,6 +131,13 @@ def policy_horizon(steps: int, forgetting: float) -> int:
     return min(steps, math.ceil(3.0 / (1.0 - forgetting)))
 
 
+def new_basis_due(steps: int, basis_at: int | None, every: int) -> bool:
+    """Whether a refit of ``steps`` steps fits a new basis: ``every`` (> 0) or more steps
+    after the refit that fitted the one in use at ``basis_at`` steps (None: no basis yet, the
+    first fit makes one)."""
+    return every > 0 and basis_at is not None and steps - basis_at >= every
+
+
 def versioned(output: Path, kind: str, version: int) -> Path:
     """``OUTPUT/versions/<kind>-vNNNN.npz``."""
     return output / "versions" / f"{kind}-v{version:04d}.npz"
@@ -125,9 +151,10 @@ def refit(request: RefitRequest) -> RefitResult:
     environment = trajectory.summary()["environment"]
     turning = environment == "drive"
     basis, replaced = None, None  # the model this version replaces: basis, state coordinates
-    record: dict[str, Any] = {"name": preset.name, "changed": {}}
+    fresh: dict[str, Any] = {"name": preset.name, "changed": {}}  # a first fit's preset
     if turning and preset.turning_tpsr:
-        record["turning"] = True
+        fresh["turning"] = True
+    record = fresh
     live: dict[str, Any] = {"version": request.version}
     if request.basis_model is not None:
         opened = open_model(request.basis_model)
@@ -140,8 +167,17 @@ def refit(request: RefitRequest) -> RefitResult:
         live["init_from"] = {"path": str(request.basis_model), "fingerprint": opened.fingerprint}
     if request.forgetting != 1.0:
         live["forgetting"] = request.forgetting
+    horizon = policy_horizon(len(trajectory), request.forgetting)
+    recent = trajectory.rows(len(trajectory) - horizon, len(trajectory))
+    fitted_steps = trajectory  # the steps the model is fitted on
+    if request.new_basis:
+        if replaced is None:
+            raise ConfigError("a new basis replaces a model's: the request names none")
+        basis, fitted_steps = None, recent
+        record = fresh
+        live["new_basis_steps"] = horizon
     fitted = fit_trajectory(
-        trajectory, preset.tpsr_config(turning=turning), basis=basis, sizing=Sizing(),
+        fitted_steps, preset.tpsr_config(turning=turning), basis=basis, sizing=Sizing(),
         forgetting=request.forgetting if basis is not None else 1.0,
         previous=request.previous if basis is not None else None,
         align_to=replaced,
@@ -151,15 +187,13 @@ def refit(request: RefitRequest) -> RefitResult:
     output = Path(request.output)
     (output / "versions").mkdir(parents=True, exist_ok=True)
     model_path = versioned(output, "model", request.version)
-    training = {**fitted.training(trajectory), "live": live}
+    training = {**fitted.training(fitted_steps), "live": live}
     save_model(model, model_path, training=training, preset=record, view=fitted.view, force=True)
     policy_path, note = None, ""
-    horizon = policy_horizon(len(trajectory), request.forgetting)
-    recent = trajectory.rows(len(trajectory) - horizon, len(trajectory))
     if np.isfinite(recent.rewards).any():
         try:
             policy = policy_from_states(
-                fitted.tracked.states[len(trajectory) - horizon :],
+                fitted.tracked.states[len(fitted_steps) - horizon :],
                 recent,
                 preset.fqi_config(),
                 representation=model.method,
@@ -198,6 +232,7 @@ def refit(request: RefitRequest) -> RefitResult:
         note=note,
         summed=fitted.summed,
         policy_steps=horizon if policy_path is not None else 0,
+        basis_steps=len(fitted_steps) if basis is None else 0,
     )
 
 
