@@ -13,8 +13,12 @@ free of ROS (they import neither rclpy, cyclonedds, rosbags nor mcap):
   simulator's streams and the step grid of models learned from robot bags;
 - :mod:`~tpsr_ros.filter_node.health`: counters, input rates, warning throttles and the
   level of each ``/diagnostics`` report;
+- :mod:`~tpsr_ros.filter_node.observers`: what is done with each tracked step, one
+  observer per job (the health ledger, ``/tpsr/state``, the steps a model swap re-filters,
+  the command, the latency, the view topics), told of swaps and re-initialisations;
 - :mod:`~tpsr_ros.filter_node.params` and :mod:`~tpsr_ros.filter_node.node`: the parameters
-  and the node itself, boilerplate around one call per message.
+  and the node itself, boilerplate around one call per message: a step is tracked, then
+  fed to the observers.
 
 Tracking is :class:`~tpsr_ros.core.online.OnlineTracker` (guide Algorithm 4 with the offline
 tracker's rules: start from ``b_*``, restart at gaps), so the states published equal offline

@@ -3,8 +3,10 @@
 Each message callback forwards to one of them and publishes what comes back:
 :mod:`~tpsr_ros.filter_node.inputs` turns decoded messages into observations and action
 indices, a step source of :mod:`~tpsr_ros.filter_node.stepping` turns those into steps,
-:class:`~tpsr_ros.core.online.OnlineTracker` into states, the policy into commands, and
-:mod:`~tpsr_ros.filter_node.health` keeps what ``/diagnostics`` says.
+:class:`~tpsr_ros.core.online.OnlineTracker` into states, which are fed to the observers of
+:mod:`~tpsr_ros.filter_node.observers` (the state, the swap replay, the policy's command, the
+latency, the view topics), and :mod:`~tpsr_ros.filter_node.health` keeps what
+``/diagnostics`` says.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import numpy as np
 from tpsr_ros.core.actions import environment_grid
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.online import OnlineTracker
+from tpsr_ros.core.state_model import StateModel
 from tpsr_ros.core.units import NS_PER_S as _NS
 from tpsr_ros.filter_node.health import (
     MIN_SHARE_SAMPLES,
@@ -33,6 +36,16 @@ from tpsr_ros.filter_node.inputs import (
     Frame,
     Rejected,
     robot_command,
+)
+from tpsr_ros.filter_node.observers import (
+    Commander,
+    HealthKeeper,
+    LatencyMeter,
+    StatePublisher,
+    StepObserver,
+    SwapReplay,
+    Tracked,
+    ViewPublisher,
 )
 from tpsr_ros.filter_node.params import (
     ACTION_TOPIC,
@@ -66,17 +79,9 @@ from tpsr_ros.filter_node.swap import (
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.filter_inputs import FilterInputs, check_policy, filter_inputs, input_topics
 from tpsr_ros.io.model_io import open_model
-from tpsr_ros.io.policy import load_policy
+from tpsr_ros.io.policy import Policy, load_policy
 from tpsr_ros.io.qos import CLOCK_QOS
-from tpsr_ros.io.view_messages import (
-    DECODED_POSE_TOPIC,
-    MARKERS_TYPE,
-    PREDICTED_IMAGE_TOPIC,
-    STATE_MARKERS_TOPIC,
-    ViewMessages,
-    ViewSettings,
-    view_messages,
-)
+from tpsr_ros.io.view_messages import ViewMessages, ViewSettings
 from tpsr_ros.runtime import (
     DEFAULT_QOS,
     LATCHED_QOS,
@@ -244,14 +249,12 @@ class FilterNode(Node):
         )
         self.image_topic = self.resolve_topic(image_name)
         self.action_topic = self.resolve_topic(action_name)
-        self.model = self.inputs.model
-        self.policy = self.inputs.policy
         self.spec = self.inputs.spec
         self.sim_actions = environment_grid(self.inputs.model_file.environment)  # exact pairing's
         jump_ns = round(p.jump_threshold * _NS)
         self.source: ExactPairing | GridStepping | LockstepStepping
         if p.lockstep:
-            if self.spec is None or self.policy is None:
+            if self.spec is None or self.inputs.policy is None:
                 raise ConfigError(
                     "lockstep needs a model learned with --step-period and a policy (a "
                     "simulator model pairs the simulator's own stamped actions)"
@@ -269,32 +272,20 @@ class FilterNode(Node):
         self.tracker = OnlineTracker(self.model, self.source_step_ns)
         self.health = HealthLedger(p.input_timeout)
         self._throttle = Throttle(WARN_PERIOD_S)
-        self.resets = self.stale_resets = self.errors = self.commands = 0
+        self.resets = self.stale_resets = self.errors = 0
         self.latency = RollingPercentiles(1000)
         self.sim_inputs = SimulatorInputs(
             self.inputs.image_shape, p.image_frame, p.action_frame, self.sim_actions
         )
-        # the actions' commands themselves: never outside the simulator's grid or the codebook
-        codes = self.sim_actions if self.spec is None else self.spec.codebook
-        self._twists = [m.twist_from_components(codes.command(a)) for a in range(len(codes))]
-        self._twist_cdr = [m.serialize(twist, m.TWIST_TYPE) for twist in self._twists]
-        self._state_cdr = m.StateEncoder(self.model.state_dim)
-        self._pending_command: tuple[int, int | None] | None = None
         self._ready_since: float | None = None
-        self.commands_ready = self.policy is None
-        self.viewer = self._viewer()
         self.policy_name = p.policy or "none"
         self.swaps = self.refused_swaps = 0
-        # the steps a swap re-filters (none kept when it restarts from b_*)
-        replayed = p.swap_replay_steps if p.swap_state == "replay" else 0
-        self._recent: deque[tuple[int, int, Any]] = deque(maxlen=replayed)
-        self._first_stamp: int | None = None  # of the first step tracked with this model
         self._create_endpoints(image_name, action_name)
         self._publish_model_info()
         self._far_reported = (0, 0)  # far commands and command messages when last judged
         self._report_done()
         self.create_timer(p.diagnostics_period, self.publish_diagnostics)
-        if self.policy is not None:
+        if self.commander is not None and not self.commander.ready:
             self._ready_timer = self.create_timer(0.01, self._check_ready)
         if self.grid is not None:
             self.create_timer(min(0.1, p.max_latency / 4), self._flush_if_idle)
@@ -313,18 +304,66 @@ class FilterNode(Node):
             f"{self.action_topic}"
         )
 
-    def _viewer(self) -> ViewMessages | None:
-        """The view topics' messages (``view`` on and a model with the viewer's read-outs)."""
+    def _observers(self) -> list[StepObserver]:
+        """What is done with each tracked step, in the order of its messages: the health
+        ledger, ``/tpsr/state``, the steps a swap re-filters (and the first step's
+        ``tpsr/model_info``), the command, the latency, the view topics."""
         p: FilterNodeParams = self.params
-        if not p.view:
-            return None
-        if self.inputs.model_file.view is None:
-            self.logger.info(
-                f"{self.inputs.model_file.path} has no viewer read-outs (written before them): "
-                "no view topics; refit it with `learner fit` to see them"
-            )
-            return None
-        return view_messages(self.inputs.model_file, ViewSettings(trail=p.view_trail))
+        # the steps a swap re-filters (none kept when it restarts from b_*)
+        replayed = p.swap_replay_steps if p.swap_state == "replay" else 0
+        self.replay = SwapReplay(replayed, self._publish_model_info)
+        state_topic = self.state_pub.topic
+        observers: list[StepObserver] = [
+            HealthKeeper(self.health, lambda text: self._warn(state_topic, "recovery", text)),
+            StatePublisher(self.state_pub, self.inputs.model.state_dim),
+            self.replay,
+        ]
+        self.commander: Commander | None = None
+        if self.cmd_pub is not None:
+            # the actions' commands themselves: never outside the simulator's grid or the
+            # codebook
+            codes = self.sim_actions if self.spec is None else self.spec.codebook
+            lockstep = self.source if isinstance(self.source, LockstepStepping) else None
+            self.commander = Commander(
+                self.inputs.policy, self.cmd_pub, codes,
+                stamped=p.command_type == "twist_stamped", now_ns=self.now_ns,
+                sent=None if lockstep is None else lockstep.command,
+            )  # fmt: skip
+            observers.append(self.commander)
+        observers.append(LatencyMeter(self.latency))  # to the state and the command
+        self.view: ViewPublisher | None = None
+        if p.view:
+            self.view = ViewPublisher(
+                self.inputs, self, ViewSettings(trail=p.view_trail), MARKERS_QOS,
+                self.image_errors, self.logger.info,
+            )  # fmt: skip
+            observers.append(self.view)
+        return observers
+
+    @property
+    def model(self) -> StateModel:
+        """The state model that tracks."""
+        return self.inputs.model
+
+    @property
+    def policy(self) -> Policy | None:
+        """The policy that commands (None: a pure filter, or none for the running model)."""
+        return None if self.commander is None else self.commander.policy
+
+    @property
+    def commands(self) -> int:
+        """Commands published."""
+        return 0 if self.commander is None else self.commander.commands
+
+    @property
+    def commands_ready(self) -> bool:
+        """Commands are published (a pure filter: always; else once subscribers match)."""
+        return self.commander is None or self.commander.ready
+
+    @property
+    def viewer(self) -> ViewMessages | None:
+        """The view topics' messages (``view`` on and a model with the viewer's read-outs)."""
+        return None if self.view is None else self.view.viewer
 
     @property
     def source_step_ns(self) -> int:
@@ -346,14 +385,13 @@ class FilterNode(Node):
         self.state_pub = self.create_publisher(STATE_TOPIC, m.STATE_TYPE)
         self.cmd_pub = (
             self.create_publisher(CMD_VEL_TOPIC, COMMAND_TYPES[p.command_type])
-            if self.policy is not None
+            if self.inputs.policy is not None
             else None
         )
         if not hasattr(self, "diagnostics_pub"):  # a node that waited for its model has one
             self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
         self.image_errors: deque[float] = deque(maxlen=IMAGE_ERROR_STEPS)
-        self.predicted_pub = self.markers_pub = self.pose_pub = None
-        self._view_publishers()
+        self.observers = self._observers()
         self.model_info_pub = self.create_publisher(
             MODEL_INFO_TOPIC, MODEL_MESSAGE_TYPE, LATCHED_QOS
         )
@@ -396,16 +434,6 @@ class FilterNode(Node):
             MODEL_UPDATE_TOPIC, MODEL_MESSAGE_TYPE, self._on_model_update, LATCHED_QOS, raw=True
         ).topic
         self.reload_service = self.create_trigger_service(RELOAD_SERVICE, self.reload_model)
-
-    def _view_publishers(self) -> None:
-        """The view topics' publishers the current viewer needs (created once each)."""
-        if self.viewer is None:
-            return
-        if self.predicted_pub is None:
-            self.predicted_pub = self.create_publisher(PREDICTED_IMAGE_TOPIC, m.IMAGE_TYPE)
-            self.markers_pub = self.create_publisher(STATE_MARKERS_TOPIC, MARKERS_TYPE, MARKERS_QOS)
-        if self.pose_pub is None and self.viewer.view.pose is not None:
-            self.pose_pub = self.create_publisher(DECODED_POSE_TOPIC, m.POSE_TYPE)
 
     # -- warnings and counters ------------------------------------------------------------
 
@@ -585,6 +613,7 @@ class FilterNode(Node):
     # -- tracking and commands ------------------------------------------------------------
 
     def _process(self, step: Step, start: float) -> None:
+        """Track one step and hand it to the observers (:meth:`_observers`)."""
         try:
             info = self.tracker.step(step.stamp, step.action, step.image)
         except Exception as exc:  # never let one step stop the node
@@ -593,41 +622,9 @@ class FilterNode(Node):
             if self._throttle((self.state_pub.topic, "error")):
                 self.logger.error(f"update at {step.stamp / _NS:.3f} s failed ({exc}); state reset")
             return
-        self.health.update(bool(info.recovered))
-        if info.recovered:
-            self._warn(
-                self.state_pub.topic,
-                "recovery",
-                f"normaliser {info.normalizer:.3g} at {step.stamp / _NS:.3f} s: restarted from b_*",
-            )
-        self.state_pub.publish_raw(self._state_cdr(step.stamp, info.state))
-        self._recent.append((step.stamp, step.action, step.image))
-        if self._first_stamp is None:
-            self._first_stamp = step.stamp
-            self._publish_model_info()
-        q_values = None
-        if self.policy is not None:
-            greedy = None
-            if self.viewer is not None:  # the values once, for the command and the view
-                q_values = self.policy.q.values(info.state)[0]
-                greedy = int(np.argmax(q_values)) if np.isfinite(q_values).all() else None
-            self._command(info.state, step.stamp, greedy)
-        self.latency.add(time.perf_counter() - start)  # to the state and the command
-        if self.viewer is not None:
-            self._view(step, info.state, q_values)
-
-    def _view(self, step: Step, state: Any, q_values: Any) -> None:
-        """Publish the view topics of one step (``q_values``: the policy's, or None)."""
-        assert self.viewer is not None
-        assert self.markers_pub is not None and self.predicted_pub is not None
-        view = self.viewer.step(step.stamp, state, step.image, q_values)
-        for markers in view.markers:
-            self.markers_pub.publish_raw(markers)
-        self.predicted_pub.publish_raw(view.predicted_image)
-        if self.pose_pub is not None and view.decoded_pose is not None:
-            self.pose_pub.publish_raw(view.decoded_pose)
-        if view.image_error is not None:
-            self.image_errors.append(view.image_error)
+        tracked = Tracked(step, info, start)
+        for observer in self.observers:
+            observer.observe(tracked)
 
     def _on_reset(self, data: bytes) -> None:
         msg = self._decode(data, m.POSE_TYPE, self.reset_topic)
@@ -657,33 +654,9 @@ class FilterNode(Node):
 
     def _reinit(self, why: str) -> None:
         self.tracker.reinit()
-        self._recent.clear()  # a swap re-filters the current segment only
         self.logger.debug(f"{why}: state re-initialised to b_*")
-        if self.policy is not None:
-            self._command(self.tracker.state)
-
-    def _command(self, state: Any, stamp: int | None = None, greedy: int | None = None) -> None:
-        """Command the greedy action of ``state`` (``greedy`` when already known)."""
-        assert self.policy is not None
-        action = self.policy.action(state) if greedy is None else greedy
-        self._pending_command = (action, stamp)
-        if self.commands_ready:
-            self._send_pending()
-
-    def _send_pending(self) -> None:
-        if self._pending_command is None or self.cmd_pub is None:
-            return
-        action, stamp = self._pending_command
-        self._pending_command = None
-        if self.params.command_type == "twist_stamped":
-            when = stamp if stamp is not None else self.now_ns()
-            cdr = m.serialize(m.stamped_twist(when, self._twists[action]), self.cmd_pub.msgtype)
-        else:  # a Twist's bytes are the same for every command of one action
-            cdr = self._twist_cdr[action]
-        if isinstance(self.source, LockstepStepping):  # before the robot can answer it
-            self.source.command(action)
-        self.cmd_pub.publish_raw(cdr)
-        self.commands += 1
+        for observer in self.observers:
+            observer.restarted(self.tracker.state)
 
     def _subscribers_matched(self) -> bool:
         assert self.cmd_pub is not None
@@ -693,7 +666,8 @@ class FilterNode(Node):
         )
 
     def _check_ready(self) -> None:
-        if self.commands_ready:
+        assert self.commander is not None
+        if self.commander.ready:
             self._ready_timer.cancel()
             return
         if not self._subscribers_matched():
@@ -703,10 +677,9 @@ class FilterNode(Node):
         if self._ready_since is None:
             self._ready_since = now
         if now - self._ready_since >= SETTLE_S:
-            self.commands_ready = True
             self._ready_timer.cancel()
             self.logger.info("command subscribers matched: driving")
-            self._send_pending()
+            self.commander.go()
 
     # -- diagnostics ----------------------------------------------------------------------
 
@@ -819,7 +792,8 @@ class FilterNode(Node):
             check_policy(policy, self.inputs.model_file, str(value))
         except TpsrError as exc:
             return str(exc)
-        self.policy, self.policy_name = policy, str(value)
+        assert self.commander is not None  # a node with a /cmd_vel publisher
+        self.commander.policy, self.policy_name = policy, str(value)
         self.logger.info(f"policy {value} now chooses the commands")
         return None
 
@@ -873,19 +847,18 @@ class FilterNode(Node):
                 f"model {update.path} refused, {self.inputs.model_file.path} runs on: {exc}"
             )
             return str(exc)
-        replay = list(self._recent)
-        self.inputs, self.model = inputs, inputs.model
-        self.tracker.swap(self.model, replay)
+        replay = self.replay.steps()
+        self.inputs = inputs
+        self.tracker.swap(inputs.model, replay)
         if self.cmd_pub is not None:
-            self.policy = inputs.policy
             if update.policy is not None:
                 self.policy_name = update.policy
         elif update.policy is not None:
             note = f"a pure filter has no {CMD_VEL_TOPIC} publisher: policy {update.policy} unused"
-        self._state_cdr = m.StateEncoder(self.model.state_dim)
-        self.viewer = self._viewer()
-        self._view_publishers()
-        self.model_version, self._first_stamp = update.version, None
+        running = inputs if self.cmd_pub is not None else replace(inputs, policy=None)
+        for observer in self.observers:
+            observer.swapped(running)
+        self.model_version = update.version
         self.swaps += 1
         self._publish_model_info()
         self.logger.info(
@@ -901,7 +874,7 @@ class FilterNode(Node):
         """Acknowledge the model in use on the latched ``tpsr/model_info``."""
         text = model_info(
             replace(self.inputs, policy=self.policy), version=self.model_version,
-            swaps=self.swaps, first_stamp_ns=self._first_stamp,
+            swaps=self.swaps, first_stamp_ns=self.replay.first_stamp,
         )  # fmt: skip
         self.model_info_pub.publish(string_msg(text))
 
