@@ -5,6 +5,7 @@ tpsr/predicted_image, tpsr/state_markers and tpsr/decoded_pose equal to what
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ from tpsr_ros.core.errors import DataError
 from tpsr_ros.core.view_readout import fit_view_readout, next_step_pairs
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.bag import BagReader
-from tpsr_ros.io.marker_cdr import MarkerData, marker_array_cdr
+from tpsr_ros.io.marker_cdr import MarkerArrayTemplate, MarkerData, marker_array_cdr
 from tpsr_ros.io.model_io import open_model
 from tpsr_ros.io.view_messages import MARKERS_TYPE, ViewMessages, ViewSettings
 from tpsr_ros.runtime import Node, NodeOptions
@@ -191,6 +192,34 @@ def test_the_marker_writer_gives_the_generic_serialisers_bytes():
         ]
         msg = m.jazzy_typestore().types[MARKERS_TYPE](markers=[_rosbags_marker(d) for d in markers])
         assert marker_array_cdr(markers) == m.serialize(msg, MARKERS_TYPE)
+
+
+def test_a_marker_template_writes_the_writers_bytes_of_other_values():
+    rng = np.random.default_rng(5)
+    for _ in range(40):  # every alignment, as above; then other stamps, positions, values
+        shape = [
+            MarkerData(
+                0, "tpsr"[: int(rng.integers(0, 5))], "trail"[: int(rng.integers(0, 6))], j,
+                int(rng.integers(0, 12)), (0.0, 0.0, 0.0), tuple(rng.random(3)),
+                tuple(rng.random(4)), np.zeros((int(rng.integers(0, 5)), 3)),
+                np.zeros((int(rng.integers(0, 4)), 4), dtype=np.float32),
+            )
+            for j in range(int(rng.integers(0, 4)))
+        ]  # fmt: skip
+        template = MarkerArrayTemplate(shape)
+        for _ in range(3):
+            stamp = int(rng.integers(0, 10**12))
+            markers = [
+                replace(d, stamp_ns=stamp, position=tuple(rng.normal(size=3)),
+                        points=rng.normal(size=d.points.shape),
+                        colors=rng.random(d.colors.shape).astype(np.float32))
+                for d in shape
+            ]  # fmt: skip
+            written = template(
+                stamp, [np.array(d.position) for d in markers], [d.points for d in markers],
+                [d.colors.astype("<f4").tobytes() for d in markers],
+            )  # fmt: skip
+            assert written == marker_array_cdr(markers)
 
 
 @pytest.mark.slow

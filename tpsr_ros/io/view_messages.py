@@ -34,7 +34,7 @@ from tpsr_ros.core.errors import MessageError
 from tpsr_ros.core.view_readout import ViewReadout
 from tpsr_ros.io import messages as m
 from tpsr_ros.io.filter_inputs import model_image_shape
-from tpsr_ros.io.marker_cdr import MarkerData, marker_array_cdr
+from tpsr_ros.io.marker_cdr import MarkerArrayTemplate, MarkerData, marker_array_cdr
 from tpsr_ros.io.model_io import ModelFile
 
 __all__ = [
@@ -155,6 +155,9 @@ class ViewMessages:
         self.image_frame = image_frame
         self._directions = _directions(commands, view.n_actions)
         self._line_colors = np.tile(np.asarray(_GREY, dtype=np.float32), (2 * view.n_actions, 1))
+        self._greedy_colors: dict[int, bytes] = {}  # the lines' colours per greedy action
+        self._lines = np.empty((2 * view.n_actions, 3))  # each line's ends, start first
+        self._template: MarkerArrayTemplate | None = None  # of the last step's markers
         # the trail twice over: the last ``trail`` points are always one contiguous slice
         self._trail = np.zeros((2 * self.settings.trail, 3))
         self._image = _image_encoder((height, width, 3), image_frame)
@@ -172,8 +175,9 @@ class ViewMessages:
              q_values: np.ndarray | None = None) -> ViewStep:  # fmt: skip
         """The messages of one tracked step (``q_values``: the policy's, per action)."""
         error = None
-        if self._previous is not None:
-            error = float(np.sqrt(np.mean((self._previous - observation) ** 2)) * 255.0)
+        if self._previous is not None:  # np.mean's sum and division, without its wrappers
+            difference = self._previous - observation
+            error = float(np.sqrt(np.add.reduce(difference * difference) / difference.size) * 255.0)
         greedy = None if q_values is None else int(np.argmax(q_values))
         predicted = np.clip(self.view.predicted_observation(state, greedy), 0.0, 1.0)
         self._previous = predicted
@@ -181,14 +185,14 @@ class ViewMessages:
         if pixels.shape[2] == 1:
             pixels = np.repeat(pixels, 3, axis=2)
         image = self._image(stamp_ns, pixels.tobytes())
-        markers = self._markers(stamp_ns, state, q_values)
+        markers = self._markers(stamp_ns, state, q_values, greedy)
         if self._steps % self.settings.cloud_every == 0:
             markers = (self.cloud, *markers)
         self._steps += 1
         return ViewStep(image, markers, self._pose(stamp_ns, state), error)
 
     def _markers(
-        self, stamp_ns: int, state: np.ndarray, q_values: np.ndarray | None
+        self, stamp_ns: int, state: np.ndarray, q_values: np.ndarray | None, greedy: int | None
     ) -> tuple[bytes]:
         here = self.view.view_point(state)
         length = self.settings.trail
@@ -196,32 +200,58 @@ class ViewMessages:
         self._trail[slot] = self._trail[slot + length] = here
         first = slot + 1 if self._steps >= length else 0
         trail = self._trail[first : slot + 1] if first == 0 else self._trail[first : first + length]
-        markers = [
-            MarkerData(stamp_ns, VIEW_FRAME, "trail", 0, _LINE_STRIP, scale=(0.02, 0.0, 0.0),
-                       color=(0.2, 0.6, 1.0, 0.8), points=trail),
-            MarkerData(stamp_ns, VIEW_FRAME, "state", 0, _SPHERE, scale=(0.12, 0.12, 0.12),
-                       color=(1.0, 0.5, 0.0, 1.0), position=tuple(here.tolist())),
-        ]  # fmt: skip
-        if q_values is not None:
-            markers.append(self._action_values(stamp_ns, here, q_values))
-        return (marker_array_cdr(markers),)
+        lines = colors = None
+        if q_values is not None and greedy is not None:
+            lines, colors = self._action_values(here, q_values, greedy)
+        # the same markers but for stamps, positions and values: a template's bytes
+        template = self._template
+        shape = ((len(trail), 0), (0, 0)) + (() if lines is None else ((len(lines),) * 2,))
+        if template is None or template.shape != shape:  # the trail grows, or values come
+            template = self._template = MarkerArrayTemplate(self._marker_shapes(trail, lines))
+        if lines is None:
+            return (template(stamp_ns, [None, here], [trail, None], [None, None]),)
+        return (template(stamp_ns, [None, here, None], [trail, None, lines], [None, None, colors]),)
 
-    def _action_values(self, stamp_ns: int, here: np.ndarray, q_values: np.ndarray) -> MarkerData:
+    def _marker_shapes(self, trail: np.ndarray, lines: np.ndarray | None) -> list[MarkerData]:
+        """The markers of a step (trail, state and, with Q-values, the action lines), with
+        values that the template's users write over."""
+        zeros = np.zeros((len(trail), 3))
+        markers = [
+            MarkerData(0, VIEW_FRAME, "trail", 0, _LINE_STRIP, scale=(0.02, 0.0, 0.0),
+                       color=(0.2, 0.6, 1.0, 0.8), points=zeros),
+            MarkerData(0, VIEW_FRAME, "state", 0, _SPHERE, scale=(0.12, 0.12, 0.12),
+                       color=(1.0, 0.5, 0.0, 1.0)),
+        ]  # fmt: skip
+        if lines is not None:
+            values = MarkerData(
+                0, VIEW_FRAME, "action_values", 0, _LINE_LIST, scale=(0.015, 0.0, 0.0),
+                color=_GREEN, points=np.zeros((len(lines), 3)),
+                colors=np.zeros((len(lines), 4), dtype=np.float32),
+            )  # fmt: skip
+            markers.append(values)
+        return markers
+
+    def _action_values(
+        self, here: np.ndarray, q_values: np.ndarray, greedy: int
+    ) -> tuple[np.ndarray, bytes]:
         """One line per action from the current state along its command, of length rising
-        with its Q-value from 0.05 to 0.5; the greedy action's green, the others grey."""
+        with its Q-value from 0.05 to 0.5; the greedy action (``q_values``' argmax) green,
+        the others grey: the lines' points and the bytes of their colours."""
         values = np.asarray(q_values, dtype=np.float64)
         low, high = float(values.min()), float(values.max())
         lengths = 0.05 + 0.45 * (values - low) / (high - low if high > low else 1.0)
-        points = np.empty((2 * len(values), 3))
+        points = self._lines  # written into a message before the next step
         points[0::2] = here
-        points[1::2] = here + lengths[:, None] * self._directions
-        colors = self._line_colors.copy()
-        greedy = int(np.argmax(values))
-        colors[2 * greedy : 2 * greedy + 2] = _GREEN
-        return MarkerData(
-            stamp_ns, VIEW_FRAME, "action_values", 0, _LINE_LIST, scale=(0.015, 0.0, 0.0),
-            color=_GREEN, points=points, colors=colors,
-        )  # fmt: skip
+        np.multiply(lengths[:, None], self._directions, out=points[1::2])
+        points[1::2] += here
+        colors = self._greedy_colors.get(greedy)
+        if colors is None:
+            line_colors = self._line_colors.copy()
+            line_colors[2 * greedy : 2 * greedy + 2] = _GREEN
+            colors = self._greedy_colors[greedy] = np.ascontiguousarray(
+                line_colors, dtype="<f4"
+            ).tobytes()
+        return points, colors
 
     def _pose(self, stamp_ns: int, state: np.ndarray) -> bytes | None:
         pose = self.view.decoded_pose(state)
