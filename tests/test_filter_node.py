@@ -425,6 +425,58 @@ def test_a_swapped_policy_chooses_every_later_command(small):
         h.close()
 
 
+def test_an_added_observer_takes_every_tracked_step_restart_and_swap(small):
+    from tpsr_ros.filter_node.observers import StepObserver, Tracked
+    from tpsr_ros.filter_node.swap import ModelUpdate
+
+    class Recorder(StepObserver):  # what a learner consuming the node's steps would see
+        def __init__(self) -> None:
+            self.steps: list[tuple[int, int, np.ndarray, bool]] = []
+            self.events: list[str] = []
+
+        def observe(self, tracked: Tracked) -> None:
+            step = tracked.step
+            self.steps.append((step.stamp, step.action, tracked.info.state, tracked.q_values
+                               is not None))  # fmt: skip
+
+        def restarted(self, state: np.ndarray) -> None:
+            self.events.append(f"restart {len(self.steps)}")
+
+        def swapped(self, inputs) -> None:
+            self.events.append(f"swap {len(self.steps)} {inputs.fingerprint[:12]}")
+
+    images, actions = small["images"], small["actions"]
+    h = Harness(small["model"], small["policy"])
+    try:
+        recorder = Recorder()
+        h.node.observers.append(recorder)
+        for k in range(1, 6):
+            h.step(images, actions, k * S)
+        h.send("/sim/episode_start", m.pose_msg(6 * S, 10.0, 10.0))
+        for k in range(7, 10):
+            h.step(images, actions, k * S)
+        assert h.node.swap_model(ModelUpdate(str(small["model"]))) is None
+        h.step(images, actions, 10 * S)
+        fingerprint = h.node.inputs.fingerprint[:12]
+        assert recorder.events == ["restart 5", f"swap 8 {fingerprint}"]
+        assert [(s, a) for s, a, _, _ in recorder.steps] == [
+            (k * S, actions_index(actions[k * S])) for k in (1, 2, 3, 4, 5, 7, 8, 9, 10)
+        ]
+        assert [stamp for stamp, _ in h.states] == [s for s, _, _, _ in recorder.steps]
+        for (_, published), (_, _, state, with_values) in zip(h.states, recorder.steps,
+                                                            strict=True):  # fmt: skip
+            assert published.tobytes() == np.asarray(state, dtype=float).tobytes()
+            assert with_values  # the command's Q-values, left for later observers
+    finally:
+        h.close()
+
+
+def actions_index(msg) -> int:
+    """The index of an action message's (vx, vy) among the 25 actions."""
+    vx, vy = msg.twist.linear.x, msg.twist.linear.y
+    return next(i for i, (ax, ay) in enumerate(ACTIONS) if (ax, ay) == (vx, vy))
+
+
 def test_a_late_joiner_gets_the_latched_episode_start(small):
     bus = InprocBus()
     feeder = Node(NodeOptions(name="sim"), transport=InprocTransport("/sim", bus))
