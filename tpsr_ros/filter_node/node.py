@@ -280,6 +280,8 @@ class FilterNode(Node):
         self._ready_since: float | None = None
         self.policy_name = p.policy or "none"
         self.swaps = self.refused_swaps = 0
+        self.commander: Commander | None = None  # the observers that the node asks
+        self.view: ViewPublisher | None = None
         self._create_endpoints(image_name, action_name)
         self._publish_model_info()
         self._far_reported = (0, 0)  # far commands and command messages when last judged
@@ -318,7 +320,6 @@ class FilterNode(Node):
             StatePublisher(self.state_pub, self.inputs.model.state_dim),
             self.replay,
         ]
-        self.commander: Commander | None = None
         if self.cmd_pub is not None:
             # the actions' commands themselves: never outside the simulator's grid or the
             # codebook
@@ -331,7 +332,6 @@ class FilterNode(Node):
             )  # fmt: skip
             observers.append(self.commander)
         observers.append(LatencyMeter(self.latency))  # to the state and the command
-        self.view: ViewPublisher | None = None
         if p.view:
             self.view = ViewPublisher(
                 self.inputs, self, ViewSettings(trail=p.view_trail), MARKERS_QOS,
