@@ -20,6 +20,7 @@ from scipy.stats import spearmanr
 
 from learner.camera_study import CAMERA_SECTION
 from learner.competence_section import COMPETENCE_SECTION
+from learner.room_change_section import ROOM_CHANGE_SECTION
 from learner.experiment import preset_tpsr
 from learner.jobs import GUIDE_ENVIRONMENTS, SELECTION_SEEDS, Job, experiment_job, study_job
 from learner.overrides import convert
@@ -441,6 +442,7 @@ SECTIONS: tuple[Section, ...] = (
     *_FIT_SWITCHES,
     PREDICTIVE_SECTION,
     COMPETENCE_SECTION,
+    ROOM_CHANGE_SECTION,
     Section(
         "tuning",
         "Tuning: `learner tune` against the defaults",
