@@ -5,7 +5,9 @@ becomes ``distractors`` after 6000 live steps; the learner node's versions of ea
 scored in the room of their last step, under four settings of the node: the defaults,
 ``forgetting``, ``new_basis_steps``, and both. Recovery is a version reaching 90 % of the new
 room's ceiling again, counted in live steps after the change. The arms share their runs
-(the same seeds, the same steps), so each is compared with the defaults run by run.
+(the same seeds, the same steps), so each is compared with the defaults run by run. A new
+basis is also measured where the room stays (the time-to-competence runs of the
+environments where one image is ambiguous), to say whether it could be the default.
 """
 
 from __future__ import annotations
@@ -49,6 +51,9 @@ class Arm:
 
 ARMS = (Arm("1", 0), Arm("0.999", 0), Arm("1", 2000), Arm("0.999", 2000))
 """The defaults first (the reference of every comparison), then each change and both."""
+STAYING = ("partial", "partial-strip")
+"""Rooms that stay, where a new basis every 2000 steps is compared with the defaults."""
+NEW_BASIS = 2000
 
 
 def _job(arm: Arm) -> Job:
@@ -64,9 +69,15 @@ def _job(arm: Arm) -> Job:
     return Job("competence", tuple(argv), f"switch_{BEFORE}_{AFTER}_f{arm.forgetting}{suffix}.csv")
 
 
+def _staying_job(environment: str) -> Job:
+    """The time-to-competence job of ``environment`` with a new basis every 2000 steps."""
+    argv = ("competence", "--environment", environment, "--new-basis-steps", str(NEW_BASIS))
+    return Job("competence", argv, f"competence_{environment}_b{NEW_BASIS}.csv")
+
+
 def room_change_jobs() -> tuple[Job, ...]:
-    """One ``learner competence --switch-to`` job per arm."""
-    return tuple(_job(arm) for arm in ARMS)
+    """One ``learner competence --switch-to`` job per arm, then the rooms that stay."""
+    return (*(_job(arm) for arm in ARMS), *(_staying_job(env) for env in STAYING))
 
 
 def _headline(data: Data) -> list[Row]:
@@ -89,11 +100,11 @@ def _after(rows: list[Row]) -> list[Row]:
     return [r for r in rows if json.loads(r.parameters)["room"] == AFTER]
 
 
-def _run_means(rows: list[Row]) -> np.ndarray:
-    """Per run (in run order), the mean score of its versions after the change (a version
-    without a policy: 0)."""
+def _run_means(rows: list[Row], room: str | None = AFTER) -> np.ndarray:
+    """Per run (in run order), the mean score of its versions in ``room`` (None: all; a
+    version without a policy: 0)."""
     runs: dict[int, list[float]] = {}
-    for row in _after(rows):
+    for row in _after(rows) if room is not None else rows:
         runs.setdefault(row.repetition, []).append(row.score if math.isfinite(row.score) else 0.0)
     return np.array([np.mean(runs[run]) for run in sorted(runs)])
 
@@ -118,7 +129,7 @@ def _render(section: Section, data: Data) -> list[str]:
         "|---|" + "---|" * (len(SHOWN_STEPS) + 2),
     ]
     means = {}
-    for job, arm in zip(section.jobs, ARMS, strict=True):
+    for job, arm in zip(section.jobs[: len(ARMS)], ARMS, strict=True):
         rows = data[job]
         cells = [_cell(_scores_at(rows, steps)) for steps in SHOWN_STEPS]
         means[arm] = _run_means(rows)
@@ -144,21 +155,42 @@ def _render(section: Section, data: Data) -> list[str]:
     ]
     best = max(ARMS, key=lambda arm: float(means[arm].mean()))
     verdicts += _against_fresh(data, fresh, best)
+    verdicts += [_staying(data, env) for env in STAYING]
     return [*lines, "", "**Verdict.**", "", *verdicts, "", *_NOTES]
+
+
+def _staying(data: Data, environment: str) -> str:
+    """A new basis against the defaults in a room that stays, run by run, over the versions
+    from the first that can fit one on."""
+    first = 1000 + NEW_BASIS  # the warm-up's basis, then the first new one
+    ours, theirs = (
+        _run_means([r for r in data[job] if r.episodes >= first], room=None)
+        for job in (_staying_job(environment), _defaults_competence(environment))
+    )
+    return _paired(
+        f"In `{environment}`, where the room stays (the versions from {first} to 12000 steps), "
+        f"a new basis every {NEW_BASIS} steps against the defaults",
+        ours, theirs, after=False,
+    )  # fmt: skip
+
+
+def _defaults_competence(environment: str) -> Job:
+    return next(job for job in competence_jobs() if job.environment == environment)
 
 
 def _cell(scores: np.ndarray) -> str:
     return cell(score_statistics(scores)) if scores.size else "-"
 
 
-def _paired(what: str, ours: np.ndarray, theirs: np.ndarray) -> str:
-    """The mean of the per-run differences after the change, in SEMs of the difference."""
+def _paired(what: str, ours: np.ndarray, theirs: np.ndarray, *, after: bool = True) -> str:
+    """The mean of the per-run differences, in SEMs of the difference."""
     diff = ours - theirs
     sem = float(diff.std(ddof=1) / np.sqrt(diff.size))
     mean = float(diff.mean())
     noise = "within" if abs(mean) <= DIFFERENCE_SEMS * sem else "outside"
     return (
-        f"- After the change, {what}: {ours.mean():.1f} against {theirs.mean():.1f}, "
+        f"- {'After the change, ' if after else ''}{what}: {ours.mean():.1f} against "
+        f"{theirs.mean():.1f}, "
         f"{mean:+.1f} ({mean / sem:+.1f} SEM of the per-run differences, {noise} the noise)."
     )
 
@@ -203,7 +235,9 @@ _NOTES = (
     "coordinates of the version it replaces (msgs_doc/learner_node.md). With forgetting the "
     "policy plans on the last 3 / (1 - forgetting) steps only; without, on every step, both "
     "rooms' alike. A node started in the new room is the time-to-competence run of the same "
-    "seed, on other steps: it is compared over the runs, not run by run.",
+    "seed, on other steps: it is compared over the runs, not run by run. Where the room "
+    "stays, a new basis is compared with the time-to-competence runs of the same seeds, "
+    "which are the same steps. 2000 steps is the only period measured.",
 )
 
 
