@@ -432,12 +432,14 @@ def test_an_added_observer_takes_every_tracked_step_restart_and_swap(small):
     class Recorder(StepObserver):  # what a learner consuming the node's steps would see
         def __init__(self) -> None:
             self.steps: list[tuple[int, int, np.ndarray, bool]] = []
+            self.new_segments: list[bool] = []
             self.events: list[str] = []
 
         def observe(self, tracked: Tracked) -> None:
             step = tracked.step
             self.steps.append((step.stamp, step.action, tracked.info.state, tracked.q_values
                                is not None))  # fmt: skip
+            self.new_segments.append(tracked.new_segment)
 
         def restarted(self, state: np.ndarray) -> None:
             self.events.append(f"restart {len(self.steps)}")
@@ -457,11 +459,14 @@ def test_an_added_observer_takes_every_tracked_step_restart_and_swap(small):
             h.step(images, actions, k * S)
         assert h.node.swap_model(ModelUpdate(str(small["model"]))) is None
         h.step(images, actions, 10 * S)
+        h.step(images, actions, 2 * S)  # time jumps back 8 s: this step starts a segment
         fingerprint = h.node.inputs.fingerprint[:12]
         assert recorder.events == ["restart 5", f"swap 8 {fingerprint}"]
         assert [(s, a) for s, a, _, _ in recorder.steps] == [
-            (k * S, actions_index(actions[k * S])) for k in (1, 2, 3, 4, 5, 7, 8, 9, 10)
+            (k * S, actions_index(actions[k * S])) for k in (1, 2, 3, 4, 5, 7, 8, 9, 10, 2)
         ]
+        assert recorder.new_segments == [False] * 9 + [True]
+        assert [stamp for stamp, _, _ in h.node.replay.steps()] == [2 * S]  # a swap replays it
         assert [stamp for stamp, _ in h.states] == [s for s, _, _, _ in recorder.steps]
         for (_, published), (_, _, state, with_values) in zip(h.states, recorder.steps,
                                                             strict=True):  # fmt: skip

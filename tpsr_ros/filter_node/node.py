@@ -392,6 +392,7 @@ class FilterNode(Node):
             self.diagnostics_pub = self.create_publisher(DIAGNOSTICS_TOPIC, DIAGNOSTICS_TYPE)
         self.image_errors: deque[float] = deque(maxlen=IMAGE_ERROR_STEPS)
         self.observers = self._observers()
+        self._new_segment = False  # the next step starts a segment without a restart of its own
         self.model_info_pub = self.create_publisher(
             MODEL_INFO_TOPIC, MODEL_MESSAGE_TYPE, LATCHED_QOS
         )
@@ -491,8 +492,9 @@ class FilterNode(Node):
 
     def _stepped(self, added: Added, stamp: int, topic: str, start: float) -> None:
         """Restart on a jump back, warn about what was discarded, track the steps."""
-        if added.jumped:
+        if added.jumped:  # the step that follows starts a new segment (and is commanded)
             self.tracker.reinit()
+            self._new_segment = True
             self.logger.info(f"time jumped back to {stamp / _NS:.3f} s: state re-initialised")
         if added.problem == "dropped":
             self._warn(topic, "dropped", "incomplete steps dropped (image or action missing)")
@@ -619,10 +621,12 @@ class FilterNode(Node):
         except Exception as exc:  # never let one step stop the node
             self.errors += 1
             self.tracker.reinit()
+            self._new_segment = True
             if self._throttle((self.state_pub.topic, "error")):
                 self.logger.error(f"update at {step.stamp / _NS:.3f} s failed ({exc}); state reset")
             return
-        tracked = Tracked(step, info, start)
+        tracked = Tracked(step, info, start, new_segment=self._new_segment)
+        self._new_segment = False
         for observer in self.observers:
             observer.observe(tracked)
 

@@ -64,6 +64,9 @@ class Tracked:
         start: ``time.perf_counter()`` when the message that closed the step arrived.
         q_values: the policy's values of the new state, once the command computed them
             (None: no policy runs); a later observer reads them instead of computing them.
+        new_segment: the state was re-initialised to ``b_*`` just before this step (time
+            jumped back, or the update before failed), without a restart of its own: the
+            step starts a new segment.
 
     """
 
@@ -71,6 +74,7 @@ class Tracked:
     info: StepInfo
     start: float
     q_values: np.ndarray | None = None
+    new_segment: bool = False
 
 
 class StepObserver:
@@ -139,6 +143,8 @@ class SwapReplay(StepObserver):
 
     def observe(self, tracked: Tracked) -> None:
         step = tracked.step
+        if tracked.new_segment:  # a swap re-filters the current segment only
+            self._recent.clear()
         self._recent.append((step.stamp, step.action, step.image))
         if self.first_stamp is None:
             self.first_stamp = step.stamp
