@@ -78,6 +78,15 @@ def _argument(job: Job, name: str, default: str = "") -> str:
 def _fake_rows(job: Job, rng: np.random.Generator) -> list[Row]:
     """Rows shaped like those the job's command writes, with random scores."""
     environment = _argument(job, "--environment")
+    if job.argv[0] == "competence" and "--switch-to" in job.argv:  # each in its room
+        switch_at, room = int(_argument(job, "--switch-at")), _argument(job, "--switch-to")
+        return [
+            row
+            for steps in range(1000, 12001, 1000)
+            for row in _rows(environment, {"tpsr": rng.normal(420, 30, 3)}, [steps],
+                             parameters=json.dumps({"room": environment if steps <= switch_at
+                                                    else room}))  # fmt: skip
+        ]
     if job.argv[0] == "competence":  # versions every 1000 live steps, three runs
         return _rows(environment, {"tpsr": rng.normal(420, 30, 3)}, range(1000, 12001, 1000))
     sizes = (2000, 8000) if job.argv[0] == "experiment" and "--episodes" not in job.argv else (
