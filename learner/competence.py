@@ -130,7 +130,7 @@ def competence_rows(
     from tpsr_ros.io.model_io import open_model
     from tpsr_ros.io.policy import load_policy
     from tpsr_ros.io.trajectory import LiveSteps
-    from tpsr_ros.learner_node.refits import RefitRequest, new_basis_due, refit
+    from tpsr_ros.learner_node.refits import RefitChain, refit
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="competence_") as tmp:
@@ -139,16 +139,13 @@ def competence_rows(
         then = None if switch is None else (SimConfig(environment=switch[0]), steps - switch[1])
         generate_bag(bag, SimConfig(environment=environment), first_steps, seed=seed, then=then)
         live = LiveSteps.of_bag(bag, environment)
-        basis, summed, basis_at = None, None, None
+        chain = RefitChain.starting_from(
+            None, forgetting=forgetting, new_basis_steps=new_basis_steps
+        )  # the node's
         for version, due in enumerate(range(warmup, len(live) + 1, refit_every), start=1):
-            result = refit(RefitRequest(
-                live.chunk(due), version, Path(tmp) / "out", "best", basis_model=basis, keep=1,
-                forgetting=forgetting, previous=summed,
-                new_basis=new_basis_due(due, basis_at, new_basis_steps),
-            ))  # fmt: skip
-            basis, summed = result.model, result.summed  # as the node continues them
-            if result.basis_steps:
-                basis_at = due
+            result = refit(chain.request(live.chunk(due), version, Path(tmp) / "out", "best",
+                                         keep=1))  # fmt: skip
+            chain.advance(result)  # as the node continues
             room = environment if switch is None or due <= switch[1] else switch[0]
             score, status = float("nan"), result.note or "ok"
             if result.policy is not None:

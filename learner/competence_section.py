@@ -20,7 +20,13 @@ from learner.sections import Data, Section, cell
 from learner.tables import Row, pooled_floors, score_statistics, summarise
 from tpsr_ros.io.policy import TRUE_POSITION
 
-__all__ = ["COMPETENCE_SECTION", "COMPETENT_SHARE", "competence_jobs", "steps_to_competence"]
+__all__ = [
+    "COMPETENCE_SECTION",
+    "COMPETENT_SHARE",
+    "ceiling_entry",
+    "competence_jobs",
+    "steps_to_competence",
+]
 
 COMPETENT_SHARE = 0.9
 """Competence: a score of at least this share of the ceiling."""
@@ -42,7 +48,7 @@ def _defaults(environment: str) -> Job:
     return experiment_job("defaults", environment, *HEADLINE_SEEDS)
 
 
-def _ceiling(rows: list[Row]) -> dict | None:
+def ceiling_entry(rows: list[Row]) -> dict | None:
     """The headline's true-position entry at its largest data size."""
     entries = [t for t in summarise(rows) if t["method"] == TRUE_POSITION]
     return max(entries, key=lambda t: t["episodes"], default=None)
@@ -92,7 +98,7 @@ def _render(section: Section, data: Data) -> list[str]:
         env, rows = job.environment, data[job]
         base = data[_defaults(env)]
         floors = pooled_floors(base)
-        ceiling = _ceiling(base)
+        ceiling = ceiling_entry(base)
         cells = []
         for steps in SHOWN_STEPS:
             scores = np.array([r.score for r in rows if r.episodes == steps])

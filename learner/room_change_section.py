@@ -18,13 +18,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from learner.competence_section import COMPETENT_SHARE, competence_jobs, steps_to_competence
+from learner.competence_section import (
+    COMPETENT_SHARE,
+    ceiling_entry,
+    competence_jobs,
+    steps_to_competence,
+)
 from learner.floors import CONSTANT, RANDOM
 from learner.jobs import HEADLINE_SEEDS, Job, experiment_job
 from learner.sections import Data, Section, cell
-from learner.tables import Row, pooled_floors, score_statistics, summarise
+from learner.tables import Row, pooled_floors, score_statistics
 from learner.verdicts import DIFFERENCE_SEMS
-from tpsr_ros.io.policy import TRUE_POSITION
 
 __all__ = ["ROOM_CHANGE_SECTION", "room_change_jobs"]
 
@@ -87,13 +91,14 @@ def _headline(data: Data) -> list[Row]:
 
 def _ceiling(data: Data) -> float:
     """The new room's ceiling: the headline's true position at its largest data size."""
-    entries = [t for t in summarise(_headline(data)) if t["method"] == TRUE_POSITION]
-    return float(max(entries, key=lambda t: t["episodes"])["mean"])
+    entry = ceiling_entry(_headline(data))
+    assert entry is not None, f"the headline of {AFTER} has no true-position runs"
+    return float(entry["mean"])
 
 
 def _fresh(data: Data) -> list[Row]:
     """The time-to-competence runs of a node started in the new room."""
-    return next(data[job] for job in competence_jobs() if job.environment == AFTER)
+    return data[_defaults_competence(AFTER)]
 
 
 def _after(rows: list[Row]) -> list[Row]:
@@ -175,6 +180,7 @@ def _staying(data: Data, environment: str) -> str:
 
 
 def _defaults_competence(environment: str) -> Job:
+    """The time-to-competence job of ``environment`` (the learner node's defaults)."""
     return next(job for job in competence_jobs() if job.environment == environment)
 
 

@@ -36,7 +36,6 @@ from typing import Any
 from tpsr_ros.core.episodes import DEFAULT_IMAGE_SHAPE
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
 from tpsr_ros.core.presets import DEFAULT_PRESET, PRESETS
-from tpsr_ros.core.refit import SummedSteps
 from tpsr_ros.core.tpsr import TPSRModel
 from tpsr_ros.filter_node.health import Throttle
 from tpsr_ros.filter_node.params import DIAGNOSTICS_TOPIC, MODEL_UPDATE_TOPIC
@@ -45,13 +44,7 @@ from tpsr_ros.io import messages as m
 from tpsr_ros.io.filter_inputs import model_image_shape
 from tpsr_ros.io.model_io import ModelFile, open_model
 from tpsr_ros.io.trajectory import LateMessage, LiveSteps, RepeatedMessage, Topics
-from tpsr_ros.learner_node.refits import (
-    RefitRequest,
-    RefitResult,
-    last_version,
-    new_basis_due,
-    refit,
-)
+from tpsr_ros.learner_node.refits import RefitChain, RefitResult, last_version, refit
 from tpsr_ros.runtime import LATCHED_QOS, Node, NodeOptions, param, run_node
 from tpsr_ros.runtime.diagnostics import (
     DIAGNOSTICS_TYPE,
@@ -187,15 +180,16 @@ class LearnerNode(Node):
                 pose=names[LiveSteps.POSE], reward=names[LiveSteps.REWARD],
             ),
         )  # fmt: skip
-        self.basis_model = None if init is None else init.path
+        self.chain = RefitChain.starting_from(
+            None if init is None else init.path,
+            forgetting=p.forgetting, new_basis_steps=p.new_basis_steps,
+        )  # fmt: skip
         self.first_version = last_version(self.output) + 1
         self.version = self.first_version - 1
         self.next_due = p.warmup_steps
         self.job: Future[RefitResult] | None = None
         self.job_steps = 0
         self.last_result: RefitResult | None = None
-        self.summed: SummedSteps | None = None  # the last refit's statistics, continued
-        self.basis_at = None if init is None else 0  # steps when the basis in use was fitted
         self.failures = 0
         self.last_error = ""  # of the last refit, when it failed
         self.rejected: dict[str, int] = {"undecodable": 0, "late": 0, "repeated": 0}
@@ -274,12 +268,10 @@ class LearnerNode(Node):
     def _submit(self, steps: int) -> None:
         """Refit on the first ``steps`` steps in the worker."""
         self.job_steps = steps
-        request = RefitRequest(
+        request = self.chain.request(
             self.live.chunk(steps), self.version + 1, self.output, self.params.preset,
-            basis_model=self.basis_model, keep=self.params.keep_versions,
-            first_version=self.first_version, reward_topic=self.live.topics.reward,
-            forgetting=self.params.forgetting, previous=self.summed,
-            new_basis=new_basis_due(steps, self.basis_at, self.params.new_basis_steps),
+            keep=self.params.keep_versions, first_version=self.first_version,
+            reward_topic=self.live.topics.reward,
         )  # fmt: skip
         self.job = self.worker.submit(refit, request)
 
@@ -303,10 +295,7 @@ class LearnerNode(Node):
             return
         self.last_error = ""
         self.version = result.version
-        self.basis_model = result.model  # every version carries the basis it was fitted on
-        self.summed = result.summed
-        if result.basis_steps:
-            self.basis_at = result.steps
+        self.chain.advance(result)
         self.last_result = result
         self.update_pub.publish(string_msg(json.dumps(result.update(), sort_keys=True)))
         policy = f", policy {result.policy.name}" if result.policy is not None else ""
@@ -320,7 +309,7 @@ class LearnerNode(Node):
 
     def diagnostics_values(self) -> dict[str, Any]:
         """What ``/diagnostics`` reports."""
-        last = self.last_result
+        last, basis_at = self.last_result, self.chain.basis_at
         return {
             "steps": len(self.live),
             "steps_waiting_for_pairing": self.live.pairing.pending,
@@ -336,7 +325,7 @@ class LearnerNode(Node):
             "forgetting": self.params.forgetting,
             "last_policy_steps": "none" if last is None else last.policy_steps,
             "new_basis_steps": self.params.new_basis_steps,
-            "basis_fitted_at_steps": "none" if self.basis_at is None else self.basis_at,
+            "basis_fitted_at_steps": "none" if basis_at is None else basis_at,
         }
 
     def publish_diagnostics(self) -> None:

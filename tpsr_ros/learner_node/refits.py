@@ -20,8 +20,10 @@ world that changes, the old steps' transitions would teach it the old world).
 A frozen basis cannot follow a world that changes what the camera sees: its whitenings and
 centres describe the first steps. A request with ``new_basis`` fits a new one, as ``learner
 fit`` does, on the last :func:`policy_horizon` steps (every step without forgetting), rotated
-to the model it replaces; the refits after it keep it and sum their statistics anew
-(:func:`new_basis_due` says when the node asks for one).
+to the model it replaces; the refits after it keep it and sum their statistics anew.
+:class:`RefitChain` carries from each refit to the next what it continues (the last
+version, its statistics, when its basis was fitted) for the node and ``learner
+competence`` alike.
 
 Files: every version is written to ``OUTPUT/versions/model-vNNNN.npz`` (and
 ``policy-vNNNN.npz``), then copied over ``OUTPUT/model.npz`` (and ``policy.npz``, which a
@@ -55,6 +57,7 @@ from tpsr_ros.io.policy import policy_from_states, save_policy
 from tpsr_ros.io.trajectory import StepChunk
 
 __all__ = [
+    "RefitChain",
     "RefitRequest",
     "RefitResult",
     "last_version",
@@ -129,6 +132,49 @@ def policy_horizon(steps: int, forgetting: float) -> int:
     if forgetting >= 1.0:
         return steps
     return min(steps, math.ceil(3.0 / (1.0 - forgetting)))
+
+
+@dataclass
+class RefitChain:
+    """What each refit of a run continues from the one before, so that the learner node and
+    ``learner competence`` make the same versions of the same steps.
+
+    ``basis_model``: the last version (or ``init_model``), whose basis the next refit keeps
+    and whose state coordinates it takes; ``summed``: its statistics, continued with
+    forgetting; ``basis_at``: the steps when the basis in use was fitted (0: an
+    ``init_model``'s; None: no basis yet).
+    """
+
+    forgetting: float = 1.0
+    new_basis_steps: int = 0
+    basis_model: Path | None = None
+    summed: SummedSteps | None = None
+    basis_at: int | None = None
+
+    @classmethod
+    def starting_from(
+        cls, init_model: Path | None, *, forgetting: float = 1.0, new_basis_steps: int = 0
+    ) -> RefitChain:
+        """A run's chain: from ``init_model``'s basis, or (None) from a first fit."""
+        return cls(forgetting, new_basis_steps, init_model, None, None if init_model is None else 0)
+
+    def request(
+        self, steps: StepChunk, version: int, output: Path, preset: str, **files: Any
+    ) -> RefitRequest:
+        """The next refit, of ``steps`` (``files``: :class:`RefitRequest`'s ``keep``,
+        ``first_version`` and ``reward_topic``)."""
+        new_basis = new_basis_due(len(steps.stamps), self.basis_at, self.new_basis_steps)
+        return RefitRequest(
+            steps, version, output, preset, basis_model=self.basis_model,
+            forgetting=self.forgetting, previous=self.summed, new_basis=new_basis, **files,
+        )  # fmt: skip
+
+    def advance(self, result: RefitResult) -> None:
+        """Continue from ``result``, the refit just written."""
+        self.basis_model = result.model  # every version carries the basis it was fitted on
+        self.summed = result.summed
+        if result.basis_steps:
+            self.basis_at = result.steps
 
 
 def new_basis_due(steps: int, basis_at: int | None, every: int) -> bool:
