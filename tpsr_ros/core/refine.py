@@ -17,7 +17,8 @@ state propagated by the action before the observation weighs it) and ``b_inf``. 
 the spectral model: ``B_{o'}`` the mean of the actions' operators and ``A_a`` the least-squares
 factor of action ``a`` (exactly the identity for pooled operators); what the factors leave
 of unpooled operators, ``R_{a o'} = B_{a o'} - B_{o'} A_a``, is kept fixed and added, so the
-start is the spectral model exactly. The refined model stores the operators
+start is the spectral model exactly (with ``refine_carry``, the spectral model with its
+carry, below). The refined model stores the operators
 ``B[a, o'] = B_{o'} A_a + R_{a o'}``, so the model file,
 :func:`~tpsr_ros.core.filtering.track`, the filter node and their equality bit for bit are
 unchanged.
@@ -33,6 +34,18 @@ fraction of the futures' variance the states leave unexplained, plus a pull towa
 spectral values, ``pull * sum_g ||theta_g - theta_g0||^2 / ||theta_g0||^2``. Its gradient
 is exact (the read-out is at its optimum, so only the states' dependence on the parameters
 counts) and checked against finite differences in the tests.
+
+Memory to start from (``refine_carry`` ``c > 0``). The spectral filter contracts: a change
+of the previous state shrinks to about a tenth in one step, so the gradient through the
+recursion vanishes within a step or two and the refinement cannot find a use for the past
+it never sees. Before refining, ``mu I`` is added to every ``B_{a o'}``; the observation
+weights sum to one and a state's ``b_inf^T b`` is one, so a step becomes
+``b_t = (B_{a o} b + mu A_a b) / (z + mu)``: the observation's update mixed with the
+previous state propagated by the action, the latter weighing ``mu / (z + mu)``. ``mu`` is
+``c / (1 - c)`` times the median normaliser ``z`` of the spectral filter over the training
+steps, so a typical step carries the fraction ``c`` of its previous state forward. The
+refinement starts there (and its pull draws toward there): the same model class, stored as
+operators like any other.
 
 Early stopping: the last :data:`HOLDOUT` of the windows (in time) are held out; after every
 iteration their loss is measured with the training read-out, and the parameters of the best
@@ -50,7 +63,12 @@ import numpy as np
 from scipy.optimize import minimize
 
 from tpsr_ros.core.errors import ConfigError, DataError
-from tpsr_ros.core.filtering import NORMALIZER_RTOL, observation_weights, update_matrices
+from tpsr_ros.core.filtering import (
+    NORMALIZER_RTOL,
+    observation_weights,
+    track,
+    update_matrices,
+)
 from tpsr_ros.core.tpsr_model import TPSRModel
 from tpsr_ros.core.tpsr_stages import Progress
 
@@ -59,6 +77,7 @@ __all__ = [
     "PATIENCE",
     "Factors",
     "RefineProblem",
+    "carried",
     "factor_model",
     "refine_tpsr",
 ]
@@ -118,6 +137,24 @@ def factor_model(model: TPSRModel) -> Factors:
     ridge = 1e-12 * np.trace(gram) / r
     action = np.linalg.solve(gram + ridge * np.eye(r), cross)
     return Factors(shared, action, np.array(model.b_inf, dtype=np.float64))
+
+
+def carried(
+    model: TPSRModel, actions: np.ndarray, observations: np.ndarray
+) -> tuple[TPSRModel, float]:
+    """``model`` whose typical step carries ``config.refine_carry`` of the previous state
+    forward (module docstring), and ``mu``: ``mu I`` added to every operator (at 0 the
+    model itself and 0)."""
+    carry = float(model.config.refine_carry)
+    if carry == 0.0:
+        return model, 0.0
+    tracked = track(model, actions, observations)
+    z = tracked.normalizers[~tracked.recovered]
+    z = z[np.isfinite(z) & (z > 0)]
+    if z.size == 0:
+        raise DataError("no step of the spectral filter has a valid normaliser to carry from")
+    mu = carry / (1.0 - carry) * float(np.median(z))
+    return replace(model, B=model.B + mu * np.eye(model.state_dim)), mu
 
 
 def _targets(model: TPSRModel, observations: np.ndarray) -> np.ndarray:
@@ -407,8 +444,9 @@ def refine_tpsr(
         progress: called with a line per iteration.
 
     Returns the refined model, whose ``fit_info["refinement"]`` records the held-out loss
-    before and after, the iterations and the seconds taken; with ``refine_epochs`` 0, the
-    model itself.
+    of the start (``..._spectral``: the spectral model with its carry) and of the result,
+    the carry and its ``mu``, the iterations and the seconds taken; with ``refine_epochs``
+    0, the model itself.
 
     """
     cfg = model.config
@@ -424,6 +462,7 @@ def refine_tpsr(
             f"{acts.shape} and {obs.shape}"
         )
     begin = time.perf_counter()
+    model, mu = carried(model, acts, obs)
     start = factor_model(model)
     problem = RefineProblem(model, start, acts, obs, bounds or [(0, obs.shape[0])])
     before = problem.unexplained(start)
@@ -458,6 +497,8 @@ def refine_tpsr(
     info["refinement"] = {
         "iterations": since[0],
         "best_iteration": int(best["iteration"]),
+        "carry": float(model.config.refine_carry),
+        "carry_mu": mu,
         "heldout_unexplained_spectral": round(before, 6),
         "heldout_unexplained": round(float(best["held"]), 6),
         "windows": int(problem.train_starts.size + problem.held_starts.size),

@@ -30,6 +30,7 @@ _NUMBER_RULES: tuple[tuple[tuple[str, ...], Callable[[float], bool], str], ...] 
     (("action_pooling",), lambda v: np.isfinite(v) and 0 <= v <= 1, "a number in [0, 1]"),
     (("obs_variance",), lambda v: v == 0 or 0 < v < 1, "0 or in (0, 1)"),
     (("refine_pull",), lambda v: np.isfinite(v) and v >= 0, "a non-negative finite number"),
+    (("refine_carry",), lambda v: 0 <= v < 1, "a number in [0, 1)"),
 )
 """The real-valued parameters of :class:`TPSRConfig`: names, the rule, and how it reads."""
 
@@ -108,6 +109,12 @@ class TPSRConfig:
     )
     refine_pull: float = _param(
         1e-3, "refinement: weight of the pull toward the spectral parameters"
+    )
+    refine_carry: float = _param(
+        0.0,
+        "refinement: start from a filter whose typical step carries this fraction of the "
+        "previous state forward through the action (0: the spectral filter, which forgets "
+        "within a step; see tpsr_ros.core.refine)",
     )
     seed: int = _param(0, "seed of k-means and of the SVD start vector")
 
