@@ -2,8 +2,9 @@
 
 The gradient is checked against central finite differences, on pooled and unpooled
 operators; a refined model starts exactly at the spectral one and is tracked by the usual
-filter; refinement lowers the held-out error it optimises on a system with memory; and
-the options are refused where they cannot apply.
+filter; refinement lowers the held-out error it optimises on a system with memory; a start
+that carries half of the state tells apart, after the refinement, two places that look
+alike where the spectral start cannot; and the options are refused where they cannot apply.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import pytest
 from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.learn import fit, fit_tpsr_trajectory
-from tpsr_ros.core.refine import RefineProblem, factor_model, refine_tpsr
+from tpsr_ros.core.refine import RefineProblem, carried, factor_model, refine_tpsr
 from tpsr_ros.core.tpsr import TPSRConfig
 
 
@@ -123,6 +124,53 @@ def test_refinement_lowers_the_heldout_error_on_an_aliased_ring(aliased: Traject
         np.testing.assert_array_equal(state, track.states[s])
 
 
+def test_a_carried_step_mixes_the_update_with_the_previous_state(aliased: Trajectory) -> None:
+    """mu I on every operator: each step is (B_ao b + mu b) / (z + mu) for pooled operators,
+    and at the spectral filter's median normaliser the previous state weighs the carry."""
+    model = fit_tpsr_trajectory(aliased, replace(CONFIG, refine_epochs=0, refine_carry=0.4))
+    spectral = model.track(aliased.actions, aliased.observations)
+    median_z = float(np.median(spectral.normalizers[~spectral.recovered]))
+    start, mu = carried(model, aliased.actions, aliased.observations)
+    assert mu / (median_z + mu) == pytest.approx(0.4, rel=1e-12)
+    b = spectral.states[99]
+    a, o = int(aliased.actions[100]), aliased.observations[100]
+    got, _ = start.update(b, a, o)
+    plain, info = model.update(b, a, o)
+    assert not info.recovered
+    z = info.normalizer
+    np.testing.assert_allclose(got, (z * plain + mu * b) / (z + mu), rtol=1e-10, atol=1e-12)
+    plain_config = replace(model, config=CONFIG)
+    itself, none = carried(plain_config, aliased.actions, aliased.observations)
+    assert itself is plain_config and none == 0.0
+
+
+def test_carry_lets_the_refined_filter_remember_which_lookalike_it_stands_in() -> None:
+    """Ground truth: on the ring, cells 0 and 2 look alike. After two steps standing still
+    in one of them, the past alone tells which; an affine read-out of the state must say.
+    The spectral start forgets within a step and its refinement cannot find the past (the
+    gradient through a contracting filter vanishes); starting from half the state carried
+    forward, the refinement keeps it."""
+    train, test = ring(6000, seed=1), ring(4000, seed=7)
+    cell = np.cumsum(np.random.default_rng(7).integers(0, 2, size=4000)) % 4  # as ring()
+    acts = test.actions
+    stood = np.flatnonzero(
+        np.isin(cell, (0, 2)) & (acts == 0) & (np.roll(acts, 1) == 0) & (np.arange(4000) > 2)
+    )
+    half = stood.size // 2
+    accuracy, heldout = {}, {}
+    for carry in (0.0, 0.5):
+        model = fit_tpsr_trajectory(train, replace(CONFIG, refine_carry=carry))
+        states = model.track(test.actions, test.observations).states[stood]
+        x = np.column_stack([states, np.ones(stood.size)])
+        y = (cell[stood] == 0).astype(float)
+        w = np.linalg.lstsq(x[:half], y[:half], rcond=None)[0]
+        accuracy[carry] = float(np.mean((x[half:] @ w > 0.5) == (y[half:] > 0.5)))
+        heldout[carry] = model.fit_info["refinement"]["heldout_unexplained"]
+        assert model.fit_info["refinement"]["carry"] == carry
+    assert accuracy[0.5] >= 0.95 > 0.8 >= accuracy[0.0]
+    assert heldout[0.5] < heldout[0.0]
+
+
 def test_no_epochs_is_the_spectral_model_bit_for_bit(aliased: Trajectory) -> None:
     spectral = fit_tpsr_trajectory(aliased, replace(CONFIG, refine_epochs=0))
     assert refine_tpsr(spectral, aliased.actions, aliased.observations) is spectral
@@ -141,3 +189,6 @@ def test_refinement_refused_where_it_cannot_apply(aliased: Trajectory) -> None:
         replace(CONFIG, refine_epochs=-1)
     with pytest.raises(ConfigError, match="refine_pull"):
         replace(CONFIG, refine_pull=float("nan"))
+    for carry in (1.0, -0.1, float("nan")):
+        with pytest.raises(ConfigError, match="refine_carry"):
+            replace(CONFIG, refine_carry=carry)
