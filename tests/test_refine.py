@@ -61,14 +61,19 @@ def visible_ring(steps: int, seed: int) -> Trajectory:
     return Trajectory.from_arrays(actions, obs, n_actions=2)
 
 
-@pytest.mark.parametrize("pooling", [1.0, 0.0])
-def test_gradient_matches_finite_differences(pooling: float) -> None:
+@pytest.mark.parametrize(("pooling", "barrier"), [(1.0, 1.0), (0.0, 1.0), (1.0, 20.0)])
+def test_gradient_matches_finite_differences(pooling: float, barrier: float) -> None:
+    """``barrier`` raises the normaliser barrier's floor so that it bites at most steps."""
     data = visible_ring(2000, seed=0)
     cfg = replace(CONFIG, obs_dim=5, ht_dim=5, rank=6, action_pooling=pooling)
     model = fit_tpsr_trajectory(data, replace(cfg, refine_epochs=0))
     model = replace(model, config=cfg)
     start = factor_model(model)
     problem = RefineProblem(model, start, data.actions, data.observations, [(0, len(data))])
+    assert problem.z_floor > 0
+    problem.z_floor *= barrier
+    if barrier > 1:
+        assert problem.loss_and_grad(start.vector())[0] > 0.5  # the barrier dominates
     rng = np.random.default_rng(0)
     theta = start.vector() * (1 + 0.001 * rng.normal(size=start.vector().size))
     _, grad = problem.loss_and_grad(theta)
