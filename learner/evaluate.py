@@ -37,6 +37,7 @@ from tpsr_ros.io.policy import TRUE_POSITION, Policy, load_policy
 
 __all__ = [
     "EVALUATION_SEED",
+    "STANDING_METRES",
     "START_HEADINGS_DEG",
     "START_POSITIONS",
     "STEPS",
@@ -53,6 +54,8 @@ __all__ = [
 
 EVALUATION_SEED = 2026
 STEPS = 50
+STANDING_METRES = 0.01
+"""A step that moves the robot this far or less stood still (or pushed into a wall)."""
 START_POSITIONS: tuple[tuple[float, float], ...] = (
     (5.0, 5.0),
     (5.0, 22.5),
@@ -85,12 +88,16 @@ def start_options(config: SimConfig, index: int, start: tuple[float, float]) -> 
 
 @dataclass(frozen=True)
 class Trial:
-    """One trial: where it started, its summed reward, when (if) it reached the goal zone."""
+    """One trial: where it started, its summed reward, when (if) it reached the goal zone;
+    where it ended and for how many of its last steps it had stood still (a trial that
+    never reaches the goal mostly ends standing somewhere its state takes for the goal)."""
 
     start: tuple[float, float]
     reward: float
     goal_step: int | None
     wall_contacts: int
+    end: tuple[float, float] | None = None
+    standing: int = 0
 
 
 @dataclass(frozen=True)
@@ -147,7 +154,8 @@ def run_protocol(
     for index, start in enumerate(starts):
         image, info = env.reset(options=start_options(config, index, start))
         state = tracker.start(image, info["pose"])
-        total, goal_step, contacts = 0.0, None, 0
+        total, goal_step, contacts, standing = 0.0, None, 0, 0
+        where = np.asarray(info["pose"], dtype=np.float64)[:2]
         for k in range(1, steps + 1):
             action = choose(state)
             image, reward, _, _, info = env.step(action if execute is None else execute(action))
@@ -156,7 +164,11 @@ def run_protocol(
             if goal_step is None and info["goal_zone"]:
                 goal_step = k
             state = tracker.step(state, action, image, info["pose"])
-        trial = Trial(tuple(start), total, goal_step, contacts)
+            moved_to = np.asarray(info["pose"], dtype=np.float64)[:2]
+            still = float(np.hypot(*(moved_to - where))) <= STANDING_METRES
+            standing, where = (standing + 1 if still else 0), moved_to
+        end = (float(where[0]), float(where[1]))
+        trial = Trial(tuple(start), total, goal_step, contacts, end, standing)
         trials.append(trial)
         if on_trial is not None:
             on_trial(index, trial)

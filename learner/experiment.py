@@ -62,11 +62,11 @@ from tpsr_ros.cli import positive_float, positive_int
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import ConfigError, DivergenceError, TpsrError
 from tpsr_ros.core.fqi import FQIConfig, ignore_trailing
-from tpsr_ros.core.planning import fit_q_on, ridge_ladder
+from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.pca_baseline import PCAConfig, fit_pca
+from tpsr_ros.core.planning import fit_q_on, ridge_ladder
 from tpsr_ros.core.presets import DEFAULT_PRESET, departures, get_preset
 from tpsr_ros.core.sizing import Sizing
-from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.state_model import planner_dim
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.core.window_baselines import (
@@ -237,7 +237,7 @@ def experiment_command(config: ExperimentConfig, episodes: Sequence[int] | None 
 
 def _plan_and_score(
     config: ExperimentConfig, tracker: Tracker, rl: Trajectory, states: np.ndarray
-) -> tuple[float, str, float, str]:
+) -> tuple[float, str, str, float, str]:
     """Fitted Q on the tracked RL states (larger ridges if it diverges), then the standard score.
 
     A model whose state carries a buffer for its updates only (``window``) is planned on
@@ -247,11 +247,11 @@ def _plan_and_score(
     try:
         q, fqi, _ = fit_q_on(states[:, :seen], rl, config.fqi)
     except DivergenceError:
-        return float("nan"), "", ridge_ladder(config.fqi.ridge)[-1], "fitted-q-diverged"
+        return float("nan"), "", "", ridge_ladder(config.fqi.ridge)[-1], "fitted-q-diverged"
     q = ignore_trailing(q, states.shape[1])
     policy = Policy(q, tracker.representation, tracker.fingerprint, config.environment)
     result = evaluate(policy, tracker, config.sim_config())
-    return result.score, _trials(result), fqi.ridge, "ok"
+    return result.score, _trials(result), _trial_ends(result), fqi.ridge, "ok"
 
 
 def _planner_dim(tracker: Tracker, states: np.ndarray) -> int:
@@ -284,6 +284,12 @@ def _parameters(config: ExperimentConfig, method: str, extra: dict[str, Any]) ->
 
 def _trials(evaluation: Evaluation) -> str:
     return ";".join(f"{t.reward:g}" for t in evaluation.trials)
+
+
+def _trial_ends(evaluation: Evaluation) -> str:
+    return ";".join(
+        f"{t.end[0]:.2f},{t.end[1]:.2f},{t.standing}" for t in evaluation.trials if t.end
+    )
 
 
 def _row(
@@ -333,6 +339,7 @@ def _floor_row(config: ExperimentConfig, method: str, episodes: int, repetition:
         extra,
         score=evaluation.score,
         trial_rewards=_trials(evaluation),
+        trial_ends=_trial_ends(evaluation),
         fit_seconds=round(time.perf_counter() - start, 3),
         fqi_ridge=nan,
         recoveries=0,
@@ -417,12 +424,13 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 if config.criterion and method == "tpsr"
                 else float("nan")
             )
-            score, trials, ridge, status = _plan_and_score(config, tracker, rl, states)
+            score, trials, ends, ridge, status = _plan_and_score(config, tracker, rl, states)
         except TpsrError as exc:  # a failed fit is a result, not a crash
             fit_seconds, recoveries, r2 = time.perf_counter() - start, 0, np.full(2, np.nan)
             position_error, memory = float("nan"), (float("nan"), float("nan"))
             criterion = float("nan")
-            score, trials, ridge, status = float("nan"), "", config.fqi.ridge, f"error: {exc}"
+            score, trials, ends = float("nan"), "", ""
+            ridge, status = config.fqi.ridge, f"error: {exc}"
         rows.append(
             _row(
                 run_config,
@@ -433,6 +441,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 command_config=config,
                 score=score,
                 trial_rewards=trials,
+                trial_ends=ends,
                 fit_seconds=round(fit_seconds, 3),
                 fqi_ridge=ridge,
                 recoveries=recoveries,

@@ -78,6 +78,9 @@ class Row:
     """Relative distance of the two ``paths`` states at their first identical step."""
     criterion: float = float("nan")
     """``learner tune``'s criterion of the run's TPSR configuration (``--criterion``)."""
+    trial_ends: str = ""
+    """Per trial, ``x,y,n``: where the robot stood after the last step and for how many of
+    the last steps it had not moved (``;``-separated; empty in CSVs written before)."""
 
 
 def score_statistics(scores: np.ndarray) -> dict[str, Any]:

@@ -109,6 +109,12 @@ def test_evaluation_follows_the_documented_protocol():
     result = evaluate(still, TruePositionTracker(), "full")
     assert [t.start for t in result.trials] == list(START_POSITIONS)
     assert all(t.reward == 0 and t.goal_step is None for t in result.trials)
+    # each trial ends where it started, having stood still at every step
+    assert [t.end for t in result.trials] == list(START_POSITIONS)
+    assert all(t.standing == STEPS for t in result.trials)
+    # a policy that moves ends elsewhere, and stands only while pushing into a wall
+    moving = evaluate(policy, TruePositionTracker(), "full")
+    assert all(t.end != t.start and t.standing < STEPS for t in moving.trials)
     # the simulator sequence is: seeded env, start-up reset, one reset per start, 50 steps
     env = RobotEnv(SimConfig(), seed=EVALUATION_SEED)
     env.reset()
@@ -247,6 +253,10 @@ def test_experiment_grid_rows_seeds_and_rerun_of_one_row(tmp_path):
         (m, k) for k in (0, 1) for m in ("constant", "random", "tpsr", "pca", "true-position")
     ]
     assert all(r.status == "ok" and np.isfinite(r.score) for r in rows)
+    # each run records where each of its 10 trials ended, and how long it stood there
+    ends = [[float(v) for v in end.split(",")] for end in rows[2].trial_ends.split(";")]
+    assert len(ends) == 10 and all(0 <= x <= 45 and 0 <= y <= 45 and 0 <= n <= 50
+                                   for x, y, n in ends)  # fmt: skip
     assert len({r.train_seed for r in rows}) == 2  # one training run per repetition
     # every run records every parameter it used
     params = {r.method: json.loads(r.parameters) for r in rows if r.repetition == 0}
