@@ -55,10 +55,11 @@ operators like any other.
 Early stopping: the last :data:`HOLDOUT` of the windows (in time) are held out; after every
 iteration their loss is measured with the training read-out, and the parameters of the best
 held-out loss are returned among those whose filter, tracked continuously over the held-out
-steps, restarts no more often than the start's or at :data:`RESTART_RATE` of the steps
-(once at least). The objective cuts the past at a restart, so it cannot see what restarts
-cost a planner: one refinement of ``partial-strip`` that predicted better restarted at 3 %
-of the steps. The search stops when it has not improved for :data:`PATIENCE` iterations.
+steps, restarts no more often than the spectral filter's, the start's or at
+:data:`RESTART_RATE` of the steps (once at least). The objective cuts the past at a
+restart, so it cannot see what restarts cost a planner: one refinement of
+``partial-strip`` that predicted better restarted at 3 % of the steps. The search stops
+when it has not improved for :data:`PATIENCE` iterations.
 """
 
 from __future__ import annotations
@@ -105,8 +106,8 @@ BARRIER_WEIGHT = 1.0
 """Weight of the normaliser barrier in the objective."""
 
 RESTART_RATE = 5e-4
-"""Restarts per step a refined filter may make on the held-out steps when its start made
-fewer (10 in 20000 steps; at least one restart is allowed)."""
+"""Restarts per step a refined filter may make on the held-out steps when the spectral
+filter and the start made fewer (10 in 20000 steps; at least one restart is allowed)."""
 
 TARGET_COMPONENTS = 10
 """Principal components of the observations the states must predict."""
@@ -388,14 +389,15 @@ class RefineProblem:
         """Steps of the held-out stretch :meth:`restarts` tracks."""
         return int(self.held_starts[-1]) + 2 * self.window - int(self.held_starts[0])
 
-    def restarts(self, f: Factors) -> int:
-        """Restarts of the filter of ``f`` tracked continuously over the held-out stretch
-        (the held-out windows' steps, as the planner's filter would run over them)."""
+    def restarts(self, f: Factors | TPSRModel) -> int:
+        """Restarts of the filter of ``f`` (or of a model) tracked continuously over the
+        held-out stretch (the held-out windows' steps, as a planner's filter runs)."""
+        if isinstance(f, Factors):
+            rest = self._model.B - self.start.operators()
+            f = replace(self._model, B=f.operators() + rest, b_inf=f.b_inf)
         first = int(self.held_starts[0])
         stop = first + self.held_steps
-        rest = self._model.B - self.start.operators()
-        model = replace(self._model, B=f.operators() + rest, b_inf=f.b_inf)
-        tracked = track(model, self.actions[first:stop], self._observations[first:stop])
+        tracked = track(f, self.actions[first:stop], self._observations[first:stop])
         return int(tracked.recovered.sum())
 
     # --- loss and gradient -----------------------------------------------------------------
@@ -520,12 +522,15 @@ def refine_tpsr(
             f"{acts.shape} and {obs.shape}"
         )
     begin = time.perf_counter()
+    spectral = model
     model, mu = carried(model, acts, obs)
     start = factor_model(model)
     problem = RefineProblem(model, start, acts, obs, bounds or [(0, obs.shape[0])])
     before = problem.unexplained(start)
     start_restarts = problem.restarts(start)
-    allowed = max(start_restarts, math.ceil(RESTART_RATE * problem.held_steps))
+    allowed = max(
+        problem.restarts(spectral), start_restarts, math.ceil(RESTART_RATE * problem.held_steps)
+    )
     best = {"theta": start.vector(), "held": before, "iteration": 0, "restarts": start_restarts}
     since = [0]
 
@@ -564,7 +569,7 @@ def refine_tpsr(
         "carry_mu": mu,
         "heldout_unexplained_spectral": round(before, 6),
         "heldout_unexplained": round(float(best["held"]), 6),
-        "heldout_restarts_start": start_restarts,
+        "heldout_restarts_allowed": allowed,
         "heldout_restarts": int(best["restarts"]),
         "windows": int(problem.train_starts.size + problem.held_starts.size),
         "seconds": round(seconds, 3),
