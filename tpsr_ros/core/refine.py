@@ -59,7 +59,8 @@ steps, restarts no more often than the spectral filter's, the start's or at
 :data:`RESTART_RATE` of the steps (once at least). The objective cuts the past at a
 restart, so it cannot see what restarts cost a planner: one refinement of
 ``partial-strip`` that predicted better restarted at 3 % of the steps. The search stops
-when it has not improved for :data:`PATIENCE` iterations.
+when the held-out loss, restarts or not, has not improved for :data:`PATIENCE` iterations
+(the first iterations of the search wander, and may restart where later ones do not).
 """
 
 from __future__ import annotations
@@ -532,6 +533,7 @@ def refine_tpsr(
         problem.restarts(spectral), start_restarts, math.ceil(RESTART_RATE * problem.held_steps)
     )
     best = {"theta": start.vector(), "held": before, "iteration": 0, "restarts": start_restarts}
+    lowest = {"held": before, "iteration": 0}  # restarts or not: what patience counts from
     since = [0]
 
     def watch(intermediate_result: Any) -> None:
@@ -539,6 +541,8 @@ def refine_tpsr(
         candidate = start.like(theta)
         held = problem.unexplained(candidate)
         since[0] += 1
+        if np.isfinite(held) and held < lowest["held"]:
+            lowest.update(held=held, iteration=since[0])
         if np.isfinite(held) and held < best["held"]:
             restarts = problem.restarts(candidate)
             if restarts <= allowed:  # a better prediction must not cost the filter restarts
@@ -548,7 +552,7 @@ def refine_tpsr(
                 f"refinement {since[0]}/{cfg.refine_epochs}: held-out unexplained {held:.4f} "
                 f"(spectral {before:.4f})"
             )
-        if since[0] - int(best["iteration"]) >= PATIENCE:
+        if since[0] - int(lowest["iteration"]) >= PATIENCE:
             raise StopIteration
 
     minimize(
