@@ -18,12 +18,18 @@ from learner.floors import CONSTANT, RANDOM
 from learner.jobs import ENVIRONMENTS, HEADLINE_SEEDS, Job, experiment_job
 from learner.sections import Data, Section, cell, comparison, judged
 from learner.tables import Row, pooled_floors, summarise
+from sim_node import Environment, SimConfig
 from tpsr_ros.io.policy import TRUE_POSITION
 
 __all__ = ["PREDICTIVE_EPISODES", "PREDICTIVE_SECTION"]
 
 PREDICTIVE_EPISODES = 8000
 """The data size compared: the headline's largest (24000 recorded steps)."""
+
+
+STANDING_STEPS = 20
+"""A trial that earned nothing counts as stuck when it did not leave its place for its last
+this many steps (of 50)."""
 
 
 def _jobs() -> tuple[Job, ...]:
@@ -37,6 +43,7 @@ def _jobs() -> tuple[Job, ...]:
             str(PREDICTIVE_EPISODES),
             "--methods",
             "tpsr",
+            *(("--memory",) if Environment.parse(env).narrow else ()),
             *HEADLINE_SEEDS,
         )
         for env in ENVIRONMENTS
@@ -92,17 +99,54 @@ def _restarts(rows: list[Row], method: str) -> str:
     return f"{float(np.median(counts)):.0f}" if counts else "-"
 
 
+def _memory(rows: list[Row], method: str) -> str:
+    """The median memory in steps (``learner memory``) of the runs that measured it."""
+    steps = [r.memory for r in _at_size(rows, method) if math.isfinite(r.memory)]
+    return f"{float(np.median(steps)):g}" if steps else "-"
+
+
+def failed_trials(rows: list[Row], environment: str) -> str | None:
+    """What the trials that earned nothing did: how many ended stuck in one place, and how
+    far from the goal zone (None when the rows do not record where their trials ended)."""
+    config = SimConfig(environment=environment)
+    corner = np.array([config.room_size, config.room_size])
+    failed = []
+    for row in rows:
+        if not row.trial_ends:
+            return None
+        rewards = [float(v) for v in row.trial_rewards.split(";")]
+        ends = [[float(v) for v in end.split(",")] for end in row.trial_ends.split(";")]
+        failed += [end for reward, end in zip(rewards, ends, strict=True) if reward <= 0]
+    trials = 10 * len(rows)
+    if not failed:
+        return f"none of its {trials} trials earned nothing"
+    stuck = np.array([end[:2] for end in failed if end[2] >= STANDING_STEPS])
+    text = f"{len(failed)} of its {trials} trials earned nothing"
+    if not stuck.size:
+        return text + "; none of them ended in one place"
+    outside = np.linalg.norm(stuck - corner, axis=1) - config.goal_radius
+    return (
+        f"{text}; {len(stuck)} of those did not leave their place (stood, turned on the spot "
+        f"or pushed into a wall) for their last {STANDING_STEPS} or more steps, a median "
+        f"{float(np.median(outside)):.1f} m outside the goal zone (range "
+        f"{outside.min():.1f}-{outside.max():.1f} m) and a median "
+        f"{float(np.median(config.room_size - stuck[:, 0])):.1f} m from the east wall"
+    )
+
+
 def _render(section: Section, data: Data) -> list[str]:
     lines = [
         f"Ten runs per environment at {PREDICTIVE_EPISODES} episodes (24000 recorded steps) on "
         "the headline's seeds; the other rows are the headline's own runs of the same seeds. "
         "Cells: mean / median / SEM; weakest: the lowest run; restarts: the median number of "
-        "normaliser recoveries over the RL trajectory; the floors: pooled over every data "
-        "size, as in the headline (they use no data); the difference to the defaults' TPSR "
-        "in SEMs of the difference.",
+        "normaliser recoveries over the RL trajectory; memory: the median of `learner "
+        "memory` (in steps; measured where two places look alike); the floors: pooled over "
+        "every data size, as in the headline (they use no data); the difference to the "
+        "defaults' TPSR in SEMs of the difference.",
         "",
-        "| environment | representation | score | weakest run | restarts | vs the defaults' TPSR |",
-        "|---|---|---|---|---|---|",
+        "| environment | representation | score | weakest run | restarts | memory "
+        "| vs the defaults' TPSR |",
+        "|---|---|---|---|---|---|---|",
     ]
     verdicts = []
     for job in _jobs():
@@ -135,9 +179,11 @@ def _render(section: Section, data: Data) -> list[str]:
             if method == "tpsr" and source is ours and entry and base:
                 versus = judged(*comparison(entry, base))
             restarts = _restarts(source, method) if method == "tpsr" else "-"
+            memory = _memory(source, method) if method not in floors else "-"
             weakest = _weakest(source, method, pooled=method in floors)
             lines.append(
-                f"| `{env}` | {name} | {cell(entry)} | {weakest} | {restarts} | {versus} |"
+                f"| `{env}` | {name} | {cell(entry)} | {weakest} | {restarts} | {memory} "
+                f"| {versus} |"
             )
         for baseline in _baseline_jobs():
             window = _entry(data[baseline], "window") if baseline.environment == env else None
@@ -155,6 +201,9 @@ def _render(section: Section, data: Data) -> list[str]:
                 f"{_weakest(base_rows, 'tpsr')}; median restarts {_restarts(ours, 'tpsr')} "
                 f"against {_restarts(base_rows, 'tpsr')}."
             )
+        failures = failed_trials(_at_size(ours, "tpsr"), env)
+        if failures is not None:
+            verdicts.append(f"- `{env}`, the predictive TPSR: {failures}.")
     return [*lines, "", "**Verdict.**", "", *verdicts]
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import shutil
@@ -407,3 +408,25 @@ def test_the_demo_names_its_floors_protocol():
     line = bounds_line(Bounds(ConstantFloor(0, evaluation, (0.0, 0.0)), 38.1, 469.8))
     assert "one run each" in line and f"policy seed {DEMO_POLICY_SEED}" in line
     assert "random actions 38.1" in line and "true position 469.8" in line
+
+
+def test_the_trials_that_earned_nothing_are_told_where_they_ended():
+    """Two runs: one trial stuck 5 m outside the goal zone at the east wall, one stuck
+    10 m outside and 5 m from it, one that moved to the end and one that earned something."""
+    from learner.predictive_section import failed_trials
+
+    corner = 45.0
+    stuck_5 = f"{corner - 1:.2f},{corner - np.sqrt(20.0**2 - 1):.2f},30"  # 20 m from the corner
+    stuck_10 = f"{corner - 5:.2f},{corner - np.sqrt(25.0**2 - 25):.2f},50"  # 25 m
+    moving, good = "10.00,10.00,0", "44.00,44.00,40"
+    first = Row("partial-strip", "tpsr", 8000, 0, 1, 100, 0.0, ";".join(["0"] + ["470"] * 9),
+                0.0, 0.01, 0, 0.9, 0.9, "ok", trial_ends=";".join([stuck_5] + [good] * 9))
+    second = Row("partial-strip", "tpsr", 8000, 1, 1, 100, 0.0,
+                 ";".join(["-3", "0"] + ["470"] * 8), 0.0, 0.01, 0, 0.9, 0.9, "ok",
+                 trial_ends=";".join([stuck_10, moving] + [good] * 8))  # fmt: skip
+    text = failed_trials([first, second], "partial-strip")
+    assert text.startswith("3 of its 20 trials earned nothing; 2 of those did not leave")
+    assert "a median 7.5 m outside the goal zone (range 5.0-10.0 m)" in text
+    assert "a median 3.0 m from the east wall" in text
+    # rows written before trials' ends were recorded say nothing
+    assert failed_trials([dataclasses.replace(first, trial_ends="")], "partial-strip") is None

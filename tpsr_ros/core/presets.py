@@ -15,9 +15,10 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
   coordinate, the heading, and on which way each action turns it (docs/results.md,
   "drive").
 - ``predictive``: ``best`` with ``P_TH``'s tests from the current step and the spectral
-  model refined through its filter (:mod:`tpsr_ros.core.refine`): on fresh seeds its
-  weakest runs lie far above ``best``'s where one image is ambiguous, its means level
-  within the noise (docs/results.md, "A predictive state").
+  model refined through its filter (:mod:`tpsr_ros.core.refine`), from a start whose
+  typical step carries 0.3 of the previous state forward (chosen among 0, 0.3, 0.5 and
+  0.7 on ten runs of the selection seeds in ``partial-strip``: 361.1, 404.4, 391.7 and
+  266.1; docs/results.md, "A predictive state").
 
 Options given explicitly (``learner fit --rank 5``, ``--set tpsr.rank=5``) change single
 fields of a preset; :func:`departures` names them, so a model records its preset and what
@@ -127,8 +128,13 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
             summary="the project's best, made a predictive state: P_TH with the tests from the "
             "current step (so B_ao propagates the state it defines), then the spectral model "
             "refined through its filter (at most 30 L-BFGS iterations on predicting the next "
-            "10 images)",
-            tpsr={**_BEST.tpsr, "p_th_tests": "from-current", "refine_epochs": 30},
+            "10 images) from a start that carries 0.3 of the state forward at a typical step",
+            tpsr={
+                **_BEST.tpsr,
+                "p_th_tests": "from-current",
+                "refine_epochs": 30,
+                "refine_carry": 0.3,
+            },
         ),
         "guide": Preset(
             "guide",
