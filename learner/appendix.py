@@ -20,11 +20,11 @@ from scipy.stats import spearmanr
 
 from learner.camera_study import CAMERA_SECTION
 from learner.competence_section import COMPETENCE_SECTION
-from learner.room_change_section import ROOM_CHANGE_SECTION
 from learner.experiment import preset_tpsr
 from learner.jobs import GUIDE_ENVIRONMENTS, SELECTION_SEEDS, Job, experiment_job, study_job
 from learner.overrides import convert
 from learner.predictive_section import PREDICTIVE_SECTION
+from learner.room_change_section import ROOM_CHANGE_SECTION
 from learner.sections import (
     SELECTION_EPISODES,
     Data,
@@ -49,27 +49,35 @@ __all__ = ["SECTIONS", "SELECTION_EPISODES", "Section", "cell"]
 # -- one-parameter studies (learner study) -------------------------------------------------
 
 
-def _default_value(name: str, environment: str) -> Any:
-    """The default's value of ``name`` in ``environment`` (the turning robot's in drive)."""
+def _default_value(name: str, environment: str, preset: str = DEFAULT_PRESET) -> Any:
+    """``preset``'s value of ``name`` in ``environment`` (the turning robot's in drive)."""
     group, field = name.split(".", 1)
     if group == "tpsr":
-        return getattr(preset_tpsr(DEFAULT_PRESET, environment), field)
-    return getattr(PRESETS[DEFAULT_PRESET].fqi_config(), field)
+        return getattr(preset_tpsr(preset, environment), field)
+    return getattr(PRESETS[preset].fqi_config(), field)
 
 
 
 
 def _render_study(section: Section, data: Data) -> list[str]:
     name, values = varied(section.jobs[0])
-    defaults = {job.environment: _default_value(name, job.environment) for job in section.jobs}
+    preset = str(section.jobs[0].option("--preset", DEFAULT_PRESET))
+    defaults = {
+        job.environment: _default_value(name, job.environment, preset) for job in section.jobs
+    }
     shown = {
         env: next((v for v in values if convert(name, v) == value), None)
         for env, value in defaults.items()
     }
     default_text = shown[section.jobs[0].environment]
-    lines = [
+    setting = (
         f"Every other setting is the default's; the default's value is `{default_text}`. "
-        "Cells: mean / median / SEM of 10 runs; R² of the true position's affine map from "
+        if preset == DEFAULT_PRESET
+        else f"Every other setting is `--preset {preset}`'s; its value, the default below, is "
+        f"`{default_text}`. "
+    )
+    lines = [
+        setting + "Cells: mean / median / SEM of 10 runs; R² of the true position's affine map from "
         "the states (x / y); position error: the median distance between the robot and where "
         "its 10 nearest states place it (m); the difference to the default's value in SEMs of "
         "the difference.",
@@ -437,9 +445,26 @@ _DRIVE = tuple(
 )
 """One-knob studies of the turning robot's settings, around them."""
 
+CARRY_STUDY = _study(
+    "refine-carry",
+    "A predictive state: the carried start",
+    "The spectral filter forgets within a step, so the gradient through it vanishes and "
+    "its refinement cannot find a use for the past. How much of the previous state should "
+    "the start of the refinement carry forward at a typical step (`tpsr.refine_carry`; "
+    "`tpsr_ros/core/refine.py`), where one image does not tell where the robot is?",
+    "tpsr.refine_carry=0,0.3,0.5,0.7",
+    "--preset",
+    "predictive",
+    "--methods",
+    "tpsr",
+    environments=("partial-strip",),
+)
+"""The study behind the ``predictive`` preset's carry, on the selection seeds."""
+
 SECTIONS: tuple[Section, ...] = (
     *_PLANNER,
     *_FIT_SWITCHES,
+    CARRY_STUDY,
     PREDICTIVE_SECTION,
     COMPETENCE_SECTION,
     ROOM_CHANGE_SECTION,

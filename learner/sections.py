@@ -34,7 +34,13 @@ __all__ = [
     "varied",
 ]
 
-SELECTION_EPISODES = {"full": 2000, "partial": 8000, "distractors": 8000, "drive": 8000}
+SELECTION_EPISODES = {
+    "full": 2000,
+    "partial": 8000,
+    "distractors": 8000,
+    "partial-strip": 8000,
+    "drive": 8000,
+}
 """Data size of every study: the smallest of the headline in ``full`` (at 8000 episodes every
 setting is at the ceiling there), the largest elsewhere."""
 

@@ -176,6 +176,29 @@ def test_carry_lets_the_refined_filter_remember_which_lookalike_it_stands_in() -
     assert heldout[0.5] < heldout[0.0]
 
 
+def test_a_carried_start_is_never_returned_as_the_model(
+    aliased: Trajectory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """When no iterate qualifies (here: no restart allowed at all), the result is the
+    spectral model's operators, not the carried start the search began from."""
+    import tpsr_ros.core.refine as refine
+
+    spectral = fit_tpsr_trajectory(aliased, replace(CONFIG, refine_epochs=0))
+    monkeypatch.setattr(refine, "restart_allowance", lambda count: -1)
+    kept = refine_tpsr(replace(spectral, config=replace(CONFIG, refine_carry=0.5)),
+                       aliased.actions, aliased.observations)  # fmt: skip
+    assert kept.fit_info["refinement"]["kept"] == "spectral"
+    assert kept.fit_info["refinement"]["best_iteration"] == 0
+    np.testing.assert_array_equal(kept.B, spectral.B)
+    np.testing.assert_array_equal(kept.b_inf, spectral.b_inf)
+
+
+def test_the_restart_allowance_is_the_count_within_its_noise() -> None:
+    from tpsr_ros.core.refine import restart_allowance
+
+    assert [restart_allowance(n) for n in (0, 3, 4, 72)] == [2, 7, 9, 90]
+
+
 def test_no_epochs_is_the_spectral_model_bit_for_bit(aliased: Trajectory) -> None:
     spectral = fit_tpsr_trajectory(aliased, replace(CONFIG, refine_epochs=0))
     assert refine_tpsr(spectral, aliased.actions, aliased.observations) is spectral

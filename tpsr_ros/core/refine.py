@@ -55,12 +55,14 @@ operators like any other.
 Early stopping: the last :data:`HOLDOUT` of the windows (in time) are held out; after every
 iteration their loss is measured with the training read-out, and the parameters of the best
 held-out loss are returned among those whose filter, tracked continuously over the held-out
-steps, restarts no more often than the spectral filter's, the start's or at
-:data:`RESTART_RATE` of the steps (once at least). The objective cuts the past at a
-restart, so it cannot see what restarts cost a planner: one refinement of
-``partial-strip`` that predicted better restarted at 3 % of the steps. The search stops
-when the held-out loss, restarts or not, has not improved for :data:`PATIENCE` iterations
-(the first iterations of the search wander, and may restart where later ones do not).
+steps, restarts no more often than the spectral filter or the start, ``n`` restarts, within
+the noise of such a count: at most ``n + ceil(2 sqrt(n + 1))`` (:func:`restart_allowance`).
+The objective cuts the past at a restart, so it cannot see what restarts cost a planner:
+one refinement of ``partial-strip`` that predicted better restarted at 3 % of the steps.
+The search stops when the held-out loss, restarts or not, has not improved for
+:data:`PATIENCE` iterations (the first iterations of the search wander, and may restart
+where later ones do not). When no iterate qualifies, the spectral model itself is returned:
+a carried start is a place to begin the search, not a model.
 """
 
 from __future__ import annotations
@@ -86,12 +88,12 @@ from tpsr_ros.core.tpsr_stages import Progress
 __all__ = [
     "HOLDOUT",
     "PATIENCE",
-    "RESTART_RATE",
     "Factors",
     "RefineProblem",
     "carried",
     "factor_model",
     "refine_tpsr",
+    "restart_allowance",
 ]
 
 HOLDOUT = 0.1
@@ -106,9 +108,10 @@ BARRIER_FRACTION = 0.2
 BARRIER_WEIGHT = 1.0
 """Weight of the normaliser barrier in the objective."""
 
-RESTART_RATE = 5e-4
-"""Restarts per step a refined filter may make on the held-out steps when the spectral
-filter and the start made fewer (10 in 20000 steps; at least one restart is allowed)."""
+def restart_allowance(count: int) -> int:
+    """Restarts a refined filter may make on the held-out steps where its references made
+    ``count``: as many, plus two standard deviations of a Poisson count."""
+    return count + math.ceil(2.0 * math.sqrt(count + 1.0))
 
 TARGET_COMPONENTS = 10
 """Principal components of the observations the states must predict."""
@@ -529,9 +532,7 @@ def refine_tpsr(
     problem = RefineProblem(model, start, acts, obs, bounds or [(0, obs.shape[0])])
     before = problem.unexplained(start)
     start_restarts = problem.restarts(start)
-    allowed = max(
-        problem.restarts(spectral), start_restarts, math.ceil(RESTART_RATE * problem.held_steps)
-    )
+    allowed = restart_allowance(max(problem.restarts(spectral), start_restarts))
     best = {"theta": start.vector(), "held": before, "iteration": 0, "restarts": start_restarts}
     lowest = {"held": before, "iteration": 0}  # restarts or not: what patience counts from
     since = [0]
@@ -579,5 +580,8 @@ def refine_tpsr(
         "seconds": round(seconds, 3),
     }
     info["timings"] = {**info.get("timings", {}), "refinement": round(seconds, 6)}
+    if best["iteration"] == 0:  # nothing qualified: the spectral model, not the start
+        info["refinement"]["kept"] = "spectral"
+        return replace(spectral, fit_info=info)
     rest = model.B - start.operators()
     return replace(model, B=refined.operators() + rest, b_inf=refined.b_inf, fit_info=info)
