@@ -77,7 +77,8 @@ def _render_study(section: Section, data: Data) -> list[str]:
         f"`{default_text}`. "
     )
     lines = [
-        setting + "Cells: mean / median / SEM of 10 runs; R² of the true position's affine map from "
+        setting
+        + "Cells: mean / median / SEM of 10 runs; R² of the true position's affine map from "
         "the states (x / y); position error: the median distance between the robot and where "
         "its 10 nearest states place it (m); the difference to the default's value in SEMs of "
         "the difference.",

@@ -735,14 +735,22 @@ def summary_lines(
 def refinement_line(refined: dict[str, Any], fit_seconds: float) -> str:
     """What the refinement through the filter did, and its share of the fit's time."""
     kept = (
-        "the spectral model kept (no held-out gain)"
+        "the spectral model kept (no iterate predicted better without restarting more)"
         if refined["best_iteration"] == 0
         else f"best after iteration {refined['best_iteration']}"
     )
+    carry = refined.get("carry", 0.0)
+    start = f" from a start carrying {carry:g} of the state" if carry else ""
+    restarts = (
+        f"; held-out restarts {refined['heldout_restarts']} (allowed "
+        f"{refined['heldout_restarts_allowed']})"
+        if "heldout_restarts" in refined
+        else ""
+    )
     share = 100.0 * refined["seconds"] / fit_seconds if fit_seconds > 0 else 0.0
     return (
-        f"refinement: {refined['iterations']} iteration(s), {kept}; held-out unexplained "
-        f"variance of the next images {refined['heldout_unexplained_spectral']:.4f} -> "
-        f"{refined['heldout_unexplained']:.4f}; {refined['seconds']:.1f} s ({share:.0f} % of "
-        "the fit)"
+        f"refinement{start}: {refined['iterations']} iteration(s), {kept}; held-out "
+        f"unexplained variance of the next images {refined['heldout_unexplained_spectral']:.4f}"
+        f" -> {refined['heldout_unexplained']:.4f}{restarts}; {refined['seconds']:.1f} s "
+        f"({share:.0f} % of the fit)"
     )

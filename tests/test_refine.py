@@ -220,3 +220,22 @@ def test_refinement_refused_where_it_cannot_apply(aliased: Trajectory) -> None:
     for carry in (1.0, -0.1, float("nan")):
         with pytest.raises(ConfigError, match="refine_carry"):
             replace(CONFIG, refine_carry=carry)
+
+
+def test_learner_fit_says_what_the_refinement_did() -> None:
+    from learner.fit import refinement_line
+
+    base = {"iterations": 12, "best_iteration": 7, "heldout_unexplained_spectral": 0.6,
+            "heldout_unexplained": 0.5, "seconds": 5.0}  # fmt: skip
+    older = refinement_line(base, 10.0)  # a model file written before the carry
+    assert older == (
+        "refinement: 12 iteration(s), best after iteration 7; held-out unexplained variance "
+        "of the next images 0.6000 -> 0.5000; 5.0 s (50 % of the fit)"
+    )
+    line = refinement_line(
+        {**base, "best_iteration": 0, "carry": 0.3, "heldout_restarts": 4,
+         "heldout_restarts_allowed": 9}, 20.0,
+    )  # fmt: skip
+    assert line.startswith("refinement from a start carrying 0.3 of the state: 12 iteration(s)")
+    assert "the spectral model kept" in line and "held-out restarts 4 (allowed 9)" in line
+    assert line.endswith("5.0 s (25 % of the fit)")
