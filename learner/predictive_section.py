@@ -21,6 +21,7 @@ from learner.jobs import ENVIRONMENTS, HEADLINE_SEEDS, Job, experiment_job
 from learner.sections import Data, Section, cell, comparison, judged
 from learner.tables import Row, pooled_floors, summarise
 from sim_node import Environment, SimConfig
+from tpsr_ros.core.presets import get_preset
 from tpsr_ros.io.policy import TRUE_POSITION
 
 __all__ = ["PREDICTIVE_EPISODES", "PREDICTIVE_SECTION"]
@@ -105,6 +106,22 @@ def _memory(rows: list[Row], method: str) -> str:
     """The median memory in steps (``learner memory``) of the runs that measured it."""
     steps = [r.memory for r in _at_size(rows, method) if math.isfinite(r.memory)]
     return f"{float(np.median(steps)):g}" if steps else "-"
+
+
+def raised_ridge(rows: list[Row]) -> str | None:
+    """How the runs whose fitted Q diverged at the planner's ridge, and were refitted at a
+    larger one (the planner's ridge ladder), scored against the others (None: no such run)."""
+    ridge = get_preset("predictive").fqi_config().ridge
+    raised = [r.score for r in rows if r.fqi_ridge > ridge]
+    if not raised:
+        return None
+    kept = [r.score for r in rows if r.fqi_ridge <= ridge]
+    others = f"{float(np.mean(kept)):.1f}" if kept else "-"
+    return (
+        f"in {len(raised)} of {len(rows)} runs the fitted Q diverged at ridge {ridge:g} and "
+        f"was refitted at a larger one; they score {float(np.mean(raised)):.1f} on average "
+        f"(lowest {min(raised):.1f}), the other runs {others}"
+    )
 
 
 def failed_trials(rows: list[Row], environment: str) -> str | None:
@@ -206,6 +223,8 @@ def _render(section: Section, data: Data) -> list[str]:
         failures = failed_trials(_at_size(ours, "tpsr"), env)
         if failures is not None:
             verdicts.append(f"- `{env}`, the predictive TPSR: {failures}.")
+        if raised := raised_ridge(_at_size(ours, "tpsr")):
+            verdicts.append(f"- `{env}`, the predictive TPSR: {raised}.")
     return [*lines, "", "**Verdict.**", "", *verdicts]
 
 

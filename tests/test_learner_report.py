@@ -430,3 +430,16 @@ def test_the_trials_that_earned_nothing_are_told_where_they_ended():
     assert "a median 3.0 m from the east wall" in text
     # rows written before trials' ends were recorded say nothing
     assert failed_trials([dataclasses.replace(first, trial_ends="")], "partial-strip") is None
+
+
+def test_runs_whose_fitted_q_needed_a_larger_ridge_are_named():
+    from learner.predictive_section import raised_ridge
+
+    rows = [Row("partial-strip", "tpsr", 8000, k, 1, 100, score, "", 0.0, ridge, 0, 0.9, 0.9,
+                "ok") for k, (score, ridge) in enumerate([(5.6, 0.1), (400.0, 0.01),
+                                                          (300.0, 1.0), (420.0, 0.01)])]
+    assert raised_ridge(rows) == (
+        "in 2 of 4 runs the fitted Q diverged at ridge 0.01 and was refitted at a larger one; "
+        "they score 152.8 on average (lowest 5.6), the other runs 410.0"
+    )
+    assert raised_ridge([r for r in rows if r.fqi_ridge == 0.01]) is None
