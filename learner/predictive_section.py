@@ -138,7 +138,7 @@ def failed_trials(rows: list[Row], environment: str) -> str | None:
         failed += [end for reward, end in zip(rewards, ends, strict=True) if reward <= 0]
     trials = 10 * len(rows)
     if not failed:
-        return f"none of its {trials} trials earned nothing"
+        return f"each of its {trials} trials earned a reward"
     stuck = np.array([end[:2] for end in failed if end[2] >= STANDING_STEPS])
     text = f"{len(failed)} of its {trials} trials earned nothing"
     if not stuck.size:
@@ -147,9 +147,10 @@ def failed_trials(rows: list[Row], environment: str) -> str | None:
     return (
         f"{text}; {len(stuck)} of those did not leave their place (stood, turned on the spot "
         f"or pushed into a wall) for their last {STANDING_STEPS} or more steps, a median "
-        f"{float(np.median(outside)):.1f} m outside the goal zone (range "
-        f"{outside.min():.1f}-{outside.max():.1f} m) and a median "
-        f"{float(np.median(config.room_size - stuck[:, 0])):.1f} m from the east wall"
+        f"{float(np.median(outside)):.1f} m outside the goal zone's edge (from "
+        f"{outside.min():.1f} to {outside.max():.1f} m; below 0: inside the zone, pushing "
+        f"into a wall) and a median {float(np.median(config.room_size - stuck[:, 0])):.1f} m "
+        "from the east wall"
     )
 
 

@@ -426,7 +426,7 @@ def test_the_trials_that_earned_nothing_are_told_where_they_ended():
                  trial_ends=";".join([stuck_10, moving] + [good] * 8))  # fmt: skip
     text = failed_trials([first, second], "partial-strip")
     assert text.startswith("3 of its 20 trials earned nothing; 2 of those did not leave")
-    assert "a median 7.5 m outside the goal zone (range 5.0-10.0 m)" in text
+    assert "a median 7.5 m outside the goal zone's edge (from 5.0 to 10.0 m;" in text
     assert "a median 3.0 m from the east wall" in text
     # rows written before trials' ends were recorded say nothing
     assert failed_trials([dataclasses.replace(first, trial_ends="")], "partial-strip") is None
