@@ -61,6 +61,7 @@ from learner.evaluate import (
     STEPS,
     Evaluation,
     Trial,
+    path_end,
     start_heading,
 )
 from learner.inputs import require_camera
@@ -113,7 +114,6 @@ RECORDED_TOPICS = (
 _WATCHED_TOPICS = {
     "/camera/image_raw": m.IMAGE_TYPE,
     "/action": m.ACTION_TYPE,
-    "/ground_truth/pose": m.POSE_TYPE,
     "/clock": m.CLOCK_TYPE,
 }
 """The simulator's topics the driver does not otherwise read (see :class:`_Driver`)."""
@@ -178,6 +178,7 @@ class _Driver:
         self.episode_starts: list[tuple[int, float, float]] = []
         self.rewards: list[tuple[int, m.RewardSample]] = []
         self.states: dict[int, np.ndarray] = {}
+        self.positions: dict[int, tuple[float, float]] = {}
         self.ended_episodes = 0
         """``/sim/cmd_ignored`` messages for ``episode_steps``: commands after an episode's end."""
         self.node.create_subscription(
@@ -195,6 +196,12 @@ class _Driver:
             "/tpsr/state",
             m.STATE_TYPE,
             lambda msg: self.states.__setitem__(m.stamp_of(msg), m.state_to_array(msg)),
+            KEEP_ALL_QOS,
+        )
+        self.node.create_subscription(
+            "/ground_truth/pose",
+            m.POSE_TYPE,
+            lambda msg: self.positions.__setitem__(m.stamp_of(msg), m.pose_to_xy(msg)),
             KEEP_ALL_QOS,
         )
         self.node.create_subscription(
@@ -273,12 +280,15 @@ def _run_trial(
     )
     stamps = [state_stamp(s) for s in wanted]
     launch.wait(f"the {steps} states of {name}", lambda: all(s in driver.states for s in stamps))
+    launch.wait(f"the {steps} poses of {name}", lambda: all(s in driver.positions for s in wanted))
     samples = rewards()
+    path = np.array([(x, y), *(driver.positions[s] for s in wanted)])
     return Trial(
         (float(start[0]), float(start[1])),
         float(sum(s.reward for s in samples)),
         next((k + 1 for k, s in enumerate(samples) if s.goal_zone), None),
         int(sum(s.wall_contact for s in samples)),
+        *path_end(path),
     )
 
 

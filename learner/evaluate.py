@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,7 @@ __all__ = [
     "Trial",
     "add_camera_size_option",
     "evaluate",
+    "path_end",
     "register",
     "robot_setup",
     "run",
@@ -96,7 +97,9 @@ class Trial:
     reward: float
     goal_step: int | None
     wall_contacts: int
-    end: tuple[float, float] | None = None
+    end: tuple[float, float] | None = field(default=None, compare=False)
+    """Not compared: the closed loop reads it from pose messages, which can differ from the
+    simulator's own pose in the last bit."""
     standing: int = 0
 
 
@@ -110,6 +113,15 @@ class Evaluation:
     def score(self) -> float:
         """Mean summed reward over the trials."""
         return float(np.mean([t.reward for t in self.trials]))
+
+
+def path_end(path: np.ndarray) -> tuple[tuple[float, float], int]:
+    """Where a trial's path ``(N + 1, 2)`` (its start, then the position after each step)
+    ended, and for how many of its last steps the robot moved :data:`STANDING_METRES` or
+    less."""
+    moved = np.hypot(*np.diff(path, axis=0).T) > STANDING_METRES
+    standing = len(moved) - (int(np.flatnonzero(moved)[-1]) + 1) if moved.any() else len(moved)
+    return (float(path[-1, 0]), float(path[-1, 1])), standing
 
 
 def evaluate(
@@ -154,8 +166,8 @@ def run_protocol(
     for index, start in enumerate(starts):
         image, info = env.reset(options=start_options(config, index, start))
         state = tracker.start(image, info["pose"])
-        total, goal_step, contacts, standing = 0.0, None, 0, 0
-        where = np.asarray(info["pose"], dtype=np.float64)[:2]
+        total, goal_step, contacts = 0.0, None, 0
+        path = [np.asarray(info["pose"], dtype=np.float64)[:2]]
         for k in range(1, steps + 1):
             action = choose(state)
             image, reward, _, _, info = env.step(action if execute is None else execute(action))
@@ -164,11 +176,8 @@ def run_protocol(
             if goal_step is None and info["goal_zone"]:
                 goal_step = k
             state = tracker.step(state, action, image, info["pose"])
-            moved_to = np.asarray(info["pose"], dtype=np.float64)[:2]
-            still = float(np.hypot(*(moved_to - where))) <= STANDING_METRES
-            standing, where = (standing + 1 if still else 0), moved_to
-        end = (float(where[0]), float(where[1]))
-        trial = Trial(tuple(start), total, goal_step, contacts, end, standing)
+            path.append(np.asarray(info["pose"], dtype=np.float64)[:2])
+        trial = Trial(tuple(start), total, goal_step, contacts, *path_end(np.array(path)))
         trials.append(trial)
         if on_trial is not None:
             on_trial(index, trial)

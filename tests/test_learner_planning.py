@@ -125,6 +125,15 @@ def test_evaluation_follows_the_documented_protocol():
     assert env.step_count == STEPS
 
 
+def test_a_paths_end_and_the_steps_it_stood_there():
+    from learner.evaluate import path_end
+
+    path = np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 0.005], [3.0, 0.005], [3.0, 0.005]])
+    assert path_end(path) == ((3.0, 0.005), 3)  # moved once, then 5 mm, then stood
+    assert path_end(path[:2]) == ((3.0, 0.0), 0)
+    assert path_end(np.zeros((4, 2))) == ((0.0, 0.0), 3)
+
+
 def _noisy_walk(steps: int, seed: int) -> tuple[np.ndarray, Trajectory]:
     """A walk on [0, 10] (actions -1, 0, +1; reward 1 beyond 8), seen with noise 0.3."""
     rng = np.random.default_rng(seed)
