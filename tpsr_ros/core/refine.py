@@ -108,11 +108,6 @@ BARRIER_FRACTION = 0.2
 BARRIER_WEIGHT = 1.0
 """Weight of the normaliser barrier in the objective."""
 
-def restart_allowance(count: int) -> int:
-    """Restarts a refined filter may make on the held-out steps where its references made
-    ``count``: as many, plus two standard deviations of a Poisson count."""
-    return count + math.ceil(2.0 * math.sqrt(count + 1.0))
-
 TARGET_COMPONENTS = 10
 """Principal components of the observations the states must predict."""
 
@@ -162,6 +157,12 @@ def factor_model(model: TPSRModel) -> Factors:
     ridge = 1e-12 * np.trace(gram) / r
     action = np.linalg.solve(gram + ridge * np.eye(r), cross)
     return Factors(shared, action, np.array(model.b_inf, dtype=np.float64))
+
+
+def restart_allowance(count: int) -> int:
+    """Restarts a refined filter may make on the held-out steps where its references made
+    ``count``: as many, plus two standard deviations of a Poisson count."""
+    return count + math.ceil(2.0 * math.sqrt(count + 1.0))
 
 
 def carried(
@@ -551,7 +552,7 @@ def refine_tpsr(
         if progress is not None:
             progress(
                 f"refinement {since[0]}/{cfg.refine_epochs}: held-out unexplained {held:.4f} "
-                f"(spectral {before:.4f})"
+                f"(start {before:.4f})"
             )
         if since[0] - int(lowest["iteration"]) >= PATIENCE:
             raise StopIteration
