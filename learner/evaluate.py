@@ -56,7 +56,7 @@ __all__ = [
 EVALUATION_SEED = 2026
 STEPS = 50
 STANDING_METRES = 0.01
-"""A step that moves the robot this far or less stood still (or pushed into a wall)."""
+"""A step that moves the robot this far or less left it in its place."""
 START_POSITIONS: tuple[tuple[float, float], ...] = (
     (5.0, 5.0),
     (5.0, 22.5),
@@ -90,8 +90,8 @@ def start_options(config: SimConfig, index: int, start: tuple[float, float]) -> 
 @dataclass(frozen=True)
 class Trial:
     """One trial: where it started, its summed reward, when (if) it reached the goal zone;
-    where it ended and for how many of its last steps it had stood still (a trial that
-    never reaches the goal mostly ends standing somewhere its state takes for the goal)."""
+    where it ended and for how many of its last steps it had not left its place (stood,
+    turned on the spot or pushed into a wall): where a policy that fails gets stuck."""
 
     start: tuple[float, float]
     reward: float
