@@ -84,6 +84,7 @@ from tpsr_ros.core.filtering import (
 )
 from tpsr_ros.core.tpsr_model import TPSRModel
 from tpsr_ros.core.tpsr_stages import Progress
+from tpsr_ros.core.whitening import single_blas_thread
 
 __all__ = [
     "HOLDOUT",
@@ -511,7 +512,8 @@ def refine_tpsr(
     Returns the refined model, whose ``fit_info["refinement"]`` records the held-out loss
     of the start (``..._spectral``: the spectral model with its carry) and of the result,
     the carry and its ``mu``, the iterations and the seconds taken; with ``refine_epochs``
-    0, the model itself.
+    0, the model itself. BLAS runs on one thread: the search amplifies rounding, so the
+    refined model would otherwise depend on the machine's thread count.
 
     """
     cfg = model.config
@@ -526,6 +528,19 @@ def refine_tpsr(
             "refinement needs actions (T,) and observations (T, k), not "
             f"{acts.shape} and {obs.shape}"
         )
+    with single_blas_thread():  # the search amplifies rounding: one thread, one result
+        return _refine(model, acts, obs, bounds, progress)
+
+
+def _refine(
+    model: TPSRModel,
+    acts: np.ndarray,
+    obs: np.ndarray,
+    bounds: list[tuple[int, int]] | None,
+    progress: Progress | None,
+) -> TPSRModel:
+    """The search of :func:`refine_tpsr` on its validated arrays."""
+    cfg = model.config
     begin = time.perf_counter()
     spectral = model
     model, mu = carried(model, acts, obs)
