@@ -162,7 +162,7 @@ def _pick_domain() -> int:
 
 
 class _Driver:
-    """The in-process node that resets the simulator and collects rewards and states.
+    """The in-process node that resets the simulator and collects rewards, poses and states.
 
     With ``watch_all`` it also subscribes the simulator's other step topics (and drops
     what it gets), so that ``wait_for_subscribers:=2`` holds the simulator's start-up
