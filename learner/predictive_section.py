@@ -18,10 +18,10 @@ import numpy as np
 
 from learner.floors import CONSTANT, RANDOM
 from learner.jobs import ENVIRONMENTS, HEADLINE_SEEDS, Job, experiment_job
-from learner.sections import Data, Section, cell, comparison, judged
+from learner.sections import Data, Section, cell, comparison, judged, row_parameters
 from learner.tables import Row, pooled_floors, summarise
 from sim_node import Environment, SimConfig
-from tpsr_ros.core.presets import get_preset
+from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.io.policy import TRUE_POSITION
 
 __all__ = ["PREDICTIVE_EPISODES", "PREDICTIVE_SECTION"]
@@ -109,13 +109,16 @@ def _memory(rows: list[Row], method: str) -> str:
 
 
 def raised_ridge(rows: list[Row]) -> str | None:
-    """How the runs whose fitted Q diverged at the planner's ridge, and were refitted at a
-    larger one (the planner's ridge ladder), scored against the others (None: no such run)."""
-    ridge = get_preset("predictive").fqi_config().ridge
-    raised = [r.score for r in rows if r.fqi_ridge > ridge]
+    """How the runs whose fitted Q diverged at the ridge they planned with, and were refitted
+    at a larger one (the planner's ridge ladder), scored against the others (None: no such
+    run)."""
+    default = FQIConfig().ridge  # rows that do not record their planner planned with it
+    given = [row_parameters(r).get("fqi", {}).get("ridge", default) for r in rows]
+    raised = [r.score for r, ridge in zip(rows, given, strict=True) if r.fqi_ridge > ridge]
     if not raised:
         return None
-    kept = [r.score for r in rows if r.fqi_ridge <= ridge]
+    kept = [r.score for r, ridge in zip(rows, given, strict=True) if r.fqi_ridge <= ridge]
+    ridge = given[0]
     others = f"{float(np.mean(kept)):.1f}" if kept else "-"
     return (
         f"in {len(raised)} of {len(rows)} runs the fitted Q diverged at ridge {ridge:g} and "

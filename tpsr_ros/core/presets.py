@@ -17,8 +17,8 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
 - ``predictive``: ``best`` with ``P_TH``'s tests from the current step and the spectral
   model refined through its filter (:mod:`tpsr_ros.core.refine`), from a start whose
   typical step carries 0.3 of the previous state forward (chosen among 0, 0.3, 0.5 and
-  0.7 on ten runs of the selection seeds in ``partial-strip``: 361.1, 404.4, 391.7 and
-  266.1; docs/results.md, "A predictive state").
+  0.7 on ten runs of the selection seeds in ``partial-strip``: 390.8, 405.7, 391.7 and
+  266.1; docs/results.md, "A predictive state: the carried start").
 
 Options given explicitly (``learner fit --rank 5``, ``--set tpsr.rank=5``) change single
 fields of a preset; :func:`departures` names them, so a model records its preset and what

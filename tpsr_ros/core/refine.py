@@ -255,11 +255,10 @@ class RefineProblem:
         self.actions = np.asarray(actions, dtype=np.int64)
         self._observations = observations
         self.weights = observation_weights(model, observations)  # (T, l_O), fixed
-        # what the factors leave of each step's spectral operator, kept fixed: the start is
-        # the spectral model exactly, pooled or not
-        self._rest = update_matrices(
-            _Operators(model.B - start.operators()), self.actions, self.weights
-        )
+        # what the factors leave of the spectral operators, kept fixed: the start is the
+        # spectral model exactly, pooled or not
+        self.rest = model.B - start.operators()
+        self._rest = update_matrices(_Operators(self.rest), self.actions, self.weights)
         targets = _targets(model, observations)
         starts = _window_starts(bounds, self.window, self.horizon)
         if starts.size < 2:
@@ -390,6 +389,10 @@ class RefineProblem:
         resid = y - self._design(self._squash(self.states(f, starts))[0]) @ readout
         return float(np.sum(resid**2) / max(np.sum(y**2), 1e-300))
 
+    def model_of(self, f: Factors) -> TPSRModel:
+        """The model whose operators are ``f``'s plus the fixed rest."""
+        return replace(self._model, B=f.operators() + self.rest, b_inf=f.b_inf)
+
     @property
     def held_steps(self) -> int:
         """Steps of the held-out stretch :meth:`restarts` tracks."""
@@ -399,8 +402,7 @@ class RefineProblem:
         """Restarts of the filter of ``f`` (or of a model) tracked continuously over the
         held-out stretch (the held-out windows' steps, as a planner's filter runs)."""
         if isinstance(f, Factors):
-            rest = self._model.B - self.start.operators()
-            f = replace(self._model, B=f.operators() + rest, b_inf=f.b_inf)
+            f = self.model_of(f)
         first = int(self.held_starts[0])
         stop = first + self.held_steps
         tracked = track(f, self.actions[first:stop], self._observations[first:stop])
@@ -599,5 +601,4 @@ def _refine(
     if best["iteration"] == 0:  # nothing qualified: the spectral model, not the start
         info["refinement"]["kept"] = "spectral"
         return replace(spectral, fit_info=info)
-    rest = model.B - start.operators()
-    return replace(model, B=refined.operators() + rest, b_inf=refined.b_inf, fit_info=info)
+    return replace(problem.model_of(refined), fit_info=info)
