@@ -189,12 +189,14 @@ def run(args: argparse.Namespace) -> int:
     )
     save_policy(policy, output, force=args.force)
     timing = policy.metadata["timing_s"]
-    ridge = policy.metadata["fqi"]["ridge"]
-    if ridge != config.ridge:
-        print(
-            f"fitted Q diverged at ridge {config.ridge:g}; refitted at ridge {ridge:g}",
-            file=sys.stderr,
+    ridges = policy.metadata["fqi"]["member_ridges"]
+    if raised := [r for r in ridges if r != config.ridge]:
+        which = (
+            f"refitted at ridge {raised[0]:g}"
+            if raised == [raised[0]] * len(ridges)
+            else f"refitted {len(raised)} of {len(ridges)} members, at ridges up to {max(raised):g}"
         )
+        print(f"fitted Q diverged at ridge {config.ridge:g}; {which}", file=sys.stderr)
     print(
         f"wrote {output}: {policy.representation} policy over {policy.state_dim}-d states, "
         f"{policy.metadata['data']['transitions']} transitions "

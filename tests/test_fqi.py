@@ -78,6 +78,26 @@ def test_divergence_is_detected_not_returned():
     assert np.abs(q.values(data[0])).max() <= 1.0 / (1 - 0.9) * 1.5
 
 
+def test_a_diverging_member_is_refitted_alone():
+    # 200 samples on 40 centres at ridge 1e-4: the member with k-means seed 2 diverges,
+    # those with seeds 0, 1 and 3 converge
+    data = _line_world(200)
+    config = FQIConfig(centers=40, ridge=1e-4, ensemble=4)
+    with pytest.raises(DivergenceError, match=r"member 3 of 4: .* at ridge 0\.0001"):
+        fit_q(*data, n_actions=3, config=config)
+    q = fit_q(*data, n_actions=3, config=config, max_ridge=1.0)
+    assert q.ridges is not None and q.ridges[2] > 1e-4
+    assert [q.ridges[m] for m in (0, 1, 3)] == [1e-4] * 3
+    bounds = np.cumsum([0, *q.group_sizes])
+    for m, ridge in enumerate(q.ridges):  # each member is its own fit at its own ridge
+        alone = fit_q(*data, n_actions=3, config=FQIConfig(centers=40, ridge=ridge, seed=m))
+        np.testing.assert_array_equal(q.weights[bounds[m] : bounds[m + 1]], alone.weights)
+    with pytest.raises(DivergenceError):  # the member's ridge is the first that converged
+        fit_q(*data, n_actions=3, config=FQIConfig(centers=40, ridge=q.ridges[2] / 10, seed=2))
+    with pytest.raises(DivergenceError, match=r"ridges 1e-08 to 1e-07 tried"):
+        fit_q(*data, n_actions=3, config=FQIConfig(centers=40, ridge=1e-8), max_ridge=1e-7)
+
+
 def test_a_fit_that_has_not_converged_is_refused():
     # the values need ~130 iterations to settle to 1e-6 at gamma 0.9; five leave them moving
     with pytest.raises(DivergenceError, match="did not converge in 5 iterations"):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -163,6 +164,19 @@ def test_a_diverging_fitted_q_is_refitted_at_larger_ridges():
         fit_q_on(states, trajectory, FQIConfig(centers=40, ridge=1e-8, iterations=2))
     with pytest.raises(DivergenceError, match=r"\(ridge 2 tried\)"):  # above MAX_RIDGE: once
         fit_q_on(states, trajectory, FQIConfig(centers=40, ridge=2.0, iterations=2))
+
+
+def test_refit_member_raises_the_ridge_of_the_diverged_member_only():
+    states, trajectory = _noisy_walk(150, seed=1)
+    asked = FQIConfig(centers=40, ridge=1e-3, ensemble=4, seed=1)  # member 1 diverges
+    whole, used, _ = fit_q_on(states, trajectory, asked)
+    assert used.ridge > asked.ridge and whole.ridges == (used.ridge,) * 4
+    alone, used_alone, _ = fit_q_on(states, trajectory, replace(asked, refit="member"))
+    assert alone.ridges is not None and alone.ridges[1:] == (asked.ridge,) * 3
+    assert used_alone.ridge == alone.ridges[0] > asked.ridge
+    s, a, r, s_next = transitions(states, trajectory)
+    others = fit_q(s, a, r, s_next, 3, replace(asked, ensemble=3, seed=2))  # seeds 2, 3, 4
+    np.testing.assert_array_equal(alone.weights[alone.group_sizes[0] :], others.weights)
 
 
 @pytest.mark.slow

@@ -24,7 +24,11 @@ The planner of Jonschkowski & Brock (2015), as the guide uses it, with these cho
   93-122 iterations on the experiments' states (one 262); one that still moves after
   ``iterations``, or whose values pass ten times the largest |Q| any policy can have
   (max|r| / (1 - gamma)), diverged. One diverging member of an ensemble, left in, decided
-  the average and scored 40-70 instead of ~450.
+  the average and scored 40-70 instead of ~450. A diverged fit is refitted at ten times
+  the ridge (:func:`ridge_ladder`, up to ``MAX_RIDGE``): the whole ensemble (``refit
+  ensemble``, the guide's single fit), or only the member that diverged (``refit
+  member``): one member that diverged in ``partial-strip`` took the other four to ridge
+  0.1 with it and the run scored 5.6; refitted alone, 201.1.
 
 Transitions are ``(s_k, a_{k+1}, r_{k+1}, s_{k+1})`` from states tracked with a model's
 parameters over one long random trajectory (never embedded histories; guide 4.2).
@@ -32,6 +36,7 @@ parameters over one long random trajectory (never embedded histories; guide 4.2)
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass
 from functools import cached_property
 from typing import Any, Literal
@@ -43,7 +48,13 @@ from scipy.spatial.distance import cdist
 from tpsr_ros.core.errors import ConfigError, DataError, DivergenceError
 from tpsr_ros.core.fields import option as _param
 
-__all__ = ["FQIConfig", "QFunction", "fit_q", "ignore_trailing"]
+__all__ = ["MAX_RIDGE", "FQIConfig", "QFunction", "fit_q", "ignore_trailing", "ridge_ladder"]
+
+REFITS = ("ensemble", "member")
+"""What a diverged fit refits at a larger ridge (``FQIConfig.refit``)."""
+
+MAX_RIDGE = 1.0
+"""Largest ridge a diverging fitted Q is refitted at before the fit gives up."""
 
 SCALINGS = ("standardise", "whiten", "predictive")
 """Planner units (``FQIConfig.state_scaling``); ``predictive`` needs ``fit_q(futures=...)``."""
@@ -79,6 +90,12 @@ class FQIConfig:
         choices=SCALINGS,
     )
     ensemble: int = _param(1, "fitted-Q members averaged, each with its own k-means centres")
+    refit: Literal["ensemble", "member"] = _param(
+        "ensemble",
+        "when a member's Q-iteration diverges, refit at ten times the ridge every member "
+        "or that member alone",
+        choices=REFITS,
+    )
 
     def __post_init__(self) -> None:
         if self.centers < 2:
@@ -93,6 +110,8 @@ class FQIConfig:
             )
         if self.ensemble < 1:
             raise ConfigError("the fitted-Q ensemble needs at least one member")
+        if self.refit not in REFITS:
+            raise ConfigError(f"refit {self.refit!r}: one of {', '.join(REFITS)}")
         if not self.width_scale > 0:
             raise ConfigError(f"width_scale {self.width_scale} must be positive")
         if self.kmeans_samples < self.centers or self.seed < 0:
@@ -112,6 +131,8 @@ class QFunction:
     of the state-to-future map when predictive); member
     ``m`` owns ``group_sizes[m]`` consecutive rows of ``centers`` with width ``width[m]``,
     and Q(s, a) = mean_m phi_m(z) . w_m[:, a]. One member is the guide's planner.
+    ``ridges`` records the ridge each member was fitted at (None: not recorded, as for a
+    Q-function read from a file); it plays no part in the values.
     """
 
     mean: np.ndarray  # (r,)
@@ -121,6 +142,7 @@ class QFunction:
     weights: np.ndarray  # (c, n_actions)
     rotation: np.ndarray | None = None  # (r, r); None: the identity
     group_sizes: np.ndarray | None = None  # (M,) centres per member; None: one member
+    ridges: tuple[float, ...] | None = None  # (M,) each member's ridge; None: not recorded
 
     def __post_init__(self) -> None:
         width = np.atleast_1d(np.asarray(self.width, dtype=np.float64))
@@ -129,6 +151,8 @@ class QFunction:
             raise DataError("one width and a positive centre count per ensemble member")
         if int(sizes.sum()) != len(self.centers):
             raise DataError(f"group sizes sum to {sizes.sum()}, not {len(self.centers)} centres")
+        if self.ridges is not None and len(self.ridges) != len(width):
+            raise DataError(f"{len(self.ridges)} ridges for {len(width)} ensemble members")
         object.__setattr__(self, "width", width)
         object.__setattr__(self, "group_sizes", sizes.astype(np.int64))
 
@@ -322,6 +346,14 @@ def _iterate(
     )
 
 
+def ridge_ladder(ridge: float, max_ridge: float = MAX_RIDGE) -> list[float]:
+    """Ridges a diverging fit tries in turn: ``ridge``, ten times it, ... up to ``max_ridge``."""
+    ladder = [ridge]
+    while ridge * 10.0 ** len(ladder) <= max_ridge:
+        ladder.append(ridge * 10.0 ** len(ladder))
+    return ladder
+
+
 def fit_q(
     states: np.ndarray,
     actions: np.ndarray,
@@ -331,13 +363,16 @@ def fit_q(
     config: FQIConfig | None = None,
     *,
     futures: tuple[np.ndarray, np.ndarray] | None = None,
+    max_ridge: float | None = None,
 ) -> QFunction:
     """Fit Q from ``states (T, r)``, ``actions (T,)``, ``rewards (T,)``, ``next_states (T, r)``.
 
     Each of the ``config.ensemble`` members has its own k-means centres (seed ``seed + m``)
-    and its own Q-iteration; the returned Q-function averages them. ``futures`` (states
-    paired with features of what followed them) is needed by, and only used for,
-    ``state_scaling="predictive"`` (:func:`_predictive_scaling`).
+    and its own Q-iteration at ``config.ridge``; the returned Q-function averages them.
+    A member that diverges raises ``DivergenceError``; with ``max_ridge``, it is first
+    refitted alone at the larger ridges of :func:`ridge_ladder` (the others keep theirs).
+    ``futures`` (states paired with features of what followed them) is needed by, and only
+    used for, ``state_scaling="predictive"`` (:func:`_predictive_scaling`).
     """
     config = config or FQIConfig()
     states = np.asarray(states, dtype=np.float64)
@@ -370,11 +405,24 @@ def fit_q(
         mean, scale, rotation = _scaling(np.vstack([states, next_states]), config.state_scaling)
     z, z_next = (_to_units(s, mean, scale, rotation) for s in (states, next_states))
     members = [_centres(z, config, config.seed + m) for m in range(config.ensemble)]
-    weights = []
-    for centers, width in members:
+    ladder = [config.ridge] if max_ridge is None else ridge_ladder(config.ridge, max_ridge)
+    weights, ridges = [], []
+    for index, (centers, width) in enumerate(members):
         member = QFunction(mean, scale, centers, width, np.zeros((len(centers), 1)), rotation)
         phi, phi_next = member.unit_features(z), member.unit_features(z_next)
-        weights.append(_iterate(phi, phi_next, actions, rewards, n_actions, config))
+        for ridge in ladder:
+            try:
+                attempt = dataclasses.replace(config, ridge=ridge)
+                weights.append(_iterate(phi, phi_next, actions, rewards, n_actions, attempt))
+            except DivergenceError as exc:
+                failure = exc
+                continue
+            ridges.append(ridge)
+            break
+        else:
+            named = f"member {index + 1} of {len(members)}: " if len(members) > 1 else ""
+            tried = f" (ridges {ladder[0]:g} to {ladder[-1]:g} tried)" if len(ladder) > 1 else ""
+            raise DivergenceError(f"{named}{failure}{tried}") from failure
     return QFunction(
         mean,
         scale,
@@ -383,6 +431,7 @@ def fit_q(
         np.vstack(weights),
         rotation,
         np.array([len(c) for c, _ in members]),
+        tuple(ridges),
     )
 
 
@@ -410,4 +459,5 @@ def ignore_trailing(q: QFunction, state_dim: int) -> QFunction:
         q.weights,
         rotation,
         q.group_sizes,
+        q.ridges,
     )

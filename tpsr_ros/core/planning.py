@@ -17,7 +17,7 @@ import numpy as np
 
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.errors import DataError, DivergenceError
-from tpsr_ros.core.fqi import FQIConfig, QFunction, fit_q
+from tpsr_ros.core.fqi import MAX_RIDGE, FQIConfig, QFunction, fit_q, ridge_ladder
 from tpsr_ros.core.whitening import Whitening
 
 __all__ = [
@@ -37,8 +37,6 @@ FUTURE_HORIZONS = 10
 """Future steps predicted: the planner's horizon ``1 / (1 - 0.9)``."""
 FUTURE_FEATURES = 10
 """Principal components of the observations predicted at each future step."""
-MAX_RIDGE = 1.0
-"""Largest ridge :func:`fit_q_on` tries before it gives up on a diverging fitted Q."""
 
 
 class MissingRewards(DataError):
@@ -121,26 +119,25 @@ def future_pairs(states: np.ndarray, trajectory: Trajectory) -> tuple[np.ndarray
     return states[valid], targets[valid].reshape(int(valid.sum()), -1)
 
 
-def ridge_ladder(ridge: float) -> list[float]:
-    """Ridges :func:`fit_q_on` tries in turn: ``ridge``, ten times it, ... up to ``MAX_RIDGE``."""
-    ladder = [ridge]
-    while ridge * 10.0 ** len(ladder) <= MAX_RIDGE:
-        ladder.append(ridge * 10.0 ** len(ladder))
-    return ladder
-
-
 def fit_q_on(
     states: np.ndarray, trajectory: Trajectory, config: FQIConfig, *, skip_unknown: bool = False
 ) -> tuple[QFunction, FQIConfig, int]:
     """Fitted Q on the transitions of ``states`` tracked over ``trajectory``.
 
-    A fit that diverges is refitted at the next ridge of :func:`ridge_ladder`. Returns
-    the Q-function, the configuration that fitted it (its ridge) and the number of
-    transitions; raises ``DivergenceError`` when every ridge diverges. ``skip_unknown``:
+    A fit that diverges is refitted at the next ridge of :func:`ridge_ladder`: all of it,
+    or with ``config.refit == "member"`` only the ensemble members that diverged
+    (``QFunction.ridges`` records each member's). Returns the Q-function, the
+    configuration that fitted it (its ridge the largest any member needed) and the number
+    of transitions; raises ``DivergenceError`` when every ridge diverges. ``skip_unknown``:
     see :func:`transitions`.
     """
     s, a, r, s_next = transitions(states, trajectory, skip_unknown=skip_unknown)
     futures = future_pairs(states, trajectory) if config.state_scaling == "predictive" else None
+    if config.refit == "member":
+        q = fit_q(
+            s, a, r, s_next, trajectory.n_actions, config, futures=futures, max_ridge=MAX_RIDGE
+        )
+        return q, dataclasses.replace(config, ridge=max(q.ridges or (config.ridge,))), len(a)
     ladder = ridge_ladder(config.ridge)
     for ridge in ladder:
         attempt = dataclasses.replace(config, ridge=ridge)

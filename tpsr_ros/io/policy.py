@@ -258,7 +258,8 @@ def policy_from_states(
     """The greedy policy of fitted Q on ``states`` tracked over ``trajectory`` (with rewards).
 
     The metadata record the fitted-Q configuration used (a larger ridge than ``config``'s
-    if the fit diverged: :func:`~tpsr_ros.core.planning.fit_q_on`), the data and the
+    if the fit diverged: :func:`~tpsr_ros.core.planning.fit_q_on`; ``member_ridges``,
+    the ridge of each ensemble member), the data and the
     timings, after the entries of ``metadata`` (model path, preset, reward source).
     ``skip_unknown``: see :func:`~tpsr_ros.core.planning.transitions`.
     """
@@ -271,7 +272,7 @@ def policy_from_states(
         environment=environment,
         metadata={
             **(metadata or {}),
-            "fqi": used.to_dict(),
+            "fqi": {**used.to_dict(), "member_ridges": list(q.ridges or ())},
             "data": {**trajectory.summary(), "transitions": n_transitions},
             "timing_s": {"tracking": tracking_s, "fitted_q": time.perf_counter() - start},
         },
