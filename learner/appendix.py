@@ -462,10 +462,26 @@ CARRY_STUDY = _study(
 )
 """The study behind the ``predictive`` preset's carry, on the selection seeds."""
 
+REFIT_STUDY = _study(
+    "refit",
+    "A predictive state: refitting a diverged planner",
+    "When one of the five fitted-Q members diverges, should the whole ensemble be refitted "
+    "at ten times the ridge (`ensemble`), or only that member (`member`; `fqi.refit`, "
+    "`tpsr_ros/core/fqi.py`)? Runs in which no member diverges are the same either way.",
+    "fqi.refit=ensemble,member",
+    "--preset",
+    "predictive",
+    "--methods",
+    "tpsr",
+    environments=("partial-strip", "drive"),
+)
+"""The study behind the ``predictive`` preset's refit, on the selection seeds."""
+
 SECTIONS: tuple[Section, ...] = (
     *_PLANNER,
     *_FIT_SWITCHES,
     CARRY_STUDY,
+    REFIT_STUDY,
     PREDICTIVE_SECTION,
     COMPETENCE_SECTION,
     ROOM_CHANGE_SECTION,

@@ -112,18 +112,24 @@ def raised_ridge(rows: list[Row]) -> str | None:
     """How the runs whose fitted Q diverged at the ridge they planned with, and were refitted
     at a larger one (the planner's ridge ladder), scored against the others (None: no such
     run)."""
-    default = FQIConfig().ridge  # rows that do not record their planner planned with it
-    given = [row_parameters(r).get("fqi", {}).get("ridge", default) for r in rows]
+    default = FQIConfig()  # rows that do not record their planner planned with its values
+    planners = [row_parameters(r).get("fqi", {}) for r in rows]
+    given = [p.get("ridge", default.ridge) for p in planners]
     raised = [r.score for r, ridge in zip(rows, given, strict=True) if r.fqi_ridge > ridge]
     if not raised:
         return None
     kept = [r.score for r, ridge in zip(rows, given, strict=True) if r.fqi_ridge <= ridge]
     ridge = given[0]
+    what = (
+        "a member of the fitted Q diverged at ridge {:g} and was refitted alone"
+        if planners[0].get("refit", default.refit) == "member"
+        else "the fitted Q diverged at ridge {:g} and was refitted"
+    ).format(ridge)
     others = f"{float(np.mean(kept)):.1f}" if kept else "-"
     return (
-        f"in {len(raised)} of {len(rows)} runs the fitted Q diverged at ridge {ridge:g} and "
-        f"was refitted at a larger one; they score {float(np.mean(raised)):.1f} on average "
-        f"(lowest {min(raised):.1f}), the other runs {others}"
+        f"in {len(raised)} of {len(rows)} runs {what} at a larger ridge; they score "
+        f"{float(np.mean(raised)):.1f} on average (lowest {min(raised):.1f}), the other runs "
+        f"{others}"
     )
 
 

@@ -439,7 +439,13 @@ def test_runs_whose_fitted_q_needed_a_larger_ridge_are_named():
                 "ok") for k, (score, ridge) in enumerate([(5.6, 0.1), (400.0, 0.01),
                                                           (300.0, 1.0), (420.0, 0.01)])]
     assert raised_ridge(rows) == (
-        "in 2 of 4 runs the fitted Q diverged at ridge 0.01 and was refitted at a larger one; "
-        "they score 152.8 on average (lowest 5.6), the other runs 410.0"
+        "in 2 of 4 runs the fitted Q diverged at ridge 0.01 and was refitted at a larger "
+        "ridge; they score 152.8 on average (lowest 5.6), the other runs 410.0"
+    )
+    alone = json.dumps({"fqi": {"ridge": 0.01, "refit": "member"}})
+    members = [dataclasses.replace(r, parameters=alone) for r in rows]
+    assert raised_ridge(members).startswith(
+        "in 2 of 4 runs a member of the fitted Q diverged at ridge 0.01 and was refitted "
+        "alone at a larger ridge; they score 152.8"
     )
     assert raised_ridge([r for r in rows if r.fqi_ridge == 0.01]) is None
