@@ -477,11 +477,28 @@ REFIT_STUDY = _study(
 )
 """The study behind the ``predictive`` preset's refit, on the selection seeds."""
 
+PCA_PLANNER_STUDY = _study(
+    "pca-planner",
+    "PCA's own planner",
+    "The defaults' planner (predictive units, five members) was chosen for the TPSR. Which "
+    "units suit PCA of the current image where one image does not tell where the robot is, "
+    "planned as the guide plans it, with one member (`fqi.state_scaling`, "
+    "`--set fqi.ensemble=1`)?",
+    "fqi.state_scaling=standardise,whiten,predictive",
+    "--set",
+    "fqi.ensemble=1",
+    "--methods",
+    "pca",
+    environments=("partial-strip", "drive"),
+)
+"""The study that chooses PCA's planner for the predictive section, on the selection seeds."""
+
 SECTIONS: tuple[Section, ...] = (
     *_PLANNER,
     *_FIT_SWITCHES,
     CARRY_STUDY,
     REFIT_STUDY,
+    PCA_PLANNER_STUDY,
     PREDICTIVE_SECTION,
     COMPETENCE_SECTION,
     ROOM_CHANGE_SECTION,

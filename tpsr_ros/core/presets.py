@@ -18,7 +18,10 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
   model refined through its filter (:mod:`tpsr_ros.core.refine`), from a start whose
   typical step carries 0.3 of the previous state forward (chosen among 0, 0.3, 0.5 and
   0.7 on ten runs of the selection seeds in ``partial-strip``: 390.8, 405.7, 391.7 and
-  266.1; docs/results.md, "A predictive state: the carried start").
+  266.1; docs/results.md, "A predictive state: the carried start"); a fitted-Q member
+  that diverges is refitted alone (``fqi.refit member``), not the whole ensemble: on the
+  selection seeds 2 of 20 runs in ``partial-strip`` and ``drive`` differ (-1.3 -> 232.1,
+  373.8 -> 292.1; "A predictive state: refitting a diverged planner").
 
 Options given explicitly (``learner fit --rank 5``, ``--set tpsr.rank=5``) change single
 fields of a preset; :func:`departures` names them, so a model records its preset and what
@@ -128,13 +131,15 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
             summary="the project's best, made a predictive state: P_TH with the tests from the "
             "current step (so B_ao propagates the state it defines), then the spectral model "
             "refined through its filter (at most 30 L-BFGS iterations on predicting the next "
-            "10 images) from a start that carries 0.3 of the state forward at a typical step",
+            "10 images) from a start that carries 0.3 of the state forward at a typical step; "
+            "a diverged fitted-Q member is refitted alone",
             tpsr={
                 **_BEST.tpsr,
                 "p_th_tests": "from-current",
                 "refine_epochs": 30,
                 "refine_carry": 0.3,
             },
+            fqi={**_BEST.fqi, "refit": "member"},
         ),
         "guide": Preset(
             "guide",
