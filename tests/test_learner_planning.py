@@ -69,7 +69,9 @@ def test_transitions_follow_steps_and_never_cross_a_gap():
 @pytest.mark.slow
 @pytest.mark.parametrize("environment", ["full", "partial", "distractors"])
 def test_true_position_baseline_scores_at_least_460(environment):
-    steps = 15000 if environment == "full" else 20000
+    # half the experiment's RL steps (15000; 20000): the ceiling is reached on less data too
+    # (every trial 460 or more with either), so the test checks it at a stricter size
+    steps = 8000 if environment == "full" else 10000
     rl = random_trajectory(environment, steps, seed=100)
     tracker = TruePositionTracker()
     policy = fit_policy(tracker, rl, FQIConfig(), environment=environment)
