@@ -156,7 +156,10 @@ def bag(tmp_path_factory):
 @pytest.mark.slow
 def test_tune_then_fit_with_its_config(bag, tmp_path, capsys):
     config = tmp_path / "tuned.yaml"
-    code, out, err = run_entry(["tune", str(bag), "-o", str(config), "--budget", "5"], capsys)
+    # five candidates (within the budget): four criteria, the best not the first
+    code, out, err = run_entry(
+        ["tune", str(bag), "-o", str(config), "--budget", "5", "--candidates", "5"], capsys
+    )
     assert code == 0, err
     content = yaml.safe_load(config.read_text())
     tried = content["tune"]["tried"]
@@ -213,7 +216,9 @@ def test_a_robot_bag_is_tuned_from_its_resampled_steps_and_a_bad_criterion_said(
 def test_the_tuned_config_carries_the_input_options_fit_needs(bag, tmp_path, capsys):
     config = tmp_path / "grid.yaml"
     grid = ["--step-period", "1.0", "--image-timeout", "1.5"]
-    code, _, err = run_entry(["tune", str(bag), *grid, "-o", str(config), "--budget", "3"], capsys)
+    # one candidate: what the file carries does not depend on the search
+    tune = ["tune", str(bag), *grid, "-o", str(config), "--budget", "3", "--candidates", "1"]
+    code, _, err = run_entry(tune, capsys)
     assert code == 0, err
     inputs = yaml.safe_load(config.read_text())["input"]
     assert inputs["step_period"] == 1.0 and inputs["image_timeout"] == 1.5
