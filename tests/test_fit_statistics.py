@@ -205,7 +205,9 @@ def test_forgetting_follows_a_world_that_changes():
     before = example_pomdp()
     after = POMDP(T=before.T[::-1].copy(), O=before.O)
     basis = _basis(before)
-    lam, steps = 0.99998, 300_000
+    # the memory 1 / (1 - lam) scaled with the steps: the old world's weight, lam ** ages[0],
+    # is what 0.99998 gave it on 300000 steps, with half the sampling and fitting
+    lam, steps = 0.99996, 150_000
     old = _pomdp_episodes(before, steps, seed=2)
     new = _pomdp_episodes(after, steps, seed=3)
     ages = 3.0 * (len(new.action) - 1 - np.arange(len(new.action)))
@@ -218,5 +220,5 @@ def test_forgetting_follows_a_world_that_changes():
     )  # fmt: skip
     error_kept = filtering_errors(kept.solve(), after).mean()
     error_forgetting = filtering_errors(forgetting.solve(), after).mean()
-    assert error_forgetting < 0.06, (error_forgetting, error_kept)  # 0.045; new data alone: 0.023
-    assert error_kept > 2 * error_forgetting, (error_forgetting, error_kept)  # 0.141
+    assert error_forgetting < 0.06, (error_forgetting, error_kept)  # 0.046
+    assert error_kept > 2 * error_forgetting, (error_forgetting, error_kept)  # 0.144
