@@ -22,7 +22,7 @@ STEP = "0.075"
 def phone(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("phone")
     bag, model, states = tmp / "phone", tmp / "phone.npz", tmp / "states.npz"
-    write_robot_bag(bag, RobotBagConfig(steps=20, seed=3, timeline="phone"))
+    write_robot_bag(bag, RobotBagConfig(steps=12, seed=3, timeline="phone"))
     topics = ["--image-topic", COMPRESSED_TOPIC, "--action-topic", "/cmd_vel"]
     assert learner_main(["fit", str(bag), *topics, "--step-period", STEP, "-o", str(model)]) == 0
     assert learner_main(["track", str(model), str(bag), "-o", str(states)]) == 0
