@@ -8,10 +8,13 @@ tests/test_msgs_doc.py and tests/test_filter_node_lockstep.py.
 
 from __future__ import annotations
 
+import atexit
 import io
 import re
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -44,12 +47,27 @@ DOC = Path(__file__).resolve().parent.parent / "msgs_doc" / "filter_node.md"
 # -- helpers shared with other test modules ----------------------------------------------
 
 
+_FITTED: dict[tuple[int, int], Path] = {}
+"""The bag and model of each (steps, seed) fitted in this process, in a directory of its own."""
+
+
 def fit_small_model(tmp: Path, *, steps: int = 900, seed: int = 3) -> Path:
-    """A small TPSR fitted on a generated full-environment bag (about a second)."""
-    bag = tmp / f"train_{seed}"
-    generate_bag(bag, SimConfig(environment="full"), steps, seed=seed)
+    """A small TPSR fitted on a generated full-environment bag (about a second).
+
+    The bag and the fit are seeded, so they are made once per process and copied into
+    ``tmp`` for every later test that asks for the same (steps, seed): byte for byte what
+    generating and fitting again would write."""
+    if (steps, seed) not in _FITTED:
+        made = Path(tempfile.mkdtemp(prefix=f"small_model_{steps}_{seed}_"))
+        atexit.register(shutil.rmtree, made, ignore_errors=True)
+        generate_bag(made / "train", SimConfig(environment="full"), steps, seed=seed)
+        assert learner_main(["fit", str(made / "train"), "-o", str(made / "model.npz"),
+                             *SMALL]) == 0  # fmt: skip
+        _FITTED[steps, seed] = made
+    made = _FITTED[steps, seed]
+    shutil.copytree(made / "train", tmp / f"train_{seed}")
     model = tmp / f"model_{seed}.npz"
-    assert learner_main(["fit", str(bag), "-o", str(model), *SMALL]) == 0
+    shutil.copyfile(made / "model.npz", model)
     return model
 
 
