@@ -218,7 +218,7 @@ def test_fit_policy_and_closed_loop_on_drive_bags(tmp_path, monkeypatch, capsys)
     from tpsr_ros.io.policy import load_policy
 
     generate_bag(tmp_path / "train", DRIVE, 3000, seed=0)
-    generate_bag(tmp_path / "rl", DRIVE, 3000, seed=1)
+    generate_bag(tmp_path / "rl", DRIVE, 1000, seed=1)  # a policy to run, not a good one
     model, policy = tmp_path / "model.npz", tmp_path / "policy.npz"
     small = ["--obs-centers", "60", "--ht-centers", "120"]
     assert learner_main(["fit", str(tmp_path / "train"), "-o", str(model), *small]) == 0
