@@ -213,9 +213,9 @@ def test_every_subcommand_prints_its_help(command, capsys):
 @pytest.fixture(scope="module")
 def full_bags(tmp_path_factory):
     root = tmp_path_factory.mktemp("full")
-    train, rl = root / "train24000", root / "rl10000"
+    train, rl = root / "train24000", root / "rl5000"
     generate_bag(train, SimConfig(environment="full"), 24_000, seed=0)
-    generate_bag(rl, SimConfig(environment="full"), 10_000, seed=1)
+    generate_bag(rl, SimConfig(environment="full"), 5000, seed=1)  # the states scored on
     return train, read_trajectory([rl], require_ground_truth=True)
 
 
