@@ -70,21 +70,35 @@ def test_stream_option_writes_the_in_memory_model(bags, reference, tmp_path, cap
     assert "1200 steps, 2 segment(s), 399 episodes" in stdout  # as the in-memory PCA fit
 
 
+EVERY_OPTION = [*SMALL, "--history-length", "2", "--test-length", "2", "--history-action-weight",
+                "1", "--test-action-weight", "0.5", "--state-clip-quantile", "0.05"]
+"""Options the streamed fit once refused: action-aware features and the state box."""
+
+
+@pytest.fixture(scope="module")
+def every_option_in_memory(bags, tmp_path_factory):
+    """The in-memory fit with EVERY_OPTION, the reference of each way of streaming it."""
+    from learner.cli import main
+
+    memory = tmp_path_factory.mktemp("every_option") / "memory.npz"
+    assert main(["fit", *map(str, bags), "-o", str(memory), *EVERY_OPTION]) == 0
+    return load_model(memory)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("how", [["--stream", "--chunk-steps", "150"], ["--workers", "1"]])
-def test_every_fit_option_streams_and_distributes(bags, tmp_path, capsys, how):
+def test_every_fit_option_streams_and_distributes(
+    bags, every_option_in_memory, tmp_path, capsys, how
+):
     """Options the streamed fit once refused (action-aware features, the state box) give
     the in-memory model streamed and on Dask too."""
     if "--workers" in how:
         pytest.importorskip("distributed")
-    options = [*SMALL, "--history-length", "2", "--test-length", "2", "--history-action-weight",
-               "1", "--test-action-weight", "0.5", "--state-clip-quantile", "0.05"]
-    memory, other = tmp_path / "memory.npz", tmp_path / "other.npz"
-    code, _, err = run_entry(["fit", *map(str, bags), "-o", str(memory), *options], capsys)
+    other = tmp_path / "other.npz"
+    argv = ["fit", *map(str, bags), "-o", str(other), *EVERY_OPTION, *how]
+    code, _, err = run_entry(argv, capsys)
     assert code == 0, err
-    code, _, err = run_entry(["fit", *map(str, bags), "-o", str(other), *options, *how], capsys)
-    assert code == 0, err
-    streamed, reference = load_model(other), load_model(memory)
+    streamed, reference = load_model(other), every_option_in_memory
     assert_same(streamed, reference)
     assert np.abs(streamed.state_box - reference.state_box).max() <= 1e-9 * np.abs(
         reference.state_box
