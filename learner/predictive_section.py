@@ -7,7 +7,9 @@ The preset was chosen on the selection seeds in ``partial-strip``; its rows here
 ten runs on the headline's seeds in every environment, seeds it was not chosen on. The
 trials that earned nothing are told where they ended (``failed_trials``).
 In every environment the baselines that carry the past
-(:mod:`tpsr_ros.core.window_baselines`) stand beside it, run on the same seeds.
+(:mod:`tpsr_ros.core.window_baselines`) stand beside it, run on the same seeds; where one
+image does not tell where the robot is, so does PCA with its own planner (``PCA_PLANNER``,
+chosen on the selection seeds by the appendix's study "PCA's own planner").
 """
 
 from __future__ import annotations

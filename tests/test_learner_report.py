@@ -449,3 +449,21 @@ def test_runs_whose_fitted_q_needed_a_larger_ridge_are_named():
         "alone at a larger ridge; they score 152.8"
     )
     assert raised_ridge([r for r in rows if r.fqi_ridge == 0.01]) is None
+
+
+def test_pca_is_planned_with_its_own_planner_where_one_image_is_ambiguous():
+    from learner.predictive_section import PCA_PLANNER, PCA_PLANNER_ENVIRONMENTS
+
+    page = (REPOSITORY / "docs" / "results.md").read_text()
+    for env in ("full", "partial", "distractors", "partial-strip", "drive"):
+        row = f"| `{env}` | PCA, its own planner | "
+        assert (row in page) == (env in PCA_PLANNER_ENVIRONMENTS), env
+    for env in PCA_PLANNER_ENVIRONMENTS:
+        settings = " ".join(f"--set {s}" for s in PCA_PLANNER)
+        assert f"--environment {env} --episodes 8000 --methods pca {settings}" in page
+        rows = read_csv(REPOSITORY / "results" / "pca_planner" / f"experiment_{env}.csv")
+        planners = [json.loads(r.parameters)["fqi"] for r in rows if r.method == "pca"]
+        assert len(planners) == 10
+        for setting in PCA_PLANNER:  # every run recorded the planner the page names
+            name, value = setting.removeprefix("fqi.").split("=")
+            assert {str(p[name]) for p in planners} == {value}
