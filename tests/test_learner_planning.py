@@ -229,6 +229,15 @@ def test_policy_command_says_when_it_raised_the_ridge(bags, tmp_path, capsys):
     assert code == 0, err
     used = load_policy(policy).metadata["fqi"]["ridge"]
     assert used > 1e-8 and f"diverged at ridge 1e-08; refitted at ridge {used:g}" in err
+    assert load_policy(policy).metadata["fqi"]["member_ridges"] == [used] * 5  # all refitted
+    code, _, err = run_entry(
+        [*args, "--ridge", "1e-8", "--centers", "100", "--refit", "member", "--force"], capsys
+    )
+    assert code == 0, err
+    fqi = load_policy(policy).metadata["fqi"]
+    assert fqi["refit"] == "member" and len(fqi["member_ridges"]) == 5
+    assert fqi["ridge"] == max(fqi["member_ridges"]) and min(fqi["member_ridges"]) > 1e-8
+    assert "diverged at ridge 1e-08; refitted" in err
 
 
 @pytest.mark.slow

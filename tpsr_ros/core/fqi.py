@@ -26,9 +26,9 @@ The planner of Jonschkowski & Brock (2015), as the guide uses it, with these cho
   (max|r| / (1 - gamma)), diverged. One diverging member of an ensemble, left in, decided
   the average and scored 40-70 instead of ~450. A diverged fit is refitted at ten times
   the ridge (:func:`ridge_ladder`, up to ``MAX_RIDGE``): the whole ensemble (``refit
-  ensemble``, the guide's single fit), or only the member that diverged (``refit
-  member``): one member that diverged in ``partial-strip`` took the other four to ridge
-  0.1 with it and the run scored 5.6; refitted alone, 201.1.
+  ensemble``, the guide's single fit), or only the members that diverged (``refit
+  member``): two members that diverged in a ``partial-strip`` run took the other three to
+  ridge 0.1 with them and the run scored 5.6; refitted alone, 201.1.
 
 Transitions are ``(s_k, a_{k+1}, r_{k+1}, s_{k+1})`` from states tracked with a model's
 parameters over one long random trajectory (never embedded histories; guide 4.2).
