@@ -258,9 +258,9 @@ def policy_from_states(
     """The greedy policy of fitted Q on ``states`` tracked over ``trajectory`` (with rewards).
 
     The metadata record the fitted-Q configuration used (a larger ridge than ``config``'s
-    if the fit diverged: :func:`~tpsr_ros.core.planning.fit_q_on`; ``member_ridges``,
-    the ridge of each ensemble member), the data and the
-    timings, after the entries of ``metadata`` (model path, preset, reward source).
+    if the fit diverged: :func:`~tpsr_ros.core.planning.fit_q_on`; ``member_ridges``, the
+    ridge of each ensemble member), the data and the timings, after the entries of
+    ``metadata`` (model path, preset, reward source).
     ``skip_unknown``: see :func:`~tpsr_ros.core.planning.transitions`.
     """
     start = time.perf_counter()
