@@ -82,7 +82,7 @@ def test_a_diverging_member_is_refitted_alone():
     # 200 samples on 40 centres at ridge 1e-4: the member with k-means seed 2 diverges,
     # those with seeds 0, 1 and 3 converge
     data = _line_world(200)
-    config = FQIConfig(centers=40, ridge=1e-4, ensemble=4)
+    config = FQIConfig(centers=40, ridge=1e-4, ensemble=4, refit="member")
     with pytest.raises(DivergenceError, match=r"member 3 of 4: .* at ridge 0\.0001"):
         fit_q(*data, n_actions=3, config=config)
     q = fit_q(*data, n_actions=3, config=config, max_ridge=1.0)

@@ -37,6 +37,7 @@ parameters over one long random trajectory (never embedded histories; guide 4.2)
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from functools import cached_property
 from typing import Any, Literal
@@ -369,8 +370,9 @@ def fit_q(
 
     Each of the ``config.ensemble`` members has its own k-means centres (seed ``seed + m``)
     and its own Q-iteration at ``config.ridge``; the returned Q-function averages them.
-    A member that diverges raises ``DivergenceError``; with ``max_ridge``, it is first
-    refitted alone at the larger ridges of :func:`ridge_ladder` (the others keep theirs).
+    A member that diverges raises ``DivergenceError``; with ``max_ridge``, the fit is first
+    refitted at the larger ridges of :func:`ridge_ladder`: every member, or with
+    ``config.refit == "member"`` that member alone (the others keep theirs).
     ``futures`` (states paired with features of what followed them) is needed by, and only
     used for, ``state_scaling="predictive"`` (:func:`_predictive_scaling`).
     """
@@ -406,23 +408,35 @@ def fit_q(
     z, z_next = (_to_units(s, mean, scale, rotation) for s in (states, next_states))
     members = [_centres(z, config, config.seed + m) for m in range(config.ensemble)]
     ladder = [config.ridge] if max_ridge is None else ridge_ladder(config.ridge, max_ridge)
-    weights, ridges = [], []
-    for index, (centers, width) in enumerate(members):
+
+    def fit_member(index: int, ridges: list[float]) -> tuple[np.ndarray, float]:
+        """Member ``index``'s weights at the first of ``ridges`` that converges."""
+        centers, width = members[index]
         member = QFunction(mean, scale, centers, width, np.zeros((len(centers), 1)), rotation)
         phi, phi_next = member.unit_features(z), member.unit_features(z_next)
-        for ridge in ladder:
+        for ridge in ridges:
+            attempt = dataclasses.replace(config, ridge=ridge)
             try:
-                attempt = dataclasses.replace(config, ridge=ridge)
-                weights.append(_iterate(phi, phi_next, actions, rewards, n_actions, attempt))
+                return _iterate(phi, phi_next, actions, rewards, n_actions, attempt), ridge
             except DivergenceError as exc:
                 failure = exc
-                continue
-            ridges.append(ridge)
-            break
-        else:
-            named = f"member {index + 1} of {len(members)}: " if len(members) > 1 else ""
-            tried = f" (ridges {ladder[0]:g} to {ladder[-1]:g} tried)" if len(ladder) > 1 else ""
-            raise DivergenceError(f"{named}{failure}{tried}") from failure
+        named = f"member {index + 1} of {len(members)}: " if len(members) > 1 else ""
+        raise DivergenceError(f"{named}{failure}") from failure
+
+    try:
+        fitted = (
+            [fit_member(m, ladder) for m in range(len(members))]
+            if config.refit == "member"  # each member climbs the ladder alone
+            else _at_lowest_rung(fit_member, len(members), ladder)
+        )
+    except DivergenceError as exc:
+        if max_ridge is None:
+            raise
+        tried = (
+            f"ridges {ladder[0]:g} to {ladder[-1]:g}" if len(ladder) > 1 else f"ridge {ladder[0]:g}"
+        )
+        raise DivergenceError(f"{exc} ({tried} tried)") from exc
+    weights, ridges = [w for w, _ in fitted], [r for _, r in fitted]
     return QFunction(
         mean,
         scale,
@@ -433,6 +447,20 @@ def fit_q(
         np.array([len(c) for c, _ in members]),
         tuple(ridges),
     )
+
+
+def _at_lowest_rung(
+    fit_member: Callable[[int, list[float]], tuple[np.ndarray, float]],
+    members: int,
+    ladder: list[float],
+) -> list[tuple[np.ndarray, float]]:
+    """Every member fitted at the lowest ridge of ``ladder`` at which all of them converge."""
+    for ridge in ladder:
+        try:
+            return [fit_member(m, [ridge]) for m in range(members)]
+        except DivergenceError as exc:
+            failure = exc
+    raise failure
 
 
 def ignore_trailing(q: QFunction, state_dim: int) -> QFunction:

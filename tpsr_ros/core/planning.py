@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tpsr_ros.core.episodes import Trajectory
-from tpsr_ros.core.errors import DataError, DivergenceError
+from tpsr_ros.core.errors import DataError
 from tpsr_ros.core.fqi import MAX_RIDGE, FQIConfig, QFunction, fit_q, ridge_ladder
 from tpsr_ros.core.whitening import Whitening
 
@@ -133,19 +133,5 @@ def fit_q_on(
     """
     s, a, r, s_next = transitions(states, trajectory, skip_unknown=skip_unknown)
     futures = future_pairs(states, trajectory) if config.state_scaling == "predictive" else None
-    if config.refit == "member":
-        q = fit_q(
-            s, a, r, s_next, trajectory.n_actions, config, futures=futures, max_ridge=MAX_RIDGE
-        )
-        return q, dataclasses.replace(config, ridge=max(q.ridges or (config.ridge,))), len(a)
-    ladder = ridge_ladder(config.ridge)
-    for ridge in ladder:
-        attempt = dataclasses.replace(config, ridge=ridge)
-        try:
-            q = fit_q(s, a, r, s_next, trajectory.n_actions, attempt, futures=futures)
-        except DivergenceError as exc:
-            failure = exc
-            continue
-        return q, attempt, len(a)
-    tried = f"ridges {ladder[0]:g} to {ladder[-1]:g}" if len(ladder) > 1 else f"ridge {ladder[0]:g}"
-    raise DivergenceError(f"{failure} ({tried} tried)") from failure
+    q = fit_q(s, a, r, s_next, trajectory.n_actions, config, futures=futures, max_ridge=MAX_RIDGE)
+    return q, dataclasses.replace(config, ridge=max(q.ridges or (config.ridge,))), len(a)
