@@ -59,23 +59,22 @@ BASELINE_ENVIRONMENTS = ENVIRONMENTS
 """Where the baselines that carry the past ran: every environment."""
 
 
-def _baseline_jobs() -> tuple[Job, ...]:
-    return tuple(
-        experiment_job(
-            "baselines",
-            env,
-            "--episodes",
-            str(PREDICTIVE_EPISODES),
-            "--methods",
-            "stacked-pca",
-            "window",
-            "--set",
-            "stacked.k=1",
-            "--set",
-            "window.k=1",
-            *HEADLINE_SEEDS,
+def _fresh_jobs(directory: str, environments: tuple[str, ...], *options: str) -> dict[str, Job]:
+    """One ``learner experiment`` job per environment at the section's data size on the
+    headline's seeds, by environment."""
+    return {
+        env: experiment_job(
+            directory, env, "--episodes", str(PREDICTIVE_EPISODES), *options, *HEADLINE_SEEDS
         )
-        for env in BASELINE_ENVIRONMENTS
+        for env in environments
+    }
+
+
+def _baseline_jobs() -> dict[str, Job]:
+    return _fresh_jobs(
+        "baselines",
+        BASELINE_ENVIRONMENTS,
+        *("--methods", "stacked-pca", "window", "--set", "stacked.k=1", "--set", "window.k=1"),
     )
 
 
@@ -87,20 +86,9 @@ PCA_PLANNER = ("fqi.ensemble=1", "fqi.state_scaling=predictive")
 "PCA's own planner" above)."""
 
 
-def _pca_planner_jobs() -> tuple[Job, ...]:
-    return tuple(
-        experiment_job(
-            "pca_planner",
-            env,
-            "--episodes",
-            str(PREDICTIVE_EPISODES),
-            "--methods",
-            "pca",
-            *(arg for setting in PCA_PLANNER for arg in ("--set", setting)),
-            *HEADLINE_SEEDS,
-        )
-        for env in PCA_PLANNER_ENVIRONMENTS
-    )
+def _pca_planner_jobs() -> dict[str, Job]:
+    settings = (arg for setting in PCA_PLANNER for arg in ("--set", setting))
+    return _fresh_jobs("pca_planner", PCA_PLANNER_ENVIRONMENTS, "--methods", "pca", *settings)
 
 
 def _defaults(environment: str) -> Job:
@@ -164,14 +152,14 @@ def failed_trials(rows: list[Row], environment: str) -> str | None:
     far from the goal zone (None when the rows do not record where their trials ended)."""
     config = SimConfig(environment=environment)
     corner = np.array([config.room_size, config.room_size])
-    failed = []
+    failed, trials = [], 0
     for row in rows:
         if not row.trial_ends:
             return None
         rewards = [float(v) for v in row.trial_rewards.split(";")]
         ends = [[float(v) for v in end.split(",")] for end in row.trial_ends.split(";")]
         failed += [end for reward, end in zip(rewards, ends, strict=True) if reward <= 0]
-    trials = 10 * len(rows)
+        trials += len(rewards)
     if not failed:
         return f"each of its {trials} trials earned a reward"
     stuck = np.array([end[:2] for end in failed if end[2] >= STANDING_STEPS])
@@ -217,19 +205,15 @@ def _render(section: Section, data: Data) -> list[str]:
             ("floor: random actions", base_rows, RANDOM),
             ("ceiling: the true position", base_rows, TRUE_POSITION),
         ]
-        for own in _pca_planner_jobs():
-            if own.environment == env:
-                rows.insert(3, ("PCA, its own planner", data[own], "pca"))
-        for baseline in _baseline_jobs():
-            if baseline.environment == env:
-                rows[3:3] = [
-                    (
-                        "stacked-frame PCA (k = 1), the defaults' planner",
-                        data[baseline],
-                        "stacked-pca",
-                    ),
-                    ("finite-window predictive state (k = 1), the same", data[baseline], "window"),
-                ]
+        own = _pca_planner_jobs().get(env)
+        if own is not None:
+            rows.insert(3, ("PCA, its own planner", data[own], "pca"))
+        baseline = _baseline_jobs().get(env)
+        if baseline is not None:
+            rows[3:3] = [
+                ("stacked-frame PCA (k = 1), the defaults' planner", data[baseline], "stacked-pca"),
+                ("finite-window predictive state (k = 1), the same", data[baseline], "window"),
+            ]
         floors = pooled_floors(base_rows)  # blind to the state: one measurement per room
         for name, source, method in rows:
             entry = floors.get(method) if method in floors else _entry(source, method)
@@ -243,21 +227,19 @@ def _render(section: Section, data: Data) -> list[str]:
                 f"| `{env}` | {name} | {cell(entry)} | {weakest} | {restarts} | {memory} "
                 f"| {versus} |"
             )
-        for baseline in _baseline_jobs():
-            window = _entry(data[baseline], "window") if baseline.environment == env else None
-            if mine and window:
-                verdicts.append(
-                    f"- `{env}`: the finite-window predictive state (the last image and action "
-                    f"mapped to the next images) scores {window['mean']:.1f}, "
-                    f"{judged(*comparison(window, mine))} against the predictive TPSR."
-                )
-        for own in _pca_planner_jobs():
-            pca = _entry(data[own], "pca") if own.environment == env else None
-            if mine and pca:
-                verdicts.append(
-                    f"- `{env}`: PCA with its own planner scores {pca['mean']:.1f}, the "
-                    f"predictive TPSR {judged(*comparison(mine, pca))} against it."
-                )
+        window = _entry(data[baseline], "window") if baseline is not None else None
+        if mine and window:
+            verdicts.append(
+                f"- `{env}`: the finite-window predictive state (the last image and action "
+                f"mapped to the next images) scores {window['mean']:.1f}, "
+                f"{judged(*comparison(window, mine))} against the predictive TPSR."
+            )
+        pca = _entry(data[own], "pca") if own is not None else None
+        if mine and pca:
+            verdicts.append(
+                f"- `{env}`: PCA with its own planner scores {pca['mean']:.1f}, the "
+                f"predictive TPSR {judged(*comparison(mine, pca))} against it."
+            )
         if mine and base:
             difference, sems = comparison(mine, base)
             verdicts.append(
@@ -273,6 +255,9 @@ def _render(section: Section, data: Data) -> list[str]:
             verdicts.append(f"- `{env}`, the predictive TPSR: {raised}.")
     return [*lines, "", "**Verdict.**", "", *verdicts]
 
+
+_ALL_JOBS = (*_jobs(), *_baseline_jobs().values(), *_pca_planner_jobs().values())
+"""Every job the section reads, in the order its commands are listed."""
 
 PREDICTIVE_SECTION = Section(
     "predictive",
@@ -299,10 +284,10 @@ PREDICTIVE_SECTION = Section(
     "refit study above), and the rows below were rerun with it; when the whole ensemble was "
     "refitted, the runs in which a member had diverged scored 239.2 on average in "
     "`partial-strip` (lowest 5.6) and 177.9 in `drive` (lowest 29.0).",
-    (*_jobs(), *_baseline_jobs(), *_pca_planner_jobs()),
+    _ALL_JOBS,
     _render,
     "**Commands** (the headline's seeds):\n\n```sh\n"
-    + "\n".join(job.command for job in (*_jobs(), *_baseline_jobs(), *_pca_planner_jobs()))
+    + "\n".join(job.command for job in _ALL_JOBS)
     + "\n```",
 )
 """The section, with its jobs (one per environment) and renderer."""
