@@ -69,17 +69,21 @@ def _render_study(section: Section, data: Data) -> list[str]:
         env: next((v for v in values if convert(name, v) == value), None)
         for env, value in defaults.items()
     }
-    default_text = shown[section.jobs[0].environment]
+    if len(set(shown.values())) == 1:
+        value_text = f"`{next(iter(shown.values()))}`"
+    else:  # e.g. a turning robot's own value
+        value_text = " and ".join(f"`{value}` in `{env}`" for env, value in shown.items())
     setting = (
-        f"Every other setting is the default's; the default's value is `{default_text}`. "
+        f"Every other setting is the default's; the default's value is {value_text}. "
         if preset == DEFAULT_PRESET
         else f"Every other setting is `--preset {preset}`'s; its value, the default below, is "
-        f"`{default_text}`. "
+        f"{value_text}. "
     )
     lines = [
         setting
         + "Cells: mean / median / SEM of 10 runs; R² of the true position's affine map from "
-        "the states (x / y); position error: the median distance between the robot and where "
+        "the states (x / y; for a robot that turns, of its heading's unit vector in brackets, "
+        "where measured); position error: the median distance between the robot and where "
         "its 10 nearest states place it (m); the difference to the default's value in SEMs of "
         "the difference.",
         "",

@@ -412,7 +412,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             if method == "tpsr":  # the fit's own record, e.g. the d^O that obs_variance chose
                 run_config = dataclasses.replace(run_config, tpsr=tracker.model.config)
             seen = states[:, : _planner_dim(tracker, states)]  # what the planner sees
-            r2 = affine_r2(seen, rl.positions)
+            r2 = _pose_r2(seen, rl.positions)
             position_error = neighbour_position_error(seen, rl.positions[:, :2])
             memory = (
                 memory_of(tracker, config.environment, config.sim)
@@ -426,7 +426,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             )
             score, trials, ends, ridge, status = _plan_and_score(config, tracker, rl, states)
         except TpsrError as exc:  # a failed fit is a result, not a crash
-            fit_seconds, recoveries, r2 = time.perf_counter() - start, 0, np.full(2, np.nan)
+            fit_seconds, recoveries, r2 = time.perf_counter() - start, 0, np.full(3, np.nan)
             position_error, memory = float("nan"), (float("nan"), float("nan"))
             criterion = float("nan")
             score, trials, ends = float("nan"), "", ""
@@ -447,6 +447,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 recoveries=recoveries,
                 r2_x=round(float(r2[0]), 4),
                 r2_y=round(float(r2[1]), 4),
+                r2_heading=round(float(r2[2]), 4),
                 position_error=round(position_error, 3),
                 status=status,
                 memory=memory[0],
@@ -455,6 +456,15 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             )
         )
     return rows
+
+
+def _pose_r2(states: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """R² of the affine maps from ``states`` to x, to y and to the heading's unit vector
+    (cos and sin pooled; NaN for poses without a heading)."""
+    x_y = affine_r2(states, poses)[:2]
+    if poses.shape[1] < 4:
+        return np.array([*x_y, np.nan])
+    return np.array([*x_y, affine_r2(states, poses[:, 2:4], pooled=True)[0]])
 
 
 def _limit_blas_threads() -> None:

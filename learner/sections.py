@@ -122,6 +122,14 @@ def varied(job: Job) -> tuple[str, list[str]]:
     name, values = text.split("=", 1)
     return name, values.split(",")
 
+def r2_text(runs: list[Row]) -> str:
+    """The runs' mean affine R² of x / y, and of the heading in brackets where measured (a
+    robot that turns)."""
+    r2_x, r2_y = (mean_text([getattr(r, a) for r in runs], ".2f") for a in ("r2_x", "r2_y"))
+    heading = mean_text([r.r2_heading for r in runs], ".2f")
+    return f"{r2_x} / {r2_y}" + ("" if heading == "-" else f" ({heading})")
+
+
 def study_entries(
     job: Job, rows: list[Row]
 ) -> tuple[list[dict[str, Any]], dict[tuple[str, str], dict[str, Any]]]:
@@ -135,8 +143,7 @@ def study_entries(
         mine = [r for r in rows if row_parameters(r).get(group, {}).get(field, None) == parsed]
         for entry in summarise(mine):
             runs = [r for r in mine if r.method == entry["method"]]
-            r2_x, r2_y = (mean_text([getattr(r, a) for r in runs], ".2f") for a in ("r2_x", "r2_y"))
-            entry["r2"] = f"{r2_x} / {r2_y}"
+            entry["r2"] = r2_text(runs)
             entry["position_error"] = median_text([r.position_error for r in runs], ".2f")
             by_value[(value, entry["method"])] = entry
     return summarise(reference), by_value

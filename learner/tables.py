@@ -81,6 +81,10 @@ class Row:
     trial_ends: str = ""
     """Per trial, ``x,y,n``: where the robot stood after the last step and for how many of
     the last steps it had not moved (``;``-separated; empty in CSVs written before)."""
+    r2_heading: float = float("nan")
+    """R² of the heading's unit vector (cos, sin) from the states' affine map, both
+    components pooled: a robot that turns (``drive``) only, NaN otherwise and in CSVs
+    written before."""
 
 
 def score_statistics(scores: np.ndarray) -> dict[str, Any]:
