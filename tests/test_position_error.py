@@ -57,3 +57,21 @@ def test_bad_input_is_refused():
         neighbour_position_error(broken, positions)
     with pytest.raises(DataError, match="do not vary"):
         neighbour_position_error(np.ones((100, 2)), positions)
+
+
+def test_the_heading_r2_pools_its_unit_vector_and_is_nan_without_one():
+    from learner.experiment import _pose_r2
+
+    positions = _walk(seed=5)
+    heading = np.random.default_rng(6).uniform(-np.pi, np.pi, len(positions))
+    poses = np.column_stack([positions, np.cos(heading), np.sin(heading)])
+    knows_cos = np.column_stack([positions, np.cos(heading)])  # sin is lost
+    r2 = _pose_r2(knows_cos, poses)
+    assert r2[:2] == pytest.approx([1.0, 1.0])
+    # cos explained, sin not at all: their pooled R² is their variances' share of cos
+    assert r2[2] == pytest.approx(np.var(np.cos(heading)) / (
+        np.var(np.cos(heading)) + np.var(np.sin(heading))), abs=0.01)
+    assert _pose_r2(np.column_stack([positions, np.cos(heading), np.sin(heading)]), poses)[
+        2
+    ] == pytest.approx(1.0)
+    assert np.isnan(_pose_r2(positions, positions)[2])
