@@ -456,13 +456,14 @@ CARRY_STUDY = _study(
     "The spectral filter forgets within a step, so the gradient through it vanishes and "
     "its refinement cannot find a use for the past. How much of the previous state should "
     "the start of the refinement carry forward at a typical step (`tpsr.refine_carry`; "
-    "`tpsr_ros/core/refine.py`), where one image does not tell where the robot is?",
+    "`tpsr_ros/core/refine.py`), where one image does not tell where the robot is, and for "
+    "a robot that turns (`drive`), whose camera's view depends on its heading too?",
     "tpsr.refine_carry=0,0.3,0.5,0.7",
     "--preset",
     "predictive",
     "--methods",
     "tpsr",
-    environments=("partial-strip",),
+    environments=("partial-strip", "drive"),
 )
 """The study behind the ``predictive`` preset's carry, on the selection seeds."""
 
