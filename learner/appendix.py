@@ -79,11 +79,15 @@ def _render_study(section: Section, data: Data) -> list[str]:
         else f"Every other setting is `--preset {preset}`'s; its value, the default below, is "
         f"{value_text}. "
     )
+    heading = any(
+        math.isfinite(r.r2_heading) for job in section.jobs for r in data[job]
+    )  # a robot that turns, measured since the rows record it
     lines = [
         setting
         + "Cells: mean / median / SEM of 10 runs; R² of the true position's affine map from "
-        "the states (x / y; for a robot that turns, of its heading's unit vector in brackets, "
-        "where measured); position error: the median distance between the robot and where "
+        + ("the states (x / y, and in brackets of the heading's unit vector); " if heading
+           else "the states (x / y); ")
+        + "position error: the median distance between the robot and where "
         "its 10 nearest states place it (m); the difference to the default's value in SEMs of "
         "the difference.",
         "",

@@ -89,3 +89,18 @@ def test_a_config_given_is_sized_where_it_keeps_the_default_presets_values() -> 
     assert chosen.config.ht_centers == 100 and "ht_centers" not in chosen.fit_info["sized"]
     with pytest.raises(DataError, match="rank 12 is above"):
         fit(actions, observations, replace(preset, rank=12))
+
+
+def test_the_predictive_preset_carries_no_state_forward_for_a_robot_that_turns() -> None:
+    """A carried start loses a turning robot's heading (docs/results.md, "the carried
+    start"): the preset's turning changes set the carry to 0 and keep the rest."""
+    from learner.experiment import default_config
+    from tpsr_ros.core.presets import get_preset
+
+    predictive = get_preset("predictive")
+    turning = predictive.tpsr_config(turning=True)
+    assert turning.refine_carry == 0.0 and predictive.tpsr_config().refine_carry == 0.3
+    assert turning.refine_epochs == 30 and turning.p_th_tests == "from-current"
+    assert (turning.rank, turning.action_pooling) == (16, 0.5)  # the turning robot's best
+    assert default_config("drive", "predictive").tpsr.refine_carry == 0.0
+    assert default_config("partial-strip", "predictive").tpsr.refine_carry == 0.3

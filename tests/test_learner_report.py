@@ -467,3 +467,39 @@ def test_pca_is_planned_with_its_own_planner_where_one_image_is_ambiguous():
         for setting in PCA_PLANNER:  # every run recorded the planner the page names
             name, value = setting.removeprefix("fqi.").split("=")
             assert {str(p[name]) for p in planners} == {value}
+
+
+def test_a_study_shows_the_headings_r2_and_each_environments_own_default():
+    from learner.appendix import CARRY_STUDY
+
+    def rows(job, heading):
+        out = _rows(job.environment, {"constant": [0.0] * 3, "random": [1.0, 2.0, 3.0]},
+                    (8000,))  # fmt: skip
+        for value in ("0", "0.3", "0.5", "0.7"):
+            parameters = json.dumps({"tpsr": {"refine_carry": float(value)}})
+            out += _rows(job.environment, {"tpsr": [400.0, 410.0, 420.0]}, (8000,),
+                         parameters=parameters, r2_heading=heading)  # fmt: skip
+        return out
+
+    headings = {"partial-strip": float("nan"), "drive": 0.8}
+    data = {job: rows(job, headings[job.environment]) for job in CARRY_STUDY.jobs}
+    text = "\n".join(CARRY_STUDY.render(CARRY_STUDY, data))
+    assert "its value, the default below, is `0.3` in `partial-strip` and `0` in `drive`" in text
+    assert "in brackets of the heading's unit vector" in text
+    assert "| `drive` (8000) | `0` | tpsr | 410.0 / 410.0 / 5.8 | 0.90 / 0.90 (0.80) |" in text
+    assert "| `partial-strip` (8000) | `0.3` | tpsr | 410.0 / 410.0 / 5.8 | 0.90 / 0.90 |" in text
+    assert "| `drive` (8000) | `0.3` | tpsr |" in text
+    no_heading = {job: rows(job, float("nan")) for job in CARRY_STUDY.jobs}
+    assert "heading" not in "\n".join(CARRY_STUDY.render(CARRY_STUDY, no_heading))
+
+
+def test_the_predictive_section_gives_the_headings_r2_of_a_robot_that_turns():
+    from learner.predictive_section import PREDICTIVE_EPISODES, _heading
+
+    turning = _rows("drive", {"tpsr": [1.0, 2.0, 3.0]}, (PREDICTIVE_EPISODES,))
+    turning = [dataclasses.replace(r, r2_heading=h) for r, h in zip(turning, (0.9, 0.6, 0.9), strict=True)]
+    assert _heading(turning) == (
+        "the affine R² of the heading (its unit vector) from the states is 0.80 on average, "
+        "0.60 in the lowest of 3 runs"
+    )
+    assert _heading(_rows("partial", {"tpsr": [1.0, 2.0]}, (PREDICTIVE_EPISODES,))) is None

@@ -21,9 +21,9 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
   266.1; docs/results.md, "A predictive state: the carried start"), but a robot that
   turns carries nothing (the carried start loses its heading: in ``drive`` the heading's
   R² falls from 0.89 at 0 to 0.63 at 0.7, the score from 353.7 to 145.5); a fitted-Q member
-  that diverges is refitted alone (``fqi.refit member``), not the whole ensemble: on the
-  selection seeds 2 of 20 runs in ``partial-strip`` and ``drive`` differ (-1.3 -> 232.1,
-  373.8 -> 292.1; "A predictive state: refitting a diverged planner").
+  that diverges is refitted alone (``fqi.refit member``), not the whole ensemble, which
+  rescued every run where refitting the whole ensemble collapsed ("A predictive state:
+  refitting a diverged planner").
 
 Options given explicitly (``learner fit --rank 5``, ``--set tpsr.rank=5``) change single
 fields of a preset; :func:`departures` names them, so a model records its preset and what
