@@ -122,6 +122,7 @@ def varied(job: Job) -> tuple[str, list[str]]:
     name, values = text.split("=", 1)
     return name, values.split(",")
 
+
 def r2_text(runs: list[Row]) -> str:
     """The runs' mean affine R² of x / y, and of the heading in brackets where measured (a
     robot that turns)."""

@@ -497,7 +497,8 @@ def test_the_predictive_section_gives_the_headings_r2_of_a_robot_that_turns():
     from learner.predictive_section import PREDICTIVE_EPISODES, _heading
 
     turning = _rows("drive", {"tpsr": [1.0, 2.0, 3.0]}, (PREDICTIVE_EPISODES,))
-    turning = [dataclasses.replace(r, r2_heading=h) for r, h in zip(turning, (0.9, 0.6, 0.9), strict=True)]
+    headings = (0.9, 0.6, 0.9)
+    turning = [dataclasses.replace(r, r2_heading=h) for r, h in zip(turning, headings, strict=True)]
     assert _heading(turning) == (
         "the affine R² of the heading (its unit vector) from the states is 0.80 on average, "
         "0.60 in the lowest of 3 runs"
