@@ -123,6 +123,16 @@ def _render_study(section: Section, data: Data) -> list[str]:
                 verdicts.append(
                     _study_verdict(environment, method, values, default_text, entries, base)
                 )
+            remembered = [
+                f"`{value}` {entries[(value, method)]['memory']}"
+                for value in values
+                if entries.get((value, method), {}).get("memory", "-") != "-"
+            ]
+            if remembered:  # the runs measured their memory (``--memory``)
+                verdicts.append(
+                    f"- `{environment}`, {method}: `learner memory`, the median over the runs "
+                    f"in steps: {', '.join(remembered)}."
+                )
     return [*lines, "", "**Verdict.**", "", *verdicts]
 
 
@@ -507,6 +517,53 @@ DISCOUNT_STUDY = _study(
 )
 """A study of the ``predictive`` preset's discount, on the selection seeds (not adopted)."""
 
+_PREDICTIVE_FIT = (
+    _study(
+        "predictive-rank",
+        "A predictive state: rank",
+        "The refined filter keeps about a quarter of a difference in its state per step, "
+        "and where one image does not tell where the robot is its trials stand or push into "
+        "a wall near the goal. Does a larger state (`tpsr.rank`) give the refinement room "
+        "to carry the past?",
+        "tpsr.rank=8,12",
+        "--preset",
+        "predictive",
+        "--methods",
+        "tpsr",
+        environments=("partial-strip",),
+    ),
+    _study(
+        "refine-horizon",
+        "A predictive state: the refinement's horizon",
+        "Should the refined states predict the next 20 images instead of 10 "
+        "(`tpsr.refine_horizon`), so that what the robot did a few steps back matters more "
+        "to the objective?",
+        "tpsr.refine_horizon=10,20",
+        "--preset",
+        "predictive",
+        "--methods",
+        "tpsr",
+        environments=("partial-strip",),
+    ),
+    _study(
+        "predictive-pooling",
+        "A predictive state: action pooling",
+        "With the operators pooled over every action, only the refinement's per-action "
+        "factors let the state depend on what the robot did, and `learner memory`'s "
+        "stand-still variant (the same image after a step west or east) finds no difference "
+        "at all. Does pooling half-way (`tpsr.action_pooling` 0.5) remember more, and plan "
+        "better? The runs measure their memory too (`--memory`).",
+        "tpsr.action_pooling=0.5,1",
+        "--preset",
+        "predictive",
+        "--methods",
+        "tpsr",
+        "--memory",
+        environments=("partial-strip",),
+    ),
+)
+"""Studies of the ``predictive`` preset's fit where one image is ambiguous (none adopted)."""
+
 PCA_PLANNER_STUDY = _study(
     "pca-planner",
     "PCA's own planner",
@@ -529,6 +586,7 @@ SECTIONS: tuple[Section, ...] = (
     CARRY_STUDY,
     REFIT_STUDY,
     DISCOUNT_STUDY,
+    *_PREDICTIVE_FIT,
     PCA_PLANNER_STUDY,
     PREDICTIVE_SECTION,
     COMPETENCE_SECTION,

@@ -472,13 +472,13 @@ def test_pca_is_planned_with_its_own_planner_where_one_image_is_ambiguous():
 def test_a_study_shows_the_headings_r2_and_each_environments_own_default():
     from learner.appendix import CARRY_STUDY
 
-    def rows(job, heading):
+    def rows(job, heading, memory=float("nan")):
         out = _rows(job.environment, {"constant": [0.0] * 3, "random": [1.0, 2.0, 3.0]},
                     (8000,))  # fmt: skip
         for value in ("0", "0.3", "0.5", "0.7"):
             parameters = json.dumps({"tpsr": {"refine_carry": float(value)}})
             out += _rows(job.environment, {"tpsr": [400.0, 410.0, 420.0]}, (8000,),
-                         parameters=parameters, r2_heading=heading)  # fmt: skip
+                         parameters=parameters, r2_heading=heading, memory=memory)  # fmt: skip
         return out
 
     headings = {"partial-strip": float("nan"), "drive": 0.8}
@@ -490,7 +490,13 @@ def test_a_study_shows_the_headings_r2_and_each_environments_own_default():
     assert "| `partial-strip` (8000) | `0.3` | tpsr | 410.0 / 410.0 / 5.8 | 0.90 / 0.90 |" in text
     assert "| `drive` (8000) | `0.3` | tpsr |" in text
     no_heading = {job: rows(job, float("nan")) for job in CARRY_STUDY.jobs}
-    assert "heading" not in "\n".join(CARRY_STUDY.render(CARRY_STUDY, no_heading))
+    plain = "\n".join(CARRY_STUDY.render(CARRY_STUDY, no_heading))
+    assert "heading" not in plain and "learner memory" not in plain
+    remembered = {job: rows(job, float("nan"), memory=2.0) for job in CARRY_STUDY.jobs}
+    assert (
+        "- `drive`, tpsr: `learner memory`, the median over the runs in steps: `0` 2, `0.3` 2, "
+        "`0.5` 2, `0.7` 2." in CARRY_STUDY.render(CARRY_STUDY, remembered)
+    )
 
 
 def test_the_predictive_section_gives_the_headings_r2_of_a_robot_that_turns():
