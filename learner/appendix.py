@@ -521,10 +521,10 @@ _PREDICTIVE_FIT = (
     _study(
         "predictive-rank",
         "A predictive state: rank",
-        "The refined filter keeps about a quarter of a difference in its state per step, "
-        "and where one image does not tell where the robot is its trials stand or push into "
-        "a wall near the goal. Does a larger state (`tpsr.rank`) give the refinement room "
-        "to carry the past?",
+        "The refined filter forgets a difference in its state within a step (`learner "
+        "memory` measures 0 steps in the predictive section), and where one image does not "
+        "tell where the robot is its trials that earn nothing stand still near the goal. "
+        "Does a larger state (`tpsr.rank`) give the refinement room to carry the past?",
         "tpsr.rank=8,12",
         "--preset",
         "predictive",
