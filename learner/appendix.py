@@ -81,7 +81,7 @@ def _render_study(section: Section, data: Data) -> list[str]:
     )
     heading = any(
         math.isfinite(r.r2_heading) for job in section.jobs for r in data[job]
-    )  # a robot that turns, measured since the rows record it
+    )  # a robot that turns, in rows written since experiments record it
     lines = [
         setting
         + "Cells: mean / median / SEM of 10 runs; R² of the true position's affine map from "
@@ -549,9 +549,9 @@ _PREDICTIVE_FIT = (
         "predictive-pooling",
         "A predictive state: action pooling",
         "With the operators pooled over every action, only the refinement's per-action "
-        "factors let the state depend on what the robot did, and `learner memory`'s "
-        "stand-still variant (the same image after a step west or east) finds no difference "
-        "at all. Does pooling half-way (`tpsr.action_pooling` 0.5) remember more, and plan "
+        "factors let the state depend on what the robot did, and `learner memory` measures "
+        "0 steps (its stand-still variant: the same image after a step west or east). Does "
+        "pooling half-way (`tpsr.action_pooling` 0.5) remember more, and plan "
         "better? The runs measure their memory too (`--memory`).",
         "tpsr.action_pooling=0.5,1",
         "--preset",
