@@ -188,6 +188,16 @@ def _study(
     return Section(key, title, question, jobs, _render_study)
 
 
+def _predictive_study(
+    key: str, title: str, question: str, vary: str, *options: str, environments: tuple[str, ...]
+) -> Section:
+    """A study of the ``predictive`` preset's TPSR (:func:`_study`)."""
+    return _study(
+        key, title, question, vary, "--preset", "predictive", "--methods", "tpsr", *options,
+        environments=environments,
+    )  # fmt: skip
+
+
 # -- tuning ---------------------------------------------------------------------------------
 
 TUNE_OPTIONS = ("--tune", "--tune-budget", "600", "--tune-candidates", "24")
@@ -464,7 +474,7 @@ _DRIVE = tuple(
 )
 """One-knob studies of the turning robot's settings, around them."""
 
-CARRY_STUDY = _study(
+CARRY_STUDY = _predictive_study(
     "refine-carry",
     "A predictive state: the carried start",
     "The spectral filter forgets within a step, so the gradient through it vanishes and "
@@ -473,30 +483,22 @@ CARRY_STUDY = _study(
     "`tpsr_ros/core/refine.py`), where one image does not tell where the robot is, and for "
     "a robot that turns (`drive`), whose camera's view depends on its heading too?",
     "tpsr.refine_carry=0,0.3,0.5,0.7",
-    "--preset",
-    "predictive",
-    "--methods",
-    "tpsr",
     environments=("partial-strip", "drive"),
 )
 """The study behind the ``predictive`` preset's carry, on the selection seeds."""
 
-REFIT_STUDY = _study(
+REFIT_STUDY = _predictive_study(
     "refit",
     "A predictive state: refitting a diverged planner",
     "When one of the five fitted-Q members diverges, should the whole ensemble be refitted "
     "at ten times the ridge (`ensemble`), or only that member (`member`; `fqi.refit`, "
     "`tpsr_ros/core/fqi.py`)? Runs in which no member diverges are the same either way.",
     "fqi.refit=ensemble,member",
-    "--preset",
-    "predictive",
-    "--methods",
-    "tpsr",
     environments=("partial-strip", "drive"),
 )
 """The study behind the ``predictive`` preset's refit, on the selection seeds."""
 
-DISCOUNT_STUDY = _study(
+DISCOUNT_STUDY = _predictive_study(
     "discount",
     "A predictive state: the planner's discount",
     "Where a state places the robot a few metres from where it stands, standing still can "
@@ -509,16 +511,12 @@ DISCOUNT_STUDY = _study(
     "`partial-strip` did not (run 3: 314.1 to 313.4), a check of single runs outside the "
     "committed results; the study asks the selection seeds.",
     "fqi.discount=0.8,0.9",
-    "--preset",
-    "predictive",
-    "--methods",
-    "tpsr",
     environments=("drive",),
 )
 """A study of the ``predictive`` preset's discount, on the selection seeds (not adopted)."""
 
 _PREDICTIVE_FIT = (
-    _study(
+    _predictive_study(
         "predictive-rank",
         "A predictive state: rank",
         "The refined filter forgets a difference in its state within a step (`learner "
@@ -526,26 +524,18 @@ _PREDICTIVE_FIT = (
         "tell where the robot is its trials that earn nothing stand still near the goal. "
         "Does a larger state (`tpsr.rank`) give the refinement room to carry the past?",
         "tpsr.rank=8,12",
-        "--preset",
-        "predictive",
-        "--methods",
-        "tpsr",
         environments=("partial-strip",),
     ),
-    _study(
+    _predictive_study(
         "refine-horizon",
         "A predictive state: the refinement's horizon",
         "Should the refined states predict the next 20 images instead of 10 "
         "(`tpsr.refine_horizon`), so that what the robot did a few steps back matters more "
         "to the objective?",
         "tpsr.refine_horizon=10,20",
-        "--preset",
-        "predictive",
-        "--methods",
-        "tpsr",
         environments=("partial-strip",),
     ),
-    _study(
+    _predictive_study(
         "predictive-pooling",
         "A predictive state: action pooling",
         "With the operators pooled over every action, only the refinement's per-action "
@@ -554,10 +544,6 @@ _PREDICTIVE_FIT = (
         "pooling half-way (`tpsr.action_pooling` 0.5) remember more, and plan "
         "better? The runs measure their memory too (`--memory`).",
         "tpsr.action_pooling=0.5,1",
-        "--preset",
-        "predictive",
-        "--methods",
-        "tpsr",
         "--memory",
         environments=("partial-strip",),
     ),
