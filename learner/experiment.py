@@ -460,11 +460,12 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
 
 def _pose_r2(states: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """R² of the affine maps from ``states`` to x, to y and to the heading's unit vector
-    (cos and sin pooled; NaN for poses without a heading)."""
-    x_y = affine_r2(states, poses)[:2]
+    (cos and sin pooled: their R² weighted by their variances, the share of the unit
+    vector's variance explained; NaN for poses without a heading)."""
+    r2 = affine_r2(states, poses)
     if poses.shape[1] < 4:
-        return np.array([*x_y, np.nan])
-    return np.array([*x_y, affine_r2(states, poses[:, 2:4], pooled=True)[0]])
+        return np.array([*r2[:2], np.nan])
+    return np.array([*r2[:2], np.average(r2[2:4], weights=poses[:, 2:4].var(axis=0))])
 
 
 def _limit_blas_threads() -> None:

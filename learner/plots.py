@@ -60,17 +60,14 @@ def robust_limits(values: np.ndarray) -> tuple[float, float]:
     return float(low - pad), float(high + pad)
 
 
-def affine_r2(states: np.ndarray, targets: np.ndarray, *, pooled: bool = False) -> np.ndarray:
-    """R^2 per target column of the least-squares affine map ``states (T, r) -> targets (T, c)``
-    (``pooled``: one R^2 of all the columns together, their residuals and spreads summed)."""
+def affine_r2(states: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """R^2 per target column of the least-squares affine map ``states (T, r) -> targets (T, c)``."""
     states = np.asarray(states, dtype=np.float64)
     targets = np.asarray(targets, dtype=np.float64).reshape(states.shape[0], -1)
     design = np.concatenate([states, np.ones((states.shape[0], 1))], axis=1)
     coef, *_ = np.linalg.lstsq(design, targets, rcond=None)
     residual = ((targets - design @ coef) ** 2).sum(axis=0)
     total = ((targets - targets.mean(axis=0)) ** 2).sum(axis=0)
-    if pooled:
-        return np.array([1.0 - residual.sum() / total.sum()])
     return np.asarray(1.0 - residual / total)
 
 

@@ -203,6 +203,7 @@ def _render(section: Section, data: Data) -> list[str]:
         "|---|---|---|---|---|---|---|",
     ]
     verdicts = []
+    baselines, own_planners = _baseline_jobs(), _pca_planner_jobs()
     for job in _jobs():
         env = job.environment
         ours, base_rows = data[job], data[_defaults(env)]
@@ -216,10 +217,10 @@ def _render(section: Section, data: Data) -> list[str]:
             ("floor: random actions", base_rows, RANDOM),
             ("ceiling: the true position", base_rows, TRUE_POSITION),
         ]
-        own = _pca_planner_jobs().get(env)
+        own = own_planners.get(env)
         if own is not None:
             rows.insert(3, ("PCA, its own planner", data[own], "pca"))
-        baseline = _baseline_jobs().get(env)
+        baseline = baselines.get(env)
         if baseline is not None:
             rows[3:3] = [
                 ("stacked-frame PCA (k = 1), the defaults' planner", data[baseline], "stacked-pca"),
@@ -284,8 +285,8 @@ PREDICTIVE_SECTION = Section(
     "`partial-strip`, the carry on ten there and in `drive` (the study above). A first run "
     "of the seeds below found three refinements in `partial-strip` that had returned the "
     "carried start itself, which plans badly (-12.6, 5.6 and -3.8; in the one examined, "
-    "the iterates that predicted better "
-    "restarted 5 to 22 times on the held-out steps where 4 were allowed). The refinement "
+    "the iterates that predicted better restarted 5 to 22 times on the held-out steps where "
+    "4 were allowed). The refinement "
     "now judges restarts within the noise of their count and keeps the spectral model "
     "when no iterate qualifies; the rows below are the rerun with it. Measured on fresh "
     "seeds in every environment, beside two baselines that carry the past: PCA of the last "
