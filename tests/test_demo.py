@@ -24,7 +24,9 @@ def test_the_demo_runs_end_to_end(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "learner.demo", "--output", str(out),
          "--domain-id", str(fresh_domain()),
-         "--train-steps", "6000", "--rl-steps", "6000"],  # every stage, on a quarter of the data
+         # every stage, on a sixth and a fifth of the data: the closed-loop tests' sizes, where
+         # the policy reaches the goal in every trial (466.6, far above the 200 asked below)
+         "--train-steps", "4000", "--rl-steps", "3000"],
         capture_output=True,
         text=True,
         timeout=280,
