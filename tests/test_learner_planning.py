@@ -45,7 +45,7 @@ def bags(tmp_path_factory):
     """Training and RL bags, a small TPSR model, a PCA model and the TPSR model's policy."""
     root = tmp_path_factory.mktemp("planning")
     generate_bag(root / "train", SimConfig(environment="full"), 3000, seed=1)
-    generate_bag(root / "rl", SimConfig(environment="full"), 4000, seed=2)
+    generate_bag(root / "rl", SimConfig(environment="full"), 2500, seed=2)
     model, policy = str(root / "model.npz"), str(root / "policy.npz")
     assert learner_main(["fit", str(root / "train"), "-o", model, *SMALL_FIT]) == 0
     assert learner_main(["fit", str(root / "train"), "-o", str(root / "pca.npz"),
@@ -252,7 +252,7 @@ def test_bad_input_to_policy_and_evaluate(bags, tmp_path, capsys):
         (["evaluate", str(policy), "--environment", "partial"],
          "trained in environment 'full', not 'partial'"),
         (["policy", str(model), str(bags / "rl"), "-o", str(tmp_path / "p2.npz"),
-          "--steps", "5000"], "has 4000 steps, fewer than the 5000 requested"),
+          "--steps", "5000"], "has 2500 steps, fewer than the 5000 requested"),
         (["policy", str(model), str(bags / "rl"), "-o", str(policy)], "already exists"),
         (["evaluate", str(tmp_path / "missing.npz"), "--environment", "full"], "does not exist"),
     ]
@@ -269,7 +269,7 @@ def _small_grid(**overrides):
     settings = {
         "episodes": (400,),
         "repetitions": 2,
-        "rl_steps": 3000,
+        "rl_steps": 1500,  # the rows, seeds and reruns are checked, not the scores
         "tpsr": TPSRConfig(ht_centers=150, obs_centers=100),
         "pca": PCAConfig(dim=2),
     }
