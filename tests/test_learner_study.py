@@ -12,7 +12,7 @@ from learner.study import parse_values
 from tpsr_ros.core.errors import ConfigError
 
 GRID = ["--environment", "full", "--episodes", "300", "--repetitions", "1",
-        "--rl-steps", "2000", "--workers", "1"]
+        "--rl-steps", "1000", "--workers", "1"]
 
 
 @pytest.mark.slow
