@@ -59,6 +59,7 @@ def test_a_model_of_another_rank_or_with_a_state_box_is_left_as_it_is(model):
     assert none is None and same is boxed and "box" in record["skipped"]
 
 
+@pytest.mark.slow
 def test_a_refit_aligned_to_the_model_it_replaces_tracks_closer_to_it_and_predicts_the_same():
     model = fit(_trajectory(6000))  # enough steps for the rank its refit keeps
     longer = _trajectory(9000, seed=3)

@@ -193,6 +193,7 @@ def test_the_learn_online_launch_file_learns_and_the_filter_swaps(tmp_path, monk
     assert (output / "model.npz").is_file() and (output / "policy.npz").is_file()
 
 
+@pytest.mark.slow
 def test_the_launch_file_runs_the_closed_loop(tmp_path, monkeypatch):
     """The launch file's closed loop runs its episode; its end is seen in the graph.
 

@@ -157,6 +157,7 @@ def test_a_carried_step_mixes_the_update_with_the_previous_state(aliased: Trajec
     assert itself is plain_config and none == 0.0
 
 
+@pytest.mark.slow
 def test_carry_lets_the_refined_filter_remember_which_lookalike_it_stands_in(
     aliased: Trajectory, refined
 ) -> None:
@@ -189,6 +190,7 @@ def test_carry_lets_the_refined_filter_remember_which_lookalike_it_stands_in(
     assert heldout[0.5] < heldout[0.0]
 
 
+@pytest.mark.slow
 def test_a_carried_start_is_never_returned_as_the_model(
     aliased: Trajectory, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -67,6 +67,7 @@ def test_bag_info_takes_a_bags_mcap_file_and_a_lone_mcap(bag, tmp_path):
     assert proc.returncode == 1 and "is not a rosbag2 directory" in proc.stderr
 
 
+@pytest.mark.slow
 def test_a_player_stopped_early_says_it_was_interrupted_and_how_much_it_played(bag):
     env = {**os.environ, "TPSR_TRANSPORT": "inproc", "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
