@@ -9,6 +9,7 @@ the I/O layer with the forbidden packages made unimportable.
 from __future__ import annotations
 
 import ast
+import functools
 import subprocess
 import sys
 import textwrap
@@ -69,7 +70,11 @@ def _imports(name: str, path: Path) -> set[str]:
     return found
 
 
-GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}
+@functools.cache
+def _graph() -> dict[str, set[str]]:
+    """Every project module's imports, parsed once per process when a test first asks (not
+    at collection, which every test worker does)."""
+    return {name: _imports(name, path) for name, path in MODULES.items()}
 
 
 def _layer(module: str) -> str:
@@ -94,15 +99,15 @@ def _hits(modules: set[str], prefixes: tuple[str, ...]) -> list[str]:
 def _violations(layer: str, forbidden: tuple[str, ...]) -> dict[str, list[str]]:
     return {
         name: hits
-        for name, imports in GRAPH.items()
+        for name, imports in _graph().items()
         if _layer(name) == layer and (hits := _hits(imports, forbidden))
     }
 
 
 def test_the_graph_covers_the_project() -> None:
-    assert {"tpsr_ros.core.tpsr", "tpsr_ros.io.bag", "tpsr_ros.runtime.node"} <= set(GRAPH)
-    assert "tpsr_ros.core.filtering" in GRAPH["tpsr_ros.core.tpsr_model"]
-    assert "learner.tune" in GRAPH["learner.measures"]  # lazy imports count too
+    assert {"tpsr_ros.core.tpsr", "tpsr_ros.io.bag", "tpsr_ros.runtime.node"} <= set(_graph())
+    assert "tpsr_ros.core.filtering" in _graph()["tpsr_ros.core.tpsr_model"]
+    assert "learner.tune" in _graph()["learner.measures"]  # lazy imports count too
 
 
 def test_core_imports_only_the_core() -> None:
@@ -131,7 +136,7 @@ def test_runtime_imports_no_node_and_no_application() -> None:
 def test_no_tpsr_ros_module_imports_sim_node_or_learner() -> None:
     wrong = {
         name: hits
-        for name, imports in GRAPH.items()
+        for name, imports in _graph().items()
         if name.split(".")[0] == "tpsr_ros" and (hits := _hits(imports, ("sim_node", "learner")))
     }
     assert wrong == {}
@@ -157,7 +162,7 @@ def test_no_import_cycles_between_modules() -> None:
             and not m.startswith(name + ".")
             and not name.startswith(m + ".")
         }
-        for name, imports in GRAPH.items()
+        for name, imports in _graph().items()
     }
     index: dict[str, int] = {}
     low: dict[str, int] = {}
