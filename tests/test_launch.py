@@ -178,7 +178,7 @@ def test_the_learn_online_launch_file_learns_and_the_filter_swaps(tmp_path, monk
         # filter's) while the refits wait (at 150 steps/s a refit took 2.5 s, not 0.5 s)
         with Launch(tmp_path, spin=probe.spin_once, timeout_s=300) as launch:
             proc = launch.start("launch", "tpsr_ros.launch", [
-                str(LEARN_ONLINE), f"output:={output}", "warmup_steps:=300", "refit_steps:=200",
+                str(LEARN_ONLINE), f"output:={output}", "warmup_steps:=300", "refit_steps:=100",
             ])  # fmt: skip
             launch.wait("the filter node's acknowledgement of version 2",
                         lambda: any(i.get("version") == 2 for i in infos))  # fmt: skip
