@@ -14,6 +14,7 @@ from cli_support import run_entry
 from learner.cli import build_parser, main
 from learner.options import config_from_args
 from learner.plots import affine_r2
+from learner.simulated import random_trajectory
 from sim_node import SimConfig
 from sim_node.generate import generate_bag
 from tpsr_ros.core.episodes import track_trajectory
@@ -21,7 +22,6 @@ from tpsr_ros.core.pca_baseline import PCAModel
 from tpsr_ros.core.presets import PRESETS
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel
 from tpsr_ros.io.model_io import load_model, read_metadata
-from tpsr_ros.io.trajectory import read_trajectory
 
 SMALL_OPTIONS = ["--obs-centers", "40", "--ht-centers", "80", "--rank", "3"]
 
@@ -213,10 +213,11 @@ def test_every_subcommand_prints_its_help(command, capsys):
 @pytest.fixture(scope="module")
 def full_bags(tmp_path_factory):
     root = tmp_path_factory.mktemp("full")
-    train, rl = root / "train24000", root / "rl5000"
+    train = root / "train24000"
     generate_bag(train, SimConfig(environment="full"), 24_000, seed=0)
-    generate_bag(rl, SimConfig(environment="full"), 5000, seed=1)  # the states scored on
-    return train, read_trajectory([rl], require_ground_truth=True)
+    # the states scored on: the steps a 5000-step bag of seed 1 holds (read back, every array
+    # is equal), simulated without writing and reading the bag
+    return train, random_trajectory("full", 5000, seed=1)
 
 
 @pytest.mark.slow
