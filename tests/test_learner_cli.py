@@ -3,6 +3,7 @@ full-environment check that tracked states are linearly predictive of the true p
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import subprocess
 import sys
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 from cli_support import run_entry
 
-from learner.cli import build_parser, main
+from learner.cli import SUBCOMMANDS, build_parser, main
 from learner.options import config_from_args
 from learner.plots import affine_r2
 from learner.simulated import random_trajectory
@@ -195,6 +196,29 @@ def _subcommands() -> list[str]:
 
     (commands,) = (a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     return sorted(commands.choices)
+
+
+def test_each_command_is_the_one_its_module_adds_and_starts_without_the_others():
+    """The table names every command by what its module registers, in order; a command
+    builds its parser from its own module, and starting ``fit`` loads neither the results
+    page nor SciPy's statistics (what ``report`` and the studies need)."""
+    assert _subcommands() == sorted(SUBCOMMANDS)
+    for command in SUBCOMMANDS:
+        (mounted,) = (
+            a for a in build_parser(command)._actions
+            if isinstance(a, argparse._SubParsersAction)
+        )  # fmt: skip
+        assert list(mounted.choices) == [command]
+    code = (
+        "import sys; from learner.cli import main\n"
+        "try:\n    main(['fit', '--help'])\nexcept SystemExit:\n    pass\n"
+        "print(sorted(m for m in ('learner.results_page', 'learner.report', 'scipy.stats') "
+        "if m in sys.modules))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True
+    )
+    assert proc.stdout.strip().splitlines()[-1] == "[]"
 
 
 @pytest.mark.parametrize("command", _subcommands())
