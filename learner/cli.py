@@ -19,7 +19,7 @@ from typing import Any
 
 from tpsr_ros.cli import ArgumentParser, run_cli
 
-__all__ = ["PROG", "SUBCOMMANDS", "SUBCOMMAND_MODULES", "build_parser", "entry", "main"]
+__all__ = ["PROG", "SUBCOMMANDS", "build_parser", "entry", "main"]
 
 PROG = "learner"
 SUBCOMMANDS: dict[str, str] = {
@@ -42,9 +42,6 @@ SUBCOMMANDS: dict[str, str] = {
 }
 """Every subcommand and the module that adds it, in the order of ``learner --help``."""
 
-SUBCOMMAND_MODULES: tuple[str, ...] = tuple(SUBCOMMANDS.values())
-
-
 def _mount_main(subparsers: Any, name: str, module: Any) -> None:
     doc = (module.__doc__ or "").strip().split("\n")[0]
     parser = subparsers.add_parser(name, help=doc, description=doc, add_help=False)
@@ -63,7 +60,7 @@ def _pass_through(argv: list[str]) -> Any:
 
 
 def build_parser(command: str | None = None) -> ArgumentParser:
-    """Build the ``learner`` parser with every subcommand of :data:`SUBCOMMAND_MODULES`, or
+    """Build the ``learner`` parser with every subcommand of :data:`SUBCOMMANDS`, or
     with ``command`` alone when it names one: only its module is imported, so a command
     starts without loading what the others need (the report's page, the studies' SciPy)."""
     chosen = {command: SUBCOMMANDS[command]} if command in SUBCOMMANDS else SUBCOMMANDS
