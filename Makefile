@@ -21,6 +21,11 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(PY) -m learner.demo
 
+# Python caches compiled modules even where the environment says not to: the suite starts
+# about 160 Python processes (test workers, nodes, commands) that would otherwise each compile
+# the project's modules again, and each worker would rewrite every test module's asserts
+unexport PYTHONDONTWRITEBYTECODE
+
 # the whole suite in parallel (pytest-xdist): one worker per core; idle workers steal queued
 # tests; tests/conftest.py pins BLAS to one thread per worker. Not one more worker for the
 # tests that wait on node processes, discovery and real-time replays: their nodes, timers
