@@ -42,6 +42,7 @@ SUBCOMMANDS: dict[str, str] = {
 }
 """Every subcommand and the module that adds it, in the order of ``learner --help``."""
 
+
 def _mount_main(subparsers: Any, name: str, module: Any) -> None:
     doc = (module.__doc__ or "").strip().split("\n")[0]
     parser = subparsers.add_parser(name, help=doc, description=doc, add_help=False)
