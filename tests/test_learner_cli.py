@@ -191,25 +191,21 @@ def test_python_dash_m_entry_point(tmp_path):
     )
 
 
-def _subcommands() -> list[str]:
-    import argparse
-
-    (commands,) = (a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
-    return sorted(commands.choices)
+def _subcommands(command: str | None = None) -> list[str]:
+    """The commands ``build_parser(command)`` mounts, in its order."""
+    (commands,) = (
+        a for a in build_parser(command)._actions if isinstance(a, argparse._SubParsersAction)
+    )  # fmt: skip
+    return list(commands.choices)
 
 
 def test_each_command_is_the_one_its_module_adds_and_starts_without_the_others():
     """The table names every command by what its module registers, in order; a command
     builds its parser from its own module, and starting ``fit`` loads neither the results
     page nor SciPy's statistics (what ``report`` and the studies need)."""
-    (every,) = (a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
-    assert list(every.choices) == list(SUBCOMMANDS)
+    assert _subcommands() == list(SUBCOMMANDS)
     for command in SUBCOMMANDS:
-        (mounted,) = (
-            a for a in build_parser(command)._actions
-            if isinstance(a, argparse._SubParsersAction)
-        )  # fmt: skip
-        assert list(mounted.choices) == [command]
+        assert _subcommands(command) == [command]
     code = (
         "import sys; from learner.cli import main\n"
         "try:\n    main(['fit', '--help'])\nexcept SystemExit:\n    pass\n"
