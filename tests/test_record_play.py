@@ -462,6 +462,56 @@ def test_player_reports_its_lateness_when_publishing_cannot_keep_up(tmp_path, ca
     assert f"max {worst:.1f} ms" in line and "lateness p50" in line and "p99" in line
 
 
+def test_the_first_message_on_each_topic_waits_for_acknowledgement_and_the_schedule_moves_on(
+    tmp_path, capfd
+):
+    from tpsr_ros import play
+    from tpsr_ros.runtime import NodeOptions
+    from tpsr_ros.runtime.inproc import InprocBus, InprocTransport
+
+    bag = tmp_path / "bag"
+    with BagWriter(bag) as writer:  # two topics, a message every 10 ms on each
+        writer.add_topic("/a", m.ACTION_TYPE)
+        writer.add_topic("/b", m.ACTION_TYPE)
+        for k in range(8):
+            for i, topic in enumerate(("/a", "/b")):
+                stamp = S + k * 10**7 + i * 5 * 10**6
+                writer.write_message(topic, stamp, m.twist_stamped_msg(stamp, 1.0, 0.0))
+    bus = InprocBus()
+    listener = _talker(bus, "listener")
+    for topic in ("/a", "/b"):
+        listener.create_subscription(topic, m.ACTION_TYPE, lambda _: None)
+    argv = [str(bag), "--no-clock", "--wait-for-subscribers", "1"]
+    args = play.PlayerNode.argument_parser("play").parse_args(argv)
+    player = play.PlayerNode(NodeOptions.for_node(play.PlayerNode, args=args),
+                             transport=InprocTransport("/player", bus))  # fmt: skip
+    written: dict[str, int] = {"/a": 0, "/b": 0}
+    waits: list[tuple[str, int]] = []  # (topic, messages written on it when it waited)
+    for topic, publisher in player.publishers.items():
+        handle = publisher._handle
+        write = handle.write
+
+        def counted(data: bytes, topic: str = topic, write=write) -> None:
+            written[topic] += 1
+            write(data)
+
+        def slow_ack(timeout_s: float, topic: str = topic) -> bool:
+            waits.append((topic, written[topic]))
+            time.sleep(0.1)  # a subscriber whose side of the match completes late
+            return topic == "/a"  # /b is never acknowledged in time
+
+        handle.write, handle.wait_for_acks = counted, slow_ack
+    player.spin()
+    player.close()
+    assert waits == [("/a", 1), ("/b", 1)]  # once per topic, right after its first message
+    assert written == {"/a": 8, "/b": 8}
+    # the schedule resumes after each wait: no message is due 100 ms before it is sent
+    assert player.lateness_ms.percentiles(100)[0] < 60
+    err = capfd.readouterr().err
+    assert "/b: the first message was not acknowledged within 5 s; playing on" in err
+    assert "/a: the first message" not in err
+
+
 def test_read_ahead_yields_in_order_raises_the_readers_error_and_stops_early():
     from tpsr_ros.play import ReadAhead
 

@@ -16,8 +16,12 @@ time is later than the last clock sent: the message's ``header.stamp`` when its 
 starts with a ``std_msgs/Header``, else its log time (``--no-clock`` disables this).
 
 ``--wait-for-subscribers N`` holds playback until every played topic has N matched
-subscriptions (e.g. a recorder), and then ``MATCH_SETTLE_S`` more for the subscribers' side
-of the match, so nothing is published into the void. Playback ends
+subscriptions (e.g. a recorder), so nothing is published into the void. DDS completes a
+match on each side on its own, so the subscribers' side may still be pending: playback
+then waits ``MATCH_SETTLE_S`` more (for best-effort subscribers), and after the first
+message on each topic until its reliable subscribers acknowledge it (up to
+``FIRST_ACK_TIMEOUT_S``; the schedule resumes from there), so no keep-last history drops
+a message a subscriber has not yet matched. Playback ends
 at the end of the bag (or on SIGINT/SIGTERM); the player then waits, up to 2 s, for
 reliable subscribers to acknowledge everything, and exits.
 
@@ -53,6 +57,9 @@ CLOCK_TOPIC = "/clock"
 MATCH_SETTLE_S = 0.3
 """Seconds playback waits, once every publisher has matched, for the subscribers' side of the
 match (DDS discovery completes on each side on its own)."""
+FIRST_ACK_TIMEOUT_S = 5.0
+"""Seconds the first message on each topic waits for its reliable subscribers' acknowledgement
+(with ``--wait-for-subscribers``)."""
 
 
 _END = object()
@@ -175,6 +182,7 @@ class PlayerNode(Node):
             self.clock = self.create_publisher(CLOCK_TOPIC, CLOCK_TYPE)
         self.header_first = {t: starts_with_header(m) for t, m in topics.items()}
         self.published = 0
+        self.unconfirmed: set[str] = set()  # topics whose first message awaits acknowledgement
         # every message's lateness in ms (a bag of a million messages: 8 MB)
         self.lateness_ms = RollingPercentiles(size=10_000_000)
         self.exit_code = 0
@@ -189,6 +197,7 @@ class PlayerNode(Node):
         # the publisher's side of a match completes first; until the subscriber's side does,
         # a reliable keep-last writer may drop unacknowledged samples it had to overwrite
         self.spin(timeout_s=MATCH_SETTLE_S)
+        self.unconfirmed = set(self.publishers)
 
     def _play_once(self) -> None:
         ahead = ReadAhead(self.reader.messages(self.played))
@@ -227,6 +236,20 @@ class PlayerNode(Node):
                     last_clock = stamp
             self.publishers[message.topic].publish_raw(message.data)
             self.published += 1
+            if message.topic in self.unconfirmed:
+                start_wall += self._confirm_first(message.topic)
+
+    def _confirm_first(self, topic: str) -> int:
+        """Wait until the subscribers acknowledge the first message on ``topic``; the ns
+        waited, by which the schedule moves on."""
+        self.unconfirmed.discard(topic)
+        start = time.monotonic_ns()
+        if not self.publishers[topic].wait_for_all_acked(FIRST_ACK_TIMEOUT_S):
+            self.logger.warning(
+                f"{topic}: the first message was not acknowledged within "
+                f"{FIRST_ACK_TIMEOUT_S:g} s; playing on (a subscriber may miss the start)"
+            )
+        return time.monotonic_ns() - start
 
     def spin(self, until: Any = None, timeout_s: float | None = None) -> bool:
         """Play the bag (once, or until interrupted with ``--loop``); then request shutdown."""

@@ -195,6 +195,11 @@ class Publisher:
         """Subscriptions currently matched, in any process."""
         return self._handle.matched_count()
 
+    def wait_for_all_acked(self, timeout_s: float) -> bool:
+        """Wait, up to ``timeout_s``, until every matched reliable subscription has
+        acknowledged all that was published (as rclpy's method of this name); whether it has."""
+        return self._handle.wait_for_acks(timeout_s)
+
     def destroy(self) -> None:
         """Remove the publisher from the graph."""
         self._handle.close()

@@ -141,6 +141,11 @@ class _Publisher(PublisherHandle):
     def matched_count(self) -> int:
         return int(self.publisher.get_subscription_count())
 
+    def wait_for_acks(self, timeout_s: float) -> bool:
+        from rclpy.duration import Duration
+
+        return bool(self.publisher.wait_for_all_acked(Duration(nanoseconds=int(timeout_s * 1e9))))
+
     def close(self) -> None:
         if self.publisher is not None:
             self.owner.node.destroy_publisher(self.publisher)

@@ -70,6 +70,12 @@ class PublisherHandle(ABC):
     def matched_count(self) -> int:
         """Number of subscriptions currently matched (any process)."""
 
+    def wait_for_acks(self, timeout_s: float) -> bool:
+        """Block, up to ``timeout_s``, until every matched reliable subscription has
+        acknowledged everything written; whether it has. A subscription acknowledges only
+        once its own side of the match is complete. In process: delivery is immediate."""
+        return True
+
     @abstractmethod
     def close(self) -> None:
         """Destroy the endpoint."""
