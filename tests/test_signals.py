@@ -47,3 +47,29 @@ def test_repeated_sigint_stops_a_node_without_a_traceback(
     text = node.text()
     assert "Traceback" not in text and "KeyboardInterrupt" not in text, text
     assert code in (0, 130), (code, text)
+
+
+def test_a_node_launched_where_sigint_is_ignored_still_stops_on_sigint(tmp_path):
+    """A script's background job or a test worker ignores SIGINT, and a child inherits that;
+    the launcher's SIGINT must still stop its node, not leave it to the stop timeout's kill."""
+    (tmp_path / "waiting_node.py").write_text(
+        "import signal, time\n"
+        "print('up', signal.getsignal(signal.SIGINT) is signal.default_int_handler, flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    path = os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])
+    env = {**os.environ, "PYTHONPATH": path}
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        node = NodeProcess("waiting", "waiting_node", log_path=tmp_path / "node.log", env=env)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    try:
+        deadline = time.monotonic() + 30
+        while "up" not in node.text() and node.alive() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert "up True" in node.text(), node.text()
+        # ended by its KeyboardInterrupt (Python then re-raises SIGINT), not killed after 10 s
+        assert node.stop(timeout_s=10) == -signal.SIGINT
+    finally:
+        node.kill()

@@ -7,7 +7,8 @@ tests, the benchmarks), like a small ``ros2 launch``:
   and stderr go to one log file, and/or line by line to an ``on_output`` callback (how
   ``python -m tpsr_ros.launch`` prefixes each node's output, like ``ros2 launch``).
   On Linux the child gets SIGTERM if this process dies
-  (``prctl(PR_SET_PDEATHSIG)``), so a crashed or killed parent leaves no orphan.
+  (``prctl(PR_SET_PDEATHSIG)``), so a crashed or killed parent leaves no orphan, and
+  SIGINT's default back where this process ignores it (a script's background job).
   :meth:`NodeProcess.stop` sends SIGINT (a node's graceful shutdown), waits, and kills it
   if it does not exit.
 - :class:`Launch` holds the processes of one run. :meth:`Launch.wait` spins the caller's
@@ -38,14 +39,19 @@ from tpsr_ros.core.errors import TpsrError
 
 __all__ = ["Launch", "LaunchError", "NodeProcess", "environ_overrides"]
 
-# Run a module so that it gets SIGTERM when its parent dies (Linux prctl PR_SET_PDEATHSIG),
-# then exactly as `python -m MODULE ARGS...`.
+# Run a module so that it gets SIGTERM when its parent dies (Linux prctl PR_SET_PDEATHSIG)
+# and stops on SIGINT even where the parent ignores SIGINT (a script's background job, a
+# test worker: Python leaves an inherited ignored SIGINT ignored, and a node that has not
+# yet installed its handlers would lose the launcher's SIGINT and be killed after the stop
+# timeout), then exactly as `python -m MODULE ARGS...`.
 _LAUNCH = """\
 import ctypes, os, runpy, signal, sys
 try:
     ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)
 except Exception:
     pass
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 if os.getppid() != int(sys.argv[1]):
     sys.exit(1)
 module = sys.argv[2]
