@@ -497,10 +497,17 @@ def _run_streamed(
         image_shape = [spec.preprocessing.height, spec.preprocessing.width]
         recorded["pose_frame"] = pose_frame  # as the in-memory fit records it
     tpsr_config, preset = _fit_config(args, file_values, spec, environment)
+    in_memory = []  # what only the fit in memory does, and the options that turn it off
     if args.method == "tpsr" and tpsr_config.refine_epochs:
+        in_memory.append((f"refinement (refine_epochs {tpsr_config.refine_epochs}) through "
+                          "the filter", "--refine-epochs 0"))  # fmt: skip
+    if args.method == "tpsr" and tpsr_config.overlapping_episodes:
+        in_memory.append(("overlapping episodes", "--no-overlapping-episodes"))
+    if in_memory:
         raise ConfigError(
-            f"refinement (refine_epochs {tpsr_config.refine_epochs}) runs through the filter "
-            "over the steps in memory; a streamed fit is spectral only: add --refine-epochs 0"
+            f"{' and '.join(what for what, _ in in_memory)} run over the steps in memory; a "
+            "streamed fit is spectral on the guide's episodes: add "
+            f"{' '.join(option for _, option in in_memory)}"
         )
     reader = BagChunks(
         topics=topics, chunk_steps=args.chunk_steps, spec=spec, pose_frame=pose_frame
