@@ -499,6 +499,35 @@ def test_a_study_shows_the_headings_r2_and_each_environments_own_default():
     )
 
 
+def test_a_study_run_before_its_preset_changed_says_in_what():
+    from learner.appendix import PCA_PLANNER_STUDY, REFIT_STUDY
+
+    def rows(job, tpsr, fqi):
+        out = []
+        for value in ("ensemble", "member"):
+            parameters = json.dumps({"tpsr": tpsr, "fqi": {**fqi, "refit": value}})
+            out += _rows(job.environment, {"tpsr": [400.0, 410.0, 420.0]}, (8000,),
+                         parameters=parameters)  # fmt: skip
+        return out
+
+    # as the preset is now (a setting the rows do not record keeps the preset's value)
+    current = {job: rows(job, {}, {}) for job in REFIT_STUDY.jobs}
+    assert "predate" not in "\n".join(REFIT_STUDY.render(REFIT_STUDY, current))
+    before = {job: rows(job, {"overlapping_episodes": False}, {"centers": 50})
+              for job in REFIT_STUDY.jobs}  # fmt: skip
+    text = "\n".join(REFIT_STUDY.render(REFIT_STUDY, before))
+    assert (
+        "The runs predate the preset's current value of a setting they record: `fqi.centers` "
+        "`50` (now `100`); `tpsr.overlapping_episodes` `false` (now `true`)." in text
+    )
+    # the varied setting and those the study's command sets are not departures; nor are
+    # the settings of a baseline's rows
+    planner = {job: _rows(job.environment, {"pca": [300.0, 310.0, 320.0]}, (8000,),
+                          parameters=json.dumps({"fqi": {"ensemble": 1}}))
+               for job in PCA_PLANNER_STUDY.jobs}  # fmt: skip
+    assert "predate" not in "\n".join(PCA_PLANNER_STUDY.render(PCA_PLANNER_STUDY, planner))
+
+
 def test_the_predictive_section_gives_the_headings_r2_of_a_robot_that_turns():
     from learner.predictive_section import PREDICTIVE_EPISODES, _heading
 

@@ -17,8 +17,8 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
 - ``predictive``: ``best`` with ``P_TH``'s tests from the current step, a window starting
   at every step of the training run (overlapping, so the spectral start learns from every
   window the refinement runs over, not a third of them; "A predictive state: every step a
-  window"), and the spectral model refined through its filter (:mod:`tpsr_ros.core.refine`), from a start whose
-  typical step carries 0.3 of the previous state forward (chosen among 0, 0.3, 0.5 and
+  window"), and the spectral model refined through its filter
+  (:mod:`tpsr_ros.core.refine`), from a start whose typical step carries 0.3 of the previous state forward (chosen among 0, 0.3, 0.5 and
   0.7 on ten runs of the selection seeds in ``partial-strip``: 390.8, 405.7, 391.7 and
   266.1; docs/results.md, "A predictive state: the carried start"), but a robot that
   turns carries nothing (the carried start loses its heading: in ``drive`` the heading's
