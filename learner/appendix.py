@@ -596,7 +596,7 @@ _PREDICTIVE_FIT = (
         "refinement runs over every step. Should a window start at every step "
         "(`tpsr.overlapping_episodes`), so that the spectral start learns from all of them?",
         "tpsr.overlapping_episodes=false,true",
-        environments=("partial-strip",),
+        environments=("partial-strip", "drive"),
     ),
     _predictive_study(
         "predictive-pooling",
