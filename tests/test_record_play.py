@@ -10,6 +10,7 @@ asks for.
 
 import contextlib
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -298,8 +299,11 @@ def test_recorder_refuses_existing_or_unwritable_paths(tmp_path, capsys, monkeyp
     monkeypatch.setenv("TPSR_TRANSPORT", "inproc")
     existing = tmp_path / "exists"
     existing.mkdir()
+    handler = signal.getsignal(signal.SIGINT)
     code, err = _run(record.main, ["-o", str(existing)], capsys)
     assert code == 1 and "already exists" in err and err.count("\n") == 1
+    # a refused start leaves the caller's SIGINT handler (and its later children's) alone
+    assert signal.getsignal(signal.SIGINT) is handler
     code, err = _run(record.main, ["-o", str(tmp_path / "no" / "such" / "bag")], capsys)
     assert code == 1 and "does not exist" in err
     locked = tmp_path / "locked"

@@ -50,8 +50,8 @@ def test_repeated_sigint_stops_a_node_without_a_traceback(
 
 
 def test_a_node_launched_where_sigint_is_ignored_still_stops_on_sigint(tmp_path):
-    """A script's background job or a test worker ignores SIGINT, and a child inherits that;
-    the launcher's SIGINT must still stop its node, not leave it to the stop timeout's kill."""
+    """A script's background job ignores SIGINT, and a child inherits that; the launcher's
+    SIGINT must still stop its node, not leave it to the stop timeout's kill."""
     (tmp_path / "waiting_node.py").write_text(
         "import signal, time\n"
         "print('up', signal.getsignal(signal.SIGINT) is signal.default_int_handler, flush=True)\n"

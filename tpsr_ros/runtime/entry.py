@@ -82,9 +82,12 @@ class _Signals:
 
     def close(self) -> None:
         """The node is closing: later signals are ignored, SIGINT even while Python exits
-        (Python puts back the default handler of its own, which would kill the process)."""
+        (Python puts back the default handler of its own, which would kill the process).
+        Nothing changes when no node ran: a start refused before the handlers were installed
+        leaves a caller's handlers (and the children it starts later) as they were."""
         self.closing = True
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if self.node is not None:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def handle(self, signum: int, frame: object) -> None:
         if self.closing or self.node is None:

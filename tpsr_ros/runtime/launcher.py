@@ -41,9 +41,9 @@ __all__ = ["Launch", "LaunchError", "NodeProcess", "environ_overrides"]
 
 # Run a module so that it gets SIGTERM when its parent dies (Linux prctl PR_SET_PDEATHSIG)
 # and stops on SIGINT even where the parent ignores SIGINT (a script's background job, a
-# test worker: Python leaves an inherited ignored SIGINT ignored, and a node that has not
-# yet installed its handlers would lose the launcher's SIGINT and be killed after the stop
-# timeout), then exactly as `python -m MODULE ARGS...`.
+# process that ran a node in it: Python leaves an inherited ignored SIGINT ignored, and a
+# node that has not yet installed its handlers would lose the launcher's SIGINT and be
+# killed after the stop timeout), then exactly as `python -m MODULE ARGS...`.
 _LAUNCH = """\
 import ctypes, os, runpy, signal, sys
 try:
