@@ -64,6 +64,11 @@ _WORKING_DIRECTORY_PROFILE = "DEFAULT_FASTRTPS_PROFILES.xml"
 _UID = os.getuid() if hasattr(os, "getuid") else 0
 
 
+def _duration(seconds: float) -> str:
+    """A Fast DDS XML duration: whole seconds and nanoseconds."""
+    return f"<sec>{int(seconds)}</sec><nanosec>{round(seconds % 1 * 1e9)}</nanosec>"
+
+
 def profile_xml(segment_bytes: int = SHM_SEGMENT_BYTES) -> str:
     """Fast DDS XML: the default participant uses SHM with ``segment_bytes`` and UDPv4, and
     announces itself every :data:`ANNOUNCEMENT_S`; the default writer's heartbeat comes
@@ -91,20 +96,14 @@ def profile_xml(segment_bytes: int = SHM_SEGMENT_BYTES) -> str:
       <useBuiltinTransports>false</useBuiltinTransports>
       <builtin>
         <discovery_config>
-          <leaseAnnouncement>
-            <sec>{int(ANNOUNCEMENT_S)}</sec>
-            <nanosec>{round(ANNOUNCEMENT_S % 1 * 1e9)}</nanosec>
-          </leaseAnnouncement>
+          <leaseAnnouncement>{_duration(ANNOUNCEMENT_S)}</leaseAnnouncement>
         </discovery_config>
       </builtin>
     </rtps>
   </participant>
   <data_writer profile_name="tpsr_ros_writers" is_default_profile="true">
     <times>
-      <heartbeatPeriod>
-        <sec>{int(HEARTBEAT_S)}</sec>
-        <nanosec>{round(HEARTBEAT_S % 1 * 1e9)}</nanosec>
-      </heartbeatPeriod>
+      <heartbeatPeriod>{_duration(HEARTBEAT_S)}</heartbeatPeriod>
     </times>
   </data_writer>
 </profiles>
