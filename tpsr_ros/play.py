@@ -20,8 +20,8 @@ subscriptions (e.g. a recorder), so nothing is published into the void. DDS comp
 match on each side on its own, so the subscribers' side may still be pending: playback
 then waits ``MATCH_SETTLE_S`` more (for best-effort subscribers), and after the first
 message on each topic until its reliable subscribers acknowledge it (up to
-``FIRST_ACK_TIMEOUT_S``; the schedule resumes from there), so no keep-last history drops
-a message a subscriber has not yet matched. Playback ends
+``FIRST_ACK_TIMEOUT_S`` for all topics together; the schedule resumes from there), so no
+keep-last history drops a message a subscriber has not yet matched. Playback ends
 at the end of the bag (or on SIGINT/SIGTERM); the player then waits, up to 2 s, for
 reliable subscribers to acknowledge everything, and exits.
 
@@ -58,8 +58,8 @@ MATCH_SETTLE_S = 0.3
 """Seconds playback waits, once every publisher has matched, for the subscribers' side of the
 match (DDS discovery completes on each side on its own)."""
 FIRST_ACK_TIMEOUT_S = 5.0
-"""Seconds the first message on each topic waits for its reliable subscribers' acknowledgement
-(with ``--wait-for-subscribers``)."""
+"""Seconds the first messages on the topics wait, together, for their reliable subscribers'
+acknowledgements (with ``--wait-for-subscribers``)."""
 
 
 _END = object()
@@ -183,6 +183,7 @@ class PlayerNode(Node):
         self.header_first = {t: starts_with_header(m) for t, m in topics.items()}
         self.published = 0
         self.unconfirmed: set[str] = set()  # topics whose first message awaits acknowledgement
+        self.ack_deadline_ns: int | None = None  # when waiting for acknowledgements ends
         # every message's lateness in ms (a bag of a million messages: 8 MB)
         self.lateness_ms = RollingPercentiles(size=10_000_000)
         self.exit_code = 0
@@ -240,14 +241,20 @@ class PlayerNode(Node):
                 start_wall += self._confirm_first(message.topic)
 
     def _confirm_first(self, topic: str) -> int:
-        """Wait until the subscribers acknowledge the first message on ``topic``; the ns
-        waited, by which the schedule moves on."""
+        """Wait until the subscribers acknowledge the first message on ``topic``, within
+        :data:`FIRST_ACK_TIMEOUT_S` of the first such wait (a subscriber that never answers
+        delays the start once, not once per topic); the ns waited, by which the schedule
+        moves on."""
         self.unconfirmed.discard(topic)
         start = time.monotonic_ns()
-        if not self.publishers[topic].wait_for_all_acked(FIRST_ACK_TIMEOUT_S):
+        if self.ack_deadline_ns is None:
+            self.ack_deadline_ns = start + round(FIRST_ACK_TIMEOUT_S * _NS)
+        left_s = max(0.0, (self.ack_deadline_ns - start) / _NS)
+        if not self.publishers[topic].wait_for_all_acked(left_s):
             self.logger.warning(
                 f"{topic}: the first message was not acknowledged within "
-                f"{FIRST_ACK_TIMEOUT_S:g} s; playing on (a subscriber may miss the start)"
+                f"{FIRST_ACK_TIMEOUT_S:g} s of the start; playing on (a subscriber may miss "
+                "the start)"
             )
         return time.monotonic_ns() - start
 
