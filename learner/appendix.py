@@ -568,6 +568,23 @@ DISCOUNT_STUDY = _predictive_study(
 )
 """A study of the ``predictive`` preset's discount, on the selection seeds (not adopted)."""
 
+CENTERS_STUDY = _predictive_study(
+    "predictive-centers",
+    "A predictive state: the planner's centres",
+    "The trials that earn nothing where one image does not tell where the robot is stand a "
+    "few metres outside the goal zone, as if the fitted Q could not tell the zone's edge "
+    "from the ground beside it. Does a finer fitted Q (`fqi.centers`: 200 centres per "
+    "member instead of 100) lift them? Not adopted: the rise on the selection seeds below "
+    "did not hold on the predictive section's fresh seeds, in a check outside the "
+    "committed results (`partial-strip` 385.1 to 367.8, `full` 468.1 to 460.4, the weakest "
+    "`partial` run 378.6 to 228.5; `drive` 382.4 to 379.6, `distractors` 455.3 to 458.3), "
+    "and the trials that earned nothing on the selection seeds stayed at 4 of 100.",
+    "fqi.centers=100,200",
+    environments=("partial-strip",),
+)
+"""A study of the ``predictive`` preset's planner resolution, on the selection seeds (not
+adopted)."""
+
 _PREDICTIVE_FIT = (
     _predictive_study(
         "predictive-rank",
@@ -636,6 +653,7 @@ SECTIONS: tuple[Section, ...] = (
     CARRY_STUDY,
     REFIT_STUDY,
     DISCOUNT_STUDY,
+    CENTERS_STUDY,
     *_PREDICTIVE_FIT,
     PCA_PLANNER_STUDY,
     PREDICTIVE_SECTION,
