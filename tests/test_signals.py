@@ -1,5 +1,6 @@
 """Three SIGINTs within 100 ms (a terminal's Ctrl-C under ``ros2 launch`` sends two) stop a
-node without a traceback, on both real backends."""
+node without a traceback, on both real backends; a node launched from a process that ignores
+SIGINT still stops on the launcher's."""
 
 from __future__ import annotations
 
