@@ -40,6 +40,7 @@ from learner.sections import (
 )
 from learner.tables import Row, summarise
 from learner.verdicts import DIFFERENCE_SEMS
+from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.presets import DEFAULT_PRESET, PRESETS, departures
 from tpsr_ros.core.tpsr import TPSRConfig
 from tpsr_ros.io.policy import TRUE_POSITION
@@ -58,6 +59,19 @@ def _default_value(name: str, environment: str, preset: str = DEFAULT_PRESET) ->
     return getattr(PRESETS[preset].fqi_config(), field)
 
 
+
+
+def _recorded_departures(
+    values: dict[str, Any], reference: TPSRConfig | FQIConfig
+) -> dict[str, Any]:
+    """The settings a run recorded (one group of its parameters) that depart from
+    ``reference``'s. A setting the run does not record (added since) keeps the reference's
+    value; the fit records the d^O that obs_variance chose, which is no departure."""
+    known = {f.name for f in dataclasses.fields(reference)}
+    recorded = dataclasses.replace(reference, **{k: v for k, v in values.items() if k in known})
+    changed = departures(recorded, reference)
+    changed.pop("obs_dim", None)
+    return changed
 
 
 def _shown(value: Any) -> str:
@@ -90,14 +104,7 @@ def _ran_otherwise(section: Section, data: Data, preset: str) -> str:
                 values = parameters.get(group)
                 if not isinstance(values, dict):
                     continue
-                known = {f.name for f in dataclasses.fields(config)}
-                # a setting the rows do not record (added since) keeps the preset's value
-                ran = departures(
-                    dataclasses.replace(config, **{k: v for k, v in values.items() if k in known}),
-                    config,
-                )
-                ran.pop("obs_dim", None)  # the fit records the d^O that obs_variance chose
-                for field, value in ran.items():
+                for field, value in _recorded_departures(values, config).items():
                     if f"{group}.{field}" in fixed:
                         continue
                     key = f"{group}.{field}"
@@ -271,9 +278,7 @@ def _tuning_jobs(kind: str) -> tuple[Job, ...]:
 
 def _changes_from_default(values: dict[str, Any]) -> dict[str, Any]:
     """The TPSR settings of a run's parameters that depart from the default preset's."""
-    changed = departures(TPSRConfig.from_dict(values), PRESETS[DEFAULT_PRESET].tpsr_config())
-    changed.pop("obs_dim", None)  # the fit records the d^O that obs_variance chose
-    return changed
+    return _recorded_departures(values, PRESETS[DEFAULT_PRESET].tpsr_config())
 
 
 def _tuned_changes(rows: list[Row]) -> str:
