@@ -1,16 +1,20 @@
 """Three SIGINTs within 100 ms (a terminal's Ctrl-C under ``ros2 launch`` sends two) stop a
 node without a traceback, on both real backends; a node launched from a process that ignores
-SIGINT still stops on the launcher's."""
+SIGINT still stops on the launcher's; a SIGINT that comes while the node is being built (it
+may already log) shuts it down gracefully once it exists."""
 
 from __future__ import annotations
 
 import os
 import signal
 import time
+from typing import ClassVar
 
 import pytest
 from graph_support import BACKENDS, LOOPBACK, fresh_domain
 
+from tpsr_ros.core.errors import DataError
+from tpsr_ros.runtime import Node, run_node
 from tpsr_ros.runtime.launcher import NodeProcess
 
 NODES = [
@@ -74,3 +78,61 @@ def test_a_node_launched_where_sigint_is_ignored_still_stops_on_sigint(tmp_path)
         assert node.stop(timeout_s=10) == -signal.SIGINT
     finally:
         node.kill()
+
+
+class _SignalledWhileStarting(Node):
+    """A node that receives ``signals`` during its setup, after it has started to log
+    (as ``sim_node`` logs its first episode there), and records how it was closed."""
+
+    default_name = "signalled"
+    signals: ClassVar[int] = 1
+    shutdown_reasons: ClassVar[list[str | None]] = []
+
+    def setup(self) -> None:
+        self.logger.info("started")
+        for _ in range(self.signals):
+            os.kill(os.getpid(), signal.SIGINT)
+
+    def on_shutdown(self) -> None:
+        self.shutdown_reasons.append(self.shutdown_reason)
+
+
+@pytest.mark.parametrize(("signals", "code"), [(1, 0), (2, 130)])
+def test_a_signal_while_the_node_starts_shuts_it_down_once_it_exists(
+    signals, code, monkeypatch
+):
+    """One SIGINT during the node's construction is a graceful shutdown as soon as the
+    node exists (exit 0, the node closed); a second one stops waiting (130: the
+    construction is interrupted, and the caller's handlers are put back)."""
+    monkeypatch.setenv("TPSR_TRANSPORT", "inproc")
+    monkeypatch.setattr(_SignalledWhileStarting, "signals", signals)
+    monkeypatch.setattr(_SignalledWhileStarting, "shutdown_reasons", [])
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        with pytest.raises(SystemExit) as info:
+            run_node(_SignalledWhileStarting, prog="signalled", argv=[])
+    finally:
+        after = signal.getsignal(signal.SIGINT)
+        signal.signal(signal.SIGINT, before)
+    assert info.value.code == code
+    if signals == 1:
+        assert _SignalledWhileStarting.shutdown_reasons == ["SIGINT received while starting"]
+        assert after is signal.SIG_IGN  # a node ran: ignored while Python exits
+    else:
+        assert _SignalledWhileStarting.shutdown_reasons == []
+        assert after is before
+
+
+def test_a_refused_start_puts_the_callers_handlers_back(monkeypatch):
+    class Refused(Node):
+        default_name = "refused"
+
+        def setup(self) -> None:
+            raise DataError("no such input")
+
+    monkeypatch.setenv("TPSR_TRANSPORT", "inproc")
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit) as info:
+        run_node(Refused, prog="refused", argv=[])
+    assert info.value.code == 1
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before

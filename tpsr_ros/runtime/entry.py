@@ -66,32 +66,52 @@ def parse_node_args(
 
 
 class _Signals:
-    """SIGINT/SIGTERM: the first asks the node to shut down gracefully, a second one while it
-    still spins stops waiting (KeyboardInterrupt); once the node is closing, further
-    signals are ignored, as closing is bounded (a terminal's Ctrl-C under ``ros2 launch``
-    arrives twice, from the terminal and from launch)."""
+    """SIGINT/SIGTERM from the node's construction on: the first asks the node to shut down
+    gracefully (one that arrives while the node is being built, after it has started to
+    log, is kept and asked once it exists), a second one while it still spins or is being
+    built stops waiting (KeyboardInterrupt); once the node is closing, further signals are
+    ignored, as closing is bounded (a terminal's Ctrl-C under ``ros2 launch`` arrives
+    twice, from the terminal and from launch)."""
 
     def __init__(self) -> None:
         self.node: Node | None = None
         self.closing = False
+        self.pending: int | None = None  # a signal that came before the node existed
+        self._previous: dict[int, object] = {}
 
-    def install(self, node: Node) -> None:
+    def install(self) -> None:
+        """Take SIGINT and SIGTERM (before the node is built: it may log, and be seen
+        running, before its constructor returns)."""
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            self._previous[signum] = signal.signal(signum, self.handle)
+
+    def attach(self, node: Node) -> None:
+        """The node exists: a signal that came while it was built asks it to shut down."""
         self.node = node
-        signal.signal(signal.SIGINT, self.handle)
-        signal.signal(signal.SIGTERM, self.handle)
+        if self.pending is not None:
+            node.request_shutdown(f"{signal.Signals(self.pending).name} received while starting")
 
     def close(self) -> None:
         """The node is closing: later signals are ignored, SIGINT even while Python exits
         (Python puts back the default handler of its own, which would kill the process).
-        Nothing changes when no node ran: a start refused before the handlers were installed
-        leaves a caller's handlers (and the children it starts later) as they were."""
+        When no node was built (its start was refused), the caller's handlers are put back,
+        for the children it starts later too."""
         self.closing = True
         if self.node is not None:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
+            return
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)  # type: ignore[arg-type]
 
     def handle(self, signum: int, frame: object) -> None:
-        if self.closing or self.node is None:
+        if self.closing:
             return
+        if self.node is None:
+            if self.pending is None:  # asked once the node exists
+                self.pending = signum
+                return
+            self.closing = True  # a second signal while the node is built: stop waiting
+            raise KeyboardInterrupt
         if not self.node.ok():  # second signal: stop waiting for a graceful exit
             self.closing = True  # and ignore the ones after it
             raise KeyboardInterrupt
@@ -125,8 +145,9 @@ def run_node(node_cls: type[Node], *, prog: str, argv: Sequence[str] | None = No
     node: Node | None = None
     try:
         prepared = node_cls.preflight(options)
+        signals.install()
         node = node_cls(options, prepared=prepared)
-        signals.install(node)
+        signals.attach(node)
         node.logger.debug(f"{node.transport.kind} transport ready; spinning until SIGINT/SIGTERM")
         node.spin()
         code = getattr(node, "exit_code", 0)
