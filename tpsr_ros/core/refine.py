@@ -93,6 +93,7 @@ __all__ = [
     "RefineProblem",
     "carried",
     "factor_model",
+    "group_scales",
     "refine_tpsr",
     "restart_allowance",
 ]
@@ -158,6 +159,27 @@ def factor_model(model: TPSRModel) -> Factors:
     ridge = 1e-12 * np.trace(gram) / r
     action = np.linalg.solve(gram + ridge * np.eye(r), cross)
     return Factors(shared, action, np.array(model.b_inf, dtype=np.float64))
+
+
+def group_scales(start: Factors, how: str) -> np.ndarray:
+    """Per parameter, what the search's variable is multiplied by to give it (``how``
+    ``"groups"``: its group's root mean square at the start, 1 for a group of zeros;
+    ``"none"``: 1).
+
+    Unscaled, the groups differ by orders of magnitude: on ``partial-strip`` the entries of
+    ``B_{o'}`` are ~0.004 and those of ``A_a`` ~0.35, so a step of the search changes
+    ``B_{o'}`` by a fraction some 600 times larger than it changes ``A_a``, and the
+    actions' factors stay at the start (0.1 % apart after a refinement). Divided by their
+    groups' sizes, every group moves by a like fraction.
+    """
+    groups = (start.shared, start.action, start.b_inf)
+    if how == "none":
+        return np.ones(sum(g.size for g in groups))
+    sizes = []
+    for group in groups:
+        rms = float(np.sqrt(np.mean(group**2))) if group.size else 0.0
+        sizes.append(np.full(group.size, rms if rms > 0 and np.isfinite(rms) else 1.0))
+    return np.concatenate(sizes)
 
 
 def restart_allowance(count: int) -> int:
@@ -551,12 +573,13 @@ def _refine(
     before = problem.unexplained(start)
     start_restarts = problem.restarts(start)
     allowed = restart_allowance(max(problem.restarts(spectral), start_restarts))
+    scales = group_scales(start, cfg.refine_scaling)
     best = {"theta": start.vector(), "held": before, "iteration": 0, "restarts": start_restarts}
     lowest = {"held": before, "iteration": 0}  # restarts or not: what patience counts from
     since = [0]
 
     def watch(intermediate_result: Any) -> None:
-        theta = np.asarray(intermediate_result.x)
+        theta = np.asarray(intermediate_result.x) * scales
         candidate = start.like(theta)
         held = problem.unexplained(candidate)
         since[0] += 1
@@ -574,9 +597,13 @@ def _refine(
         if since[0] - int(lowest["iteration"]) >= PATIENCE:
             raise StopIteration
 
+    def scaled_loss(u: np.ndarray) -> tuple[float, np.ndarray]:
+        loss, grad = problem.loss_and_grad(u * scales)
+        return loss, grad * scales
+
     minimize(
-        problem.loss_and_grad,
-        start.vector(),
+        scaled_loss,
+        start.vector() / scales,
         jac=True,
         method="L-BFGS-B",
         callback=watch,
@@ -590,6 +617,7 @@ def _refine(
         "best_iteration": int(best["iteration"]),
         "carry": float(model.config.refine_carry),
         "carry_mu": mu,
+        "scaling": cfg.refine_scaling,
         "heldout_unexplained_spectral": round(before, 6),
         "heldout_unexplained": round(float(best["held"]), 6),
         "heldout_restarts_allowed": allowed,

@@ -116,6 +116,13 @@ class TPSRConfig:
         "previous state forward through the action (0: the spectral filter, which forgets "
         "within a step; see tpsr_ros.core.refine)",
     )
+    refine_scaling: Literal["none", "groups"] = _param(
+        "none",
+        "refinement: the search's variables (none: the parameters themselves; groups: each "
+        "group, B_o', the actions' factors and b_inf, divided by its root mean square at the "
+        "start, so that a step changes each by a like fraction; see tpsr_ros.core.refine)",
+        choices=("none", "groups"),
+    )
     seed: int = _param(0, "seed of k-means and of the SVD start vector")
 
     def __post_init__(self) -> None:
