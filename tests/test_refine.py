@@ -17,7 +17,14 @@ import pytest
 from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.learn import fit, fit_tpsr_trajectory
-from tpsr_ros.core.refine import RefineProblem, carried, factor_model, refine_tpsr
+from tpsr_ros.core.refine import (
+    Factors,
+    RefineProblem,
+    carried,
+    factor_model,
+    group_scales,
+    refine_tpsr,
+)
 from tpsr_ros.core.tpsr import TPSRConfig
 
 
@@ -206,6 +213,33 @@ def test_a_carried_start_is_never_returned_as_the_model(
     assert kept.fit_info["refinement"]["best_iteration"] == 0
     np.testing.assert_array_equal(kept.B, spectral.B)
     np.testing.assert_array_equal(kept.b_inf, spectral.b_inf)
+
+
+def test_group_scaling_divides_each_group_by_its_root_mean_square() -> None:
+    """B_o' entries ~0.004 and A_a ~0.35 (a real model's): the search's variables are the
+    parameters over their group's size, a group of zeros keeps 1, and ``none`` is 1."""
+    start = Factors(
+        shared=np.full((3, 2, 2), 0.004), action=np.stack([np.eye(2)] * 2), b_inf=np.zeros(2)
+    )
+    scales = group_scales(start, "groups")
+    n_s, n_a = start.shared.size, start.action.size
+    np.testing.assert_allclose(scales[:n_s], 0.004)
+    np.testing.assert_allclose(scales[n_s : n_s + n_a], np.sqrt(0.5))
+    np.testing.assert_array_equal(scales[n_s + n_a :], 1.0)
+    assert (start.vector() / scales)[:n_s] == pytest.approx(1.0)
+    np.testing.assert_array_equal(group_scales(start, "none"), np.ones(n_s + n_a + 2))
+
+
+def test_a_scaled_search_is_recorded_and_tracked_by_the_usual_filter(aliased: Trajectory) -> None:
+    model = fit_tpsr_trajectory(aliased, replace(CONFIG, refine_scaling="groups"))
+    assert model.fit_info["refinement"]["scaling"] == "groups"
+    track = model.track(aliased.actions[:30], aliased.observations[:30])
+    state = model.initial_state()
+    for s in range(30):
+        state, _ = model.update(state, int(aliased.actions[s]), aliased.observations[s])
+        np.testing.assert_array_equal(state, track.states[s])
+    with pytest.raises(ConfigError, match="refine_scaling must be one of"):
+        replace(CONFIG, refine_scaling="diagonal")
 
 
 def test_the_restart_allowance_is_the_count_within_its_noise() -> None:
