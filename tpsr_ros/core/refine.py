@@ -52,6 +52,13 @@ steps, so a typical step carries the fraction ``c`` of its previous state forwar
 refinement starts there (and its pull draws toward there): the same model class, stored as
 operators like any other.
 
+The search's variables (``refine_scaling``): the parameters themselves (``none``), or each
+group (``B_{o'}``, the factors ``A_a``, ``b_inf``) divided by its root mean square at the
+start (``groups``, :func:`group_scales`). The groups' sizes differ by orders of magnitude,
+so unscaled the search barely moves the actions' factors; scaled, it does, but on the
+selection seeds of ``partial-strip`` it planned far worse (docs/results.md, "A predictive
+state: scaling the refinement's search"), and ``none`` stays the default.
+
 Early stopping: the last :data:`HOLDOUT` of the windows (in time) are held out; after every
 iteration their loss is measured with the training read-out, and the parameters of the best
 held-out loss are returned among those whose filter, tracked continuously over the held-out
