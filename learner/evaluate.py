@@ -108,6 +108,11 @@ class Evaluation:
     """The trials of one evaluation and their mean reward (the score)."""
 
     trials: tuple[Trial, ...]
+    states: np.ndarray | None = field(default=None, compare=False, repr=False)
+    """``(N, r)``: the state each action was chosen from, trial after trial (not compared:
+    the closed loop's own record is the states it published)."""
+    positions: np.ndarray | None = field(default=None, compare=False, repr=False)
+    """``(N, 2)``: where the robot stood when each action was chosen."""
 
     @property
     def score(self) -> float:
@@ -163,12 +168,16 @@ def run_protocol(
     env = RobotEnv(config, seed=seed, render=getattr(tracker, "sees_images", True))
     env.reset()  # the start-up reset of a freshly started sim_node
     trials = []
+    chosen_from: list[np.ndarray] = []
+    stood_at: list[np.ndarray] = []
     for index, start in enumerate(starts):
         image, info = env.reset(options=start_options(config, index, start))
         state = tracker.start(image, info["pose"])
         total, goal_step, contacts = 0.0, None, 0
         path = [np.asarray(info["pose"], dtype=np.float64)[:2]]
         for k in range(1, steps + 1):
+            chosen_from.append(np.asarray(state, dtype=np.float64))
+            stood_at.append(path[-1])
             action = choose(state)
             image, reward, _, _, info = env.step(action if execute is None else execute(action))
             total += reward
@@ -181,7 +190,7 @@ def run_protocol(
         trials.append(trial)
         if on_trial is not None:
             on_trial(index, trial)
-    return Evaluation(tuple(trials))
+    return Evaluation(tuple(trials), np.array(chosen_from), np.array(stood_at))
 
 
 def register(subparsers: Any) -> None:

@@ -44,7 +44,7 @@ from learner.inputs import robot_turns
 from learner.measures import criterion_of, memory_of, tuned
 from learner.options import add_preset_option
 from learner.overrides import apply_overrides
-from learner.plots import affine_r2, neighbour_position_error
+from learner.plots import affine_r2, loop_position_error, neighbour_position_error
 from learner.representations import ModelTracker, Tracker, TruePositionTracker
 from learner.simulated import SimSettings, random_trajectory
 from learner.tables import (
@@ -235,10 +235,23 @@ def experiment_command(config: ExperimentConfig, episodes: Sequence[int] | None 
     return " ".join(parts)
 
 
+@dataclass(frozen=True)
+class _Scored:
+    """What planning and scoring one run gave (the CSV's columns of it)."""
+
+    score: float
+    trials: str
+    ends: str
+    ridge: float
+    status: str
+    loop_position_error: float = float("nan")
+
+
 def _plan_and_score(
     config: ExperimentConfig, tracker: Tracker, rl: Trajectory, states: np.ndarray
-) -> tuple[float, str, str, float, str]:
-    """Fitted Q on the tracked RL states (larger ridges if it diverges), then the standard score.
+) -> _Scored:
+    """Fitted Q on the tracked RL states (larger ridges if it diverges), then the standard
+    score, and how well the states the policy acted on locate the robot among the RL ones.
 
     A model whose state carries a buffer for its updates only (``window``) is planned on
     its leading ``planner_dim`` coordinates; the Q-function ignores the rest.
@@ -247,11 +260,18 @@ def _plan_and_score(
     try:
         q, fqi, _ = fit_q_on(states[:, :seen], rl, config.fqi)
     except DivergenceError:
-        return float("nan"), "", "", ridge_ladder(config.fqi.ridge)[-1], "fitted-q-diverged"
+        ridge = ridge_ladder(config.fqi.ridge)[-1]
+        return _Scored(float("nan"), "", "", ridge, "fitted-q-diverged")
     q = ignore_trailing(q, states.shape[1])
     policy = Policy(q, tracker.representation, tracker.fingerprint, config.environment)
     result = evaluate(policy, tracker, config.sim_config())
-    return result.score, _trials(result), _trial_ends(result), fqi.ridge, "ok"
+    assert result.states is not None and result.positions is not None
+    loop_error = loop_position_error(
+        states[:, :seen], rl.positions[:, :2], result.states[:, :seen], result.positions
+    )
+    return _Scored(
+        result.score, _trials(result), _trial_ends(result), fqi.ridge, "ok", loop_error
+    )
 
 
 def _planner_dim(tracker: Tracker, states: np.ndarray) -> int:
@@ -424,13 +444,12 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 if config.criterion and method == "tpsr"
                 else float("nan")
             )
-            score, trials, ends, ridge, status = _plan_and_score(config, tracker, rl, states)
+            scored = _plan_and_score(config, tracker, rl, states)
         except TpsrError as exc:  # a failed fit is a result, not a crash
             fit_seconds, recoveries, r2 = time.perf_counter() - start, 0, np.full(3, np.nan)
             position_error, memory = float("nan"), (float("nan"), float("nan"))
             criterion = float("nan")
-            score, trials, ends = float("nan"), "", ""
-            ridge, status = config.fqi.ridge, f"error: {exc}"
+            scored = _Scored(float("nan"), "", "", config.fqi.ridge, f"error: {exc}")
         rows.append(
             _row(
                 run_config,
@@ -439,17 +458,18 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 repetition,
                 extra,
                 command_config=config,
-                score=score,
-                trial_rewards=trials,
-                trial_ends=ends,
+                score=scored.score,
+                trial_rewards=scored.trials,
+                trial_ends=scored.ends,
                 fit_seconds=round(fit_seconds, 3),
-                fqi_ridge=ridge,
+                fqi_ridge=scored.ridge,
                 recoveries=recoveries,
                 r2_x=round(float(r2[0]), 4),
                 r2_y=round(float(r2[1]), 4),
                 r2_heading=round(float(r2[2]), 4),
                 position_error=round(position_error, 3),
-                status=status,
+                loop_position_error=round(scored.loop_position_error, 3),
+                status=scored.status,
                 memory=memory[0],
                 memory_distance=round(memory[1], 6),
                 criterion=round(criterion, 6),

@@ -30,6 +30,7 @@ from tpsr_ros.io.model_io import check_output_path, open_model
 
 __all__ = [
     "affine_r2",
+    "loop_position_error",
     "neighbour_position_error",
     "judge_states",
     "leading_coordinates",
@@ -119,6 +120,51 @@ def neighbour_position_error(
     _, nearest = cKDTree(white[:half]).query(white[half:], k=neighbours)
     located = positions[:half][nearest].mean(axis=1)
     return float(np.median(np.linalg.norm(located - positions[half:], axis=1)))
+
+
+def loop_position_error(
+    reference: np.ndarray,
+    reference_positions: np.ndarray,
+    states: np.ndarray,
+    positions: np.ndarray,
+    neighbours: int = NEIGHBOURS,
+) -> float:
+    """Median error (m) of locating the robot from the states a policy acted on.
+
+    As :func:`neighbour_position_error`, but each of ``states`` ``(N, r)`` (the closed
+    loop's) is located at the mean position of its ``neighbours`` nearest ``reference``
+    states ``(T, r)`` (the random RL run's, which the planner learnt from, with their
+    ``reference_positions`` ``(T, 2)``), in the reference's whitened coordinates. Set beside
+    the measure on the reference alone, it tells whether the filter still knows where the
+    robot is under the policy's own actions, which the random data may never have shown.
+    """
+    from scipy.spatial import cKDTree
+
+    reference = np.asarray(reference, dtype=np.float64)
+    states = np.asarray(states, dtype=np.float64)
+    if (
+        len(reference) < neighbours
+        or len(reference_positions) != len(reference)
+        or len(positions) != len(states)
+        or len(states) == 0
+        or states.shape[1:] != reference.shape[1:]
+    ):
+        raise DataError(
+            f"need {neighbours} reference states with a position each and states of their "
+            f"size with a position each, got {reference.shape} and {len(reference_positions)}, "
+            f"{states.shape} and {len(positions)}"
+        )
+    if not (np.isfinite(reference).all() and np.isfinite(states).all()):
+        raise DataError("the states hold non-finite values")
+    mean = reference.mean(axis=0)
+    _, singular, axes = np.linalg.svd(reference - mean, full_matrices=False)
+    keep = singular > singular.max() * max(reference.shape) * np.finfo(float).eps
+    if not keep.any():
+        raise DataError("the states do not vary: they cannot locate anything")
+    project = axes[keep].T / singular[keep]
+    _, nearest = cKDTree((reference - mean) @ project).query((states - mean) @ project, k=neighbours)
+    located = np.asarray(reference_positions, dtype=np.float64)[nearest].mean(axis=1)
+    return float(np.median(np.linalg.norm(located - np.asarray(positions), axis=1)))
 
 
 JUDGEMENTS = ((0.4, "good"), (0.15, "fair"), (0.0, "poor"))

@@ -85,6 +85,12 @@ class Row:
     """R² of the heading's unit vector (cos, sin) from the states' affine map, both
     components pooled: a robot that turns (``drive``) only, NaN otherwise and in CSVs
     written before."""
+    loop_position_error: float = float("nan")
+    """Median error (m) of locating the robot among the RL states from the states the
+    policy acted on in the scored trials (:func:`learner.plots.loop_position_error`): the
+    filter's grip on where the robot is under the policy's own actions, beside
+    ``position_error`` on the random RL run. NaN for the floors and in CSVs written
+    before."""
 
 
 def score_statistics(scores: np.ndarray) -> dict[str, Any]:

@@ -1,11 +1,13 @@
-"""learner.plots.neighbour_position_error: how precisely states locate the robot."""
+"""learner.plots.neighbour_position_error: how precisely states locate the robot; and
+loop_position_error: how precisely the states a policy acted on locate it among a reference
+run's."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from learner.plots import affine_r2, neighbour_position_error
+from learner.plots import affine_r2, loop_position_error, neighbour_position_error
 from tpsr_ros.core.errors import DataError
 
 
@@ -73,3 +75,35 @@ def test_the_heading_r2_pools_its_unit_vector_and_is_nan_without_one():
     assert r2[2] == pytest.approx(cos_var / (cos_var + sin_var), abs=0.01)
     assert _pose_r2(poses, poses)[2] == pytest.approx(1.0)
     assert np.isnan(_pose_r2(positions, positions)[2])
+
+
+def test_loop_states_that_follow_the_robot_locate_it_and_states_that_drift_do_not():
+    """Ground truth: the reference states are the positions (bent, linearly mixed); loop
+    states made the same way from other positions locate them as the reference does its
+    own, and loop states stuck at the room's middle while the robot stands in a corner
+    are off by the corner's distance."""
+    reference_positions = _walk(seed=5)
+    mix = np.array([[2.0, 0.3], [-0.5, 1.0]])
+
+    def state(p: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.exp(p[:, 0] / 8.0), p[:, 1]]) @ mix + 3.0
+
+    reference = state(reference_positions)
+    loop_positions = _walk(steps=500, seed=6)
+    followed = loop_position_error(reference, reference_positions, state(loop_positions),
+                                   loop_positions)  # fmt: skip
+    assert followed < 1.5 * neighbour_position_error(reference, reference_positions) + 0.2
+    corner = np.full((50, 2), 44.0)
+    middle = state(np.full((50, 2), 22.5))
+    lost = loop_position_error(reference, reference_positions, middle, corner)
+    assert lost == pytest.approx(np.hypot(21.5, 21.5), abs=1.5)
+
+
+def test_loop_position_error_refuses_bad_input():
+    positions = _walk(steps=100)
+    with pytest.raises(DataError, match="states of their size"):
+        loop_position_error(positions, positions, positions[:, :1], positions)
+    with pytest.raises(DataError, match="with a position each"):
+        loop_position_error(positions, positions, positions, positions[:10])
+    with pytest.raises(DataError, match="non-finite"):
+        loop_position_error(positions, positions, np.full((3, 2), np.nan), positions[:3])
