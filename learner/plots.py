@@ -162,7 +162,8 @@ def loop_position_error(
     if not keep.any():
         raise DataError("the states do not vary: they cannot locate anything")
     project = axes[keep].T / singular[keep]
-    _, nearest = cKDTree((reference - mean) @ project).query((states - mean) @ project, k=neighbours)
+    tree = cKDTree((reference - mean) @ project)
+    _, nearest = tree.query((states - mean) @ project, k=neighbours)
     located = np.asarray(reference_positions, dtype=np.float64)[nearest].mean(axis=1)
     return float(np.median(np.linalg.norm(located - np.asarray(positions), axis=1)))
 
