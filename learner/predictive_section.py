@@ -188,6 +188,23 @@ def failed_trials(rows: list[Row], environment: str) -> str | None:
     )
 
 
+def loop_grip(rows: list[Row]) -> str | None:
+    """Where the states place the robot on the random RL run against in the scored trials
+    (``loop_position_error``), over the runs and in the weakest (None: not recorded)."""
+    runs = [r for r in rows if math.isfinite(r.loop_position_error) and math.isfinite(r.score)]
+    if not runs:
+        return None
+    weakest = min(runs, key=lambda r: r.score)
+    rl = float(np.median([r.position_error for r in runs]))
+    loop = float(np.median([r.loop_position_error for r in runs]))
+    return (
+        f"its states locate the robot to a median {rl:.2f} m on the random RL run and "
+        f"{loop:.2f} m in the scored trials (the states its policy acted on, among the RL "
+        f"run's); in its weakest run ({weakest.score:.1f}) {weakest.position_error:.2f} m "
+        f"and {weakest.loop_position_error:.2f} m"
+    )
+
+
 def _render(section: Section, data: Data) -> list[str]:
     lines = [
         f"Ten runs per environment at {PREDICTIVE_EPISODES} episodes (24000 recorded steps) on "
@@ -265,6 +282,8 @@ def _render(section: Section, data: Data) -> list[str]:
         failures = failed_trials(_at_size(ours, "tpsr"), env)
         if failures is not None:
             verdicts.append(f"- `{env}`, the predictive TPSR: {failures}.")
+        if grip := loop_grip(_at_size(ours, "tpsr")):
+            verdicts.append(f"- `{env}`, the predictive TPSR: {grip}.")
         if raised := raised_ridge(_at_size(ours, "tpsr")):
             verdicts.append(f"- `{env}`, the predictive TPSR: {raised}.")
     return [*lines, "", "**Verdict.**", "", *verdicts]

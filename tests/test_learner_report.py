@@ -451,6 +451,22 @@ def test_runs_whose_fitted_q_needed_a_larger_ridge_are_named():
     assert raised_ridge([r for r in rows if r.fqi_ridge == 0.01]) is None
 
 
+def test_the_loop_position_error_is_told_beside_the_rl_runs_with_the_weakest_run():
+    from learner.predictive_section import loop_grip
+
+    rows = [Row("partial-strip", "tpsr", 8000, k, 1, 100, score, "", 0.0, 0.01, 0, 0.9, 0.9,
+                "ok", position_error=rl, loop_position_error=loop)
+            for k, (score, rl, loop) in enumerate([(400.0, 2.0, 2.5), (20.0, 2.2, 16.9),
+                                                   (430.0, 2.4, 3.0)])]  # fmt: skip
+    assert loop_grip(rows) == (
+        "its states locate the robot to a median 2.20 m on the random RL run and 3.00 m in "
+        "the scored trials (the states its policy acted on, among the RL run's); in its "
+        "weakest run (20.0) 2.20 m and 16.90 m"
+    )
+    # rows written before the loop's error was recorded say nothing
+    assert loop_grip([dataclasses.replace(r, loop_position_error=float("nan")) for r in rows]) is None
+
+
 def test_pca_is_planned_with_its_own_planner_where_one_image_is_ambiguous():
     from learner.predictive_section import PCA_PLANNER, PCA_PLANNER_ENVIRONMENTS
 
