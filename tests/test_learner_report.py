@@ -464,7 +464,8 @@ def test_the_loop_position_error_is_told_beside_the_rl_runs_with_the_weakest_run
         "weakest run (20.0) 2.20 m and 16.90 m"
     )
     # rows written before the loop's error was recorded say nothing
-    assert loop_grip([dataclasses.replace(r, loop_position_error=float("nan")) for r in rows]) is None
+    unrecorded = [dataclasses.replace(r, loop_position_error=float("nan")) for r in rows]
+    assert loop_grip(unrecorded) is None
 
 
 def test_pca_is_planned_with_its_own_planner_where_one_image_is_ambiguous():
