@@ -190,7 +190,7 @@ def failed_trials(rows: list[Row], environment: str) -> str | None:
 
 LOST_RATIO = 2.0
 """A run whose states place the robot this many times farther off in its scored trials than
-on the random RL run has a filter that lost the robot under its policy's actions."""
+on the random RL run no longer knows, under its policy's actions, where the robot is."""
 
 
 def loop_grip(rows: list[Row]) -> str | None:
@@ -206,8 +206,10 @@ def loop_grip(rows: list[Row]) -> str | None:
     kept = [r.score for r in runs if r not in lost]
     losing = (
         f"; {len(lost)} of {len(runs)} runs place it more than {LOST_RATIO:g} times as far "
-        f"off in the trials as on the RL run (the filter loses the robot under the policy's "
-        f"own actions), scoring {float(np.mean([r.score for r in lost])):.1f} on average "
+        f"off in the trials as on the RL run (under the policy's own actions, such as "
+        f"standing for many steps, which random actions rarely do, their states no longer "
+        f"say where the robot is), scoring {float(np.mean([r.score for r in lost])):.1f} "
+        f"on average "
         f"against the others' {float(np.mean(kept)):.1f}"
         if lost and kept
         else f"; {'every' if lost else 'no'} run places it more than {LOST_RATIO:g} times as "

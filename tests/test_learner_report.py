@@ -462,8 +462,9 @@ def test_the_loop_position_error_is_told_beside_the_rl_runs_with_the_weakest_run
         "its states locate the robot to a median 2.20 m on the random RL run and 3.00 m in "
         "the scored trials (the states its policy acted on, among the RL run's); in its "
         "weakest run (20.0) 2.20 m and 16.90 m; 1 of 3 runs place it more than 2 times as "
-        "far off in the trials as on the RL run (the filter loses the robot under the "
-        "policy's own actions), scoring 20.0 on average against the others' 415.0"
+        "far off in the trials as on the RL run (under the policy's own actions, such as "
+        "standing for many steps, which random actions rarely do, their states no longer say "
+        "where the robot is), scoring 20.0 on average against the others' 415.0"
     )
     assert loop_grip(rows[:1]).endswith("no run places it more than 2 times as far off in "
                                         "the trials as on the RL run")  # fmt: skip
