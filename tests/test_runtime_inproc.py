@@ -157,6 +157,24 @@ def test_timers_fire_periodically_and_can_be_cancelled(bus):
     assert ticks[-1] - ticks[0] > (len(ticks) - 3) * 0.01
 
 
+def test_a_timer_due_before_the_others_fires_on_time_wherever_it_was_created(bus):
+    """Spinning only reads the clock until the earliest deadline, so a timer created after
+    a slow one, or from another timer's callback, must move that deadline forward."""
+    node = make_node(bus, "timers")
+    node.create_timer(30.0, lambda: None)
+    fast: list[float] = []
+    node.create_timer(0.01, lambda: fast.append(time.monotonic()))
+    assert node.wait_for(lambda: len(fast) >= 3, timeout_s=2)
+    nested: list[float] = []
+
+    def spawn() -> None:
+        spawner.cancel()
+        node.create_timer(0.01, lambda: nested.append(time.monotonic()))
+
+    spawner = node.create_timer(0.005, spawn)
+    assert node.wait_for(lambda: len(nested) >= 3, timeout_s=2)
+
+
 def test_request_shutdown_from_another_thread_stops_spin(bus):
     node = make_node(bus, "s")
     threading.Timer(0.05, node.request_shutdown, args=("test",)).start()

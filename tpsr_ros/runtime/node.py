@@ -61,6 +61,7 @@ __all__ = [
 ]
 
 _MAX_WAIT_S = 0.1  # bound on one blocking wait, so signals are handled promptly
+_NEVER_NS = 2**63  # a deadline later than any monotonic clock reading
 TRIGGER_TYPE = "std_srvs/srv/Trigger"
 """The service type of :meth:`Node.create_trigger_service`."""
 
@@ -281,6 +282,7 @@ class Node:
         )
         self._endpoints: list[EndpointInfo] = []
         self._timers: list[Timer] = []
+        self._next_timer_ns = _NEVER_NS  # no timer is due before (a cancelled one may be)
         self._shutdown_reason: str | None = None
         self._closed = False
         if transport is None:
@@ -473,6 +475,7 @@ class Node:
         """Call ``callback`` every ``period_s`` seconds while spinning."""
         timer = Timer(period_s, callback)
         self._timers.append(timer)
+        self._next_timer_ns = min(self._next_timer_ns, timer.next_ns)
         return timer
 
     def endpoints(self) -> list[EndpointInfo]:
@@ -497,15 +500,23 @@ class Node:
         return self._shutdown_reason
 
     def _run_timers(self) -> float:
-        """Run due timers; seconds until the next one (inf if none)."""
+        """Run due timers; seconds until the next one (inf if none).
+
+        Called twice per :meth:`spin_once`, so when no timer is due yet it only compares
+        the clock with the earliest deadline.
+        """
         now = time.monotonic_ns()
+        if now < self._next_timer_ns:
+            return (self._next_timer_ns - now) / _NS
         self._timers = [t for t in self._timers if not t.cancelled]
         for timer in list(self._timers):
             if not timer.cancelled and timer.next_ns <= now and self.ok():
                 timer._fire(now)
-        if not self._timers:
+        live = [t.next_ns for t in self._timers if not t.cancelled]
+        self._next_timer_ns = min(live, default=_NEVER_NS)
+        if not live:
             return float("inf")
-        return max(0.0, (min(t.next_ns for t in self._timers) - time.monotonic_ns()) / _NS)
+        return max(0.0, (self._next_timer_ns - time.monotonic_ns()) / _NS)
 
     def spin_once(self, timeout_s: float = 0.0) -> None:
         """Run due timers, wait for data and run the callbacks of what arrived.
