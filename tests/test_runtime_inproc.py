@@ -90,6 +90,24 @@ def test_endpoints_of_other_types_do_not_match(bus):
     assert pub.get_subscription_count() == 0 and sub.get_publisher_count() == 0
 
 
+def test_readers_that_join_or_leave_after_a_writer_has_published_are_matched_again(bus):
+    """A writer matches its readers once per change of the graph, not at every sample."""
+    a, b = make_node(bus, "a"), make_node(bus, "b")
+    first, later = [], []
+    b.create_subscription("/tick", m.CLOCK_TYPE, first.append)
+    pub = a.create_publisher("/tick", m.CLOCK_TYPE)
+    pub.publish(m.clock_msg(1))
+    joined = b.create_subscription("/tick", m.CLOCK_TYPE, later.append)
+    pub.publish(m.clock_msg(2))
+    assert b.wait_for(lambda: len(first) == 2 and len(later) == 1, timeout_s=2)
+    assert m.stamp_of(later[0]) == 2
+    joined.destroy()
+    pub.publish(m.clock_msg(3))
+    assert b.wait_for(lambda: len(first) == 3, timeout_s=2)
+    b.spin_once(0.05)
+    assert len(later) == 1
+
+
 def test_transient_local_replays_to_late_joiners(bus):
     a = make_node(bus, "a")
     pub = a.create_publisher("/sim/episode_start", m.POSE_TYPE, LATCHED_QOS)

@@ -34,6 +34,9 @@ class InprocBus:
         self.lock = threading.RLock()
         self.publishers: dict[str, list[_Publisher]] = {}
         self.subscriptions: dict[str, list[_Subscription]] = {}
+        self.generation = 0
+        """Counts changes of ``subscriptions``: a publisher matches its readers again only
+        after one (as DDS matches at discovery, not at every sample)."""
 
 
 _DEFAULT_BUS = InprocBus()
@@ -47,6 +50,8 @@ class _Publisher(PublisherHandle):
             deque(maxlen=keep) if qos.durability is Durability.TRANSIENT_LOCAL else None
         )
         self.closed = False
+        self._targets: list[_Subscription] = []
+        self._generation = -1  # the bus's generation _targets were matched at
 
     def matches(self, sub: _Subscription) -> bool:
         return self.msgtype == sub.msgtype and compatible(self.qos, sub.qos)
@@ -60,7 +65,11 @@ class _Publisher(PublisherHandle):
             sent = time.time_ns()  # under the lock: publish times follow publish order
             if self.history is not None:
                 self.history.append((data, sent))
-            targets = [s for s in bus.subscriptions.get(self.topic, ()) if self.matches(s)]
+            if self._generation != bus.generation:
+                subscriptions = bus.subscriptions.get(self.topic, ())
+                self._targets = [s for s in subscriptions if self.matches(s)]
+                self._generation = bus.generation
+            targets = self._targets
         for sub in targets:
             sub.deliver(data, sent)
 
@@ -109,6 +118,7 @@ class _Subscription(SubscriptionHandle):
                 self.queue.clear()
             with self.owner.bus.lock:
                 self.owner.bus.subscriptions[self.topic].remove(self)
+                self.owner.bus.generation += 1
 
 
 class InprocTransport(Transport):
@@ -137,6 +147,7 @@ class InprocTransport(Transport):
         sub = _Subscription(self, topic, msgtype, qos.resolved(), callback)
         with self.bus.lock:
             self.bus.subscriptions.setdefault(topic, []).append(sub)
+            self.bus.generation += 1
             history = [
                 list(p.history)
                 for p in self.bus.publishers.get(topic, ())
