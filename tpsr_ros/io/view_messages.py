@@ -179,7 +179,8 @@ class ViewMessages:
             difference = self._previous - observation
             error = float(np.sqrt(np.add.reduce(difference * difference) / difference.size) * 255.0)
         greedy = None if q_values is None else int(np.argmax(q_values))
-        predicted = np.clip(self.view.predicted_observation(state, greedy), 0.0, 1.0)
+        predicted = self.view.predicted_observation(state, greedy)  # a new array: clip it
+        np.minimum(np.maximum(predicted, 0.0, out=predicted), 1.0, out=predicted)
         self._previous = predicted
         pixels = np.rint(predicted * 255.0).astype(np.uint8).reshape(self._pixels_shape)
         if pixels.shape[2] == 1:
@@ -238,7 +239,7 @@ class ViewMessages:
         with its Q-value from 0.05 to 0.5; the greedy action (``q_values``' argmax) green,
         the others grey: the lines' points and the bytes of their colours."""
         values = np.asarray(q_values, dtype=np.float64)
-        low, high = float(values.min()), float(values.max())
+        low, high = float(np.minimum.reduce(values)), float(np.maximum.reduce(values))
         lengths = 0.05 + 0.45 * (values - low) / (high - low if high > low else 1.0)
         points = self._lines  # written into a message before the next step
         points[0::2] = here
