@@ -157,6 +157,7 @@ class ViewMessages:
         self._line_colors = np.tile(np.asarray(_GREY, dtype=np.float32), (2 * view.n_actions, 1))
         self._greedy_colors: dict[int, bytes] = {}  # the lines' colours per greedy action
         self._lines = np.empty((2 * view.n_actions, 3))  # each line's ends, start first
+        self._line_starts, self._line_ends = self._lines[0::2], self._lines[1::2]
         self._template: MarkerArrayTemplate | None = None  # of the last step's markers
         # the trail twice over: the last ``trail`` points are always one contiguous slice
         self._trail = np.zeros((2 * self.settings.trail, 3))
@@ -178,7 +179,7 @@ class ViewMessages:
         if self._previous is not None:  # np.mean's sum and division, without its wrappers
             difference = self._previous - observation
             error = float(np.sqrt(np.add.reduce(difference * difference) / difference.size) * 255.0)
-        greedy = None if q_values is None else int(np.argmax(q_values))
+        greedy = None if q_values is None else int(np.asarray(q_values).argmax())
         predicted = self.view.predicted_observation(state, greedy)  # a new array: clip it
         np.minimum(np.maximum(predicted, 0.0, out=predicted), 1.0, out=predicted)
         self._previous = predicted
@@ -241,10 +242,9 @@ class ViewMessages:
         values = np.asarray(q_values, dtype=np.float64)
         low, high = float(np.minimum.reduce(values)), float(np.maximum.reduce(values))
         lengths = 0.05 + 0.45 * (values - low) / (high - low if high > low else 1.0)
-        points = self._lines  # written into a message before the next step
-        points[0::2] = here
-        np.multiply(lengths[:, None], self._directions, out=points[1::2])
-        points[1::2] += here
+        self._line_starts[...] = here  # written into a message before the next step
+        ends = np.multiply(lengths[:, None], self._directions, out=self._line_ends)
+        ends += here
         colors = self._greedy_colors.get(greedy)
         if colors is None:
             line_colors = self._line_colors.copy()
@@ -252,7 +252,7 @@ class ViewMessages:
             colors = self._greedy_colors[greedy] = np.ascontiguousarray(
                 line_colors, dtype="<f4"
             ).tobytes()
-        return points, colors
+        return self._lines, colors
 
     def _pose(self, stamp_ns: int, state: np.ndarray) -> bytes | None:
         pose = self.view.decoded_pose(state)
