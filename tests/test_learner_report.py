@@ -473,6 +473,28 @@ def test_the_loop_position_error_is_told_beside_the_rl_runs_with_the_weakest_run
     assert loop_grip(unrecorded) is None
 
 
+def test_the_fit_lottery_is_measured_on_the_same_data_across_the_fits_own_seeds():
+    """Two runs (repetitions) fitted at seeds 0 and 1: one moves from 300 to 420 (fails,
+    then succeeds), one from 400 to 410; the range, the flip and the variance split."""
+    from learner.appendix import fit_lottery
+
+    def row(repetition: int, seed: int, score: float) -> Row:
+        return Row("partial-strip", "tpsr", 8000, repetition, 1, 100, score, "", 0.0, 0.01, 0,
+                   0.9, 0.9, "ok", parameters=json.dumps({"tpsr": {"seed": seed}}))  # fmt: skip
+
+    rows = [row(0, 0, 300.0), row(0, 1, 420.0), row(1, 0, 400.0), row(1, 1, 410.0)]
+    within = (np.var([300.0, 420.0], ddof=1) + np.var([400.0, 410.0], ddof=1)) / 2
+    between = np.var([360.0, 405.0], ddof=1)
+    text = fit_lottery(rows, "seed")
+    assert text.startswith(
+        "the same training data, fitted with another `seed`, scores a range of 65.0 (median "
+        "over 2 runs of 2 values each; largest 120.0); 1 of the 2 score below 350 with some "
+        "value, 1 of those 400 or more with another; the fit's own seed accounts for "
+        f"{100 * within / (within + between):.0f} % of the runs' score variance"
+    )
+    assert fit_lottery(rows[::2], "seed") is None  # one value per run: nothing to compare
+
+
 def test_pca_is_planned_with_its_own_planner_where_one_image_is_ambiguous():
     from learner.predictive_section import PCA_PLANNER, PCA_PLANNER_ENVIRONMENTS
 
