@@ -209,8 +209,7 @@ def loop_grip(rows: list[Row]) -> str | None:
         f"off in the trials as on the RL run (under the policy's own actions, such as "
         f"standing for many steps, which random actions rarely do, their states no longer "
         f"say where the robot is), scoring {float(np.mean([r.score for r in lost])):.1f} "
-        f"on average "
-        f"against the others' {float(np.mean(kept)):.1f}"
+        f"on average against the others' {float(np.mean(kept)):.1f}"
         if lost and kept
         else f"; {'every' if lost else 'no'} run places it more than {LOST_RATIO:g} times as "
         "far off in the trials as on the RL run"

@@ -507,7 +507,9 @@ class Node:
         """
         now = time.monotonic_ns()
         if now < self._next_timer_ns:
-            return (self._next_timer_ns - now) / _NS
+            return float("inf") if self._next_timer_ns == _NEVER_NS else (
+                (self._next_timer_ns - now) / _NS
+            )
         self._timers = [t for t in self._timers if not t.cancelled]
         for timer in list(self._timers):
             if not timer.cancelled and timer.next_ns <= now and self.ok():
