@@ -602,11 +602,11 @@ RIDGE_STUDY = _predictive_study(
     "not (`partial-strip`), the environment the preset was made for. A check on the "
     "predictive section's fresh seeds, outside the committed results, agreed: `partial` "
     "426.4 to 451.6 (weakest run 378.6 to 423.4), but `partial-strip` 385.1 to 359.3 "
-    "(three runs near 220; weakest 319.4 to 219.5) and `drive` 382.4 to 362.2 (weakest "
+    "(three runs at 220-230; weakest 319.4 to 219.5) and `drive` 382.4 to 362.2 (weakest "
     "344.8 to 285.1), with `full` (468.1) and `distractors` (455.3 to 457.5) level. The "
     "models are the same; the collapsed `partial-strip` runs are those whose states, under "
     "the new policy, no longer tell where the robot is (loop position error 5.9-8.3 m "
-    "against 1.9-3.2 m on the RL run).",
+    "against 1.9-3.2 m on the RL run; one run that scored 433.1 also reads 7.5 m).",
     "fqi.ridge=0.01,0.1",
     environments=("partial", "partial-strip"),
 )
