@@ -82,6 +82,35 @@ def _r2_text(r2: np.ndarray, separator: str = ", ") -> str:
     return separator.join(f"{name} {value:.3f}" for name, value in pairs)
 
 
+def _principal_axes(centred: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The SVD of centred states ``(T, r)`` restricted to the directions above the rounding
+    level: left singular vectors ``(T, d)`` (the states whitened, up to a common factor),
+    singular values ``(d,)`` and axes ``(d, r)``. Better conditioned than an
+    eigendecomposition of the covariance, which squares the spread of scales."""
+    left, singular, axes = np.linalg.svd(centred, full_matrices=False)
+    # numpy's matrix-rank tolerance: directions below it are rounding, not data
+    keep = singular > singular.max() * max(centred.shape) * np.finfo(float).eps
+    if not keep.any():
+        raise DataError("the states do not vary: they cannot locate anything")
+    return left[:, keep], singular[keep], axes[keep]
+
+
+def _location_error(
+    reference: np.ndarray,
+    reference_positions: np.ndarray,
+    queries: np.ndarray,
+    positions: np.ndarray,
+    neighbours: int,
+) -> float:
+    """Median distance between ``positions`` and the mean position of each query's
+    ``neighbours`` nearest reference states (both in the same whitened coordinates)."""
+    from scipy.spatial import cKDTree
+
+    _, nearest = cKDTree(reference).query(queries, k=neighbours)
+    located = np.asarray(reference_positions, dtype=np.float64)[nearest].mean(axis=1)
+    return float(np.median(np.linalg.norm(located - np.asarray(positions), axis=1)))
+
+
 def neighbour_position_error(
     states: np.ndarray, positions: np.ndarray, neighbours: int = NEIGHBOURS
 ) -> float:
@@ -96,8 +125,6 @@ def neighbour_position_error(
     precision a planner can use near walls, not the global linear fit; where distant places
     look alike (aliasing) the upper quantiles grow, not the median.
     """
-    from scipy.spatial import cKDTree
-
     states = np.asarray(states, dtype=np.float64)
     positions = np.asarray(positions, dtype=np.float64)
     half = len(states) // 2
@@ -108,18 +135,10 @@ def neighbour_position_error(
         )
     if not np.isfinite(states).all():
         raise DataError("the states hold non-finite values")
-    centred = states - states.mean(axis=0)
-    # whitened = the left singular vectors (up to a common factor): better conditioned than
-    # an eigendecomposition of the covariance, which squares the spread of scales
-    left, singular, _ = np.linalg.svd(centred, full_matrices=False)
-    # numpy's matrix-rank tolerance: directions below it are rounding, not data
-    keep = singular > singular.max() * max(centred.shape) * np.finfo(float).eps
-    if not keep.any():
-        raise DataError("the states do not vary: they cannot locate anything")
-    white = left[:, keep]
-    _, nearest = cKDTree(white[:half]).query(white[half:], k=neighbours)
-    located = positions[:half][nearest].mean(axis=1)
-    return float(np.median(np.linalg.norm(located - positions[half:], axis=1)))
+    white, _, _ = _principal_axes(states - states.mean(axis=0))
+    return _location_error(
+        white[:half], positions[:half], white[half:], positions[half:], neighbours
+    )
 
 
 def loop_position_error(
@@ -138,8 +157,6 @@ def loop_position_error(
     the measure on the reference alone, it tells whether the filter still knows where the
     robot is under the policy's own actions, which the random data may never have shown.
     """
-    from scipy.spatial import cKDTree
-
     reference = np.asarray(reference, dtype=np.float64)
     states = np.asarray(states, dtype=np.float64)
     if (
@@ -157,15 +174,12 @@ def loop_position_error(
     if not (np.isfinite(reference).all() and np.isfinite(states).all()):
         raise DataError("the states hold non-finite values")
     mean = reference.mean(axis=0)
-    _, singular, axes = np.linalg.svd(reference - mean, full_matrices=False)
-    keep = singular > singular.max() * max(reference.shape) * np.finfo(float).eps
-    if not keep.any():
-        raise DataError("the states do not vary: they cannot locate anything")
-    project = axes[keep].T / singular[keep]
-    tree = cKDTree((reference - mean) @ project)
-    _, nearest = tree.query((states - mean) @ project, k=neighbours)
-    located = np.asarray(reference_positions, dtype=np.float64)[nearest].mean(axis=1)
-    return float(np.median(np.linalg.norm(located - np.asarray(positions), axis=1)))
+    _, singular, axes = _principal_axes(reference - mean)
+    project = axes.T / singular
+    return _location_error(
+        (reference - mean) @ project, reference_positions, (states - mean) @ project,
+        positions, neighbours,
+    )  # fmt: skip
 
 
 JUDGEMENTS = ((0.4, "good"), (0.15, "fair"), (0.0, "poor"))
