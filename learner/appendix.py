@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -237,6 +237,7 @@ def _study(
     vary: str,
     *options: str,
     environments: tuple[str, ...] = GUIDE_ENVIRONMENTS,
+    render: Callable[[Section, Data], list[str]] = _render_study,
 ) -> Section:
     jobs = tuple(
         study_job(
@@ -245,16 +246,22 @@ def _study(
         )
         for env in environments
     )
-    return Section(key, title, question, jobs, _render_study)
+    return Section(key, title, question, jobs, render)
 
 
 def _predictive_study(
-    key: str, title: str, question: str, vary: str, *options: str, environments: tuple[str, ...]
+    key: str,
+    title: str,
+    question: str,
+    vary: str,
+    *options: str,
+    environments: tuple[str, ...],
+    render: Callable[[Section, Data], list[str]] = _render_study,
 ) -> Section:
     """A study of the ``predictive`` preset's TPSR (:func:`_study`)."""
     return _study(
         key, title, question, vary, "--preset", "predictive", "--methods", "tpsr", *options,
-        environments=environments,
+        environments=environments, render=render,
     )  # fmt: skip
 
 
@@ -644,6 +651,11 @@ SCALING_STUDY = _predictive_study(
 )
 """A study of the refinement's search variables, on the selection seeds (not adopted)."""
 
+FAILING_SCORE, SUCCEEDING_SCORE = 350.0, 400.0
+"""A run below the first fails and one at or above the second succeeds, for
+:func:`fit_lottery`."""
+
+
 def fit_lottery(rows: Sequence[Row], field: str) -> str | None:
     """How far one training run's score moves when only the fit's own ``tpsr.<field>``
     changes: per repetition (the same training and RL data), the range of its scores over
@@ -673,11 +685,6 @@ def fit_lottery(rows: Sequence[Row], field: str) -> str | None:
     )
 
 
-FAILING_SCORE, SUCCEEDING_SCORE = 350.0, 400.0
-"""A run below the first fails and one at or above the second succeeds, for
-:func:`fit_lottery`."""
-
-
 def _render_fit_seed(section: Section, data: Data) -> list[str]:
     lines = _render_study(section, data)
     name, _ = varied(section.jobs[0])
@@ -687,20 +694,18 @@ def _render_fit_seed(section: Section, data: Data) -> list[str]:
     return lines
 
 
-FIT_SEED_STUDY = dataclasses.replace(
-    _predictive_study(
-        "fit-seed",
-        "A predictive state: the fit's own seed",
-        "Replayed with two BLAS threads instead of the experiments' one, run 3 of the "
-        "predictive section's `partial-strip` rows scores 448.2 instead of 319.4 (restarts "
-        "0 instead of 6), run 1 399.4 instead of 358.5: the last bits of the spectral fit "
-        "change, and the refinement's search, which follows them, ends elsewhere (checks "
-        "outside the committed results). How much of the spread between runs is then the "
-        "data's, and how much the fit's own? The seed of k-means and of the SVD's start "
-        "(`tpsr.seed`) changes only the fit, on the same training and RL data.",
-        "tpsr.seed=0,1,2",
-        environments=("partial-strip",),
-    ),
+FIT_SEED_STUDY = _predictive_study(
+    "fit-seed",
+    "A predictive state: the fit's own seed",
+    "Replayed with two BLAS threads instead of the experiments' one, run 3 of the "
+    "predictive section's `partial-strip` rows scores 448.2 instead of 319.4 (restarts "
+    "0 instead of 6), run 1 399.4 instead of 358.5: the last bits of the spectral fit "
+    "change, and the refinement's search, which follows them, ends elsewhere (checks "
+    "outside the committed results). How much of the spread between runs is then the "
+    "data's, and how much the fit's own? The seed of k-means and of the SVD's start "
+    "(`tpsr.seed`) changes only the fit, on the same training and RL data.",
+    "tpsr.seed=0,1,2",
+    environments=("partial-strip",),
     render=_render_fit_seed,
 )
 """How much of the runs' spread is the fit's own, on the selection seeds."""

@@ -202,13 +202,15 @@ def loop_grip(rows: list[Row]) -> str | None:
     weakest = min(runs, key=lambda r: r.score)
     rl = float(np.median([r.position_error for r in runs]))
     loop = float(np.median([r.loop_position_error for r in runs]))
-    lost = [r for r in runs if r.loop_position_error > LOST_RATIO * r.position_error]
-    kept = [r.score for r in runs if r not in lost]
+    lost: list[float] = []  # the scores of the runs that lost the robot in their trials
+    kept: list[float] = []
+    for r in runs:
+        (lost if r.loop_position_error > LOST_RATIO * r.position_error else kept).append(r.score)
     losing = (
         f"; {len(lost)} of {len(runs)} runs place it more than {LOST_RATIO:g} times as far "
         f"off in the trials as on the RL run (under the policy's own actions, such as "
         f"standing for many steps, which random actions rarely do, their states no longer "
-        f"say where the robot is), scoring {float(np.mean([r.score for r in lost])):.1f} "
+        f"say where the robot is), scoring {float(np.mean(lost)):.1f} "
         f"on average against the others' {float(np.mean(kept)):.1f}"
         if lost and kept
         else f"; {'every' if lost else 'no'} run places it more than {LOST_RATIO:g} times as "
