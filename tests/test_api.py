@@ -101,6 +101,7 @@ def test_the_predictive_preset_carries_no_state_forward_for_a_robot_that_turns()
     turning = predictive.tpsr_config(turning=True)
     assert turning.refine_carry == 0.0 and predictive.tpsr_config().refine_carry == 0.3
     assert turning.refine_epochs == 30 and turning.p_th_tests == "from-current"
+    assert turning.history_length == predictive.tpsr_config().history_length == 2
     assert (turning.rank, turning.action_pooling) == (16, 0.5)  # the turning robot's best
     assert default_config("drive", "predictive").tpsr.refine_carry == 0.0
     assert default_config("partial-strip", "predictive").tpsr.refine_carry == 0.3

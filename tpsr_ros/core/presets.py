@@ -14,7 +14,10 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
   rank 16 and operators pooled half-way, since its camera's view depends on a third
   coordinate, the heading, and on which way each action turns it (docs/results.md,
   "drive").
-- ``predictive``: ``best`` with ``P_TH``'s tests from the current step, a window starting at
+- ``predictive``: ``best`` with ``P_TH``'s tests from the current step, histories of the
+  last two images and actions (chosen on the selection seeds in ``partial-strip``, 407.8 to
+  422.4, and higher on the fresh seeds in four environments of five; "A predictive state:
+  two images of history"), a window starting at
   every step of the training run (overlapping, so the spectral start learns from every
   window the refinement runs over, not a third of them; "A predictive state: every step a
   window"), and the spectral model refined through its filter (:mod:`tpsr_ros.core.refine`),
@@ -133,14 +136,15 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
             _BEST,
             name="predictive",
             summary="the project's best, made a predictive state: P_TH with the tests from the "
-            "current step (so B_ao propagates the state it defines) and a window at every "
-            "step (overlapping), then the spectral model "
+            "current step (so B_ao propagates the state it defines), histories of two "
+            "images and a window at every step (overlapping), then the spectral model "
             "refined through its filter (at most 30 L-BFGS iterations on predicting the next "
             "10 images) from a start that carries 0.3 of the state forward at a typical step "
             "(a robot that turns: none); a diverged fitted-Q member is refitted alone",
             tpsr={
                 **_BEST.tpsr,
                 "p_th_tests": "from-current",
+                "history_length": 2,
                 "overlapping_episodes": True,
                 "refine_epochs": 30,
                 "refine_carry": 0.3,
