@@ -754,10 +754,10 @@ _PREDICTIVE_FIT = (
     _predictive_study(
         "history-length",
         "A predictive state: two images of history",
-        "The spectral start's histories are one image and action long, so the regression "
+        "The spectral start's histories are one image long, so the regression "
         "that defines `B_ao` only ever sees `(o_{t-1}, a_t, o_t, o_{t+1})`, and the refined "
-        "filter forgets within a step. Should a history hold the last two images and "
-        "actions (`tpsr.history_length`)? Adopted in `--preset predictive`: on the selection "
+        "filter forgets within a step. Should a history hold the last two "
+        "images (`tpsr.history_length`)? Adopted in `--preset predictive`: on the selection "
         "seeds two images score higher, within the noise, with fewer restarts (a median of "
         "3.5 over the RL run against 7.5), and on the fresh seeds of the predictive section "
         "(whose rows were rerun with them) they scored higher in four environments of five "
@@ -775,7 +775,7 @@ _PREDICTIVE_FIT = (
         "test-length",
         "A predictive state: two images of test",
         "With histories of two images, should the tests, the futures whose features the "
-        "spectral start's state predicts, also hold the next two images and actions "
+        "spectral start's state predicts, also hold the next two images "
         "(`tpsr.test_length`)? Not adopted: the runs score lower, with as many restarts "
         "(a median of 3.5 over the RL run), and their fits take longer.",
         "tpsr.test_length=1,2",

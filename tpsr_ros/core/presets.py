@@ -15,20 +15,19 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
   coordinate, the heading, and on which way each action turns it (docs/results.md,
   "drive").
 - ``predictive``: ``best`` with ``P_TH``'s tests from the current step, histories of the
-  last two images and actions (chosen on the selection seeds in ``partial-strip``, 407.8 to
-  422.4, and higher on the fresh seeds in four environments of five; "A predictive state:
-  two images of history"), a window starting at
-  every step of the training run (overlapping, so the spectral start learns from every
-  window the refinement runs over, not a third of them; "A predictive state: every step a
-  window"), and the spectral model refined through its filter (:mod:`tpsr_ros.core.refine`),
-  from a start whose typical step carries 0.3 of the previous state forward (chosen among 0,
-  0.3, 0.5 and 0.7 on ten runs of the selection seeds in ``partial-strip``: 390.8, 405.7,
-  391.7 and 266.1; docs/results.md, "A predictive state: the carried start"), but a robot
-  that turns carries nothing (the carried start loses its heading: in ``drive`` the
-  heading's R² falls from 0.89 at 0 to 0.63 at 0.7, the score from 353.7 to 145.5); a
-  fitted-Q member that diverges is refitted alone (``fqi.refit member``), not the whole
-  ensemble, which rescued every run where refitting the whole ensemble collapsed ("A
-  predictive state: refitting a diverged planner").
+  last two images (chosen on the selection seeds in ``partial-strip``, 407.8 to 422.4, and
+  higher on the fresh seeds in four environments of five; "A predictive state: two images of
+  history"), a window starting at every step of the training run (overlapping, so the
+  spectral start learns from every window the refinement runs over, not a third of them; "A
+  predictive state: every step a window"), and the spectral model refined through its filter
+  (:mod:`tpsr_ros.core.refine`), from a start whose typical step carries 0.3 of the previous
+  state forward (chosen among 0, 0.3, 0.5 and 0.7 on ten runs of the selection seeds in
+  ``partial-strip``: 390.8, 405.7, 391.7 and 266.1; docs/results.md, "A predictive state:
+  the carried start"), but a robot that turns carries nothing (the carried start loses its
+  heading: in ``drive`` the heading's R² falls from 0.89 at 0 to 0.63 at 0.7, the score from
+  353.7 to 145.5); a fitted-Q member that diverges is refitted alone (``fqi.refit member``),
+  not the whole ensemble, which rescued every run where refitting the whole ensemble
+  collapsed ("A predictive state: refitting a diverged planner").
 
 Options given explicitly (``learner fit --rank 5``, ``--set tpsr.rank=5``) change single
 fields of a preset; :func:`departures` names them, so a model records its preset and what
