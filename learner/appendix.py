@@ -761,13 +761,15 @@ _PREDICTIVE_FIT = (
         "seeds two images score higher, within the noise, with fewer restarts (a median of "
         "3.5 over the RL run against 7.5), and on the fresh seeds of the predictive section "
         "(whose rows were rerun with them) they scored higher in four environments of five "
-        "and 0.9 lower in `full`. `learner memory` still measures 0 steps: its stand-still "
+        "and 0.9 lower in `full`. On the selection seeds three images score lower than two, "
+        "within the noise. "
+        "`learner memory` still measures 0 steps: its stand-still "
         "variant (the same image after a step west or east) is 0 for a filter whose refined "
         "operators barely depend on the action (\"scaling the refinement's search\" above); "
         "in one model fitted outside the committed results the paths variant (west or east, "
         "then the same steps north to a wall that looks alike) keeps the runs' states apart "
         "for 2 steps instead of 1.",
-        "tpsr.history_length=1,2",
+        "tpsr.history_length=1,2,3",
         "--memory",
         environments=("partial-strip",),
     ),
