@@ -315,8 +315,9 @@ PREDICTIVE_SECTION = Section(
     "predictive",
     "A predictive state: from-current tests and refinement through the filter",
     "Does the defaults' TPSR become a better state for planning when `P_TH` takes its tests "
-    "from the current step (so that `B_ao` propagates the state it defines) and the "
-    "spectral model is then refined through its own filter on predicting the next 10 "
+    "from the current step (so that `B_ao` propagates the state it defines), its "
+    "histories hold the last two images, and the spectral model is then refined through "
+    "its own filter on predicting the next 10 "
     "images, from a start that carries 0.3 of the previous state forward at a typical step "
     "(none for a robot that turns) (`--preset predictive`; `tpsr_ros.core.refine`)? The "
     "tests and the refinement were chosen on four runs of the selection seeds in "
@@ -343,8 +344,13 @@ PREDICTIVE_SECTION = Section(
     "window\" above); with windows that did not overlap the preset scored 468.2 in `full`, "
     "446.4 in `partial` (weakest 433.9), 448.4 in `distractors` (weakest 391.9, median "
     "restarts 52), 370.0 in `partial-strip` (weakest 201.1) and 323.9 in `drive` (weakest "
-    "197.1). The predictive rows were run a last time, to the same scores bit for bit, to "
-    "record where each run's states place the robot in its scored trials.",
+    "197.1). The predictive rows were run once more, to the same scores bit for bit, to "
+    "record where each run's states place the robot in its scored trials, and a last time "
+    "when the histories took the last two images (the study \"two images of history\" "
+    "above); with one image the preset scored 468.1 in `full`, 426.4 in `partial` "
+    "(weakest 378.6), 455.3 in `distractors` (weakest 437.5, median restarts 13), 385.1 "
+    "in `partial-strip` (weakest 319.4, median restarts 10) and 382.4 in `drive` "
+    "(weakest 344.8).",
     _ALL_JOBS,
     _render,
     "**Commands** (the headline's seeds):\n\n```sh\n"
