@@ -587,7 +587,8 @@ CENTERS_STUDY = _predictive_study(
     "few metres outside the goal zone, as if the fitted Q could not tell the zone's edge "
     "from the ground beside it. Does a finer fitted Q (`fqi.centers`: 200 centres per "
     "member instead of 100) lift them? Not adopted: the rise on the selection seeds below "
-    "did not hold on the predictive section's fresh seeds, in a check outside the "
+    "did not hold on the predictive section's fresh seeds (histories of one image), in a "
+    "check outside the "
     "committed results (`partial-strip` 385.1 to 367.8, `full` 468.1 to 460.4, the weakest "
     "`partial` run 378.6 to 228.5; `drive` 382.4 to 379.6, `distractors` 455.3 to 458.3), "
     "and the trials that earned nothing on the selection seeds stayed at 4 of 100.",
@@ -600,14 +601,16 @@ adopted)."""
 RIDGE_STUDY = _predictive_study(
     "predictive-ridge",
     "A predictive state: the planner's ridge",
-    "In the predictive section's `partial` rows the runs whose fitted Q refitted a diverged "
+    "In the predictive section's `partial` rows (histories of one image) the runs whose "
+    "fitted Q refitted a diverged "
     "member at a larger ridge score higher than the runs planned at the ridge of 0.01 "
     "throughout (450.4 against 410.4; in `partial-strip` the other way round: 354.3 "
     "against 398.3), although their states place the robot as well. Should the planner "
     "start from a ridge of 0.1 (`fqi.ridge`)? Not adopted: it plans better where one "
     "image tells where the robot is (`partial`) and worse, within the noise, where it does "
     "not (`partial-strip`), the environment the preset was made for. A check on the "
-    "predictive section's fresh seeds, outside the committed results, agreed: `partial` "
+    "predictive section's fresh seeds (histories of one image), outside the committed "
+    "results, agreed: `partial` "
     "426.4 to 451.6 (weakest run 378.6 to 423.4), but `partial-strip` 385.1 to 359.3 "
     "(three runs at 220-230; weakest 319.4 to 219.5) and `drive` 382.4 to 362.2 (weakest "
     "344.8 to 285.1), with `full` (468.1) and `distractors` (455.3 to 457.5) level. The "
@@ -701,7 +704,8 @@ FIT_SEED_STUDY = _predictive_study(
     "fit-seed",
     "A predictive state: the fit's own seed",
     "Replayed with two BLAS threads instead of the experiments' one, run 3 of the "
-    "predictive section's `partial-strip` rows scores 448.2 instead of 319.4 (restarts "
+    "predictive section's `partial-strip` rows (histories of one image) scores 448.2 "
+    "instead of 319.4 (restarts "
     "0 instead of 6), run 1 399.4 instead of 358.5: the last bits of the spectral fit "
     "change, and the refinement's search, which follows them, ends elsewhere (checks "
     "outside the committed results). How much of the spread between runs is then the "
@@ -742,7 +746,8 @@ _PREDICTIVE_FIT = (
         "(`tpsr.refine_pull`, the weight of the parameters' relative squared change) keep the "
         "refined filter from that lottery, and plan better? Not adopted: the strongest pull "
         "scores highest on the selection seeds, within the noise, and a check on the "
-        "predictive section's fresh seeds, outside the committed results, did not agree: "
+        "predictive section's fresh seeds (histories of one image), outside the committed "
+        "results, did not agree: "
         "`partial-strip` 385.1 / 376.1 / 14.2 with the pull of 0.001 and 363.6 / 387.1 / "
         "23.1 with 1 (weakest run 319.4 and 250.3; three runs below 290). Run by run the "
         "two pulls' scores differ by up to 115 points on the same data, either way: the "
