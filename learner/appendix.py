@@ -794,7 +794,8 @@ _PREDICTIVE_FIT = (
         "A predictive state: the refinement's window",
         "The refinement backpropagates through 16 steps of the filter before each window's "
         "16 scored steps, and the refined filter still forgets within a step. Should both be "
-        "32 (`tpsr.refine_window`), so that a use for an older past can reach the gradient? Not adopted: the runs score lower, their memory stays at 0 steps.",
+        "32 (`tpsr.refine_window`), so that a use for an older past can reach the gradient? "
+        "Not adopted: the runs score lower, their memory stays at 0 steps.",
         "tpsr.refine_window=16,32",
         "--memory",
         environments=("partial-strip",),
