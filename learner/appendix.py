@@ -551,7 +551,7 @@ CARRY_STUDY = _predictive_study(
     "the committed results), a carry of 0.5 scored 417.6 / 420.6 / 7.8 on the selection "
     "seeds against 0.3's 422.4 / 437.9 / 10.1, and 401.3 / 428.4 / 18.3 on the predictive "
     "section's fresh seeds against 402.3 / 436.9 / 18.2, with fewer restarts (medians 0 and "
-    "1 against 3.5 and 8): level, and 0.3 was kept.",
+    "1 against 3.5 and 7.5): level, and 0.3 was kept.",
     "tpsr.refine_carry=0,0.3,0.5,0.7",
     environments=("partial-strip", "drive"),
 )
