@@ -593,9 +593,9 @@ CENTERS_STUDY = _predictive_study(
     "from the ground beside it. Does a finer fitted Q (`fqi.centers`: 200 centres per "
     "member instead of 100) lift them? Not adopted: the rise on the selection seeds below "
     "did not hold on the predictive section's fresh seeds (histories of one image), in a "
-    "check outside the "
-    "committed results (`partial-strip` 385.1 to 367.8, `full` 468.1 to 460.4, the weakest "
-    "`partial` run 378.6 to 228.5; `drive` 382.4 to 379.6, `distractors` 455.3 to 458.3), "
+    "check outside the committed results (`partial-strip` 385.1 to 367.8, `full` 468.1 to "
+    "460.4, the weakest `partial` run 378.6 to 228.5; `drive` 382.4 to 379.6, `distractors` "
+    "455.3 to 458.3), "
     "and the trials that earned nothing on the selection seeds stayed at 4 of 100.",
     "fqi.centers=100,200",
     environments=("partial-strip",),
@@ -607,16 +607,16 @@ RIDGE_STUDY = _predictive_study(
     "predictive-ridge",
     "A predictive state: the planner's ridge",
     "In the predictive section's `partial` rows (histories of one image) the runs whose "
-    "fitted Q refitted a diverged "
-    "member at a larger ridge score higher than the runs planned at the ridge of 0.01 "
+    "fitted Q refitted a diverged member at a larger ridge score higher than the runs "
+    "planned at the ridge of 0.01 "
     "throughout (450.4 against 410.4; in `partial-strip` the other way round: 354.3 "
     "against 398.3), although their states place the robot as well. Should the planner "
     "start from a ridge of 0.1 (`fqi.ridge`)? Not adopted: it plans better where one "
     "image tells where the robot is (`partial`) and worse, within the noise, where it does "
     "not (`partial-strip`), the environment the preset was made for. A check on the "
     "predictive section's fresh seeds (histories of one image), outside the committed "
-    "results, agreed: `partial` "
-    "426.4 to 451.6 (weakest run 378.6 to 423.4), but `partial-strip` 385.1 to 359.3 "
+    "results, agreed: `partial` 426.4 to 451.6 (weakest run 378.6 to 423.4), but "
+    "`partial-strip` 385.1 to 359.3 "
     "(three runs at 220-230; weakest 319.4 to 219.5) and `drive` 382.4 to 362.2 (weakest "
     "344.8 to 285.1), with `full` (468.1) and `distractors` (455.3 to 457.5) level. The "
     "models are the same; the collapsed `partial-strip` runs are those whose states, under "
@@ -710,8 +710,8 @@ FIT_SEED_STUDY = _predictive_study(
     "A predictive state: the fit's own seed",
     "Replayed with two BLAS threads instead of the experiments' one, run 3 of the "
     "predictive section's `partial-strip` rows (histories of one image) scores 448.2 "
-    "instead of 319.4 (restarts "
-    "0 instead of 6), run 1 399.4 instead of 358.5: the last bits of the spectral fit "
+    "instead of 319.4 (restarts 0 instead of 6), run 1 399.4 instead of 358.5: the last "
+    "bits of the spectral fit "
     "change, and the refinement's search, which follows them, ends elsewhere (checks "
     "outside the committed results). How much of the spread between runs is then the "
     "data's, and how much the fit's own? The seed of k-means and of the SVD's start "
@@ -752,8 +752,8 @@ _PREDICTIVE_FIT = (
         "refined filter from that lottery, and plan better? Not adopted: the strongest pull "
         "scores highest on the selection seeds, within the noise, and a check on the "
         "predictive section's fresh seeds (histories of one image), outside the committed "
-        "results, did not agree: "
-        "`partial-strip` 385.1 / 376.1 / 14.2 with the pull of 0.001 and 363.6 / 387.1 / "
+        "results, did not agree: `partial-strip` 385.1 / 376.1 / 14.2 with the pull of "
+        "0.001 and 363.6 / 387.1 / "
         "23.1 with 1 (weakest run 319.4 and 250.3; three runs below 290). Run by run the "
         "two pulls' scores differ by up to 115 points on the same data, either way: the "
         "lottery stays.",
@@ -772,9 +772,8 @@ _PREDICTIVE_FIT = (
         "3.5 over the RL run against 7.5), and on the fresh seeds of the predictive section "
         "(whose rows were rerun with them) they scored higher in four environments of five "
         "and 0.9 lower in `full`. On the selection seeds three images score lower than two, "
-        "within the noise. "
-        "`learner memory` still measures 0 steps: its stand-still "
-        "variant (the same image after a step west or east) is 0 for a filter whose refined "
+        "within the noise. `learner memory` still measures 0 steps: its stand-still variant "
+        "(the same image after a step west or east) is 0 for a filter whose refined "
         "operators barely depend on the action (\"scaling the refinement's search\" above); "
         "in one model fitted outside the committed results the paths variant (west or east, "
         "then the same steps north to a wall that looks alike) keeps the runs' states apart "
@@ -829,7 +828,7 @@ _PREDICTIVE_FIT = (
     ),
 )
 """Studies of the ``predictive`` preset's fit where one image is ambiguous (overlapping
-windows adopted)."""
+windows and two images of history adopted)."""
 
 PCA_PLANNER_STUDY = _study(
     "pca-planner",
