@@ -674,7 +674,7 @@ def fit_lottery(rows: Sequence[Row], field: str) -> str | None:
     values per repetition."""
     scores: dict[int, list[float]] = {}
     for row in rows:
-        if row.method == "tpsr" and field in row_parameters(row).get("tpsr", {}):
+        if row.method == "tpsr":
             scores.setdefault(row.repetition, []).append(row.score)
     runs = [np.asarray(v) for v in scores.values() if len(v) > 1 and np.isfinite(v).all()]
     if not runs:

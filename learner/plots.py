@@ -174,12 +174,10 @@ def loop_position_error(
     if not (np.isfinite(reference).all() and np.isfinite(states).all()):
         raise DataError("the states hold non-finite values")
     mean = reference.mean(axis=0)
-    _, singular, axes = _principal_axes(reference - mean)
-    project = axes.T / singular
+    white, singular, axes = _principal_axes(reference - mean)  # white = centred @ axes.T / s
     return _location_error(
-        (reference - mean) @ project, reference_positions, (states - mean) @ project,
-        positions, neighbours,
-    )  # fmt: skip
+        white, reference_positions, (states - mean) @ (axes.T / singular), positions, neighbours
+    )
 
 
 JUDGEMENTS = ((0.4, "good"), (0.15, "fair"), (0.0, "poor"))
