@@ -36,9 +36,9 @@ from typing import Any, TypeVar
 import numpy as np
 
 from tpsr_ros.core.episode_stream import (
-    EpisodeCutter,
     EpisodeMoments,
     box_rows,
+    episode_cutter,
     episode_moments,
     episodes_of,
     merge_moments,
@@ -194,9 +194,9 @@ def check_bags_visible(client: Any, bags: Sequence[Path | str]) -> None:
 
 
 def _bag_moments(
-    reader: BagChunks, bag: str, m: int, n: int, limit: int | None
+    reader: BagChunks, bag: str, m: int, n: int, limit: int | None, stride: int | None
 ) -> EpisodeMoments | None:
-    return episode_moments(reader.read(bag), m, n, limit)
+    return episode_moments(reader.read(bag), m, n, limit, stride)
 
 
 def _bag_whitened(
@@ -209,7 +209,7 @@ def _bag_whitened(
 def _bag_box(
     reader: BagChunks, bag: str, cfg: TPSRConfig, limit: int | None, indices: np.ndarray
 ) -> BoxData:
-    cutter = EpisodeCutter(cfg.history_length, cfg.test_length, limit)
+    cutter = episode_cutter(cfg, limit)
     return box_rows(episodes_of(reader.read(bag), cutter), indices)
 
 
@@ -290,12 +290,19 @@ class DaskEngine:
         self._rows: list[tuple[Any, int, int]] = []
         """Pass 2: each bag's whitened rows (a future) with its first episode and count."""
 
-    def moments(self, history_length: int, test_length: int, max_episodes: int | None) -> Any:
+    def moments(
+        self,
+        history_length: int,
+        test_length: int,
+        max_episodes: int | None,
+        stride: int | None = None,
+    ) -> Any:
         """Pass 1: one task per bag, counts fetched, moments merged as a tree."""
         submit = self.client.submit
         m, n = history_length, test_length
         futures = [
-            submit(_bag_moments, self.reader, bag, m, n, None, pure=False) for bag in self.bags
+            submit(_bag_moments, self.reader, bag, m, n, None, stride, pure=False)
+            for bag in self.bags
         ]
         counts = gather(self.client, [submit(_count, f, pure=False) for f in futures], self.poll)
         limits: list[int | None] = [None] * len(self.bags)
@@ -305,7 +312,8 @@ class DaskEngine:
                 limits[i] = min(count, remaining)
                 if 0 < remaining < count:  # the limit falls inside this bag: re-read its share
                     futures[i] = submit(
-                        _bag_moments, self.reader, self.bags[i], m, n, remaining, pure=False
+                        _bag_moments, self.reader, self.bags[i], m, n, remaining, stride,
+                        pure=False,
                     )
                 counts[i] = limits[i]  # bags after the limit: 0, left out
                 remaining -= counts[i]

@@ -177,7 +177,8 @@ def add_streamed_options(parser: argparse.ArgumentParser | argparse._ArgumentGro
         "--stream",
         action="store_true",
         help="read the bags twice in chunks instead of holding them in memory (same model "
-        "to 1e-9; implied by --workers and --scheduler)",
+        "to 1e-9, refined to 1e-6; a refinement holds its steps in memory, at most "
+        "tpsr.refine_steps; implied by --workers and --scheduler)",
     )
     parser.add_argument(
         "--chunk-steps",
@@ -497,18 +498,6 @@ def _run_streamed(
         image_shape = [spec.preprocessing.height, spec.preprocessing.width]
         recorded["pose_frame"] = pose_frame  # as the in-memory fit records it
     tpsr_config, preset = _fit_config(args, file_values, spec, environment)
-    in_memory = []  # what only the fit in memory does, and the options that turn it off
-    if args.method == "tpsr" and tpsr_config.refine_epochs:
-        in_memory.append((f"refinement (refine_epochs {tpsr_config.refine_epochs}) through "
-                          "the filter", "--refine-epochs 0"))  # fmt: skip
-    if args.method == "tpsr" and tpsr_config.overlapping_episodes:
-        in_memory.append(("overlapping episodes", "--no-overlapping-episodes"))
-    if in_memory:
-        raise ConfigError(
-            f"{' and '.join(what for what, _ in in_memory)} run over the steps in memory; a "
-            "streamed fit is spectral on the guide's episodes: add "
-            f"{' '.join(option for _, option in in_memory)}"
-        )
     reader = BagChunks(
         topics=topics, chunk_steps=args.chunk_steps, spec=spec, pose_frame=pose_frame
     )
@@ -542,7 +531,10 @@ def _run_streamed(
                 scheduler=args.scheduler, workers=args.workers, timeout=args.scheduler_timeout
             ) as client:
                 check_bags_visible(client, args.bags)
-                model = fit(DaskEngine(client, args.bags, reader))
+                model = fit(  # the refinement's steps are read here, in bag order
+                    DaskEngine(client, args.bags, reader),
+                    refine_source=lambda: reader.read_all(args.bags),
+                )
         else:
             model = fit(lambda: reader.read_all(args.bags))
         episodes = int(model.fit_info["episodes"])

@@ -105,6 +105,40 @@ def test_every_fit_option_streams_and_distributes(
     ).max()
 
 
+PREDICTIVE = [*SMALL, "--preset", "predictive", "--refine-epochs", "3"]
+"""The predictive preset (overlapping episodes, refinement), which the streamed fit once
+refused."""
+
+
+@pytest.fixture(scope="module")
+def predictive_in_memory(bags, tmp_path_factory):
+    from learner.cli import main
+
+    memory = tmp_path_factory.mktemp("predictive") / "memory.npz"
+    assert main(["fit", *map(str, bags), "-o", str(memory), *PREDICTIVE]) == 0
+    return load_model(memory)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", [["--stream", "--chunk-steps", "150"], ["--workers", "1"]])
+def test_the_predictive_preset_streams_and_distributes(
+    bags, predictive_in_memory, tmp_path, capfd, how
+):
+    """Overlapping episodes are cut across chunks and the refinement reads its steps once
+    more, in this process: the in-memory model."""
+    if "--workers" in how:
+        pytest.importorskip("distributed")
+    out = tmp_path / "streamed.npz"
+    argv = ["fit", *map(str, bags), "-o", str(out), *PREDICTIVE, *how]
+    code, stdout, err = run_entry(argv, capfd)
+    assert code == 0, err
+    assert "reading the steps to refine on (at most 50000)" in err
+    assert "1200 steps, 2 segment(s), 1194 episodes" in stdout  # every window of each bag
+    streamed = load_model(out)
+    assert streamed.fit_info["refinement"]["iterations"] >= 1
+    assert_same(streamed, predictive_in_memory, tol=1e-6)
+
+
 @pytest.mark.slow
 def test_streamed_pca_baseline_equals_fit_pca(bags):
     reader = BagChunks(chunk_steps=111)

@@ -7,10 +7,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from tpsr_ros.core.episode_stream import EpisodeCutter
 from tpsr_ros.core.episodes import Trajectory, make_episodes
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.learn import fit_tpsr_trajectory
-from tpsr_ros.core.streamed_fit import fit_tpsr_streamed
 from tpsr_ros.core.tpsr import TPSRConfig
 
 
@@ -50,11 +50,11 @@ def test_the_config_sets_the_stride_and_the_fit_uses_it() -> None:
     assert fit_tpsr_trajectory(data, cfg).fit_info["episodes"] == 500
 
 
-def test_bad_strides_and_streamed_overlap_are_refused() -> None:
+def test_bad_strides_are_refused() -> None:
     data = trajectory_with_a_gap()
     with pytest.raises(ConfigError, match="stride"):
         make_episodes(data, 1, 1, stride=0)
+    with pytest.raises(ConfigError, match="stride"):
+        EpisodeCutter(1, 1, stride=4)
     with pytest.raises(ConfigError, match="overlapping_episodes"):
         TPSRConfig(overlapping_episodes=1)  # type: ignore[arg-type]
-    with pytest.raises(ConfigError, match="streamed"):
-        fit_tpsr_streamed(lambda: iter([data]), config=TPSRConfig(overlapping_episodes=True))

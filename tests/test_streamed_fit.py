@@ -3,17 +3,25 @@
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from learning_fixtures import example_pomdp, one_hot
 
 from tpsr_ros.core.episodes import Trajectory, make_episodes
-from tpsr_ros.core.errors import DataError
+from tpsr_ros.core.episode_stream import refinement_steps
+from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.filtering import observation_weights
 from tpsr_ros.core.moments import Moments
 from tpsr_ros.core.pca_baseline import PCAConfig
-from tpsr_ros.core.streamed_fit import EpisodeCutter, fit_pca_streamed, fit_tpsr_streamed
+from tpsr_ros.core.streamed_fit import (
+    ChunkEngine,
+    EpisodeCutter,
+    fit_pca_streamed,
+    fit_tpsr_streamed,
+)
 from tpsr_ros.core.tpsr import TPSRConfig, TPSRModel, fit_tpsr_episodes
 from tpsr_ros.core.whitening import Whitening
 
@@ -70,14 +78,17 @@ SMALL = {"obs_dim": 4, "ht_dim": 5, "obs_centers": 30, "ht_centers": 60, "rank":
 @pytest.mark.parametrize("size", [1, 7, 100, 1000, 5000])
 @pytest.mark.parametrize("lengths", [(1, 1), (2, 2), (2, 1)])
 @pytest.mark.parametrize("max_episodes", [None, 1, 311])
-def test_cutter_cuts_the_episodes_of_the_whole(trajectory, size, lengths, max_episodes):
+@pytest.mark.parametrize("stride", [None, 1, 2])
+def test_cutter_cuts_the_episodes_of_the_whole(trajectory, size, lengths, max_episodes, stride):
     m, n = lengths
-    whole = make_episodes(trajectory, m, n, max_episodes=max_episodes)
-    cutter = EpisodeCutter(m, n, max_episodes)
+    whole = make_episodes(trajectory, m, n, max_episodes=max_episodes, stride=stride)
+    cutter = EpisodeCutter(m, n, max_episodes, stride)
     parts = [e for e in map(cutter.cut, chunks_of(trajectory, size)()) if e is not None]
     for name in ("history", "observation", "action", "test", "stamps"):
         joined = np.concatenate([getattr(p, name) for p in parts])
         np.testing.assert_array_equal(joined, getattr(whole, name), err_msg=name)
+    last = int(np.searchsorted(trajectory.stamps, whole.stamps[-1])) + 1 + n
+    assert cutter.used == last  # the steps the episodes use, as the fit in memory counts them
 
 
 @pytest.mark.parametrize(
@@ -92,12 +103,17 @@ def test_cutter_cuts_the_episodes_of_the_whole(trajectory, size, lengths, max_ep
         ({"normalize_ht_features": True, "p_th_tests": "from-current"}, 1000, 650),
         ({"action_pooling": 0.6}, 301, None),
         ({"obs_variance": 0.9}, 301, None),
+        ({"overlapping_episodes": True}, 97, None),
+        ({"overlapping_episodes": True, "history_length": 2, "center_selection": "kmeans"},
+         64, 700),  # fmt: skip
     ],
 )
 def test_streamed_fit_equals_the_in_memory_fit(trajectory, changes, size, max_episodes):
     cfg = TPSRConfig(**SMALL, **changes)
     m, n = cfg.history_length, cfg.test_length
-    episodes = make_episodes(trajectory, m, n, max_episodes=max_episodes)
+    episodes = make_episodes(
+        trajectory, m, n, max_episodes=max_episodes, stride=cfg.episode_stride
+    )
     reference = fit_tpsr_episodes(episodes, config=cfg)
     stages: list[str] = []
     streamed = fit_tpsr_streamed(
@@ -111,6 +127,42 @@ def test_streamed_fit_equals_the_in_memory_fit(trajectory, changes, size, max_ep
         assert streamed.fit_info["stamps_ns"] == [trajectory.stamps[0], trajectory.stamps[-1]]
     assert stages[0].startswith("pass 1") and "SVD" in stages
     assert set(streamed.fit_info["timings"]) == set(stages)
+
+
+@pytest.mark.parametrize(
+    ("refine_steps", "max_episodes"), [(50_000, None), (50_000, 400), (700, None)]
+)
+def test_streamed_refinement_equals_the_in_memory_one(trajectory, refine_steps, max_episodes):
+    """The steps refined on are read once more: all of them, those the episodes use, or the
+    first ``refine_steps``; the refined model is the fit in memory's."""
+    cfg = TPSRConfig(**SMALL, overlapping_episodes=True, p_th_tests="from-current",
+                     refine_epochs=3, refine_window=8, refine_carry=0.3,
+                     refine_steps=refine_steps)  # fmt: skip
+    reference = fit_tpsr_trajectory(trajectory, cfg, max_episodes=max_episodes)
+    lines: list[str] = []
+    streamed = fit_tpsr_streamed(
+        chunks_of(trajectory, 97), config=cfg, max_episodes=max_episodes, progress=lines.append
+    )
+    spectral = replace(cfg, refine_epochs=0)
+    unrefined = fit_tpsr_trajectory(trajectory, spectral, max_episodes=max_episodes)
+    assert relative(streamed.B, unrefined.B) > 1e-3  # the refinement moved the operators
+    assert_same_model(streamed, reference, tol=1e-6)
+    assert "refinement through the filter" in lines
+    used = refinement_steps(chunks_of(trajectory, 97)(), cfg, max_episodes)
+    expected = {(50_000, None): len(trajectory), (700, None): 700}.get(
+        (refine_steps, max_episodes), 399 + 3  # overlapping: episode k starts at step k
+    )
+    assert len(used) == expected
+    np.testing.assert_array_equal(used.observations, trajectory.observations[:expected])
+
+
+def test_an_engine_refines_only_with_a_source_of_steps(trajectory):
+    cfg = TPSRConfig(**SMALL, refine_epochs=2)
+    engine = ChunkEngine(chunks_of(trajectory, 500))
+    with pytest.raises(ConfigError, match="refine_source"):
+        fit_tpsr_streamed(engine, config=cfg)
+    refined = fit_tpsr_streamed(engine, config=cfg, refine_source=chunks_of(trajectory, 500))
+    assert refined.fit_info["refinement"]["iterations"] >= 1
 
 
 def test_large_blocks_and_small_blocks_agree(trajectory, monkeypatch):

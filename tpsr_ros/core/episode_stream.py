@@ -20,6 +20,7 @@ from tpsr_ros.core.episodes import (
     Trajectory,
     episode_starts,
     episodes_at,
+    no_usable_episodes,
 )
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.moments import Moments
@@ -32,9 +33,11 @@ __all__ = [
     "EpisodeCutter",
     "EpisodeMoments",
     "box_rows",
+    "episode_cutter",
     "episode_moments",
     "episodes_of",
     "merge_moments",
+    "refinement_steps",
     "whitened_episodes",
 ]
 
@@ -47,15 +50,20 @@ def _joined(head: Trajectory, tail: Trajectory) -> Trajectory:
 
 
 class EpisodeCutter:
-    """Cuts consecutive chunks of one trajectory into the episodes of :func:`make_episodes`.
+    """Cuts consecutive chunks of one trajectory into the episodes of :func:`make_episodes`
+    (one starting every ``stride`` steps of a segment; default ``m + 1 + n``, 1: every window).
 
-    The rows of a segment that do not yet fill an episode are carried into the next chunk
-    when it continues that segment (same segment number) and dropped otherwise, exactly as
-    ``make_episodes`` drops a segment's remainder. At most ``max_episodes`` are cut.
+    The rows of a segment from the first start not yet cut on are carried into the next
+    chunk when it continues that segment (same segment number) and dropped otherwise,
+    exactly as ``make_episodes`` drops a segment's remainder. At most ``max_episodes`` are cut.
     """
 
     def __init__(
-        self, history_length: int, test_length: int, max_episodes: int | None = None
+        self,
+        history_length: int,
+        test_length: int,
+        max_episodes: int | None = None,
+        stride: int | None = None,
     ) -> None:
         self.m, self.n = int(history_length), int(test_length)
         if self.m < 1 or self.n < 1:
@@ -65,12 +73,17 @@ class EpisodeCutter:
         if max_episodes is not None and max_episodes < 0:
             raise ConfigError(f"the number of episodes must not be negative, not {max_episodes}")
         self.span = self.m + 1 + self.n
+        self.stride = self.span if stride is None else int(stride)
+        if not 1 <= self.stride <= self.span:
+            raise ConfigError(f"the episode stride must lie in 1..{self.span}, not {stride}")
         self.limit = max_episodes
         self.emitted = 0
         self.steps = 0
         self.segments = 0
         self.stamps: tuple[int, int] | None = None
         """First and last stamp of the steps read (ns)."""
+        self.used = 0
+        """Steps read up to the last one of the last episode cut (what those episodes use)."""
         self._last_segment: int | None = None
         self._carry: Trajectory | None = None
 
@@ -93,13 +106,21 @@ class EpisodeCutter:
         if self._carry is not None and int(self._carry.segments[-1]) == int(chunk.segments[0]):
             data = _joined(self._carry, chunk)
         last_start = data.segment_bounds()[-1][0]
-        done = last_start + (len(data) - last_start) // self.span * self.span
-        self._carry = data.rows(done, len(data)) if done < len(data) else None
-        first = episode_starts(data, self.span)
+        cut_in_last = max(0, (len(data) - last_start - self.span) // self.stride + 1)
+        resume = last_start + cut_in_last * self.stride  # the last segment's next start
+        self._carry = data.rows(resume, len(data)) if resume < len(data) else None
+        first = episode_starts(data, self.span, self.stride)
         if self.limit is not None:
             first = first[: self.limit - self.emitted]
         self.emitted += int(first.size)
+        if first.size:
+            self.used = self.steps - len(data) + int(first[-1]) + self.span
         return episodes_at(data, first, self.m, self.n) if first.size else None
+
+
+def episode_cutter(cfg: TPSRConfig, max_episodes: int | None = None) -> EpisodeCutter:
+    """The cutter of the episodes a fit of ``cfg`` learns from (its lengths and stride)."""
+    return EpisodeCutter(cfg.history_length, cfg.test_length, max_episodes, cfg.episode_stride)
 
 
 def _checked(chunk: Trajectory) -> Trajectory:
@@ -188,10 +209,12 @@ def episode_moments(
     history_length: int,
     test_length: int,
     max_episodes: int | None = None,
+    stride: int | None = None,
 ) -> EpisodeMoments | None:
-    """Pass 1 over ``chunks``: moments of their first ``max_episodes`` episodes (None: none)."""
+    """Pass 1 over ``chunks``: moments of their first ``max_episodes`` episodes, one every
+    ``stride`` steps (:class:`EpisodeCutter`; None: none)."""
     total: EpisodeMoments | None = None
-    cutter = EpisodeCutter(history_length, test_length, max_episodes)
+    cutter = EpisodeCutter(history_length, test_length, max_episodes, stride)
     for episodes in episodes_of(chunks, cutter):
         total = merge_moments(total, EpisodeMoments.of(episodes))
     if total is None:
@@ -208,9 +231,28 @@ def whitened_episodes(
     max_episodes: int | None = None,
 ) -> Iterator[WhitenedRows]:
     """Pass 2 over ``chunks``: the whitened rows of their first ``max_episodes`` episodes."""
-    cutter = EpisodeCutter(cfg.history_length, cfg.test_length, max_episodes)
+    cutter = episode_cutter(cfg, max_episodes)
     for episodes in episodes_of(chunks, cutter):
         yield whitenings.rows(episodes, cfg)
+
+
+def refinement_steps(
+    chunks: Iterable[Trajectory], cfg: TPSRConfig, max_episodes: int | None = None
+) -> Trajectory:
+    """The steps a fit of ``cfg`` refines on, read from ``chunks``: the first
+    ``cfg.refine_steps`` of those its first ``max_episodes`` episodes use, as the fit in
+    memory takes them (:func:`tpsr_ros.core.learn.refined_on_trajectory`)."""
+    cutter = episode_cutter(cfg, max_episodes)
+    joined: Trajectory | None = None
+    for chunk in chunks:
+        cutter.cut(_checked(chunk))
+        kept = chunk.rows(0, min(len(chunk), cfg.refine_steps - cutter.steps + len(chunk)))
+        joined = kept if joined is None else _joined(joined, kept)
+        if cutter.full or len(joined) >= cfg.refine_steps:
+            break
+    if joined is None or cutter.used == 0:
+        raise no_usable_episodes(cfg.history_length, cfg.test_length, "the data")
+    return joined.rows(0, min(len(joined), cutter.used) if cutter.full else len(joined))
 
 
 def box_rows(episodes: Iterable[Episodes], indices: np.ndarray) -> BoxData:

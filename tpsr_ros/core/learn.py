@@ -136,13 +136,14 @@ def refined_on_trajectory(
     progress: Progress | None = None,
 ) -> TPSRModel:
     """``model`` refined through its filter on the steps its ``episodes`` (of
-    ``trajectory``) use, when its config asks for it (``refine_epochs``); else itself."""
+    ``trajectory``) use, at most the first ``refine_steps``, when its config asks for it
+    (``refine_epochs``); else itself."""
     if not model.config.refine_epochs:
         return model
     if progress is not None:
         progress("refinement through the filter")
     steps = len(trajectory) if max_episodes is None else _steps_of(trajectory, episodes)
-    part = trajectory.rows(0, steps)
+    part = trajectory.rows(0, min(steps, model.config.refine_steps))
     return refine_tpsr(
         model, part.actions, part.observations, part.segment_bounds(), progress=progress
     )

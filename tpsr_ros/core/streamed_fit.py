@@ -22,9 +22,11 @@ Then, from the store and without reading the data again: kernel centres, the sum
 accumulated in place by BLAS ``dgemm``, so a 20 001 x 20 001 ``P_TH`` exists once), the
 top-``r`` SVD, and a second blocked pass over the rows for the per-action sums of
 ``B_ao'``. A state box (``state_clip_quantile > 0``) reads its at most 4000 episodes a third
-time. No ``(t, l)`` feature matrix for all of ``t`` and no ``O(t l^2)`` tensor is ever
-formed: memory is bounded by the chunk size, the block size (:data:`BLOCK_BYTES`) and
-``P_TH``, not by the data length.
+time. A refined fit (``refine_epochs``) reads its first ``refine_steps`` steps once more
+and refines on them in memory (:func:`refinement_steps`), as the in-memory fit does. No
+``(t, l)`` feature matrix for all of ``t`` and no ``O(t l^2)`` tensor is ever
+formed: memory is bounded by the chunk size, the block size (:data:`BLOCK_BYTES`),
+``P_TH`` and a refinement's ``refine_steps``, not by the data length.
 
 Where the passes run is a :class:`StreamEngine`: :class:`ChunkEngine` runs them in this
 process; ``learner.distributed`` runs the same functions as Dask tasks (one per bag, partial
@@ -48,15 +50,18 @@ from tpsr_ros.core.episode_stream import (
     EpisodeCutter,
     EpisodeMoments,
     box_rows,
+    episode_cutter,
     episode_moments,
     episodes_of,
     merge_moments,
+    refinement_steps,
     whitened_episodes,
 )
 from tpsr_ros.core.episodes import Trajectory, no_usable_episodes
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.moments import Moments
 from tpsr_ros.core.pca_baseline import PCAConfig, PCAModel
+from tpsr_ros.core.refine import refine_tpsr
 from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import BoxData, Survey, run_fit
 from tpsr_ros.core.tpsr_config import TPSRConfig
@@ -268,9 +273,14 @@ class StreamEngine(Protocol):
     centres are chosen from); False: the store holds every episode."""
 
     def moments(
-        self, history_length: int, test_length: int, max_episodes: int | None
+        self,
+        history_length: int,
+        test_length: int,
+        max_episodes: int | None,
+        stride: int | None = None,
     ) -> EpisodeMoments | None:
-        """Pass 1: the merged moments of the first ``max_episodes`` episodes."""
+        """Pass 1: the merged moments of the first ``max_episodes`` episodes, one starting
+        every ``stride`` steps (:class:`EpisodeCutter`)."""
 
     def whiten(
         self,
@@ -317,10 +327,16 @@ class ChunkEngine:
         self.source = source
 
     def moments(
-        self, history_length: int, test_length: int, max_episodes: int | None
+        self,
+        history_length: int,
+        test_length: int,
+        max_episodes: int | None,
+        stride: int | None = None,
     ) -> EpisodeMoments | None:
         """Pass 1 (see :class:`StreamEngine`)."""
-        return episode_moments(self.source(), history_length, test_length, max_episodes)
+        return episode_moments(
+            self.source(), history_length, test_length, max_episodes, stride
+        )
 
     def whiten(
         self,
@@ -358,7 +374,7 @@ class ChunkEngine:
 
     def box_data(self, indices: np.ndarray, cfg: TPSRConfig, max_episodes: int | None) -> BoxData:
         """See :class:`StreamEngine`."""
-        cutter = EpisodeCutter(cfg.history_length, cfg.test_length, max_episodes)
+        cutter = episode_cutter(cfg, max_episodes)
         return box_rows(episodes_of(self.source(), cutter), indices)
 
 
@@ -401,7 +417,9 @@ class StreamedFit:
 
     def survey(self, cfg: TPSRConfig) -> Survey:
         """Pass 1: the merged moments of the first ``max_episodes`` episodes."""
-        moments = self.passes.moments(cfg.history_length, cfg.test_length, self.max_episodes)
+        moments = self.passes.moments(
+            cfg.history_length, cfg.test_length, self.max_episodes, cfg.episode_stride
+        )
         if moments is None:
             raise no_usable_episodes(cfg.history_length, cfg.test_length, "the data")
         self._moments = moments
@@ -488,8 +506,13 @@ def fit_tpsr_streamed(
     scratch_dir: Path | str | None = None,
     sizing: Sizing | None = None,
     action_codes: np.ndarray | None = None,
+    refine_source: ChunkSource | None = None,
 ) -> TPSRModel:
-    """Learn the TPSR of ``fit_tpsr_episodes(make_episodes(whole, m, n, max_episodes))``.
+    """Learn the TPSR of ``fit_tpsr_episodes(make_episodes(whole, m, n, max_episodes))``,
+    and refine it as :func:`~tpsr_ros.core.learn.fit_tpsr_trajectory` does when the config
+    asks for it (``refine_epochs``): on the first ``refine_steps`` steps, read once more
+    and held in memory (:func:`refinement_steps`), so the model equals the fit in memory
+    of data up to ``refine_steps`` long.
 
     Args:
         source: a :data:`ChunkSource` (run here by a :class:`ChunkEngine`) or an engine.
@@ -500,6 +523,8 @@ def fit_tpsr_streamed(
         sizing: size the fit to the data once pass 1 has counted it, as
             :func:`~tpsr_ros.core.tpsr.fit_tpsr` does.
         action_codes: the command of each action, for action-aware features.
+        refine_source: the chunks the refinement reads its steps from, in this process
+            (default: ``source`` when it is a chunk source; an engine needs it).
 
     Raises:
         DataError: as :func:`~tpsr_ros.core.tpsr.fit_tpsr`, and when the second pass does not
@@ -508,16 +533,30 @@ def fit_tpsr_streamed(
     """
     if max_episodes is not None and max_episodes < 1:
         raise ConfigError(f"the number of episodes must be at least 1, not {max_episodes}")
-    if config is not None and config.overlapping_episodes:
+    is_engine = hasattr(source, "moments")
+    if refine_source is None and not is_engine:
+        refine_source = source  # type: ignore[assignment]
+    if config is not None and config.refine_epochs and refine_source is None:
         raise ConfigError(
-            "overlapping episodes are cut in memory only; a streamed fit cuts the guide's "
-            "(overlapping_episodes false)"
+            "the refinement reads its steps in this process: give refine_source, or "
+            "refine_epochs=0"
         )
-    passes: StreamEngine = source if hasattr(source, "moments") else ChunkEngine(source)  # type: ignore[arg-type,assignment]
+    passes: StreamEngine = source if is_engine else ChunkEngine(source)  # type: ignore[arg-type,assignment]
     with StreamedFit(passes, max_episodes, scratch_dir) as engine:
-        return run_fit(
+        model = run_fit(
             engine, config, progress=progress, sizing=sizing, action_codes=action_codes
         )
+    if not model.config.refine_epochs:
+        return model
+    assert refine_source is not None
+    if progress is not None:
+        progress(f"reading the steps to refine on (at most {model.config.refine_steps})")
+    steps = refinement_steps(refine_source(), model.config, max_episodes)
+    if progress is not None:
+        progress("refinement through the filter")
+    return refine_tpsr(
+        model, steps.actions, steps.observations, steps.segment_bounds(), progress=progress
+    )
 
 
 def fit_pca_streamed(

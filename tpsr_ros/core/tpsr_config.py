@@ -101,6 +101,11 @@ class TPSRConfig:
         "iterations, one pass over the data each (0: the spectral model, the guide; see "
         "tpsr_ros.core.refine)",
     )
+    refine_steps: int = _param(
+        50_000,
+        "refinement: at most this many steps, the first of the training data (a streamed "
+        "fit holds them in memory: 50000 steps of a 16x16 RGB camera take 0.3 GB)",
+    )
     refine_window: int = _param(
         16, "refinement: steps backpropagated before each window's scored steps, and scored"
     )
@@ -134,6 +139,7 @@ class TPSRConfig:
             "obs_centers",
             "ht_centers",
             "rank",
+            "refine_steps",
             "refine_window",
             "refine_horizon",
         ):
