@@ -773,8 +773,8 @@ _PREDICTIVE_FIT = (
         "(whose rows were rerun with them) they scored higher in four environments of five "
         "and 0.9 lower in `full`. On the selection seeds three images score lower than two, "
         "within the noise. `learner memory` still measures 0 steps: its stand-still variant "
-        "(the same image after a step west or east) is 0 for a filter whose refined "
-        "operators barely depend on the action (\"scaling the refinement's search\" above); "
+        "(the same image after a step west or east) stays 0, also with operators that "
+        "depend on the action (\"action pooling\" below); "
         "in one model fitted outside the committed results the paths variant (west or east, "
         "then the same steps north to a wall that looks alike) keeps the runs' states apart "
         "for 2 steps instead of 1.",
@@ -819,10 +819,14 @@ _PREDICTIVE_FIT = (
         "A predictive state: action pooling",
         "With the operators pooled over every action, only the refinement's per-action "
         "factors let the state depend on what the robot did, and `learner memory` measures "
-        "0 steps (its stand-still variant: the same image after a step west or east). Does "
-        "pooling half-way (`tpsr.action_pooling` 0.5) remember more, and plan "
-        "better? The runs measure their memory too (`--memory`).",
-        "tpsr.action_pooling=0.5,1",
+        "0 steps (its stand-still variant: the same image after a step west or east). Do "
+        "operators pooled half-way (`tpsr.action_pooling` 0.5) or one per action (0) "
+        "remember more, and plan better? The runs measure their memory too (`--memory`). "
+        "Not adopted: both plan worse, one per action outside the noise, and both still "
+        "measure 0 steps: the refined filter forgets within a step whether or not its "
+        "operators depend on the action, so action-blind operators are not what keeps its "
+        "memory at 0.",
+        "tpsr.action_pooling=0,0.5,1",
         "--memory",
         environments=("partial-strip",),
     ),
