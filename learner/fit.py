@@ -525,6 +525,8 @@ def _run_streamed(
             sizing=args.sizing,
         )
         if distributed:
+            if tpsr_config.refine_epochs:  # refuse now, not after the cluster's passes
+                _check_refinement_reads(args.bags)
             where = args.scheduler or f"a local cluster of {args.workers} worker(s)"
             _say(f"connecting to {where}")
             with dask_client(
@@ -570,6 +572,16 @@ def _run_streamed(
     timings["viewer read-outs"] = time.perf_counter() - start
     _write(model, output, training, spec, timings, preset=preset, view=view, force=args.force)
     return 0
+
+
+def _check_refinement_reads(bags: list[Path]) -> None:
+    """Refuse bags this process cannot read when a refinement will read them here."""
+    if missing := [str(bag) for bag in bags if not Path(bag).is_dir()]:
+        raise ConfigError(
+            f"the refinement reads its steps in this process, which cannot see bag(s) "
+            f"{missing} (only the cluster's workers may): mount them here, or add "
+            "--refine-epochs 0"
+        )
 
 
 def _streamed_view(

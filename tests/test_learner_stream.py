@@ -372,3 +372,14 @@ def test_a_bag_that_vanishes_under_dask_is_one_line_without_worker_tracebacks(
     last = stderr.strip().splitlines()[-1]
     assert last.startswith("learner: error:") and str(doomed) in last
     assert "Traceback" not in stderr and "Compute Failed" not in stderr
+
+
+def test_a_refinement_on_dask_refuses_bags_this_process_cannot_read(bags, tmp_path):
+    """The refinement reads its steps in the client: bags only the workers see are refused
+    before the cluster's passes, with the way out."""
+    from learner.fit import _check_refinement_reads
+
+    _check_refinement_reads(bags)  # visible here: nothing to say
+    with pytest.raises(ConfigError, match="--refine-epochs 0") as caught:
+        _check_refinement_reads([*bags, tmp_path / "on-the-workers-only"])
+    assert "on-the-workers-only" in str(caught.value)
