@@ -48,7 +48,7 @@ def _jobs() -> tuple[Job, ...]:
             str(PREDICTIVE_EPISODES),
             "--methods",
             "tpsr",
-            *(("--memory",) if Environment.parse(env).narrow else ()),
+            *_memory_option(env),
             *HEADLINE_SEEDS,
         )
         for env in ENVIRONMENTS
@@ -59,13 +59,20 @@ BASELINE_ENVIRONMENTS = ENVIRONMENTS
 """Where the baselines that carry the past ran: every environment."""
 
 
+def _memory_option(environment: str) -> tuple[str, ...]:
+    """``--memory`` where two places look alike (the narrow cameras), else nothing."""
+    return ("--memory",) if Environment.parse(environment).narrow else ()
+
+
 def _fresh_jobs(directory: str, environments: tuple[str, ...], *options: str) -> dict[str, Job]:
     """One ``learner experiment`` job per environment at the section's data size on the
-    headline's seeds, by environment."""
+    headline's seeds (measuring memory where two places look alike), by environment."""
     return {
         env: experiment_job(
-            directory, env, "--episodes", str(PREDICTIVE_EPISODES), *options, *HEADLINE_SEEDS
-        )
+            directory, env, "--episodes", str(PREDICTIVE_EPISODES), *options,
+            *_memory_option(env),
+            *HEADLINE_SEEDS,
+        )  # fmt: skip
         for env in environments
     }
 
