@@ -752,6 +752,11 @@ def refinement_line(refined: dict[str, Any], fit_seconds: float) -> str:
     )
     carry = refined.get("carry", 0.0)
     start = f" from a start carrying {carry:g} of the state" if carry else ""
+    if "history_gain" in refined:  # refine_carry_rule aliased chose the carry
+        start += (
+            f" (the previous image's held-out gain in predicting the next ones "
+            f"{refined['history_gain']:+.4f}{'' if carry else ': no carry'})"
+        )
     restarts = (
         f"; held-out restarts {refined['heldout_restarts']} (allowed "
         f"{refined['heldout_restarts_allowed']})"

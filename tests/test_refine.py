@@ -288,3 +288,8 @@ def test_learner_fit_says_what_the_refinement_did() -> None:
     assert line.startswith("refinement from a start carrying 0.3 of the state: 12 iteration(s)")
     assert "the spectral model kept" in line and "held-out restarts 4 (allowed 9)" in line
     assert line.endswith("5.0 s (25 % of the fit)")
+    chose = refinement_line({**base, "carry": 0.0, "history_gain": -0.0004}, 10.0)
+    assert chose.startswith(
+        "refinement (the previous image's held-out gain in predicting the next ones -0.0004: "
+        "no carry): 12 iteration(s)"
+    )

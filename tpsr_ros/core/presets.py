@@ -24,8 +24,10 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
   state forward (chosen among 0, 0.3, 0.5 and 0.7 on ten runs of the selection seeds in
   ``partial-strip``: 390.8, 405.7, 391.7 and 266.1; docs/results.md, "A predictive state:
   the carried start"; with two images of history 422.4 against 363.3 without a carry, which
-  costs ``full`` 2.8 points: "the carry with two images of history"), but a robot that
-  turns carries nothing (the carried start loses its
+  costs ``full`` 2.8 points: "the carry with two images of history"), and only where the
+  previous image helps to predict the next ones (``refine_carry_rule`` ``aliased``,
+  :mod:`tpsr_ros.core.history_gain`: not in ``full``, whose image tells the place); a robot
+  that turns carries nothing (the carried start loses its
   heading: in ``drive`` the heading's R² falls from 0.89 at 0 to 0.63 at 0.7, the score from
   353.7 to 145.5); a fitted-Q member that diverges is refitted alone (``fqi.refit member``),
   not the whole ensemble, which rescued every run where refitting the whole ensemble
@@ -141,7 +143,8 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
             "images and a window at every step (overlapping), then the spectral model "
             "refined through its filter (at most 30 L-BFGS iterations on predicting the next "
             "10 images) from a start that carries 0.3 of the state forward at a typical step "
-            "(a robot that turns: none); a diverged fitted-Q member is refitted alone",
+            "where the previous image helps to predict the next ones (a robot that turns: "
+            "none); a diverged fitted-Q member is refitted alone",
             tpsr={
                 **_BEST.tpsr,
                 "p_th_tests": "from-current",
@@ -149,6 +152,7 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
                 "overlapping_episodes": True,
                 "refine_epochs": 30,
                 "refine_carry": 0.3,
+                "refine_carry_rule": "aliased",
             },
             fqi={**_BEST.fqi, "refit": "member"},
             turning_tpsr={**_BEST.turning_tpsr, "refine_carry": 0.0},

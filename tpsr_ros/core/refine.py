@@ -89,6 +89,7 @@ from tpsr_ros.core.filtering import (
     track,
     update_matrices,
 )
+from tpsr_ros.core.history_gain import history_gain
 from tpsr_ros.core.tpsr_model import TPSRModel
 from tpsr_ros.core.tpsr_stages import Progress
 from tpsr_ros.core.whitening import single_blas_thread
@@ -99,6 +100,7 @@ __all__ = [
     "Factors",
     "RefineProblem",
     "carried",
+    "chosen_carry",
     "factor_model",
     "group_scales",
     "refine_tpsr",
@@ -196,12 +198,15 @@ def restart_allowance(count: int) -> int:
 
 
 def carried(
-    model: TPSRModel, actions: np.ndarray, observations: np.ndarray
+    model: TPSRModel,
+    actions: np.ndarray,
+    observations: np.ndarray,
+    carry: float | None = None,
 ) -> tuple[TPSRModel, float]:
-    """``model`` whose typical step carries ``config.refine_carry`` of the previous state
-    forward (module docstring), and ``mu``: ``mu I`` added to every operator (at 0 the
-    model itself and 0)."""
-    carry = float(model.config.refine_carry)
+    """``model`` whose typical step carries ``carry`` (default ``config.refine_carry``) of
+    the previous state forward (module docstring), and ``mu``: ``mu I`` added to every
+    operator (at 0 the model itself and 0)."""
+    carry = float(model.config.refine_carry if carry is None else carry)
     if carry == 0.0:
         return model, 0.0
     tracked = track(model, actions, observations)
@@ -211,6 +216,23 @@ def carried(
         raise DataError("no step of the spectral filter has a valid normaliser to carry from")
     mu = carry / (1.0 - carry) * float(np.median(z))
     return replace(model, B=model.B + mu * np.eye(model.state_dim)), mu
+
+
+def chosen_carry(
+    model: TPSRModel,
+    actions: np.ndarray,
+    observations: np.ndarray,
+    bounds: list[tuple[int, int]] | None = None,
+) -> tuple[float, float | None]:
+    """The carry the refinement starts from, and the history gain that chose it (None when
+    not measured): ``refine_carry``, but with ``refine_carry_rule`` ``aliased`` 0 where
+    the previous image does not help to predict the next ones
+    (:func:`~tpsr_ros.core.history_gain.history_gain` at or below 0)."""
+    cfg = model.config
+    if cfg.refine_carry == 0.0 or cfg.refine_carry_rule == "always":
+        return float(cfg.refine_carry), None
+    gain = history_gain(actions, observations, model.n_actions, bounds)
+    return (float(cfg.refine_carry) if gain > 0.0 else 0.0), gain
 
 
 def _targets(model: TPSRModel, observations: np.ndarray) -> np.ndarray:
@@ -574,7 +596,8 @@ def _refine(
     cfg = model.config
     begin = time.perf_counter()
     spectral = model
-    model, mu = carried(model, acts, obs)
+    carry, gain = chosen_carry(model, acts, obs, bounds)
+    model, mu = carried(model, acts, obs, carry)
     start = factor_model(model)
     problem = RefineProblem(model, start, acts, obs, bounds or [(0, obs.shape[0])])
     before = problem.unexplained(start)
@@ -622,7 +645,8 @@ def _refine(
     info["refinement"] = {
         "iterations": since[0],
         "best_iteration": int(best["iteration"]),
-        "carry": float(model.config.refine_carry),
+        "carry": carry,
+        **({"history_gain": round(gain, 6)} if gain is not None else {}),
         "carry_mu": mu,
         "scaling": cfg.refine_scaling,
         "heldout_unexplained_spectral": round(before, 6),

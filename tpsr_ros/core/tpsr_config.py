@@ -121,6 +121,13 @@ class TPSRConfig:
         "previous state forward through the action (0: the spectral filter, which forgets "
         "within a step; see tpsr_ros.core.refine)",
     )
+    refine_carry_rule: Literal["always", "aliased"] = _param(
+        "always",
+        "refinement: when to start from the carried filter (always; aliased: only where the "
+        "previous image helps to predict the next ones, held out, so that a camera whose "
+        "image tells the place keeps a filter without lag; see tpsr_ros.core.history_gain)",
+        choices=("always", "aliased"),
+    )
     refine_scaling: Literal["none", "groups"] = _param(
         "none",
         "refinement: the search's variables (none: the parameters themselves; groups: each "
