@@ -258,10 +258,8 @@ def test_refinement_refused_where_it_cannot_apply(aliased: Trajectory) -> None:
     episodes = make_episodes(aliased, 1, 1)
     with pytest.raises(ConfigError, match="trajectory"):
         fit(episodes, CONFIG)
-    boxed = fit_tpsr_trajectory(aliased, replace(CONFIG, refine_epochs=0, state_clip_quantile=0.01))
-    with pytest.raises(ConfigError, match="state box"):
-        refine_tpsr(replace(boxed, config=replace(boxed.config, refine_epochs=3)),
-                    aliased.actions, aliased.observations)  # fmt: skip
+    with pytest.raises(ConfigError, match="state box"):  # refused before any fit
+        replace(CONFIG, state_clip_quantile=0.01)
     with pytest.raises(ConfigError, match="refine_epochs"):
         replace(CONFIG, refine_epochs=-1)
     with pytest.raises(ConfigError, match="refine_pull"):

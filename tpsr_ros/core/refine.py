@@ -82,7 +82,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
-from tpsr_ros.core.errors import ConfigError, DataError
+from tpsr_ros.core.errors import DataError
 from tpsr_ros.core.filtering import (
     NORMALIZER_RTOL,
     observation_weights,
@@ -572,8 +572,6 @@ def refine_tpsr(
     cfg = model.config
     if cfg.refine_epochs == 0:
         return model
-    if model.state_box is not None:
-        raise ConfigError("refinement does not support the state box (state_clip_quantile > 0)")
     obs = np.asarray(observations, dtype=np.float64)
     acts = np.asarray(actions)
     if obs.ndim != 2 or acts.shape != (obs.shape[0],):

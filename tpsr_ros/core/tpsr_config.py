@@ -177,6 +177,11 @@ class TPSRConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
                 raise ConfigError(f"{name} must be a non-negative integer, not {value!r}")
+        if self.refine_epochs and self.state_clip_quantile > 0:  # refused before any fit
+            raise ConfigError(
+                "refinement does not support the state box (state_clip_quantile > 0): set "
+                "one of refine_epochs and state_clip_quantile to 0"
+            )
         if self.rank > self.ht_centers + 1:
             raise ConfigError(
                 f"rank {self.rank} exceeds the {self.ht_centers + 1} history/test features "
