@@ -176,9 +176,10 @@ def add_streamed_options(parser: argparse.ArgumentParser | argparse._ArgumentGro
     parser.add_argument(
         "--stream",
         action="store_true",
-        help="read the bags twice in chunks instead of holding them in memory (same model "
-        "to 1e-9, refined to 1e-6; a refinement holds its steps in memory, at most "
-        "tpsr.refine_steps; implied by --workers and --scheduler)",
+        help="read the bags twice in chunks instead of holding them in memory (the same "
+        "spectral model to 1e-9; a refinement holds its steps in memory, at most "
+        "tpsr.refine_steps, and its search follows the last bits of its start, so a refined "
+        "model differs slightly; implied by --workers and --scheduler)",
     )
     parser.add_argument(
         "--chunk-steps",

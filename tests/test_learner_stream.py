@@ -125,7 +125,7 @@ def test_the_predictive_preset_streams_and_distributes(
     bags, predictive_in_memory, tmp_path, capfd, how
 ):
     """Overlapping episodes are cut across chunks and the refinement reads its steps once
-    more, in this process: the in-memory model."""
+    more, in this process: on these small bags, the in-memory model to 1e-6."""
     if "--workers" in how:
         pytest.importorskip("distributed")
     out = tmp_path / "streamed.npz"
