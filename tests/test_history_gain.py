@@ -40,10 +40,16 @@ def test_segments_keep_each_row_inside_its_own() -> None:
     assert cut <= 0.0 and cut != whole
 
 
-def test_too_few_steps_are_refused() -> None:
+def test_too_few_steps_are_refused_and_keep_the_carry() -> None:
+    """A short run cannot tell: the gain is refused, and the aliased rule keeps the carry
+    it was given (the fit does not fail for it)."""
     data = ring(300, seed=0)
     with pytest.raises(DataError, match="too few"):
         history_gain(data.actions, data.observations, 2)
+    cfg = replace(CONFIG, refine_epochs=2, refine_carry=0.3, refine_carry_rule="aliased")
+    model = fit_tpsr_trajectory(data, cfg)
+    assert model.fit_info["refinement"]["carry"] == 0.3
+    assert "history_gain" not in model.fit_info["refinement"]
 
 
 def test_the_aliased_rule_carries_only_where_the_previous_image_helps() -> None:

@@ -75,18 +75,27 @@ EVERY_OPTION = [*SMALL, "--history-length", "2", "--test-length", "2", "--histor
 """Options the streamed fit once refused: action-aware features and the state box."""
 
 
-@pytest.fixture(scope="module")
-def every_option_in_memory(bags, tmp_path_factory):
-    """The in-memory fit with EVERY_OPTION, the reference of each way of streaming it."""
+STREAMED = [["--stream", "--chunk-steps", "150"], ["--workers", "1"]]
+"""The two ways of streaming a fit: in this process, and on a Dask cluster."""
+
+
+def fit_in_memory(bags, directory, options):
+    """The in-memory model of ``learner fit`` with ``options``: the reference of each way of
+    streaming it."""
     from learner.cli import main
 
-    memory = tmp_path_factory.mktemp("every_option") / "memory.npz"
-    assert main(["fit", *map(str, bags), "-o", str(memory), *EVERY_OPTION]) == 0
+    memory = directory / "memory.npz"
+    assert main(["fit", *map(str, bags), "-o", str(memory), *options]) == 0
     return load_model(memory)
 
 
+@pytest.fixture(scope="module")
+def every_option_in_memory(bags, tmp_path_factory):
+    return fit_in_memory(bags, tmp_path_factory.mktemp("every_option"), EVERY_OPTION)
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("how", [["--stream", "--chunk-steps", "150"], ["--workers", "1"]])
+@pytest.mark.parametrize("how", STREAMED)
 def test_every_fit_option_streams_and_distributes(
     bags, every_option_in_memory, tmp_path, capsys, how
 ):
@@ -112,15 +121,11 @@ refused."""
 
 @pytest.fixture(scope="module")
 def predictive_in_memory(bags, tmp_path_factory):
-    from learner.cli import main
-
-    memory = tmp_path_factory.mktemp("predictive") / "memory.npz"
-    assert main(["fit", *map(str, bags), "-o", str(memory), *PREDICTIVE]) == 0
-    return load_model(memory)
+    return fit_in_memory(bags, tmp_path_factory.mktemp("predictive"), PREDICTIVE)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("how", [["--stream", "--chunk-steps", "150"], ["--workers", "1"]])
+@pytest.mark.parametrize("how", STREAMED)
 def test_the_predictive_preset_streams_and_distributes(
     bags, predictive_in_memory, tmp_path, capfd, how
 ):

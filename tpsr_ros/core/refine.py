@@ -227,11 +227,16 @@ def chosen_carry(
     """The carry the refinement starts from, and the history gain that chose it (None when
     not measured): ``refine_carry``, but with ``refine_carry_rule`` ``aliased`` 0 where
     the previous image does not help to predict the next ones
-    (:func:`~tpsr_ros.core.history_gain.history_gain` at or below 0)."""
+    (:func:`~tpsr_ros.core.history_gain.history_gain` at or below 0). Steps too few to
+    tell keep ``refine_carry``: the carry was chosen where places look alike, and a short
+    run cannot show that they do not."""
     cfg = model.config
     if cfg.refine_carry == 0.0 or cfg.refine_carry_rule == "always":
         return float(cfg.refine_carry), None
-    gain = history_gain(actions, observations, model.n_actions, bounds)
+    try:
+        gain = history_gain(actions, observations, model.n_actions, bounds)
+    except DataError:
+        return float(cfg.refine_carry), None
     return (float(cfg.refine_carry) if gain > 0.0 else 0.0), gain
 
 
