@@ -552,8 +552,12 @@ CARRY_STUDY = _predictive_study(
     "seeds against 0.3's 422.4 / 437.9 / 10.1, and 401.3 / 428.4 / 18.3 on the predictive "
     "section's fresh seeds against 402.3 / 436.9 / 18.2, with fewer restarts (medians 0 and "
     "1 against 3.5 and 7.5): level, and 0.3 was kept. Without a carry, with two images, "
-    "see \"the carry with two images of history\" below.",
+    "see \"the carry with two images of history\" below, whose rule carries only where the "
+    "previous image helps: it would drop the carry in `drive`, so these commands, run "
+    "before it, set `always`.",
     "tpsr.refine_carry=0,0.3,0.5,0.7",
+    "--set",
+    "tpsr.refine_carry_rule=always",  # the runs predate the rule; it would drop drive's carry
     environments=("partial-strip", "drive"),
 )
 """The study behind the ``predictive`` preset's carry, on the selection seeds."""
@@ -861,12 +865,13 @@ CARRY_TWO_IMAGES_STUDY = Section(
     "it: the gain is below 0 in all ten training runs of `full` (whose score rises from "
     "467.2 to 469.7) and above "
     "0 in all thirty of `partial`, `distractors` and `partial-strip` (the same scores bit "
-    "for bit).",
+    "for bit). The runs here predate the rule, which would start `full` without the carry "
+    "whatever its value: the commands set `always`, as they ran.",
     tuple(
         study_job(
             "studies/carry-two-images", env, "tpsr.refine_carry=0.3,0", "--episodes",
             str(PREDICTIVE_EPISODES), *SELECTION_SEEDS, "--preset", "predictive",
-            "--methods", "tpsr", *extra,
+            "--methods", "tpsr", "--set", "tpsr.refine_carry_rule=always", *extra,
         )  # fmt: skip
         for env, extra in (("partial-strip", ("--memory",)), ("full", ()))
     ),

@@ -39,7 +39,7 @@ RIDGE = 1e-3
 """Ridge of both regressions."""
 
 _FIT_FRACTION = 0.75
-_PCA_STRIDE = 3  # the components come from every third fitted step: as good, a third the cost
+_PCA_STRIDE = 3  # the components come from every third fitted step: a third of the cost
 
 
 def history_gain(

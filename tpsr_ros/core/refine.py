@@ -50,7 +50,10 @@ previous state propagated by the action, the latter weighing ``mu / (z + mu)``. 
 ``c / (1 - c)`` times the median normaliser ``z`` of the spectral filter over the training
 steps, so a typical step carries the fraction ``c`` of its previous state forward. The
 refinement starts there (and its pull draws toward there): the same model class, stored as
-operators like any other.
+operators like any other. With ``refine_carry_rule`` ``aliased`` the carry applies only
+where the previous image helps to predict the next ones (:mod:`tpsr_ros.core.history_gain`):
+where one image tells the place the refinement starts from the spectral filter, without the
+carry's lag.
 
 The search's variables (``refine_scaling``): the parameters themselves (``none``), or each
 group (``B_{o'}``, the factors ``A_a``, ``b_inf``) divided by its root mean square at the
