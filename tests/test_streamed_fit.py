@@ -75,10 +75,17 @@ def trajectory() -> Trajectory:
 SMALL = {"obs_dim": 4, "ht_dim": 5, "obs_centers": 30, "ht_centers": 60, "rank": 3}
 
 
-@pytest.mark.parametrize("size", [1, 7, 100, 1000, 5000])
-@pytest.mark.parametrize("lengths", [(1, 1), (2, 2), (2, 1)])
-@pytest.mark.parametrize("max_episodes", [None, 1, 311])
-@pytest.mark.parametrize("stride", [None, 1, 2])
+CUTS = [
+    *((size, lengths, limit, None) for size in (1, 7, 100, 1000, 5000)
+      for lengths in ((1, 1), (2, 2), (2, 1)) for limit in (None, 1, 311)),
+    *((size, lengths, limit, stride) for size in (7, 100) for lengths in ((1, 1), (2, 1))
+      for limit in (None, 311) for stride in (1, 2)),
+]  # fmt: skip
+"""Chunk sizes, lengths, limits and strides cut: the guide's episodes (stride None) in every
+combination, overlapping ones (1) and a stride between (2) across chunk boundaries."""
+
+
+@pytest.mark.parametrize(("size", "lengths", "max_episodes", "stride"), CUTS)
 def test_cutter_cuts_the_episodes_of_the_whole(trajectory, size, lengths, max_episodes, stride):
     m, n = lengths
     whole = make_episodes(trajectory, m, n, max_episodes=max_episodes, stride=stride)
