@@ -60,6 +60,7 @@ from tpsr_ros.io.bag_chunks import BagChunks
 __all__ = [
     "MAX_SHIPPED_P_TH_BYTES",
     "DaskEngine",
+    "check_bags_readable_here",
     "check_bags_visible",
     "dask_client",
     "gather",
@@ -177,6 +178,12 @@ def gather(client: Any, futures: Sequence[Any], poll: float = DEFAULT_TIMEOUT) -
 
 def _missing(bags: Sequence[str]) -> list[str]:
     return [bag for bag in bags if not Path(bag).is_dir()]
+
+
+def check_bags_readable_here(bags: Sequence[Path | str], why: str) -> None:
+    """Refuse bags this process cannot see (``why``: what reads them here, and the way out)."""
+    if missing := _missing([str(bag) for bag in bags]):
+        raise ConfigError(f"this process cannot see bag(s) {missing}: {why}")
 
 
 def check_bags_visible(client: Any, bags: Sequence[Path | str]) -> None:

@@ -28,7 +28,13 @@ import numpy as np
 
 from learner.adequacy import Adequacy, assess, recovery_text
 from learner.config_file import describe, read_fit_file
-from learner.distributed import DEFAULT_TIMEOUT, DaskEngine, check_bags_visible, dask_client
+from learner.distributed import (
+    DEFAULT_TIMEOUT,
+    DaskEngine,
+    check_bags_readable_here,
+    check_bags_visible,
+    dask_client,
+)
 from learner.inputs import (
     add_stream_options,
     apply_config_inputs,
@@ -527,7 +533,11 @@ def _run_streamed(
         )
         if distributed:
             if tpsr_config.refine_epochs:  # refuse now, not after the cluster's passes
-                _check_refinement_reads(args.bags)
+                check_bags_readable_here(
+                    args.bags,
+                    "the refinement reads its steps here, not on the cluster's workers: "
+                    "mount them here, or add --refine-epochs 0",
+                )
             where = args.scheduler or f"a local cluster of {args.workers} worker(s)"
             _say(f"connecting to {where}")
             with dask_client(
@@ -573,16 +583,6 @@ def _run_streamed(
     timings["viewer read-outs"] = time.perf_counter() - start
     _write(model, output, training, spec, timings, preset=preset, view=view, force=args.force)
     return 0
-
-
-def _check_refinement_reads(bags: list[Path]) -> None:
-    """Refuse bags this process cannot read when a refinement will read them here."""
-    if missing := [str(bag) for bag in bags if not Path(bag).is_dir()]:
-        raise ConfigError(
-            f"the refinement reads its steps in this process, which cannot see bag(s) "
-            f"{missing} (only the cluster's workers may): mount them here, or add "
-            "--refine-epochs 0"
-        )
 
 
 def _streamed_view(

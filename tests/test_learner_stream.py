@@ -382,9 +382,10 @@ def test_a_bag_that_vanishes_under_dask_is_one_line_without_worker_tracebacks(
 def test_a_refinement_on_dask_refuses_bags_this_process_cannot_read(bags, tmp_path):
     """The refinement reads its steps in the client: bags only the workers see are refused
     before the cluster's passes, with the way out."""
-    from learner.fit import _check_refinement_reads
+    from learner.distributed import check_bags_readable_here
 
-    _check_refinement_reads(bags)  # visible here: nothing to say
+    why = "the refinement reads its steps here: mount them here, or add --refine-epochs 0"
+    check_bags_readable_here(bags, why)  # visible here: nothing to say
     with pytest.raises(ConfigError, match="--refine-epochs 0") as caught:
-        _check_refinement_reads([*bags, tmp_path / "on-the-workers-only"])
+        check_bags_readable_here([*bags, tmp_path / "on-the-workers-only"], why)
     assert "on-the-workers-only" in str(caught.value)

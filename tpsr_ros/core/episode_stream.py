@@ -42,10 +42,10 @@ __all__ = [
 ]
 
 
-def _joined(head: Trajectory, tail: Trajectory) -> Trajectory:
+def _joined(*parts: Trajectory) -> Trajectory:
+    """Consecutive parts of one trajectory as one (the last part's metadata)."""
     return dataclasses.replace(
-        tail,
-        **{n: np.concatenate([getattr(head, n), getattr(tail, n)]) for n in STEP_FIELDS},
+        parts[-1], **{n: np.concatenate([getattr(p, n) for p in parts]) for n in STEP_FIELDS}
     )
 
 
@@ -242,17 +242,23 @@ def refinement_steps(
     """The steps a fit of ``cfg`` refines on, read from ``chunks``: the first
     ``cfg.refine_steps`` of those its first ``max_episodes`` episodes use, as the fit in
     memory takes them (:func:`tpsr_ros.core.learn.refined_on_trajectory`)."""
-    cutter = episode_cutter(cfg, max_episodes)
-    joined: Trajectory | None = None
+    # episodes are cut only to find where the first max_episodes end
+    cutter = None if max_episodes is None else episode_cutter(cfg, max_episodes)
+    parts: list[Trajectory] = []
+    held = 0
     for chunk in chunks:
-        cutter.cut(_checked(chunk))
-        kept = chunk.rows(0, min(len(chunk), cfg.refine_steps - cutter.steps + len(chunk)))
-        joined = kept if joined is None else _joined(joined, kept)
-        if cutter.full or len(joined) >= cfg.refine_steps:
+        chunk = _checked(chunk)
+        if cutter is not None:
+            cutter.cut(chunk)
+        parts.append(chunk.rows(0, min(len(chunk), cfg.refine_steps - held)))
+        held += len(parts[-1])
+        if held >= cfg.refine_steps or (cutter is not None and cutter.full):
             break
-    if joined is None or cutter.used == 0:
+    capped = held >= cfg.refine_steps and not (cutter is not None and cutter.full)
+    end = held if cutter is None or capped else min(held, cutter.used)
+    if end == 0:
         raise no_usable_episodes(cfg.history_length, cfg.test_length, "the data")
-    return joined.rows(0, min(len(joined), cutter.used) if cutter.full else len(joined))
+    return _joined(*parts).rows(0, end)
 
 
 def box_rows(episodes: Iterable[Episodes], indices: np.ndarray) -> BoxData:
