@@ -58,3 +58,20 @@ def test_bad_strides_are_refused() -> None:
         EpisodeCutter(1, 1, stride=4)
     with pytest.raises(ConfigError, match="overlapping_episodes"):
         TPSRConfig(overlapping_episodes=1)  # type: ignore[arg-type]
+
+
+def test_kernel_centres_come_from_every_fourth_window_or_as_many_as_short_data_need() -> None:
+    """Overlapping windows of two images of history: centres are chosen from one window in
+    every m + 1 + n = 4, and from more where that would leave fewer rows than centres."""
+    from tpsr_ros.core.tpsr_stages import centre_stride, kernel_centres
+
+    cfg = TPSRConfig(history_length=2, overlapping_episodes=True, ht_centers=1000,
+                     obs_centers=500, center_selection="first")  # fmt: skip
+    assert [centre_stride(cfg, rows) for rows in (24000, 4000, 3999, 2997, 1999)] == [
+        4, 4, 3, 2, 1,
+    ]
+    assert centre_stride(replace(cfg, overlapping_episodes=False), 24000) == 1
+    rows = np.arange(2997 * 2, dtype=np.float64).reshape(2997, 2)
+    history, test, observation = kernel_centres(rows, rows, rows, cfg)
+    np.testing.assert_array_equal(history, rows[::2][:1000])  # every second window's
+    assert test.shape == (1000, 2) and observation.shape == (500, 2)

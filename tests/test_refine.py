@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from tpsr_ros.core.episodes import Trajectory, make_episodes
-from tpsr_ros.core.errors import ConfigError
+from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.learn import fit, fit_tpsr_trajectory
 from tpsr_ros.core.refine import (
     Factors,
@@ -267,6 +267,27 @@ def test_refinement_refused_where_it_cannot_apply(aliased: Trajectory) -> None:
     for carry in (1.0, -0.1, float("nan")):
         with pytest.raises(ConfigError, match="refine_carry"):
             replace(CONFIG, refine_carry=carry)
+
+
+def test_data_too_short_to_refine_are_fitted_spectral_unless_the_refinement_was_asked_for() -> None:
+    """Like the kernel centres, the default preset's refinement follows the data: a log too
+    short for two windows gives the spectral model, says so, and records refine_epochs 0;
+    refinement set on purpose is refused with the reason instead."""
+    from tpsr_ros.core.presets import DEFAULT_PRESET, get_preset
+
+    short = visible_ring(50, seed=4)  # two windows of 2 x 16 + 10 steps need 58
+    default = fit(short)
+    spectral = fit(short, get_preset("best").tpsr_config(history_length=2,
+                   p_th_tests="from-current", overlapping_episodes=True))  # fmt: skip
+    assert default.config.refine_epochs == 0 and "refinement" not in default.fit_info
+    assert default.fit_info["sized"]["refine_epochs"] == [30, 0]
+    assert "two windows of 42 steps" in default.fit_info["refinement_skipped"]
+    np.testing.assert_array_equal(default.B, spectral.B)
+    asked = get_preset(DEFAULT_PRESET).tpsr_config(refine_epochs=20)
+    with pytest.raises(DataError, match="two windows of 42 steps in one segment; the data has 1"):
+        fit(short, asked)
+    longer = fit(visible_ring(600, seed=4))  # long enough: refined as configured
+    assert longer.config.refine_epochs == 30 and "refinement" in longer.fit_info
 
 
 def test_learner_fit_says_what_the_refinement_did() -> None:

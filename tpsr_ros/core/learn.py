@@ -125,7 +125,8 @@ def fit_tpsr_trajectory(
         episodes, config=config, progress=progress, sizing=sizing, action_codes=action_codes,
         basis=basis,
     )  # fmt: skip
-    return refined_on_trajectory(model, trajectory, episodes, max_episodes, progress)
+    sized = sizing is not None and "refine_epochs" not in sizing.fixed
+    return refined_on_trajectory(model, trajectory, episodes, max_episodes, progress, sized=sized)
 
 
 def refined_on_trajectory(
@@ -134,10 +135,13 @@ def refined_on_trajectory(
     episodes: Episodes,
     max_episodes: int | None = None,
     progress: Progress | None = None,
+    *,
+    sized: bool = False,
 ) -> TPSRModel:
     """``model`` refined through its filter on the steps its ``episodes`` (of
     ``trajectory``) use, at most the first ``refine_steps``, when its config asks for it
-    (``refine_epochs``); else itself."""
+    (``refine_epochs``); else itself. ``sized``: data too short skip it
+    (:func:`~tpsr_ros.core.refine.refine_tpsr`)."""
     if not model.config.refine_epochs:
         return model
     if progress is not None:
@@ -145,8 +149,9 @@ def refined_on_trajectory(
     steps = len(trajectory) if max_episodes is None else _steps_of(trajectory, episodes)
     part = trajectory.rows(0, min(steps, model.config.refine_steps))
     return refine_tpsr(
-        model, part.actions, part.observations, part.segment_bounds(), progress=progress
-    )
+        model, part.actions, part.observations, part.segment_bounds(), progress=progress,
+        sized=sized,
+    )  # fmt: skip
 
 
 def _steps_of(trajectory: Trajectory, episodes: Episodes) -> int:

@@ -93,6 +93,7 @@ from tpsr_ros.core.filtering import (
     update_matrices,
 )
 from tpsr_ros.core.history_gain import history_gain
+from tpsr_ros.core.tpsr_config import TPSRConfig
 from tpsr_ros.core.tpsr_model import TPSRModel
 from tpsr_ros.core.tpsr_stages import Progress
 from tpsr_ros.core.whitening import single_blas_thread
@@ -259,6 +260,17 @@ def _window_starts(bounds: list[tuple[int, int]], window: int, horizon: int) -> 
     return np.concatenate(starts) if starts else np.zeros(0, dtype=np.int64)
 
 
+def _shortfall(windows: int, cfg: TPSRConfig) -> str | None:
+    """Why ``windows`` windows cannot carry the refinement, or None."""
+    if windows >= 2:
+        return None
+    span = 2 * int(cfg.refine_window) + int(cfg.refine_horizon)
+    return (
+        f"refinement needs at least two windows of {span} steps in one segment; the data "
+        f"has {windows}"
+    )
+
+
 @dataclass(frozen=True)
 class _Operators:
     """Operators ``B`` alone, as :func:`~tpsr_ros.core.filtering.update_matrices` reads them."""
@@ -320,11 +332,8 @@ class RefineProblem:
         self._rest = update_matrices(_Operators(self.rest), self.actions, self.weights)
         targets = _targets(model, observations)
         starts = _window_starts(bounds, self.window, self.horizon)
-        if starts.size < 2:
-            raise DataError(
-                f"refinement needs at least two windows of {2 * self.window + self.horizon} "
-                f"steps in one segment; the data has {starts.size}"
-            )
+        if (shortfall := _shortfall(starts.size, cfg)) is not None:
+            raise DataError(shortfall)
         n_held = max(1, round(HOLDOUT * starts.size))
         self.train_starts, self.held_starts = starts[:-n_held], starts[-n_held:]
         # scored rows of every window, and their futures' features (rows x horizon*p)
@@ -558,6 +567,7 @@ def refine_tpsr(
     bounds: list[tuple[int, int]] | None = None,
     *,
     progress: Progress | None = None,
+    sized: bool = False,
 ) -> TPSRModel:
     """``model`` refined through its filter on a trajectory (module docstring).
 
@@ -569,6 +579,10 @@ def refine_tpsr(
         observations: ``(T, k)`` its observations.
         bounds: ``[start, stop)`` rows of its gap-free segments (default: one segment).
         progress: called with a line per iteration.
+        sized: the refinement follows the data, as the fit's sizes do
+            (:mod:`tpsr_ros.core.sizing`): data too short for two windows give the model
+            unrefined, with ``refine_epochs`` 0 in its config and ``fit_info["sized"]``,
+            instead of a ``DataError``.
 
     Returns the refined model, whose ``fit_info["refinement"]`` records the held-out loss
     of the start (``..._spectral``: the spectral model with its carry) and of the result,
@@ -587,6 +601,14 @@ def refine_tpsr(
             "refinement needs actions (T,) and observations (T, k), not "
             f"{acts.shape} and {obs.shape}"
         )
+    if sized:
+        whole = bounds or [(0, obs.shape[0])]
+        starts = _window_starts(whole, cfg.refine_window, cfg.refine_horizon)
+        if (shortfall := _shortfall(starts.size, cfg)) is not None:
+            info = dict(model.fit_info)
+            info["sized"] = {**info.get("sized", {}), "refine_epochs": [cfg.refine_epochs, 0]}
+            info["refinement_skipped"] = shortfall
+            return replace(model, config=replace(cfg, refine_epochs=0), fit_info=info)
     with single_blas_thread():  # the search amplifies rounding: one thread, one result
         return _refine(model, acts, obs, bounds, progress)
 

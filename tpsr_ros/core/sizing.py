@@ -13,7 +13,10 @@ each size the data cannot carry, and only those, to what it can:
 - rank: at most the history/test centres (the features are one more, the constant), and,
   once ``P_TH`` is known, at most its singular values that the training episodes support
   (at least ``0.05 / sqrt(t)`` of the largest, ``t`` training episodes:
-  :func:`tpsr_ros.core.tpsr_stages.supported_rank`, applied by the fit).
+  :func:`tpsr_ros.core.tpsr_stages.supported_rank`, applied by the fit);
+- the refinement through the filter: data too short for two of its windows are not
+  refined (``refine_epochs`` 0: :func:`tpsr_ros.core.refine.refine_tpsr`, applied after
+  the spectral fit).
 
 Sizes named in ``fixed`` (set on purpose by the user) are never changed: a fit that cannot
 carry them fails with the reason (a rank above the supported singular values too). At 2000 episodes of 16x16 images and more,

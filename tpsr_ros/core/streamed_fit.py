@@ -557,8 +557,9 @@ def fit_tpsr_streamed(
     if progress is not None:
         progress("refinement through the filter")
     return refine_tpsr(
-        model, steps.actions, steps.observations, steps.segment_bounds(), progress=progress
-    )
+        model, steps.actions, steps.observations, steps.segment_bounds(), progress=progress,
+        sized=sizing is not None and "refine_epochs" not in sizing.fixed,
+    )  # fmt: skip
 
 
 def fit_pca_streamed(

@@ -31,6 +31,7 @@ __all__ = [
     "action_operators",
     "action_sums",
     "as_actions",
+    "centre_stride",
     "check_action_counts",
     "check_enough_episodes",
     "ht_features",
@@ -186,6 +187,16 @@ def check_enough_episodes(n_episodes: int, cfg: TPSRConfig) -> None:
         )
 
 
+def centre_stride(cfg: TPSRConfig, rows: int) -> int:
+    """Kernel centres are chosen from one of every this many of the ``rows`` episodes
+    (:func:`kernel_centres`): of overlapping ones every ``m + 1 + n``-th, or as many as
+    the most centres asked for need (short data)."""
+    if not cfg.overlapping_episodes:
+        return 1
+    needed = max(cfg.ht_centers, cfg.obs_centers, 1)
+    return max(1, min(cfg.history_length + 1 + cfg.test_length, rows // needed))
+
+
 def kernel_centres(
     history: np.ndarray, test: np.ndarray, observation: np.ndarray, cfg: TPSRConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -195,11 +206,12 @@ def kernel_centres(
     k-means seeds are ``seed``, ``seed + 1``, ``seed + 2``). Overlapping episodes are
     chosen from one episode in every ``m + 1 + n`` (the guide's non-overlapping ones):
     their neighbours are the same windows shifted by a step, and k-means on three times
-    the rows would triple its cost for nearly the same centres.
+    the rows would triple its cost for nearly the same centres. Data too short for that
+    take them from more (:func:`centre_stride`).
     """
     select = cfg.center_selection
-    if cfg.overlapping_episodes:
-        step = cfg.history_length + 1 + cfg.test_length
+    step = centre_stride(cfg, history.shape[0])
+    if step > 1:
         history, test, observation = history[::step], test[::step], observation[::step]
     return (
         select_centers(history, cfg.ht_centers, select, seed=cfg.seed, what="history"),
