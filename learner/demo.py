@@ -7,7 +7,7 @@ environment; the other environments' outputs are left alone):
    in the other environments, as in the guide's ``partial``) of the simulator, written as bags
    (``python -m sim_node.generate``);
 2. a TPSR (``learner fit``) and a fitted-Q policy on the states tracked over the RL run
-   (``learner policy``), both with the default preset (``best``; ``--preset guide`` for the
+   (``learner policy``), both with the default preset (``predictive``; ``--preset guide`` for the
    guide's settings);
 3. the standard evaluation headless (``learner evaluate``), beside the floors (the best
    constant action, uniformly random actions) and the ceiling (fitted Q on the true

@@ -4,7 +4,7 @@ Every parameter of guide table 3.5 is an option generated from the fields of
 :class:`~tpsr_ros.core.tpsr.TPSRConfig` (name, default, help and choices spelled once, there);
 the PCA baseline's from :class:`~tpsr_ros.core.pca_baseline.PCAConfig` and the topic names from
 :class:`~tpsr_ros.io.trajectory.Topics`. The TPSR options change the ``--preset`` (default
-``best``, the project's best settings; ``guide``, the guide's: :mod:`tpsr_ros.core.presets`),
+``predictive``, the project's best settings; ``guide``, the guide's: :mod:`tpsr_ros.core.presets`),
 and the model records the preset and what the options changed in it. Stage lines go to
 stderr, the summary to stdout.
 

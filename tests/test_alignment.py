@@ -10,12 +10,16 @@ from test_fit_basis import _trajectory
 
 from tpsr_ros.core.alignment import align_model, rotated
 from tpsr_ros.core.learn import fit
+from tpsr_ros.core.presets import PRESETS
 from tpsr_ros.core.refit import fit_trajectory
+
+LIVE = PRESETS["best"].tpsr_config()
+"""The learner node's preset, whose refits are aligned (spectral: no refinement)."""
 
 
 @pytest.fixture(scope="module")
 def model():
-    return fit(_trajectory(3000))
+    return fit(_trajectory(3000), LIVE)
 
 
 def _rotation(r: int, seed: int) -> np.ndarray:
@@ -61,7 +65,7 @@ def test_a_model_of_another_rank_or_with_a_state_box_is_left_as_it_is(model):
 
 @pytest.mark.slow
 def test_a_refit_aligned_to_the_model_it_replaces_tracks_closer_to_it_and_predicts_the_same():
-    model = fit(_trajectory(6000))  # enough steps for the rank its refit keeps
+    model = fit(_trajectory(6000), LIVE)  # enough steps for the rank its refit keeps
     longer = _trajectory(9000, seed=3)
     plain = fit_trajectory(longer, model.basis.config, basis=model.basis)
     aligned = fit_trajectory(longer, model.basis.config, basis=model.basis, align_to=model)

@@ -16,6 +16,7 @@ from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.fit_basis import SKETCH_MARGIN, Sketch
 from tpsr_ros.core.fit_statistics import FitStatistics, forgetting_weights
 from tpsr_ros.core.learn import fit
+from tpsr_ros.core.presets import PRESETS
 from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import TPSRConfig, fit_tpsr, fit_tpsr_episodes
 
@@ -85,7 +86,7 @@ def test_the_statistics_of_a_first_fits_own_data_on_its_sketch_solve_to_it():
     """The sketch holds the first fit's leading directions of P_TH: its own data's
     statistics give back the same filter, to rounding."""
     data = _trajectory(3000, seed=10)
-    model = fit(data)
+    model = fit(data, PRESETS["best"].tpsr_config())  # the learner node's refits: spectral
     episodes = make_episodes(data, 1, 1)
     again = FitStatistics.empty(model.basis, 4).partial_fit(episodes).solve()
     assert again.config == model.config

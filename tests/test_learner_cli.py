@@ -58,7 +58,7 @@ def test_every_table_3_5_parameter_is_an_option():
     ):
         assert name in options, name
     actions = {a.dest: a for a in fit._actions}
-    best, guide = PRESETS["best"], PRESETS["guide"]
+    best, guide = PRESETS["predictive"], PRESETS["guide"]  # the default preset, the guide's
     for f in dataclasses.fields(TPSRConfig):
         # resolved at run time (None here): an option given wins over a --config file's
         # value, which wins over the preset's (with its robot-bag settings), then the config's
@@ -66,7 +66,7 @@ def test_every_table_3_5_parameter_is_an_option():
         help_text = actions[f.name].help
         assert str(getattr(best.tpsr_config(), f.name)) in help_text and "--config" in help_text
         assert str(f.default) in help_text, f.name  # the guide's value, the dataclass default
-    assert actions["preset"].default == "best"
+    assert actions["preset"].default == "predictive"
     args = fit.parse_args(["bag", "-o", "model.npz"])
     assert config_from_args(TPSRConfig, args) == TPSRConfig()
     assert config_from_args(TPSRConfig, args, best.tpsr_config()) == best.tpsr_config()
@@ -94,6 +94,8 @@ def test_fit_info_plot(small_bag, tmp_path, capsys):
                 "3.0",
                 "--episodes",
                 "250",
+                "--preset",
+                "best",
             ]
         )
         == 0
@@ -167,14 +169,14 @@ def test_errors_are_one_line_and_write_nothing(small_bag, tmp_path, capsys):
 
 def test_the_presets_sizes_follow_the_data_and_the_fit_says_so(small_bag, tmp_path, capsys):
     out_path = tmp_path / "m.npz"
-    code, _, err = run_entry(["fit", str(small_bag), "-o", str(out_path), "--episodes", "100"],
+    code, _, err = run_entry(["fit", str(small_bag), "-o", str(out_path), "--episodes", "300"],
                              capsys)
     assert code == 0, err
-    assert "100 episodes carry less than configured: ht_centers 1000 -> 50, obs_centers 500 " \
-        "-> 50" in err
+    assert "300 episodes carry less than configured: ht_centers 1000 -> 150, obs_centers 500 " \
+        "-> 150" in err
     model = load_model(out_path)
-    assert (model.config.ht_centers, model.config.obs_centers, model.config.rank) == (50, 50, 8)
-    assert model.fit_info["sized"] == {"ht_centers": [1000, 50], "obs_centers": [500, 50]}
+    assert (model.config.ht_centers, model.config.obs_centers, model.config.rank) == (150, 150, 8)
+    assert model.fit_info["sized"] == {"ht_centers": [1000, 150], "obs_centers": [500, 150]}
 
 
 def test_python_dash_m_entry_point(tmp_path):

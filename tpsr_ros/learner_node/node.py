@@ -35,7 +35,7 @@ from typing import Any
 
 from tpsr_ros.core.episodes import DEFAULT_IMAGE_SHAPE
 from tpsr_ros.core.errors import ConfigError, MessageError, TpsrError
-from tpsr_ros.core.presets import DEFAULT_PRESET, PRESETS
+from tpsr_ros.core.presets import PRESETS
 from tpsr_ros.core.tpsr import TPSRModel
 from tpsr_ros.filter_node.health import Throttle
 from tpsr_ros.filter_node.params import DIAGNOSTICS_TOPIC, MODEL_UPDATE_TOPIC
@@ -76,6 +76,11 @@ POLL_S = 0.05
 """Seconds between looks at the refit in progress and at the streams' silence."""
 WARN_PERIOD_S = 5.0
 """At most one warning per topic and kind in this many seconds."""
+LIVE_PRESET = "best"
+"""The preset of the node's refits unless ``preset`` names another: the one its time to
+competence was measured with (docs/results.md). The default of the offline commands,
+``predictive``, refines every fit through its filter (about four times the fit's time) and
+its refits on a kept basis, with forgetting, are not yet measured."""
 
 
 @dataclass(frozen=True)
@@ -95,7 +100,7 @@ class LearnerNodeParams:
         "on (empty: fit them on the warm-up steps with the preset)",
     )  # fmt: skip
     preset: str = param(
-        DEFAULT_PRESET, "named fit and fitted-Q settings of the first fit and of every policy",
+        LIVE_PRESET, "named fit and fitted-Q settings of the first fit and of every policy",
         choices=tuple(sorted(PRESETS)),
     )  # fmt: skip
     environment: str = param(
