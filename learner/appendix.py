@@ -22,7 +22,14 @@ from scipy.stats import spearmanr
 from learner.camera_study import CAMERA_SECTION
 from learner.competence_section import COMPETENCE_SECTION
 from learner.experiment import preset_tpsr
-from learner.jobs import GUIDE_ENVIRONMENTS, SELECTION_SEEDS, Job, experiment_job, study_job
+from learner.jobs import (
+    BEST_PRESET,
+    GUIDE_ENVIRONMENTS,
+    SELECTION_SEEDS,
+    Job,
+    experiment_job,
+    study_job,
+)
 from learner.overrides import convert
 from learner.predictive_section import PREDICTIVE_EPISODES, PREDICTIVE_SECTION
 from learner.room_change_section import ROOM_CHANGE_SECTION
@@ -242,7 +249,7 @@ def _study(
     jobs = tuple(
         study_job(
             "studies", env, vary, "--episodes", str(SELECTION_EPISODES[env]), *SELECTION_SEEDS,
-            *options,
+            *(() if "--preset" in options else BEST_PRESET), *options,
         )
         for env in environments
     )
@@ -276,16 +283,16 @@ def _tuning_jobs(kind: str) -> tuple[Job, ...]:
     options = TUNE_OPTIONS if kind == "tuned" else ()
     return tuple(
         experiment_job(
-            f"tuning/{kind}", env, "--episodes", str(SELECTION_EPISODES[env]), "--methods",
-            "tpsr", *SELECTION_SEEDS, *options,
+            f"tuning/{kind}", env, *BEST_PRESET, "--episodes", str(SELECTION_EPISODES[env]),
+            "--methods", "tpsr", *SELECTION_SEEDS, *options,
         )
         for env in GUIDE_ENVIRONMENTS
     )
 
 
 def _changes_from_default(values: dict[str, Any]) -> dict[str, Any]:
-    """The TPSR settings of a run's parameters that depart from the default preset's."""
-    return _recorded_departures(values, PRESETS[DEFAULT_PRESET].tpsr_config())
+    """The TPSR settings of a run's parameters that depart from ``best``'s (the tuner's start)."""
+    return _recorded_departures(values, PRESETS["best"].tpsr_config())
 
 
 def _tuned_changes(rows: list[Row]) -> str:
@@ -440,7 +447,7 @@ def _render_memory(section: Section, data: Data) -> list[str]:
 def _memory_jobs() -> tuple[Job, ...]:
     options = ("--episodes", "8000", "--methods", "tpsr", "pca", "--memory", *SELECTION_SEEDS)
     return (
-        experiment_job("memory/best", "partial", *options),
+        experiment_job("memory/best", "partial", *BEST_PRESET, *options),
         experiment_job("memory/guide", "partial", "--preset", "guide", *options),
     )
 

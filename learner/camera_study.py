@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from learner.jobs import SELECTION_SEEDS, Job, study_job
+from learner.jobs import BEST_PRESET, SELECTION_SEEDS, Job, study_job
 from learner.sections import (
     Data,
     Section,
@@ -73,7 +73,7 @@ def _jobs() -> tuple[Job, ...]:
     for environment in ("partial", "full"):
         memory = ("--memory",) if environment == "partial" else ()
         common = ("--episodes", str(EPISODES), *SELECTION_SEEDS, *memory)
-        jobs.append(study_job("camera/best", environment, vary, *common))
+        jobs.append(study_job("camera/best", environment, vary, *BEST_PRESET, *common))
         jobs.append(
             study_job(
                 "camera/guide", environment, vary, "--preset", "guide", *_defaults_planner(),

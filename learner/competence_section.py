@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from learner.floors import CONSTANT, RANDOM
-from learner.jobs import ENVIRONMENTS, HEADLINE_SEEDS, Job, experiment_job
+from learner.jobs import ENVIRONMENTS, Job, best_job
 from learner.sections import Data, Section, cell
 from learner.tables import Row, pooled_floors, score_statistics, summarise
 from tpsr_ros.io.policy import TRUE_POSITION
@@ -42,10 +42,6 @@ def competence_jobs() -> tuple[Job, ...]:
         Job("competence", ("competence", "--environment", env), f"competence_{env}.csv")
         for env in ENVIRONMENTS
     )
-
-
-def _defaults(environment: str) -> Job:
-    return experiment_job("defaults", environment, *HEADLINE_SEEDS)
 
 
 def ceiling_entry(rows: list[Row]) -> dict | None:
@@ -96,7 +92,7 @@ def _render(section: Section, data: Data) -> list[str]:
     verdicts = []
     for job in competence_jobs():
         env, rows = job.environment, data[job]
-        base = data[_defaults(env)]
+        base = data[best_job(env)]
         floors = pooled_floors(base)
         ceiling = ceiling_entry(base)
         cells = []

@@ -10,13 +10,19 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from sim_node import Environment
+
 __all__ = [
     "ENVIRONMENTS",
     "GUIDE_ENVIRONMENTS",
+    "BEST_PRESET",
     "HEADLINE_SEEDS",
     "SELECTION_SEEDS",
     "Job",
+    "best_job",
     "experiment_job",
+    "headline_job",
+    "memory_option",
     "study_job",
 ]
 
@@ -30,6 +36,10 @@ SELECTION_SEEDS = ("--seed", "0", "--rl-seed", "100")
 
 HEADLINE_SEEDS = ("--seed", "11", "--rl-seed", "111")
 """Fresh seeds, never used to choose anything: the headline tables run on them."""
+
+BEST_PRESET = ("--preset", "best")
+"""The preset the one-parameter studies, the tuner's and the baselines' jobs run under: the
+defaults were chosen on it before ``predictive`` refined them."""
 
 
 @dataclass(frozen=True)
@@ -87,3 +97,20 @@ def study_job(directory: str, environment: str, vary: str, *options: str) -> Job
         ("study", "--environment", environment, "--vary", vary, *options),
         f"study_{environment}_{name}.csv",
     )
+
+
+def memory_option(environment: str) -> tuple[str, ...]:
+    """``--memory`` where two places look alike (the narrow cameras), else nothing."""
+    return ("--memory",) if Environment.parse(environment).narrow else ()
+
+
+def headline_job(environment: str) -> Job:
+    """The headline's experiment under the defaults: every method at every data size on the
+    fresh seeds, measuring memory where two places look alike."""
+    return experiment_job("defaults", environment, *memory_option(environment), *HEADLINE_SEEDS)
+
+
+def best_job(environment: str) -> Job:
+    """The headline's experiment under ``--preset best``: what the ``predictive`` preset
+    refines, and the preset of the online learner's runs."""
+    return experiment_job("best", environment, *BEST_PRESET, *HEADLINE_SEEDS)

@@ -28,7 +28,9 @@ from learner.jobs import (
     HEADLINE_SEEDS,
     SELECTION_SEEDS,
     Job,
+    best_job,
     experiment_job,
+    headline_job,
 )
 from learner.sections import Data, cell
 from learner.tables import Row, difference_in_sems, pooled_floors, summarise
@@ -61,16 +63,19 @@ __all__ = [
 ]
 
 HEADLINE: Mapping[str, tuple[Job, ...]] = {
-    "defaults": tuple(experiment_job("defaults", env, *HEADLINE_SEEDS) for env in ENVIRONMENTS),
+    "defaults": tuple(headline_job(env) for env in ENVIRONMENTS),
+    "best": tuple(best_job(env) for env in ENVIRONMENTS),
     "guide": tuple(
         experiment_job("guide", env, "--preset", "guide", *HEADLINE_SEEDS) for env in ENVIRONMENTS
     ),
 }
-"""The headline's jobs: every method under the defaults and under ``--preset guide``."""
+"""The headline's jobs: every method under the defaults, under ``--preset best`` (what the
+defaults refine) and under ``--preset guide``."""
 
 _ROWS = (
     ("TPSR", "defaults", "defaults", "tpsr"),
     ("PCA", "the defaults' planner", "defaults", "pca"),
+    ("TPSR", "`--preset best`", "best", "tpsr"),
     ("TPSR", "`--preset guide`", "guide", "tpsr"),
     ("PCA", "the guide's planner", "guide", "pca"),
     ("true position (ceiling)", "the defaults' planner", "defaults", TRUE_POSITION),
@@ -98,6 +103,16 @@ def all_jobs() -> list[Job]:
 
 def _tables(data: Data, arm: str) -> dict[str, Table]:
     return {env: summarise(data[job]) for env, job in zip(ENVIRONMENTS, HEADLINE[arm], strict=True)}
+
+
+def _arm_jobs(index: int) -> dict[str, Job]:
+    """The headline's job of every arm in the environment ``ENVIRONMENTS[index]``."""
+    return {arm: jobs[index] for arm, jobs in HEADLINE.items()}
+
+
+def _arm_tables(data: Data, index: int) -> dict[str, Table]:
+    """The headline's summary of every arm in the environment ``ENVIRONMENTS[index]``."""
+    return {arm: summarise(data[job]) for arm, job in _arm_jobs(index).items()}
 
 
 def _floors(data: Data, arm: str = "defaults") -> dict[str, Floors]:
@@ -184,16 +199,16 @@ def _count(hits: int, sizes: int) -> str:
     return "at no data size" if not hits else f"at {hits} of {sizes} data sizes"
 
 
-def _environment_summary(env: str, best: Table, guide: Table, floors: Floors) -> str:
+def _environment_summary(env: str, defaults: Table, guide: Table, floors: Floors) -> str:
     """Two separate statements: whether the TPSR is above the floors, and whether it beats
     the baseline (PCA with the same planner); then the guide's settings against the defaults."""
-    tpsr = _method(best, "tpsr")
-    pca = _method(best, "pca")
-    ceiling = _method(best, TRUE_POSITION)
-    sizes = _sizes(best)
+    tpsr = _method(defaults, "tpsr")
+    pca = _method(defaults, "pca")
+    ceiling = _method(defaults, TRUE_POSITION)
+    sizes = _sizes(defaults)
     margins = [t["margin_sem"] for t in tpsr]
     above_floor = sum(m > FLOOR_SEMS for m in margins)
-    gaps = _gaps(best, "tpsr", "pca")
+    gaps = _gaps(defaults, "tpsr", "pca")
     beats = sum(g > DIFFERENCE_SEMS for g in gaps)
     below = sum(g < -DIFFERENCE_SEMS for g in gaps)
     return "\n".join(
@@ -211,30 +226,45 @@ def _environment_summary(env: str, best: Table, guide: Table, floors: Floors) ->
             f"it at {below} of {len(gaps)}.",
             f"  - The guide's settings (`--preset guide`) score "
             f"{_span([t['mean'] for t in _method(guide, 'tpsr')])}; against them the defaults "
-            f"are {_versus(_merged(best, guide), 'tpsr', 'tpsr-guide')}.",
+            f"are {_versus(_merged(defaults, guide), 'tpsr', 'tpsr-guide')}.",
         ]
     )
 
 
-def _merged(best: Table, guide: Table) -> Table:
+def _merged(defaults: Table, guide: Table) -> Table:
     """``best`` with the guide's TPSR entries renamed ``tpsr-guide`` (to compare them)."""
-    return [*best, *({**t, "method": "tpsr-guide"} for t in guide if t["method"] == "tpsr")]
+    return [*defaults, *({**t, "method": "tpsr-guide"} for t in guide if t["method"] == "tpsr")]
 
 
-def _headline_table(env: str, tables: Mapping[str, Table], jobs: Mapping[str, Job]) -> list[str]:
+def _headline_table(
+    env: str, tables: Mapping[str, Table], jobs: Mapping[str, Job], data: Data | None = None
+) -> list[str]:
+    """One row per representation and settings, a cell per data size; with ``data``, the
+    median memory (``learner memory``, in steps) at the largest size where it was measured."""
     sizes = _sizes(tables["defaults"])
     lines = [
         "| representation | settings | "
         + " | ".join(f"{n} episodes" for n in sizes)
-        + " | command |",
-        "|---|---|" + "---|" * len(sizes) + "---|",
+        + f" | memory at {sizes[-1]} | command |",
+        "|---|---|" + "---|" * len(sizes) + "---|---|",
     ]
     for label, settings, arm, method in _ROWS:
         cells = [cell(_entry(tables[arm], method, n)) for n in sizes]
+        memory = "-" if data is None else _median_memory(data[jobs[arm]], method, sizes[-1])
         lines.append(
-            f"| {label} | {settings} | " + " | ".join(cells) + f" | `{jobs[arm].command}` |"
+            f"| {label} | {settings} | " + " | ".join(cells)
+            + f" | {memory} | `{jobs[arm].command}` |"
         )
     return lines
+
+
+def _median_memory(rows: Sequence[Row], method: str, episodes: int) -> str:
+    """The median memory in steps of ``method``'s runs at ``episodes`` that measured it."""
+    steps = [
+        r.memory for r in rows
+        if (r.method, r.episodes) == (method, episodes) and math.isfinite(r.memory)
+    ]  # fmt: skip
+    return f"{float(np.median(steps)):g}" if steps else "-"
 
 
 def _floor_table(floors: Floors, job: Job) -> list[str]:
@@ -265,14 +295,14 @@ def _margins(table: Table) -> str:
     )
 
 
-def _findings(best: Mapping[str, Table], guide: Mapping[str, Table]) -> list[str]:
+def _findings(defaults: Mapping[str, Table], guide: Mapping[str, Table]) -> list[str]:
     lines = [
         "| environment | the guide's finding | `--preset guide`: measured | verdict | defaults: "
         "measured | verdict |",
         "|---|---|---|---|---|---|",
     ]
     for (finding, measured_guide, verdict_guide), (_, measured_best, verdict_best) in zip(
-        judge(dict(guide)), judge(dict(best)), strict=True
+        judge(dict(guide)), judge(dict(defaults)), strict=True
     ):
         lines.append(
             f"| `{finding.environment}` | {finding.claim} | {measured_guide} | {verdict_guide} | "
@@ -311,13 +341,15 @@ def _verdict_counts(verdicts: Mapping[str, list[str]]) -> str:
     )
 
 
-def _summary(best: Mapping[str, Table], guide: Mapping[str, Table]) -> str:
+def _summary(defaults: Mapping[str, Table], guide: Mapping[str, Table]) -> str:
     """What the page finds, in one sentence of counts: the guide's findings with its
     settings and with the defaults, and the defaults against the guide's settings and PCA."""
-    with_guide, with_defaults = _verdicts(guide), _verdicts(best)
+    with_guide, with_defaults = _verdicts(guide), _verdicts(defaults)
     total = sum(len(v) for v in with_guide.values())
-    merged = [_gaps(_merged(best[env], guide[env]), "tpsr", "tpsr-guide") for env in ENVIRONMENTS]
-    over_pca = [_gaps(best[env], "tpsr", "pca") for env in ENVIRONMENTS]
+    merged = [
+        _gaps(_merged(defaults[env], guide[env]), "tpsr", "tpsr-guide") for env in ENVIRONMENTS
+    ]
+    over_pca = [_gaps(defaults[env], "tpsr", "pca") for env in ENVIRONMENTS]
     pairs = sum(len(g) for g in merged)
     return (
         f"Of the guide's {total} findings, with its own settings "
@@ -329,18 +361,20 @@ def _summary(best: Mapping[str, Table], guide: Mapping[str, Table]) -> str:
     )
 
 
-def _not_reproduced(data: Data, best: Mapping[str, Table], guide: Mapping[str, Table]) -> list[str]:
+def _not_reproduced(
+    data: Data, defaults: Mapping[str, Table], guide: Mapping[str, Table]
+) -> list[str]:
     """What the guide found that does not hold here, with the measurements that say why."""
     partial_rows = data[HEADLINE["defaults"][ENVIRONMENTS.index("partial")]]
-    largest = _sizes(best["partial"])[-1]
-    pca_partial = _entry(best["partial"], "pca", largest)
-    ceiling = _entry(best["partial"], TRUE_POSITION, largest)
+    largest = _sizes(defaults["partial"])[-1]
+    pca_partial = _entry(defaults["partial"], "pca", largest)
+    ceiling = _entry(defaults["partial"], TRUE_POSITION, largest)
     guide_full = _method(guide["full"], "tpsr")
     failed = _verdicts(guide)[NOT_REPRODUCED]  # in the guide's own environments
     pca_share = (
         pca_partial["mean"] / ceiling["mean"] if pca_partial and ceiling else math.nan
     )
-    summary = _summary(best, guide)  # the README's line says the same
+    summary = _summary(defaults, guide)  # the README's line says the same
     return [
         f"{summary} (the findings' table below). With the guide's "
         "settings these do not reproduce: " + "; ".join(failed) + ".",
@@ -355,7 +389,7 @@ def _not_reproduced(data: Data, best: Mapping[str, Table], guide: Mapping[str, T
         "the image tells its distance, and a reactive policy solves the task. A representation "
         "can then beat PCA only by precision, not by memory. The same holds with distractors, "
         "which change only the red channel." + _sentence(narrowest_camera(data)),
-        _strip_bullet(best["partial-strip"]),
+        _strip_bullet(defaults["partial-strip"]),
         "- **Our TPSRs do not remember.** The guide's memory of 3-4 steps (section 4.4) is not "
         "measured with either preset (appendix, Memory): the states of two runs that saw "
         "different pasts merge at the first identical step.",
@@ -416,7 +450,9 @@ def _recommended() -> list[str]:
         "python -m learner evaluate policy.npz --environment E",
         "```",
         "",
-        "`--preset guide` on `fit` and `policy` gives the guide's settings instead, exactly as "
+        "`--preset best` on `fit` and `policy` gives the spectral model alone, without the "
+        "refinement through the filter (a quarter of the fit's time; the headline's "
+        "`--preset best` rows); `--preset guide` gives the guide's settings, exactly as "
         "they were before the defaults changed (the same models bit for bit).",
     ]
 
@@ -429,7 +465,7 @@ def _plot(env: str, tables: Mapping[str, Table], floors: Floors, path: Path) -> 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colours = ("tab:red", "tab:blue", "tab:orange", "tab:cyan", "tab:gray", "silver")
+    colours = ("tab:red", "tab:blue", "tab:pink", "tab:orange", "tab:cyan", "tab:gray", "silver")
     fig, ax = plt.subplots(figsize=(7.0, 4.8))
     for (label, settings, arm, method), colour in zip(_ROWS, colours, strict=True):
         part = _method(tables[arm], method)
@@ -464,7 +500,7 @@ def _plot(env: str, tables: Mapping[str, Table], floors: Floors, path: Path) -> 
 
 def render(data: Data) -> list[str]:
     """The page's lines from every job's rows."""
-    best, guide = _tables(data, "defaults"), _tables(data, "guide")
+    defaults, guide = _tables(data, "defaults"), _tables(data, "guide")
     floors = _floors(data)
     lines = [
         "# Results",
@@ -478,20 +514,25 @@ def render(data: Data) -> list[str]:
         "",
         "## What works",
         "",
-        *(_environment_summary(env, best[env], guide[env], floors[env]) for env in ENVIRONMENTS),
+        *(
+            _environment_summary(env, defaults[env], guide[env], floors[env])
+            for env in ENVIRONMENTS
+        ),
         "",
         "## What does not reproduce from the guide, and why",
         "",
-        *_not_reproduced(data, best, guide),
+        *_not_reproduced(data, defaults, guide),
         "",
         "## Recommended commands",
         "",
         *_recommended(),
         "",
-        "## Headline: the defaults, the guide's settings, PCA, floors and ceiling",
+        "## Headline: the defaults, `--preset best`, the guide's settings, PCA, floors and ceiling",
         "",
         "Protocol (DESIGN.md, guide 4.1-4.2): for each data size, 10 independent random "
-        "training trajectories (3 steps per episode); each representation learned from the "
+        "training trajectories (3 steps per episode; the defaults cut a window at every "
+        "step of them, `best` and the guide's settings one per episode); each "
+        "representation learned from the "
         "same data; states tracked with the model's parameters over one separate random RL "
         "trajectory (15000 steps in `full`, 20000 otherwise); fitted Q-iteration on them; the "
         "standard evaluation (10 fixed starts, 50 greedy steps; score = mean summed reward, at "
@@ -506,24 +547,22 @@ def render(data: Data) -> list[str]:
         f"evaluation, random actions with policy seed {DEMO_POLICY_SEED}: a single draw from "
         "the spread of the pooled runs. Ceiling: the same planner on the "
         "true position (and heading, in `drive`). Cells: "
-        "mean / median / SEM over the 10 runs. The seeds "
+        "mean / median / SEM over the 10 runs; memory: the median of `learner memory` (in "
+        "steps) where two places look alike (`partial`, `partial-strip`). The seeds "
         f"(`{' '.join(HEADLINE_SEEDS)}`) are fresh: the defaults were chosen on "
         f"`{' '.join(SELECTION_SEEDS)}` (the appendix's studies).",
         "",
     ]
-    for env, defaults_job, guide_job in zip(
-        ENVIRONMENTS, HEADLINE["defaults"], HEADLINE["guide"], strict=True
-    ):
-        tables = {"defaults": best[env], "guide": guide[env]}
-        jobs = {"defaults": defaults_job, "guide": guide_job}
+    for index, env in enumerate(ENVIRONMENTS):
+        jobs = _arm_jobs(index)
         lines += [
             f"### `{env}`",
             "",
-            *_headline_table(env, tables, jobs),
+            *_headline_table(env, _arm_tables(data, index), jobs, data),
             "",
-            *_floor_table(floors[env], defaults_job),
+            *_floor_table(floors[env], jobs["defaults"]),
             "",
-            _margins(best[env]),
+            _margins(defaults[env]),
             "",
             f"The guide's figures: {GUIDE_RESULTS[env]}",
             "",
@@ -548,7 +587,7 @@ def render(data: Data) -> list[str]:
         "about 300 with the median above at the others, for \"about 300\"), *not reproduced* "
         "otherwise.",
         "",
-        *_findings(best, guide),
+        *_findings(defaults, guide),
         "",
         "## Appendix: studies",
         "",
@@ -571,19 +610,19 @@ README_SUMMARY_END = "<!-- end of summary -->"
 
 def readme_table(data: Data) -> list[str]:
     """The README's results table: each environment at :data:`README_EPISODES` episodes."""
-    best, guide = _tables(data, "defaults"), _tables(data, "guide")
+    defaults, guide = _tables(data, "defaults"), _tables(data, "guide")
 
     def at(table: Table, method: str) -> str:
         entry = _entry(table, method, README_EPISODES)
         return "-" if entry is None else f"{entry['mean']:.1f} / {entry['sem']:.1f}"
 
-    floors = _floors(data)
-    predictive: dict[str, Table] = {}  # the predictive section's runs: its TPSR, baselines
+    floors, preset_best = _floors(data), _tables(data, "best")
+    predictive: dict[str, Table] = {}  # the predictive section's runs: its baselines
     for job in PREDICTIVE_SECTION.jobs:
         if job in data:
             predictive.setdefault(job.environment, []).extend(summarise(data[job]))
     lines = [
-        "| environment | TPSR, defaults | TPSR, `--preset predictive` | TPSR, `--preset guide` "
+        "| environment | TPSR, defaults | TPSR, `--preset best` | TPSR, `--preset guide` "
         "| PCA, same planner | window state (k = 1) | best floor (all its runs) "
         "| ceiling (true position) |",
         "|---|---|---|---|---|---|---|---|",
@@ -591,11 +630,11 @@ def readme_table(data: Data) -> list[str]:
     for env in ENVIRONMENTS:
         floor = _best_floor(floors[env])
         floor_cell = "-" if floor is None else f"{floor['mean']:.1f} / {floor['sem']:.1f}"
-        ours = predictive.get(env, [])
         lines.append(
-            f"| `{env}` | {at(best[env], 'tpsr')} | {at(ours, 'tpsr')} | "
-            f"{at(guide[env], 'tpsr')} | {at(best[env], 'pca')} | {at(ours, 'window')} | "
-            f"{floor_cell} | {at(best[env], TRUE_POSITION)} |"
+            f"| `{env}` | {at(defaults[env], 'tpsr')} | {at(preset_best[env], 'tpsr')} | "
+            f"{at(guide[env], 'tpsr')} | {at(defaults[env], 'pca')} | "
+            f"{at(predictive.get(env, []), 'window')} | "
+            f"{floor_cell} | {at(defaults[env], TRUE_POSITION)} |"
         )
     return lines
 
@@ -628,11 +667,9 @@ def write_readme_table(data: Data, readme: Path) -> None:
 
 def write_page(data: Data, docs: Path) -> Path:
     """Write ``docs/results.md`` and its figures ``docs/results_<env>.png``."""
-    for env, defaults_job, guide_job in zip(
-        ENVIRONMENTS, HEADLINE["defaults"], HEADLINE["guide"], strict=True
-    ):
-        tables = {"defaults": summarise(data[defaults_job]), "guide": summarise(data[guide_job])}
-        _plot(env, tables, pooled_floors(data[defaults_job]), docs / f"results_{env}.png")
+    for index, env in enumerate(ENVIRONMENTS):
+        floors = pooled_floors(data[HEADLINE["defaults"][index]])
+        _plot(env, _arm_tables(data, index), floors, docs / f"results_{env}.png")
     page = docs / "results.md"
     page.write_text("\n".join(render(data)).rstrip() + "\n")
     return page

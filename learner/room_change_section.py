@@ -25,7 +25,7 @@ from learner.competence_section import (
     steps_to_competence,
 )
 from learner.floors import CONSTANT, RANDOM
-from learner.jobs import HEADLINE_SEEDS, Job, experiment_job
+from learner.jobs import Job, best_job
 from learner.sections import Data, Section, cell
 from learner.tables import Row, pooled_floors, score_statistics
 from learner.verdicts import DIFFERENCE_SEMS
@@ -86,7 +86,7 @@ def room_change_jobs() -> tuple[Job, ...]:
 
 def _headline(data: Data) -> list[Row]:
     """The new room's headline runs (its floors and ceiling)."""
-    return data[experiment_job("defaults", AFTER, *HEADLINE_SEEDS)]
+    return data[best_job(AFTER)]
 
 
 def _ceiling(data: Data) -> float:

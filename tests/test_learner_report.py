@@ -342,8 +342,8 @@ def test_the_headline_shows_each_floor_once_pooled():
     sizes = (2000, 8000)
     tpsr = {("tpsr", n): [400.0] * 3 for n in sizes}
     rows = _sized("full", {**_floors_and_ceiling(sizes), **tpsr})
-    tables = {"defaults": summarise(rows), "guide": summarise(rows)}
-    jobs = {"defaults": HEADLINE["defaults"][0], "guide": HEADLINE["guide"][0]}
+    tables = {arm: summarise(rows) for arm in HEADLINE}
+    jobs = {arm: jobs[0] for arm, jobs in HEADLINE.items()}
     assert not any("(floor)" in line for line in _headline_table("full", tables, jobs))
     lines = _floor_table(pooled_floors(rows), jobs["defaults"])
     (random,) = [line for line in lines if line.startswith("| random actions (floor) |")]
@@ -528,7 +528,7 @@ def test_a_study_shows_the_headings_r2_and_each_environments_own_default():
     headings = {"partial-strip": float("nan"), "drive": 0.8}
     data = {job: rows(job, headings[job.environment]) for job in CARRY_STUDY.jobs}
     text = "\n".join(CARRY_STUDY.render(CARRY_STUDY, data))
-    assert "its value, the default below, is `0.3` in `partial-strip` and `0` in `drive`" in text
+    assert "the default's value is `0.3` in `partial-strip` and `0` in `drive`" in text
     assert "in brackets of the heading's unit vector" in text
     assert "| `drive` (8000) | `0` | tpsr | 410.0 / 410.0 / 5.8 | 0.90 / 0.90 (0.80) |" in text
     assert "| `partial-strip` (8000) | `0.3` | tpsr | 410.0 / 410.0 / 5.8 | 0.90 / 0.90 |" in text
