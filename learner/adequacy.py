@@ -138,7 +138,9 @@ def assess(model: TPSRModel, trajectory: Trajectory, tracked: Track | None = Non
     if tracked is None:
         tracked = track_trajectory(model, trajectory)
     return Adequacy(
-        training_episodes=int(model.fit_info.get("training_episodes", 0)),
+        training_episodes=int(  # overlapping windows: those sharing no step
+            model.fit_info.get("independent_episodes", model.fit_info.get("training_episodes", 0))
+        ),
         n_actions=int(model.n_actions),
         steps=int(len(trajectory)),
         recoveries=int(np.count_nonzero(tracked.recovered)),

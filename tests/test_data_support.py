@@ -25,7 +25,7 @@ from tpsr_ros.core.errors import DataError
 from tpsr_ros.core.learn import fit_tpsr_trajectory
 from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr import TPSRConfig
-from tpsr_ros.core.tpsr_stages import singular_value_floor, supported_rank
+from tpsr_ros.core.tpsr_stages import independent_episodes, singular_value_floor, supported_rank
 from tpsr_ros.io.model_io import open_model
 
 TOPICS = ["--image-topic", "/front_camera/image_raw/compressed", "--action-topic", "/cmd_vel"]
@@ -46,7 +46,7 @@ def _kept_above_floor(model_path: Path) -> tuple[int, float, float]:
     """The model's rank, its smallest kept singular value over the largest, and the floor."""
     model = open_model(model_path).model
     s, r = model.singular_values, model.state_dim
-    floor = singular_value_floor(1.0, int(model.fit_info["training_episodes"]))
+    floor = singular_value_floor(1.0, int(model.fit_info["independent_episodes"]))
     return r, float(s[r - 1] / s[0]), floor
 
 
@@ -58,6 +58,30 @@ def test_supported_rank_counts_the_values_above_the_floor() -> None:
     assert supported_rank(values, 25, usable=2) == 2  # never above the numerical rank
     assert supported_rank(np.array([1.0, 0.04]), 1, usable=2) == 1  # floor 0.05
     assert supported_rank(np.array([1.0, 1e-9]), 10**6, usable=2) == 1  # the largest passes
+
+
+def test_overlapping_windows_count_as_the_episodes_that_share_no_step() -> None:
+    """The rank rule's sampling error counts independent samples: a window at every step
+    adds one image, not a window's worth."""
+    guide = TPSRConfig()
+    overlapping = TPSRConfig(history_length=2, overlapping_episodes=True)
+    assert independent_episodes(8000, guide) == 8000
+    assert independent_episodes(23997, overlapping) == 5999  # one in every 2 + 1 + 1
+    assert independent_episodes(3, overlapping) == 1 and independent_episodes(0, guide) == 0
+    rng = np.random.default_rng(0)
+    steps = 240  # a 3-symbol chain; cut every step, the same steps are 237 windows
+    actions = rng.integers(2, size=steps)
+    symbols = np.cumsum(actions + rng.integers(2, size=steps)) % 3
+    obs = np.eye(3)[symbols] + 0.01 * rng.normal(size=(steps, 3))
+    trajectory = Trajectory.from_arrays(actions, obs, n_actions=2)
+    config = TPSRConfig(obs_dim=3, ht_dim=3, obs_centers=20, ht_centers=20, rank=12,
+                        history_length=2, overlapping_episodes=True)  # fmt: skip
+    model = fit_tpsr_trajectory(trajectory, config, sizing=Sizing())
+    info = model.fit_info
+    assert info["independent_episodes"] == info["training_episodes"] // 4
+    s, r = model.singular_values, model.state_dim
+    floor = singular_value_floor(float(s[0]), info["independent_episodes"])
+    assert r < 12 and s[r - 1] >= floor > s[r]  # the rule, at the independent count
 
 
 def test_a_sized_fit_lowers_the_rank_and_a_fixed_rank_is_refused() -> None:
@@ -83,18 +107,20 @@ def test_a_sized_fit_lowers_the_rank_and_a_fixed_rank_is_refused() -> None:
 @pytest.mark.parametrize("period", ["0.075", "0.25"])
 def test_fit_never_keeps_a_singular_value_below_the_rule(phone_bags, tmp_path, capsys, period):
     for seed, bag in phone_bags.items():
-        model = tmp_path / f"m{seed}.npz"
-        code, _, err = run_entry(
-            ["fit", str(bag), *TOPICS, "--step-period", period, "-o", str(model)], capsys
-        )
-        assert code == 0, err
-        rank, weakest, floor = _kept_above_floor(model)
-        assert weakest >= floor, (seed, rank, weakest, floor)
-        if period == "0.25":  # the turning preset's rank 16 cannot be carried by 27 episodes
+        for preset in ("predictive", "best"):
+            model = tmp_path / f"m{seed}{preset}.npz"
+            code, _, err = run_entry(
+                ["fit", str(bag), *TOPICS, "--step-period", period, "--preset", preset, "-o",
+                 str(model)], capsys,
+            )  # fmt: skip
+            assert code == 0, err
+            rank, weakest, floor = _kept_above_floor(model)
+            assert weakest >= floor, (seed, preset, rank, weakest, floor)
+        if period == "0.25":  # best's turning rank 16 cannot be carried by 27 episodes
             assert "rank 16 -> " in err and "training episodes support" in err
     code, _, err = run_entry(
-        ["fit", str(phone_bags[0]), *TOPICS, "--step-period", "0.25", "--rank", "12", "-o",
-         str(tmp_path / "x.npz")], capsys,
+        ["fit", str(phone_bags[0]), *TOPICS, "--step-period", "0.25", "--preset", "best",
+         "--rank", "12", "-o", str(tmp_path / "x.npz")], capsys,
     )  # fmt: skip
     last = err.splitlines()[-1]
     assert code == 1 and last.startswith("learner: error: rank 12 is above the 8"), err

@@ -43,6 +43,7 @@ from tpsr_ros.core.tpsr_stages import (
     as_actions,
     check_action_counts,
     ht_features,
+    independent_episodes,
     obs_features,
     start_and_normaliser,
     supported_rank,
@@ -207,7 +208,7 @@ class FitStatistics:
         tol = max(p_th.shape) * np.finfo(np.float64).eps * float(s_all[0])
         usable = int(np.count_nonzero(s_all > tol))
         episodes = self.episodes
-        supported = supported_rank(s_all, round(episodes), usable)
+        supported = supported_rank(s_all, independent_episodes(round(episodes), cfg), usable)
         r = min(cfg.rank, supported)
         cfg = replace(cfg, rank=r)
         u_s, s, v_s = u_s[:, :r], s_all[:r].copy(), v_s[:, :r]

@@ -68,6 +68,7 @@ from tpsr_ros.core.tpsr_stages import (
     check_action_counts,
     check_enough_episodes,
     ht_features,
+    independent_episodes,
     kernel_centres,
     obs_features,
     pool_actions,
@@ -236,10 +237,11 @@ def run_fit(
     if basis.sketch is None and first_fit:  # what a refit from sums projects on
         basis = replace(basis, sketch=Sketch.of(p_th, basis.config.rank, seed=cfg.seed))
     del p_th
-    supported = supported_rank(s_all, n_train, usable)
+    independent = independent_episodes(n_train, cfg)  # what the rank rule counts
+    supported = supported_rank(s_all, independent, usable)
     if sizing is not None and cfg.rank > supported:  # the rank rule (tpsr_stages)
         if "rank" in sizing.fixed:
-            raise DataError(rank_rule_refusal(cfg.rank, s_all, n_train, usable))
+            raise DataError(rank_rule_refusal(cfg.rank, s_all, independent, usable))
         sized["rank"] = (sized.get("rank", (cfg.rank, 0))[0], supported)
         cfg = replace(cfg, rank=supported)
         u, v = np.ascontiguousarray(u[:, :supported]), np.ascontiguousarray(v[:, :supported])
@@ -254,6 +256,7 @@ def run_fit(
         "episodes": int(survey.episodes),
         **survey.info,
         "training_episodes": int(n_train),
+        "independent_episodes": independent,
         "samples_per_action": sums.counts.tolist(),
         "usable_singular_values": usable,
         **({"supported_rank": supported} if sizing is not None else {}),

@@ -35,6 +35,7 @@ __all__ = [
     "check_action_counts",
     "check_enough_episodes",
     "ht_features",
+    "independent_episodes",
     "kernel_centres",
     "obs_features",
     "p_th_test_window",
@@ -254,6 +255,15 @@ def truncated_svd(
         )
     r = cfg.rank
     return u[:, :r], s_all[:r], v[:, :r], s_all, usable
+
+
+def independent_episodes(n_train: int, cfg: TPSRConfig) -> int:
+    """How many of ``n_train`` training episodes share no step: all of the guide's, about
+    one in every ``m + 1 + n`` of overlapping windows (a window at every step). The rank
+    rule and the data's adequacy count these: a window shifted by a step adds one new image,
+    not a new sample of the whole window."""
+    span = cfg.history_length + 1 + cfg.test_length
+    return max(1, int(n_train) * cfg.episode_stride // span) if n_train else 0
 
 
 def singular_value_floor(largest: float, n_train: int) -> float:
