@@ -520,6 +520,7 @@ def _run_streamed(
             history_length=m,
             test_length=n,
             max_episodes=args.episodes,
+            stride=tpsr_config.episode_stride,
         )
         episodes = int(model.fit_info["observations"]) // (m + 1 + n)
     else:

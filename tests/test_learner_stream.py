@@ -23,7 +23,7 @@ from tpsr_ros.io.bag_chunks import BagChunks, survey_bags
 from tpsr_ros.io.model_io import load_model, read_metadata
 from tpsr_ros.io.trajectory import read_trajectory
 
-SMALL = ["--obs-centers", "40", "--ht-centers", "80", "--rank", "3"]
+SMALL = ["--preset", "best", "--obs-centers", "40", "--ht-centers", "80", "--rank", "3"]
 CONFIG = PRESETS["best"].tpsr_config(obs_centers=40, ht_centers=80, rank=3)  # the CLI's
 ARRAYS = ("obs_mean", "obs_whitening", "obs_centers", "b_star", "b_inf", "B", "singular_values")
 
@@ -62,12 +62,19 @@ def test_stream_option_writes_the_in_memory_model(bags, reference, tmp_path, cap
     assert_same(load_model(out), reference)
     training = read_metadata(out)["training"]  # what the filter node and `info` read
     assert training["image_shape"] == [16, 16] and training["environment"] == "full"
-    pca = tmp_path / "pca.npz"
-    code, stdout, stderr = run_entry(
-        ["fit", *map(str, bags), "-o", str(pca), "--stream", "--method", "pca"], capsys
-    )
-    assert code == 0, stderr
-    assert "1200 steps, 2 segment(s), 399 episodes" in stdout  # as the in-memory PCA fit
+    pca, pca_in_memory = tmp_path / "pca.npz", tmp_path / "pca_memory.npz"
+    for path, streamed in ((pca, ["--stream"]), (pca_in_memory, [])):
+        code, stdout, stderr = run_entry(
+            ["fit", *map(str, bags), "-o", str(path), *streamed, "--method", "pca"], capsys
+        )
+        assert code == 0, stderr
+        # the default preset's windows start at every step: 1200 - 2 x (2 + 1) of them
+        assert "1200 steps, 2 segment(s), 1194 episodes" in stdout
+    streamed_pca, in_memory_pca = load_model(pca), load_model(pca_in_memory)
+    for name in ("mean", "components", "eigenvalues"):
+        np.testing.assert_allclose(
+            getattr(streamed_pca, name), getattr(in_memory_pca, name), rtol=1e-9, atol=1e-12
+        )
 
 
 EVERY_OPTION = [*SMALL, "--history-length", "2", "--test-length", "2", "--history-action-weight",

@@ -569,17 +569,19 @@ def fit_pca_streamed(
     history_length: int = 1,
     test_length: int = 1,
     max_episodes: int | None = None,
+    stride: int | None = None,
 ) -> PCAModel:
     """Fit the PCA baseline from one pass of merged moments.
 
     Equal to rounding to :func:`~tpsr_ros.core.pca_baseline.fit_pca` on every step of the
-    episodes.
+    episodes (one starting every ``stride`` steps; default ``m + 1 + n``, as
+    :class:`~tpsr_ros.core.episode_stream.EpisodeCutter`).
     """
     cfg = config if config is not None else PCAConfig()
     start = time.perf_counter()
     total: Moments | None = None
     n_actions = 0
-    cutter = EpisodeCutter(history_length, test_length, max_episodes)
+    cutter = EpisodeCutter(history_length, test_length, max_episodes, stride=stride)
     for episodes in episodes_of(source(), cutter):
         part = Moments.of(episodes.steps())
         total = part if total is None else total.merge(part)
