@@ -154,7 +154,7 @@ def test_learner_fit_init_from_is_the_refit_of_the_bag_on_the_models_basis(bags,
     for name, array in expected.model.to_arrays().items():
         np.testing.assert_allclose(refit.model.to_arrays()[name], array, rtol=0, atol=1e-12)
     assert refit.training["init_from"]["fingerprint"] == open_model(first).fingerprint
-    assert refit.metadata["preset"]["name"] == "best"
+    assert refit.metadata["preset"]["name"] == "predictive"  # the first fit's, the default
     assert refit.view is not None
 
 

@@ -163,7 +163,7 @@ def test_fit_info_plot_policy_need_no_options_again(robot, capsys):
     assert "steps of 1 s, offset " in err and "(chosen to keep steps clear of stamps" in err
     assert "(camera period 0.25 s, images used up to 1 s old); observations 8x8 colour;" in err
     assert re.search(r"commands: 0 of 1[78]\d\d command messages farther than", err)  # said
-    assert "preset best (" in err
+    assert "preset predictive (" in err
     assert load_model(model).config.normalize_ht_features  # the default preset's
     metadata = read_metadata(model)
     spec = model_stream_spec(model, metadata)

@@ -156,10 +156,12 @@ def bag(tmp_path_factory):
 @pytest.mark.slow
 def test_tune_then_fit_with_its_config(bag, tmp_path, capsys):
     config = tmp_path / "tuned.yaml"
-    # five candidates (within the budget): four criteria, the best not the first
+    # five candidates (within the budget): four criteria, the best not the first; from
+    # best, whose candidates fit in a quarter of the default's time (no refinement)
     code, out, err = run_entry(
-        ["tune", str(bag), "-o", str(config), "--budget", "5", "--candidates", "5"], capsys
-    )
+        ["tune", str(bag), "-o", str(config), "--budget", "5", "--candidates", "5", "--preset",
+         "best"], capsys,
+    )  # fmt: skip
     assert code == 0, err
     content = yaml.safe_load(config.read_text())
     tried = content["tune"]["tried"]
@@ -244,8 +246,8 @@ def test_a_tiny_budget_stops_after_the_first_candidate(bag, tmp_path, capsys):
     assert "budget of 0.01 s reached after 1 candidate(s)" in err
     content = yaml.safe_load(config.read_text())
     assert len(content["tune"]["tried"]) == 1
-    # one candidate: the default preset, its centres sized to half the 600 fitted episodes
-    sized = PRESETS["best"].tpsr_config(ht_centers=300, obs_centers=300)
+    # one candidate: the default preset, its centres sized to half the 1797 fitted windows
+    sized = PRESETS["predictive"].tpsr_config(ht_centers=898)
     assert TPSRConfig(**content["tpsr"]) == sized
 
 
@@ -427,8 +429,9 @@ def test_experiment_tunes_each_run_on_its_own_training_data(tmp_path):
     parameters = json.loads(row["parameters"])
     assert parameters["tune"]["candidates"] >= 1 and parameters["tune"]["budget"] == 2
     assert np.isfinite(parameters["tune"]["criterion"])
-    # 300 episodes, 75 % fitted: 225 episodes, so the tuner capped the centres at 112
-    assert parameters["tpsr"]["ht_centers"] == parameters["tpsr"]["obs_centers"] == 112
+    # 300 episodes of 4 steps (two images of history), 75 % fitted: 897 windows, so the tuner
+    # capped the centres at 448
+    assert parameters["tpsr"]["ht_centers"] == parameters["tpsr"]["obs_centers"] == 448
     assert row["status"] == "ok"
 
 
