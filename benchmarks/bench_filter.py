@@ -1,6 +1,6 @@
 """The filter node: updates per second in-process, and image-to-/cmd_vel latency over DDS.
 
-Model and policy are the guide's defaults (a TPSR fitted on 24000 random steps of the full
+Model and policy are the defaults' (a TPSR fitted on 24000 random steps of the full
 environment, a fitted-Q policy on 15000 more), built in a temporary directory first.
 
 1. In-process throughput (target >= 5000 updates/s): the filter node with the policy on
@@ -233,7 +233,7 @@ def dds_latency(
 def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_filter_") as tmpdir:
         tmp = Path(tmpdir)
-        print("   training the guide-default model and policy ...", flush=True)
+        print("   training the default model and policy ...", flush=True)
         import contextlib
         import io
 

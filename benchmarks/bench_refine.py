@@ -1,9 +1,9 @@
 """A refined TPSR fit of 24000 steps on one core: the spectral fit and the refinement's share.
 
 Data: a uniformly random 24000-step run of ``partial-strip`` (8000 of the guide's
-episodes), made in memory. Fit: ``--preset predictive`` (the defaults with from-current
-``P_TH`` tests, histories of two images, a window at every step and 30 iterations of
-refinement through the filter),
+episodes), made in memory. Fit: the default preset, ``predictive`` (``best`` with
+from-current ``P_TH`` tests, histories of two images, a window at every step and 30
+iterations of refinement through the filter),
 sized to the data as ``learner fit`` sizes it, with BLAS on one thread. Target: the whole
 fit within 60 s.
 Printed per repeat: the spectral stages, the refinement (iterations, best iteration,
