@@ -504,7 +504,7 @@ def test_pca_is_planned_with_its_own_planner_where_one_image_is_ambiguous():
         assert (row in page) == (env in PCA_PLANNER_ENVIRONMENTS), env
     for env in PCA_PLANNER_ENVIRONMENTS:
         settings = " ".join(f"--set {s}" for s in PCA_PLANNER)
-        assert f"--environment {env} --episodes 8000 --methods pca {settings}" in page
+        assert f"--environment {env} --episodes 8000 --preset best --methods pca {settings}" in page
         rows = read_csv(REPOSITORY / "results" / "pca_planner" / f"experiment_{env}.csv")
         planners = [json.loads(r.parameters)["fqi"] for r in rows if r.method == "pca"]
         assert len(planners) == 10

@@ -235,7 +235,7 @@ def small_model(tmp_path_factory):
         "fit", str(bag), "-o", str(model), "--image-topic", CAMERA, "--action-topic", COMMANDS,
         "--pose-topic", ODOM, "--step-period", str(STEP), "--step-offset", "0.05",
         "--image-size", "2", "--actions", "2", "--obs-centers", "5", "--ht-centers", "5",
-        "--rank", "2", "--ht-dim", "3", "--obs-dim", "3",
+        "--rank", "2", "--ht-dim", "3", "--obs-dim", "3", "--preset", "best",
     ])  # fmt: skip
     return model
 

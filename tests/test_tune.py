@@ -204,8 +204,9 @@ def test_a_robot_bag_is_tuned_from_its_resampled_steps_and_a_bad_criterion_said(
              "--step-period", "1.0", "--image-size", "8", "--actions", "9"]  # fmt: skip
     config = tmp_path / "robot.yaml"
     code, out, err = run_entry(
-        ["tune", str(bag), *robot, "-o", str(config), "--budget", "3"], capsys
-    )
+        ["tune", str(bag), *robot, "-o", str(config), "--budget", "3", "--preset", "best"],
+        capsys,
+    )  # fmt: skip
     assert code == 0, err
     assert "9 actions over linear.x, linear.y (kmeans)" in err  # read on the step grid
     # 225 held-out steps over 9 actions: the best criterion stays below the mean's, said
@@ -218,8 +219,9 @@ def test_a_robot_bag_is_tuned_from_its_resampled_steps_and_a_bad_criterion_said(
 def test_the_tuned_config_carries_the_input_options_fit_needs(bag, tmp_path, capsys):
     config = tmp_path / "grid.yaml"
     grid = ["--step-period", "1.0", "--image-timeout", "1.5"]
-    # one candidate: what the file carries does not depend on the search
-    tune = ["tune", str(bag), *grid, "-o", str(config), "--budget", "3", "--candidates", "1"]
+    # one candidate: what the file carries depends on neither the search nor the preset
+    tune = ["tune", str(bag), *grid, "-o", str(config), "--budget", "3", "--candidates", "1",
+            "--preset", "best"]  # fmt: skip
     code, _, err = run_entry(tune, capsys)
     assert code == 0, err
     inputs = yaml.safe_load(config.read_text())["input"]
