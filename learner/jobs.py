@@ -13,9 +13,9 @@ from pathlib import Path
 from sim_node import Environment
 
 __all__ = [
+    "BEST_PRESET",
     "ENVIRONMENTS",
     "GUIDE_ENVIRONMENTS",
-    "BEST_PRESET",
     "HEADLINE_SEEDS",
     "SELECTION_SEEDS",
     "Job",

@@ -232,7 +232,7 @@ def _environment_summary(env: str, defaults: Table, guide: Table, floors: Floors
 
 
 def _merged(defaults: Table, guide: Table) -> Table:
-    """``best`` with the guide's TPSR entries renamed ``tpsr-guide`` (to compare them)."""
+    """``defaults`` with the guide's TPSR entries renamed ``tpsr-guide`` (to compare them)."""
     return [*defaults, *({**t, "method": "tpsr-guide"} for t in guide if t["method"] == "tpsr")]
 
 

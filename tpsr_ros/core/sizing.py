@@ -19,8 +19,8 @@ each size the data cannot carry, and only those, to what it can:
   the spectral fit).
 
 Sizes named in ``fixed`` (set on purpose by the user) are never changed: a fit that cannot
-carry them fails with the reason (a rank above the supported singular values too). At 2000 episodes of 16x16 images and more,
-no size of either preset changes.
+carry them fails with the reason (a rank above the supported singular values too). At 2000
+episodes of 16x16 images and more, no size of any preset changes.
 """
 
 from __future__ import annotations
