@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 
+from learner.experiment import preset_tpsr
 from learner.floors import CONSTANT, RANDOM
 from learner.jobs import (
     BEST_PRESET,
@@ -26,6 +27,7 @@ from learner.jobs import (
     Job,
     best_job,
     experiment_job,
+    headline_job,
     memory_option,
 )
 from learner.sections import Data, Section, cell, comparison, judged, row_parameters
@@ -37,7 +39,21 @@ from tpsr_ros.io.policy import TRUE_POSITION
 __all__ = ["PREDICTIVE_EPISODES", "PREDICTIVE_SECTION"]
 
 PREDICTIVE_EPISODES = 8000
-"""The data size compared: the headline's largest (24000 recorded steps)."""
+"""The data size compared: the headline's largest."""
+
+
+def _steps_per_episode(preset: str) -> int:
+    """Recorded steps of one training episode under ``preset`` (``m + 1 + n``): the
+    experiments record this many per episode (``ExperimentConfig.steps_for``)."""
+    config = preset_tpsr(preset, "full")
+    return config.history_length + 1 + config.test_length
+
+
+EQUAL_STEPS_EPISODES = (
+    PREDICTIVE_EPISODES * _steps_per_episode("best") // _steps_per_episode("predictive")
+)
+"""The defaults' data size whose recorded steps equal ``best``'s at :data:`PREDICTIVE_EPISODES`
+(6000 episodes of 4 steps against 8000 of 3: 24000 each)."""
 
 
 STANDING_STEPS = 20
@@ -102,6 +118,13 @@ def _pca_planner_jobs() -> dict[str, Job]:
     return _fresh_jobs(
         "pca_planner", PCA_PLANNER_ENVIRONMENTS, *BEST_PRESET, "--methods", "pca", *settings
     )
+
+
+def _equal_steps_entry(rows: list[Row]) -> dict | None:
+    """The TPSR's summary at :data:`EQUAL_STEPS_EPISODES` in a headline CSV of the defaults."""
+    found = [t for t in summarise(rows)
+             if t["method"] == "tpsr" and t["episodes"] == EQUAL_STEPS_EPISODES]  # fmt: skip
+    return found[0] if found else None
 
 
 def _at_size(rows: list[Row], method: str) -> list[Row]:
@@ -235,8 +258,14 @@ def loop_grip(rows: list[Row]) -> str | None:
 
 def _render(section: Section, data: Data) -> list[str]:
     lines = [
-        f"Ten runs per environment at {PREDICTIVE_EPISODES} episodes (24000 recorded steps) on "
-        "the headline's seeds; the other rows are the headline's own runs of the same seeds. "
+        f"Ten runs per environment at {PREDICTIVE_EPISODES} episodes on the headline's seeds; "
+        "the other rows are the headline's own runs of the same seeds. An experiment records "
+        "m + 1 + n steps per episode: "
+        f"{PREDICTIVE_EPISODES * _steps_per_episode('predictive')} for the predictive preset "
+        f"(two images of history), {PREDICTIVE_EPISODES * _steps_per_episode('best')} for "
+        "`best` and the baselines, so the verdicts also compare the predictive preset at "
+        f"equal recorded steps: the headline's default runs at {EQUAL_STEPS_EPISODES} "
+        f"episodes against `best`'s at {PREDICTIVE_EPISODES}. "
         "Cells: mean / median / SEM; weakest: the lowest run; restarts: the median number of "
         "normaliser recoveries over the RL trajectory; memory: the median of `learner "
         "memory` (in steps; measured where two places look alike); the floors: pooled over "
@@ -305,6 +334,13 @@ def _render(section: Section, data: Data) -> list[str]:
                 f"{_weakest(base_rows, 'tpsr')}; median restarts {_restarts(ours, 'tpsr')} "
                 f"against {_restarts(base_rows, 'tpsr')}."
             )
+        equal = _equal_steps_entry(data[headline_job(env)])
+        if equal and base:
+            verdicts.append(
+                f"- `{env}`, at equal recorded steps ({EQUAL_STEPS_EPISODES} episodes of the "
+                f"defaults): {equal['mean']:.1f} against `best`'s {base['mean']:.1f}, "
+                f"{judged(*comparison(equal, base))}."
+            )
         if heading := _heading(ours):
             verdicts.append(f"- `{env}`, the predictive TPSR: {heading}.")
         failures = failed_trials(_at_size(ours, "tpsr"), env)
@@ -365,9 +401,9 @@ PREDICTIVE_SECTION = Section(
     "study \"the carry with two images of history\" above): every training run of `full` "
     "now starts without it, and every run of the other rooms with it as before, to the "
     "same scores bit for bit; with the carry `full` scored 467.2 (weakest 463.4). At least "
-    "level with `best` in every room, and above it in `partial-strip` and `drive`, the "
-    "preset is now the default: the headline's default rows are its runs at every data "
-    "size, and those at 8000 episodes equal the rows below.",
+    "level with `best` in every room, also at equal recorded steps, and above it in "
+    "`partial-strip`, the preset is now the default: the headline's default rows are its "
+    "runs at every data size, and those at 8000 episodes equal the rows below.",
     _ALL_JOBS,
     _render,
     "**Commands** (the headline's seeds):\n\n```sh\n"

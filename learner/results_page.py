@@ -530,9 +530,10 @@ def render(data: Data) -> list[str]:
         "## Headline: the defaults, `--preset best`, the guide's settings, PCA, floors and ceiling",
         "",
         "Protocol (DESIGN.md, guide 4.1-4.2): for each data size, 10 independent random "
-        "training trajectories (3 steps per episode; the defaults cut a window at every "
-        "step of them, `best` and the guide's settings one per episode); each "
-        "representation learned from the "
+        "training trajectories of m + 1 + n steps per episode (4 under the defaults, whose "
+        "histories hold two images and which cut a window at every step: 32000 recorded "
+        "steps at 8000 episodes; 3 under `best` and the guide's settings, one window per "
+        "episode); each representation learned from the "
         "same data; states tracked with the model's parameters over one separate random RL "
         "trajectory (15000 steps in `full`, 20000 otherwise); fitted Q-iteration on them; the "
         "standard evaluation (10 fixed starts, 50 greedy steps; score = mean summed reward, at "

@@ -32,8 +32,8 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
   0.7, the score from 353.7 to 145.5); a fitted-Q member that diverges is refitted alone
   (``fqi.refit member``), not the whole ensemble, which rescued every run where refitting
   the whole ensemble collapsed ("A predictive state: refitting a diverged planner"). On
-  the headline's fresh seeds it is at least level with ``best`` in every environment and
-  above it where one image does not tell the pose ("A predictive state").
+  the headline's fresh seeds it is at least level with ``best`` in every environment, also
+  at equal recorded steps, and above it in ``partial-strip`` ("A predictive state").
 
 Options given explicitly (``learner fit --rank 5``, ``--set tpsr.rank=5``) change single
 fields of a preset; :func:`departures` names them, so a model records its preset and what
@@ -171,8 +171,8 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
 
 DEFAULT_PRESET = "predictive"
 """The preset of every command and of :func:`tpsr_ros.fit` unless another is named: on the
-headline's fresh seeds at least level with ``best`` in every environment and above it where
-one image does not tell the pose (docs/results.md, "A predictive state")."""
+headline's fresh seeds at least level with ``best`` in every environment and above it in
+``partial-strip`` (docs/results.md, "A predictive state")."""
 
 
 TURN_COMPONENT = "angular.z"
