@@ -17,7 +17,8 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
 - ``predictive`` (the default): ``best`` with ``P_TH``'s tests from the current step,
   histories of the last two images (chosen on the selection seeds in ``partial-strip``,
   407.8 to 422.4, and higher on the fresh seeds in four environments of five; "A
-  predictive state: two images of history"), a window starting at every step of the
+  predictive state: two images of history", where two images also had a third more
+  recorded steps), a window starting at every step of the
   training run (overlapping, so the spectral start learns from every window the refinement
   runs over, not a third of them; "A predictive state: every step a window"), and the
   spectral model refined through its filter (:mod:`tpsr_ros.core.refine`), from a start
