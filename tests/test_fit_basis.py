@@ -79,9 +79,15 @@ def test_a_refit_refuses_observations_of_another_size():
         fit_trajectory(other, basis.config, basis=basis)
 
 
-def test_the_basis_round_trips_through_the_model_file_outside_the_fingerprint(tmp_path):
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    """A default model of 2000 steps and its file: fitted once for the tests that read it."""
     model = fit(_trajectory(2000))
-    path = save_model(model, tmp_path / "m.npz")
+    return model, save_model(model, tmp_path_factory.mktemp("basis") / "m.npz")
+
+
+def test_the_basis_round_trips_through_the_model_file_outside_the_fingerprint(saved):
+    model, path = saved
     opened = open_model(path)
     assert opened.fingerprint == model_fingerprint(model)
     loaded = opened.model.basis
@@ -113,14 +119,13 @@ def _rewritten(src, dst, change):
         (lambda m: m["basis"].update(test_width=m["basis"]["test_width"] + 1), "shape"),
     ],
 )
-def test_a_file_whose_basis_entry_is_broken_is_refused(tmp_path, change, message):
-    path = save_model(fit(_trajectory(2000)), tmp_path / "m.npz")
+def test_a_file_whose_basis_entry_is_broken_is_refused(saved, tmp_path, change, message):
     with pytest.raises(ModelFormatError, match=message):
-        open_model(_rewritten(path, tmp_path / "bad.npz", change))
+        open_model(_rewritten(saved[1], tmp_path / "bad.npz", change))
 
 
-def test_a_basis_that_does_not_fit_its_config_is_refused():
-    basis = fit(_trajectory(2000)).basis
+def test_a_basis_that_does_not_fit_its_config_is_refused(saved):
+    basis = saved[0].basis
     with pytest.raises(DataError, match="centres"):
         replace(basis, config=replace(basis.config, ht_centers=basis.config.ht_centers + 1))
     with pytest.raises(ConfigError, match="above the basis's"):

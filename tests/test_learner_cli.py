@@ -249,9 +249,9 @@ def full_bags(tmp_path_factory):
     [
         (["--preset", "guide"], 0.6, 7000),  # sigma_h/t 2.0: x ~0.7, y ~0.8 on our simulator
         (["--preset", "guide", "--sigma-ht", "4.0"], 0.8, 7000),  # the guide's range 2-6 (4.3)
-        ([], 0.9, 23997),  # the defaults: a window at every step, all of them training
+        (["--preset", "best"], 0.9, 8000),  # k-means centres train on every episode
     ],
-    ids=["guide", "guide-sigma-ht-4", "defaults"],
+    ids=["guide", "guide-sigma-ht-4", "best"],
 )
 def test_full_environment_states_predict_position(
     full_bags, tmp_path, capsys, options, minimum, training
