@@ -125,8 +125,9 @@ def fit_tpsr_trajectory(
         episodes, config=config, progress=progress, sizing=sizing, action_codes=action_codes,
         basis=basis,
     )  # fmt: skip
-    sized = sizing is not None and "refine_epochs" not in sizing.fixed
-    return refined_on_trajectory(model, trajectory, episodes, max_episodes, progress, sized=sized)
+    return refined_on_trajectory(
+        model, trajectory, episodes, max_episodes, progress, sizing=sizing
+    )
 
 
 def refined_on_trajectory(
@@ -136,12 +137,12 @@ def refined_on_trajectory(
     max_episodes: int | None = None,
     progress: Progress | None = None,
     *,
-    sized: bool = False,
+    sizing: Sizing | None = None,
 ) -> TPSRModel:
     """``model`` refined through its filter on the steps its ``episodes`` (of
     ``trajectory``) use, at most the first ``refine_steps``, when its config asks for it
-    (``refine_epochs``); else itself. ``sized``: data too short skip it
-    (:func:`~tpsr_ros.core.refine.refine_tpsr`)."""
+    (``refine_epochs``); else itself. ``sizing``: the fit's, which may skip it on data too
+    short (:func:`~tpsr_ros.core.refine.refine_tpsr`)."""
     if not model.config.refine_epochs:
         return model
     if progress is not None:
@@ -150,7 +151,7 @@ def refined_on_trajectory(
     part = trajectory.rows(0, min(steps, model.config.refine_steps))
     return refine_tpsr(
         model, part.actions, part.observations, part.segment_bounds(), progress=progress,
-        sized=sized,
+        sizing=sizing,
     )  # fmt: skip
 
 

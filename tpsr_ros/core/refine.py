@@ -93,6 +93,7 @@ from tpsr_ros.core.filtering import (
     update_matrices,
 )
 from tpsr_ros.core.history_gain import history_gain
+from tpsr_ros.core.sizing import Sizing
 from tpsr_ros.core.tpsr_config import TPSRConfig
 from tpsr_ros.core.tpsr_model import TPSRModel
 from tpsr_ros.core.tpsr_stages import Progress
@@ -567,7 +568,7 @@ def refine_tpsr(
     bounds: list[tuple[int, int]] | None = None,
     *,
     progress: Progress | None = None,
-    sized: bool = False,
+    sizing: Sizing | None = None,
 ) -> TPSRModel:
     """``model`` refined through its filter on a trajectory (module docstring).
 
@@ -579,10 +580,10 @@ def refine_tpsr(
         observations: ``(T, k)`` its observations.
         bounds: ``[start, stop)`` rows of its gap-free segments (default: one segment).
         progress: called with a line per iteration.
-        sized: the refinement follows the data, as the fit's sizes do
-            (:mod:`tpsr_ros.core.sizing`): data too short for two windows give the model
-            unrefined, with ``refine_epochs`` 0 in its config and ``fit_info["sized"]``,
-            instead of a ``DataError``.
+        sizing: the fit's sizing (:mod:`tpsr_ros.core.sizing`); where it sizes
+            ``refine_epochs``, data too short for two windows give the model unrefined,
+            with ``refine_epochs`` 0 in its config and ``fit_info["sized"]``, instead of a
+            ``DataError``.
 
     Returns the refined model, whose ``fit_info["refinement"]`` records the held-out loss
     of the start (``..._spectral``: the spectral model with its carry) and of the result,
@@ -601,7 +602,7 @@ def refine_tpsr(
             "refinement needs actions (T,) and observations (T, k), not "
             f"{acts.shape} and {obs.shape}"
         )
-    if sized:
+    if sizing is not None and sizing.sizes("refine_epochs"):
         whole = bounds or [(0, obs.shape[0])]
         starts = _window_starts(whole, cfg.refine_window, cfg.refine_horizon)
         if (shortfall := _shortfall(starts.size, cfg)) is not None:

@@ -45,6 +45,10 @@ class Sizing:
     def __init__(self, fixed: Collection[str] = ()) -> None:
         object.__setattr__(self, "fixed", frozenset(fixed))
 
+    def sizes(self, name: str) -> bool:
+        """Whether the fit may change the field ``name`` to what the data carry."""
+        return name not in self.fixed
+
 
 def size_to_data(
     config: TPSRConfig, n_episodes: int, obs_size: int, sizing: Sizing
@@ -67,11 +71,11 @@ def size_to_data(
         del limits["obs_dim"]
     for name, limit in limits.items():
         configured = getattr(config, name)
-        if name not in sizing.fixed and configured > limit:
+        if sizing.sizes(name) and configured > limit:
             values[name] = limit
             changes[name] = (configured, limit)
     ht_centers = values.get("ht_centers", config.ht_centers)
-    if "rank" not in sizing.fixed and config.rank > ht_centers:
+    if sizing.sizes("rank") and config.rank > ht_centers:
         values["rank"] = ht_centers
         changes["rank"] = (config.rank, ht_centers)
     return (replace(config, **values) if values else config), changes

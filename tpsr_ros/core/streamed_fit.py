@@ -558,7 +558,7 @@ def fit_tpsr_streamed(
         progress("refinement through the filter")
     return refine_tpsr(
         model, steps.actions, steps.observations, steps.segment_bounds(), progress=progress,
-        sized=sizing is not None and "refine_epochs" not in sizing.fixed,
+        sizing=sizing,
     )  # fmt: skip
 
 

@@ -232,7 +232,7 @@ def run_fit(
     watch.stage("P-statistics")
     p_h, p_th, n_train = engine.p_statistics(start, centres, cfg)
     watch.stage("SVD")
-    free_rank = sizing is not None and "rank" not in sizing.fixed
+    free_rank = sizing is not None and sizing.sizes("rank")
     u, s, v, s_all, usable = truncated_svd(p_th, cfg, refuse=not free_rank)
     if basis.sketch is None and first_fit:  # what a refit from sums projects on
         basis = replace(basis, sketch=Sketch.of(p_th, basis.config.rank, seed=cfg.seed))
@@ -240,7 +240,7 @@ def run_fit(
     independent = independent_episodes(n_train, cfg)  # what the rank rule counts
     supported = supported_rank(s_all, independent, usable)
     if sizing is not None and cfg.rank > supported:  # the rank rule (tpsr_stages)
-        if "rank" in sizing.fixed:
+        if not sizing.sizes("rank"):
             raise DataError(rank_rule_refusal(cfg.rank, s_all, independent, usable))
         sized["rank"] = (sized.get("rank", (cfg.rank, 0))[0], supported)
         cfg = replace(cfg, rank=supported)
