@@ -619,19 +619,13 @@ def _streamed_view(
     return view
 
 
-def _independent(model: TPSRModel) -> int:
-    """The training episodes the rank rule counted (those sharing no step)."""
-    info = model.fit_info
-    return int(info.get("independent_episodes", info["training_episodes"]))
-
-
 def _say_sizing(model: StateModel) -> None:
     """Say which sizes the fit lowered to what the data carry (:mod:`tpsr_ros.core.sizing`)."""
     sized = model.fit_info.get("sized") if isinstance(model, TPSRModel) else None
     if sized:
         changes = {name: (int(old), int(new)) for name, (old, new) in sized.items()}
         by_rule = changes.get("rank", (0, 0))[1] == model.fit_info.get("supported_rank")
-        n_train = _independent(model) if by_rule else None
+        n_train = int(model.fit_info["independent_episodes"]) if by_rule else None
         _say(describe_sizing(int(model.fit_info["episodes"]), changes, n_train))
 
 

@@ -385,7 +385,7 @@ def tune(
         raise DataError(
             f"the base settings cannot be fitted on {len(train)} training steps ({brief(str(exc))})"
         ) from None
-    n_train = int(probe.fit_info.get("independent_episodes", probe.fit_info["training_episodes"]))
+    n_train = int(probe.fit_info["independent_episodes"])  # what the rank rule counted
     support = dataclasses.replace(support, max_rank=int(probe.fit_info["supported_rank"]))
     if probe.config.rank < base.rank:
         sized["rank"] = (sized.get("rank", (base.rank, 0))[0], probe.config.rank)

@@ -208,7 +208,8 @@ class FitStatistics:
         tol = max(p_th.shape) * np.finfo(np.float64).eps * float(s_all[0])
         usable = int(np.count_nonzero(s_all > tol))
         episodes = self.episodes
-        supported = supported_rank(s_all, independent_episodes(round(episodes), cfg), usable)
+        independent = independent_episodes(round(episodes), cfg)  # what the rank rule counts
+        supported = supported_rank(s_all, independent, usable)
         r = min(cfg.rank, supported)
         cfg = replace(cfg, rank=r)
         u_s, s, v_s = u_s[:, :r], s_all[:r].copy(), v_s[:, :r]
@@ -228,6 +229,7 @@ class FitStatistics:
         fit_info: dict[str, Any] = {
             "episodes": round(episodes),  # effective: their count without forgetting
             "training_episodes": round(episodes),
+            "independent_episodes": independent,
             "samples_per_action": [round(float(c), 6) for c in self.counts],
             "usable_singular_values": usable,
             "supported_rank": supported,
