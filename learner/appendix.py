@@ -854,7 +854,7 @@ CARRY_TWO_IMAGES_STUDY = Section(
     "The carried start (`tpsr.refine_carry` 0.3, chosen with histories of one image in "
     "\"the carried start\" above) mixes a share of the previous state into each step. In "
     "`full`, where one image tells where the robot is, the predictive section's runs took a "
-    "step more to the goal in some trials and scored 467.2 against the defaults' 469.7. "
+    "step more to the goal in some trials and scored 467.2 against `best`'s 469.7. "
     "With two images of history, does `partial-strip` still need the carry, and is the carry "
     "what costs `full`? Without it `full` scores at least as high in every run and higher "
     "in seven (within the noise by the page's rule: the differences are small and one run "
@@ -892,7 +892,7 @@ the carry costs where one image tells the position."""
 PCA_PLANNER_STUDY = _study(
     "pca-planner",
     "PCA's own planner",
-    "The defaults' planner (predictive units, five members) was chosen for the TPSR. Which "
+    "`best`'s planner (predictive units, five members) was chosen for the TPSR. Which "
     "units suit PCA of the current image where one image does not tell where the robot is, "
     "planned as the guide plans it, with one member (`fqi.state_scaling`, "
     "`--set fqi.ensemble=1`)?",
@@ -923,9 +923,9 @@ SECTIONS: tuple[Section, ...] = (
     ROOM_CHANGE_SECTION,
     Section(
         "tuning",
-        "Tuning: `learner tune` against the defaults",
+        "Tuning: `learner tune` against `best`",
         "Does choosing the fit's parameters per data set by the held-out criterion "
-        "(`learner experiment --tune`, starting from the defaults) beat the defaults?",
+        "(`learner experiment --tune`, starting from `--preset best`) beat `best` itself?",
         (*_tuning_jobs("preset"), *_tuning_jobs("tuned")),
         _render_tuning,
     ),

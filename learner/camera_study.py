@@ -8,7 +8,7 @@ of the current image) can locate the robot. A narrower strip hides that cue: at 
 20 m, at 0.05 up to 40 m, and at 0.03 up to 67 m, more than the room's diagonal (63.6 m).
 
 The study (one ``learner study`` per environment and preset) measures the floors, PCA,
-the TPSR with the defaults and with the guide's fit (both under the defaults' planner),
+the TPSR with ``best`` and with the guide's fit (both under ``best``'s planner),
 and the true-position ceiling at each extent, with ``learner memory`` on every model in
 ``partial``. Its verdict says where PCA stops reaching the ceiling, and whether any extent
 opens a gap of :data:`GAP` points between PCA and the ceiling in ``partial`` while PCA
@@ -57,8 +57,8 @@ def wall_fills_up_to(vertical_half_extent: float, config: SimConfig | None = Non
     return min(below, above) / vertical_half_extent
 
 
-def _defaults_planner() -> tuple[str, ...]:
-    """``--set fqi.NAME=VALUE`` options that give the guide preset the defaults' planner."""
+def _best_planner() -> tuple[str, ...]:
+    """``--set fqi.NAME=VALUE`` options that give the guide preset ``best``'s planner."""
     best, guide = PRESETS["best"].fqi_config(), PRESETS["guide"].fqi_config()
     return tuple(
         part
@@ -76,7 +76,7 @@ def _jobs() -> tuple[Job, ...]:
         jobs.append(study_job("camera/best", environment, vary, *BEST_PRESET, *common))
         jobs.append(
             study_job(
-                "camera/guide", environment, vary, "--preset", "guide", *_defaults_planner(),
+                "camera/guide", environment, vary, "--preset", "guide", *_best_planner(),
                 "--methods", "tpsr", *common,
             )
         )
@@ -96,12 +96,12 @@ def _memory_text(rows: list[Any], value: str, method: str) -> str:
 
 def _render(section: Section, data: Data) -> list[str]:
     lines = [
-        "Cells: mean / median / SEM of 10 runs at 8000 episodes; the TPSR with the defaults "
-        "and with the guide's fit (`--preset guide`), both under the defaults' planner; R² "
+        "Cells: mean / median / SEM of 10 runs at 8000 episodes; the TPSR with `--preset best` "
+        "and with the guide's fit (`--preset guide`), both under `best`'s planner; R² "
         "of the true position's affine map from the states (x / y); position error: the "
         "median distance between the robot and where its 10 nearest states place it (m); "
         "memory: `learner memory`'s steps (median, max over the runs; `partial` only). The "
-        "last column compares the TPSR with the defaults to PCA.",
+        "last column compares the TPSR with `best` to PCA.",
         "",
     ]
     pca_means: dict[str, dict[str, float]] = {}
@@ -121,9 +121,9 @@ def _render(section: Section, data: Data) -> list[str]:
             + ", ".join(f"{e['method']} {cell(e)}" for e in floors)
             + ")",
             "",
-            "| vertical half-extent (wall fills the strip up to) | PCA | TPSR, defaults | "
+            "| vertical half-extent (wall fills the strip up to) | PCA | TPSR, `best` | "
             "TPSR, the guide's fit | ceiling - PCA | R² x / y: PCA, TPSR | position error: "
-            "PCA, TPSR | memory: TPSR, defaults | TPSR - PCA |",
+            "PCA, TPSR | memory: TPSR, `best` | TPSR - PCA |",
             "|---|---|---|---|---|---|---|---|---|",
         ]
         pca_means[environment], ceilings[environment] = {}, ceiling["mean"]

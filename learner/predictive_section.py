@@ -1,6 +1,6 @@
-"""The results page's section on the ``predictive`` preset: the defaults' TPSR made a
-predictive state (from-current ``P_TH`` tests, refinement through the filter from a carried
-start), against the defaults, PCA, the floors and the ceiling of the headline, on the
+"""The results page's section on the ``predictive`` preset (the default): ``best``'s TPSR
+made a predictive state (from-current ``P_TH`` tests, refinement through the filter from a
+carried start), against ``best``, PCA, the floors and the ceiling of the headline, on the
 headline's fresh seeds.
 
 The preset was chosen on the selection seeds in ``partial-strip``; its rows here come from
@@ -120,19 +120,13 @@ def _pca_planner_jobs() -> dict[str, Job]:
     )
 
 
-def _equal_steps_entry(rows: list[Row]) -> dict | None:
-    """The TPSR's summary at :data:`EQUAL_STEPS_EPISODES` in a headline CSV of the defaults."""
-    found = [t for t in summarise(rows)
-             if t["method"] == "tpsr" and t["episodes"] == EQUAL_STEPS_EPISODES]  # fmt: skip
-    return found[0] if found else None
+def _at_size(rows: list[Row], method: str, episodes: int = PREDICTIVE_EPISODES) -> list[Row]:
+    return [r for r in rows if r.method == method and r.episodes == episodes]
 
 
-def _at_size(rows: list[Row], method: str) -> list[Row]:
-    return [r for r in rows if r.method == method and r.episodes == PREDICTIVE_EPISODES]
-
-
-def _entry(rows: list[Row], method: str) -> dict | None:
-    found = summarise(_at_size(rows, method))
+def _entry(rows: list[Row], method: str, episodes: int = PREDICTIVE_EPISODES) -> dict | None:
+    """``method``'s summary at ``episodes`` (default: the section's data size), or None."""
+    found = summarise(_at_size(rows, method, episodes))
     return found[0] if found else None
 
 
@@ -334,7 +328,7 @@ def _render(section: Section, data: Data) -> list[str]:
                 f"{_weakest(base_rows, 'tpsr')}; median restarts {_restarts(ours, 'tpsr')} "
                 f"against {_restarts(base_rows, 'tpsr')}."
             )
-        equal = _equal_steps_entry(data[headline_job(env)])
+        equal = _entry(data[headline_job(env)], "tpsr", EQUAL_STEPS_EPISODES)
         if equal and base:
             verdicts.append(
                 f"- `{env}`, at equal recorded steps ({EQUAL_STEPS_EPISODES} episodes of the "
