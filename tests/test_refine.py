@@ -277,8 +277,7 @@ def test_data_too_short_to_refine_are_fitted_spectral_unless_the_refinement_was_
 
     short = visible_ring(50, seed=4)  # two windows of 2 x 16 + 10 steps need 58
     default = fit(short)
-    spectral = fit(short, get_preset("best").tpsr_config(history_length=2,
-                   p_th_tests="from-current", overlapping_episodes=True))  # fmt: skip
+    spectral = fit(short, get_preset(DEFAULT_PRESET).tpsr_config(refine_epochs=0))
     assert default.config.refine_epochs == 0 and "refinement" not in default.fit_info
     assert default.fit_info["sized"]["refine_epochs"] == [30, 0]
     assert "two windows of 42 steps" in default.fit_info["refinement_skipped"]
