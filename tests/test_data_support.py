@@ -106,8 +106,9 @@ def test_a_sized_fit_lowers_the_rank_and_a_fixed_rank_is_refused() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("period", ["0.075", "0.25"])
 def test_fit_never_keeps_a_singular_value_below_the_rule(phone_bags, tmp_path, capsys, period):
+    presets = ("predictive", "best") if period == "0.25" else ("predictive",)
     for seed, bag in phone_bags.items():
-        for preset in ("predictive", "best"):
+        for preset in presets:  # best where its rank is checked below
             model = tmp_path / f"m{seed}{preset}.npz"
             code, _, err = run_entry(
                 ["fit", str(bag), *TOPICS, "--step-period", period, "--preset", preset, "-o",
@@ -176,7 +177,7 @@ def test_tune_writes_a_usable_config_or_one_line(phone_bags, tmp_path, capsys, p
     for seed, bag in phone_bags.items():
         config = tmp_path / f"t{seed}.yaml"
         code, _, err = run_entry(
-            ["tune", str(bag), *TOPICS, "--step-period", period, "--candidates", "8", "-o",
+            ["tune", str(bag), *TOPICS, "--step-period", period, "--candidates", "4", "-o",
              str(config)], capsys,
         )  # fmt: skip
         assert "Traceback" not in err
