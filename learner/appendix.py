@@ -26,6 +26,7 @@ from learner.jobs import (
     BEST_PRESET,
     GUIDE_ENVIRONMENTS,
     SELECTION_SEEDS,
+    WINDOW_EPISODES,
     Job,
     experiment_job,
     study_job,
@@ -794,6 +795,7 @@ _PREDICTIVE_FIT = (
         "24000 steps, two from 32000 and three from 40000.",
         "tpsr.history_length=1,2,3",
         "--memory",
+        *WINDOW_EPISODES,
         environments=("partial-strip",),
     ),
     _predictive_study(
@@ -805,6 +807,7 @@ _PREDICTIVE_FIT = (
         "(a median of 3.5 over the RL run), and their fits take longer.",
         "tpsr.test_length=1,2",
         "--memory",
+        *WINDOW_EPISODES,
         environments=("partial-strip",),
     ),
     _predictive_study(
@@ -816,6 +819,7 @@ _PREDICTIVE_FIT = (
         "Not adopted: the runs score lower, their memory stays at 0 steps.",
         "tpsr.refine_window=16,32",
         "--memory",
+        *WINDOW_EPISODES,
         environments=("partial-strip",),
     ),
     _predictive_study(
@@ -842,6 +846,7 @@ _PREDICTIVE_FIT = (
         "memory at 0.",
         "tpsr.action_pooling=0,0.5,1",
         "--memory",
+        *WINDOW_EPISODES,
         environments=("partial-strip",),
     ),
 )
@@ -881,6 +886,7 @@ CARRY_TWO_IMAGES_STUDY = Section(
             "studies/carry-two-images", env, "tpsr.refine_carry=0.3,0", "--episodes",
             str(PREDICTIVE_EPISODES), *SELECTION_SEEDS, "--preset", "predictive",
             "--methods", "tpsr", "--set", "tpsr.refine_carry_rule=always", *extra,
+            *WINDOW_EPISODES,
         )  # fmt: skip
         for env, extra in (("partial-strip", ("--memory",)), ("full", ()))
     ),

@@ -1,7 +1,8 @@
 """``learner experiment --environment E``: the guide's learning-planning loop (figure 4.2).
 
-For every data size (training episodes) and repetition: a fresh uniformly random training
-trajectory; a TPSR and the PCA baseline learned from it; states tracked with each
+For every data size (training episodes of ``--episode-steps`` recorded steps each, the
+guide's 3 by default, whatever the method and preset) and repetition: a fresh uniformly
+random training trajectory; a TPSR and the PCA baseline learned from it; states tracked with each
 model's parameters over one separate random RL trajectory (15000 steps in ``full``,
 20000 in ``partial`` and ``distractors``; the same for every run, as in the guide);
 fitted Q-iteration on them; the standard evaluation. Beside them stand the floors
@@ -83,6 +84,8 @@ __all__ = [
     "ExperimentConfig",
     "add_grid_options",
     "config_from_args",
+    "EPISODE_STEPS",
+    "WINDOW_STEPS",
     "default_config",
     "experiment_command",
     "prepare_outputs",
@@ -98,6 +101,12 @@ RL_STEPS = {
     "partial-strip": 20000,
     "drive": 20000,
 }
+EPISODE_STEPS = 3
+"""Recorded steps of a training episode: the guide's (one image of history, the current
+step, one of test), so 8000 episodes are 24000 steps for every method and preset."""
+WINDOW_STEPS = "window"
+"""``--episode-steps``' value for one window of the TPSR's fit per episode (``m + 1 + n``)."""
+
 # guide figure 4.5 / appendix A.2-A.3; partial-strip as partial
 PCA_DIM = {"full": 2, "partial": 3, "distractors": 3, "partial-strip": 3, "drive": 4}
 """The PCA baseline's dimension: the guide's 2 and 3; ``drive``'s 4 for x, y and the
@@ -137,6 +146,11 @@ class ExperimentConfig:
     criterion: bool = False
     """Also score each TPSR run's configuration by ``learner tune``'s held-out criterion on
     its own training data (:mod:`learner.criterion`; no reward, no ground truth)."""
+    episode_steps: int | None = EPISODE_STEPS
+    """Recorded training steps per episode, the same for every method and preset, so that
+    a data size means as much data whatever the fit; None: one window of the TPSR's fit
+    (``m + 1 + n``), as the guide's episodes were (then a fit with longer histories or
+    tests learns from more steps at the same number of episodes)."""
 
     def __post_init__(self) -> None:
         environment = Environment.parse(self.environment)
@@ -154,6 +168,8 @@ class ExperimentConfig:
             raise ConfigError("tune_candidates needs a tuning budget and must be >= 1")
         if not self.episodes or min(self.episodes) < 1:
             raise ConfigError("data sizes (--episodes) must be positive")
+        if self.episode_steps is not None and self.episode_steps < 1:
+            raise ConfigError(f"--episode-steps must be positive, not {self.episode_steps}")
         if self.repetitions < 1 or self.first_repetition < 0:
             raise ConfigError("--repetitions must be >= 1 and --first-repetition >= 0")
         if unknown := sorted(set(self.methods) - set(METHODS)):
@@ -171,8 +187,10 @@ class ExperimentConfig:
         return self.sim.config(self.environment)
 
     def steps_for(self, episodes: int) -> int:
-        """Training steps for ``episodes`` non-overlapping episodes (guide: 3 x episodes)."""
-        return episodes * (self.tpsr.history_length + 1 + self.tpsr.test_length)
+        """Recorded training steps of ``episodes`` episodes (:attr:`episode_steps` each)."""
+        if self.episode_steps is None:
+            return episodes * (self.tpsr.history_length + 1 + self.tpsr.test_length)
+        return episodes * self.episode_steps
 
 
 def preset_tpsr(preset: str, environment: str) -> TPSRConfig:
@@ -232,6 +250,8 @@ def experiment_command(config: ExperimentConfig, episodes: Sequence[int] | None 
         parts.append("--memory")
     if config.criterion:
         parts.append("--criterion")
+    if config.episode_steps != EPISODE_STEPS:
+        parts.append(f"--episode-steps {config.episode_steps or WINDOW_STEPS}")
     return " ".join(parts)
 
 
@@ -523,6 +543,18 @@ def run_experiment(
     return [row for cell in cells for row in results[cell]]
 
 
+def _episode_steps(text: str) -> int | None:
+    """``--episode-steps``: a positive count, or ``window`` (None)."""
+    if text == WINDOW_STEPS:
+        return None
+    try:
+        return positive_int(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is neither a positive number of steps nor {WINDOW_STEPS!r}"
+        ) from None
+
+
 def add_grid_options(parser: argparse.ArgumentParser) -> None:
     """Options shared by ``experiment`` and ``study``: data sizes, repetitions, seeds, --set."""
     parser.add_argument("--environment", required=True, choices=[e.value for e in Environment])
@@ -533,6 +565,15 @@ def add_grid_options(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N",
         help="data sizes in training episodes (default: 2000 4000 6000 8000)",
+    )
+    parser.add_argument(
+        "--episode-steps",
+        type=_episode_steps,
+        default=EPISODE_STEPS,
+        metavar="N|window",
+        help="recorded training steps per episode, for every method (default: the guide's "
+        f"%(default)s); {WINDOW_STEPS}: one window of the TPSR's fit (m + 1 + n), so a fit "
+        "with longer histories or tests learns from more steps",
     )
     parser.add_argument("--repetitions", type=positive_int, default=10)
     parser.add_argument(
@@ -648,6 +689,7 @@ def config_from_args(
         "methods": tuple(methods),
         "rl_seed": args.rl_seed,
         "seed": args.seed,
+        "episode_steps": args.episode_steps,
     }
     base = default_config(args.environment, args.preset)
     tpsr = base.tpsr

@@ -18,6 +18,7 @@ __all__ = [
     "GUIDE_ENVIRONMENTS",
     "HEADLINE_SEEDS",
     "SELECTION_SEEDS",
+    "WINDOW_EPISODES",
     "Job",
     "best_job",
     "experiment_job",
@@ -40,6 +41,11 @@ HEADLINE_SEEDS = ("--seed", "11", "--rl-seed", "111")
 BEST_PRESET = ("--preset", "best")
 """The preset the one-parameter studies, the tuner's and the baselines' jobs run under: the
 defaults were chosen on it before ``predictive`` refined them."""
+
+WINDOW_EPISODES = ("--episode-steps", "window")
+"""How the studies of histories and tests longer than one image ran: an episode of one
+window of the fit (m + 1 + n recorded steps), so at a given number of episodes a longer
+window learned from more steps (experiments now record 3 steps per episode whatever the fit)."""
 
 
 @dataclass(frozen=True)
