@@ -790,9 +790,10 @@ _PREDICTIVE_FIT = (
         "depend on the action (\"action pooling\" below); "
         "in one model fitted outside the committed results the paths variant (west or east, "
         "then the same steps north to a wall that looks alike) keeps the runs' states apart "
-        "for 2 steps instead of 1. The study is confounded by data size: an experiment "
-        "records m + 1 + n steps per episode, so at 8000 episodes one image learned from "
-        "24000 steps, two from 32000 and three from 40000.",
+        "for 2 steps instead of 1. The study is confounded by data size: it ran with an "
+        "episode of one window of the fit (`--episode-steps window`, how experiments "
+        "counted data then), so at 8000 episodes one image learned from 24000 recorded "
+        "steps, two from 32000 and three from 40000.",
         "tpsr.history_length=1,2,3",
         "--memory",
         *WINDOW_EPISODES,

@@ -131,7 +131,9 @@ def register(subparsers: Any) -> None:
         type=positive_int,
         default=None,
         metavar="N",
-        help="use only the first N episodes (guide |E|; default: all)",
+        help="use only the first N episodes (guide |E|: windows of m + 1 + n steps, one "
+        "starting at every step under the default preset, so N of them span about N recorded "
+        "steps, and every m + 1 + n steps under best and guide; default: all)",
     )
     parser.add_argument("--force", action="store_true", help="overwrite an existing MODEL")
     parser.add_argument(

@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from learner.experiment import preset_tpsr
+from learner.experiment import EPISODE_STEPS
 from learner.floors import CONSTANT, RANDOM
 from learner.jobs import (
     BEST_PRESET,
@@ -27,7 +27,6 @@ from learner.jobs import (
     Job,
     best_job,
     experiment_job,
-    headline_job,
     memory_option,
 )
 from learner.sections import Data, Section, cell, comparison, judged, row_parameters
@@ -40,20 +39,6 @@ __all__ = ["PREDICTIVE_EPISODES", "PREDICTIVE_SECTION"]
 
 PREDICTIVE_EPISODES = 8000
 """The data size compared: the headline's largest."""
-
-
-def _steps_per_episode(preset: str) -> int:
-    """Recorded steps of one training episode under ``preset`` (``m + 1 + n``): the
-    experiments record this many per episode (``ExperimentConfig.steps_for``)."""
-    config = preset_tpsr(preset, "full")
-    return config.history_length + 1 + config.test_length
-
-
-EQUAL_STEPS_EPISODES = (
-    PREDICTIVE_EPISODES * _steps_per_episode("best") // _steps_per_episode("predictive")
-)
-"""The defaults' data size whose recorded steps equal ``best``'s at :data:`PREDICTIVE_EPISODES`
-(6000 episodes of 4 steps against 8000 of 3: 24000 each)."""
 
 
 STANDING_STEPS = 20
@@ -124,9 +109,9 @@ def _at_size(rows: list[Row], method: str, episodes: int = PREDICTIVE_EPISODES) 
     return [r for r in rows if r.method == method and r.episodes == episodes]
 
 
-def _entry(rows: list[Row], method: str, episodes: int = PREDICTIVE_EPISODES) -> dict | None:
-    """``method``'s summary at ``episodes`` (default: the section's data size), or None."""
-    found = summarise(_at_size(rows, method, episodes))
+def _entry(rows: list[Row], method: str) -> dict | None:
+    """``method``'s summary at the section's data size, or None."""
+    found = summarise(_at_size(rows, method))
     return found[0] if found else None
 
 
@@ -253,13 +238,9 @@ def loop_grip(rows: list[Row]) -> str | None:
 def _render(section: Section, data: Data) -> list[str]:
     lines = [
         f"Ten runs per environment at {PREDICTIVE_EPISODES} episodes on the headline's seeds; "
-        "the other rows are the headline's own runs of the same seeds. An experiment records "
-        "m + 1 + n steps per episode: "
-        f"{PREDICTIVE_EPISODES * _steps_per_episode('predictive')} for the predictive preset "
-        f"(two images of history), {PREDICTIVE_EPISODES * _steps_per_episode('best')} for "
-        "`best` and the baselines, so the verdicts also compare the predictive preset at "
-        f"equal recorded steps: the headline's default runs at {EQUAL_STEPS_EPISODES} "
-        f"episodes against `best`'s at {PREDICTIVE_EPISODES}. "
+        "the other rows are the headline's own runs of the same seeds. Every run learns "
+        f"from {PREDICTIVE_EPISODES * EPISODE_STEPS} recorded steps ({EPISODE_STEPS} per "
+        "episode, whatever the preset). "
         "Cells: mean / median / SEM; weakest: the lowest run; restarts: the median number of "
         "normaliser recoveries over the RL trajectory; memory: the median of `learner "
         "memory` (in steps; measured where two places look alike); the floors: pooled over "
@@ -327,13 +308,6 @@ def _render(section: Section, data: Data) -> list[str]:
                 f"{judged(difference, sems)}; weakest run {_weakest(ours, 'tpsr')} against "
                 f"{_weakest(base_rows, 'tpsr')}; median restarts {_restarts(ours, 'tpsr')} "
                 f"against {_restarts(base_rows, 'tpsr')}."
-            )
-        equal = _entry(data[headline_job(env)], "tpsr", EQUAL_STEPS_EPISODES)
-        if equal and base:
-            verdicts.append(
-                f"- `{env}`, at equal recorded steps ({EQUAL_STEPS_EPISODES} episodes of the "
-                f"defaults): {equal['mean']:.1f} against `best`'s {base['mean']:.1f}, "
-                f"{judged(*comparison(equal, base))}."
             )
         if heading := _heading(ours):
             verdicts.append(f"- `{env}`, the predictive TPSR: {heading}.")

@@ -20,6 +20,7 @@ import numpy as np
 
 from learner.appendix import SECTIONS
 from learner.camera_study import narrowest_camera
+from learner.experiment import EPISODE_STEPS
 from learner.predictive_section import PREDICTIVE_SECTION
 from learner.floors import CONSTANT, DEMO_POLICY_SEED, RANDOM
 from learner.jobs import (
@@ -530,10 +531,10 @@ def render(data: Data) -> list[str]:
         "## Headline: the defaults, `--preset best`, the guide's settings, PCA, floors and ceiling",
         "",
         "Protocol (DESIGN.md, guide 4.1-4.2): for each data size, 10 independent random "
-        "training trajectories of m + 1 + n steps per episode (4 under the defaults, whose "
-        "histories hold two images and which cut a window at every step: 32000 recorded "
-        "steps at 8000 episodes; 3 under `best` and the guide's settings, one window per "
-        "episode); each representation learned from the "
+        f"training trajectories of {EPISODE_STEPS} recorded steps per episode whatever the "
+        f"preset ({8000 * EPISODE_STEPS} at 8000 episodes; the defaults take a window of "
+        "their fit at every step, `best` and the guide's settings one window per episode, "
+        "as the guide does); each representation learned from the "
         "same data; states tracked with the model's parameters over one separate random RL "
         "trajectory (15000 steps in `full`, 20000 otherwise); fitted Q-iteration on them; the "
         "standard evaluation (10 fixed starts, 50 greedy steps; score = mean summed reward, at "

@@ -355,6 +355,36 @@ def test_experiment_command_writes_csv_and_plot(tmp_path, capsys):
     assert code != 0 and "already exists" in err
 
 
+def test_a_data_size_means_the_same_recorded_steps_for_every_preset(capsys):
+    """8000 episodes are 24000 steps whatever the fit's window; ``--episode-steps window``
+    gives one window of the fit per episode (how the studies of longer windows ran), and
+    every command says what it ran."""
+    from learner.cli import build_parser
+    from learner.experiment import config_from_args, experiment_command
+
+    for preset in ("guide", "best", "predictive"):
+        config = default_config("partial-strip", preset)
+        assert config.steps_for(8000) == 24000
+        window = replace(config, episode_steps=None)
+        span = config.tpsr.history_length + 1 + config.tpsr.test_length
+        assert window.steps_for(8000) == 8000 * span
+        for grid in (config, window, replace(config, episode_steps=5)):
+            argv = experiment_command(grid).split()[3:]  # after "python -m learner"
+            args = build_parser().parse_args(argv)
+            again = config_from_args(args, grid.methods, args.assignments)
+            assert again.steps_for(8000) == grid.steps_for(8000), argv
+    assert default_config("full", "predictive").tpsr.history_length == 2  # a longer window
+    assert "--episode-steps" not in experiment_command(default_config("full"))
+    for bad, message in (("0", "'0' is neither"), ("all", "'all' is neither a positive")):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(
+                ["experiment", "--environment", "full", "--episode-steps", bad]
+            )
+        assert message in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="--episode-steps must be positive"):
+        default_config("full", episode_steps=0)
+
+
 def test_set_changes_any_fit_or_fitted_q_parameter_and_refuses_bad_ones():
     configs = {"tpsr": TPSRConfig(), "pca": PCAConfig(), "fqi": FQIConfig()}
     changed = apply_overrides(
