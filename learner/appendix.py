@@ -558,8 +558,9 @@ CARRY_STUDY = _predictive_study(
     "These runs had histories of one image. With two (checks in `partial-strip` outside "
     "the committed results), a carry of 0.5 scored 417.6 / 420.6 / 7.8 on the selection "
     "seeds against 0.3's 422.4 / 437.9 / 10.1, and 401.3 / 428.4 / 18.3 on the predictive "
-    "section's fresh seeds against 402.3 / 436.9 / 18.2, with fewer restarts (medians 0 and "
-    "1 against 3.5 and 7.5): level, and 0.3 was kept. Without a carry, with two images, "
+    "section's fresh seeds against 402.3 / 436.9 / 18.2 (with 4 recorded steps per episode, "
+    "as experiments counted then), with fewer restarts (medians 0 and 1 against 3.5 and "
+    "7.5): level, and 0.3 was kept. Without a carry, with two images, "
     "see \"the carry with two images of history\" below, whose rule carries only where the "
     "previous image helps: it would drop the carry in `drive`, so these commands, run "
     "before it, set `always`.",

@@ -33,8 +33,8 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
   0.7, the score from 353.7 to 145.5); a fitted-Q member that diverges is refitted alone
   (``fqi.refit member``), not the whole ensemble, which rescued every run where refitting
   the whole ensemble collapsed ("A predictive state: refitting a diverged planner"). On
-  the headline's fresh seeds it is at least level with ``best`` in every environment, also
-  at equal recorded steps, and above it in ``partial-strip`` ("A predictive state").
+  the headline's fresh seeds, from the same 24000 recorded steps, it is at least level with
+  ``best`` in every environment and above it in ``partial-strip`` ("A predictive state").
 
 Options given explicitly (``learner fit --rank 5``, ``--set tpsr.rank=5``) change single
 fields of a preset; :func:`departures` names them, so a model records its preset and what
