@@ -45,7 +45,8 @@ defaults were chosen on it before ``predictive`` refined them."""
 WINDOW_EPISODES = ("--episode-steps", "window")
 """How the studies of histories and tests longer than one image ran: an episode of one
 window of the fit (m + 1 + n recorded steps), so at a given number of episodes a longer
-window learned from more steps (experiments now record 3 steps per episode whatever the fit)."""
+window learned from more steps (by default an experiment records 3 steps per episode
+whatever the fit)."""
 
 
 @dataclass(frozen=True)
