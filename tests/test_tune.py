@@ -431,9 +431,9 @@ def test_experiment_tunes_each_run_on_its_own_training_data(tmp_path):
     parameters = json.loads(row["parameters"])
     assert parameters["tune"]["candidates"] >= 1 and parameters["tune"]["budget"] == 2
     assert np.isfinite(parameters["tune"]["criterion"])
-    # 300 episodes of 4 steps (two images of history), 75 % fitted: 897 windows, so the tuner
-    # capped the centres at 448
-    assert parameters["tpsr"]["ht_centers"] == parameters["tpsr"]["obs_centers"] == 448
+    # 300 episodes of 3 recorded steps: 897 windows of 4 steps (two images of history), 75 %
+    # of them fitted (672), so the tuner capped the centres at 336
+    assert parameters["tpsr"]["ht_centers"] == parameters["tpsr"]["obs_centers"] == 336
     assert row["status"] == "ok"
 
 
