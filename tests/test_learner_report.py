@@ -126,6 +126,24 @@ def fake_results(tmp_path):
     return results
 
 
+def test_every_job_is_a_command_the_cli_takes_with_the_data_it_ran_on():
+    """The page's commands parse as they are written; the grids record 3 steps per training
+    episode but for the studies of longer windows, which say ``--episode-steps window``."""
+    from learner.cli import build_parser
+
+    windows = set()
+    for job in all_jobs():
+        args = build_parser().parse_args(job.argv_for(Path("results"), 1))
+        if job.argv[0] in ("experiment", "study"):
+            assert args.episode_steps == (None if "--episode-steps" in job.argv else 3), job
+            if args.episode_steps is None:
+                windows.add(job.option("--vary"))
+    assert windows == {
+        "tpsr.history_length=1,2,3", "tpsr.test_length=1,2", "tpsr.refine_window=16,32",
+        "tpsr.action_pooling=0,0.5,1", "tpsr.refine_carry=0.3,0",
+    }
+
+
 @pytest.mark.slow
 def test_report_reuse_renders_every_job_and_is_reproducible(fake_results, tmp_path):
     docs = tmp_path / "docs"
