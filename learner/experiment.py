@@ -188,9 +188,7 @@ class ExperimentConfig:
 
     def steps_for(self, episodes: int) -> int:
         """Recorded training steps of ``episodes`` episodes (:attr:`episode_steps` each)."""
-        if self.episode_steps is None:
-            return episodes * (self.tpsr.history_length + 1 + self.tpsr.test_length)
-        return episodes * self.episode_steps
+        return episodes * (self.episode_steps or self.tpsr.window_steps)
 
 
 def preset_tpsr(preset: str, environment: str) -> TPSRConfig:

@@ -524,7 +524,7 @@ def _run_streamed(
             max_episodes=args.episodes,
             stride=tpsr_config.episode_stride,
         )
-        episodes = int(model.fit_info["observations"]) // (m + 1 + n)
+        episodes = int(model.fit_info["observations"]) // tpsr_config.window_steps
     else:
         fit = functools.partial(
             fit_tpsr_streamed,

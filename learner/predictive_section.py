@@ -105,8 +105,8 @@ def _pca_planner_jobs() -> dict[str, Job]:
     )
 
 
-def _at_size(rows: list[Row], method: str, episodes: int = PREDICTIVE_EPISODES) -> list[Row]:
-    return [r for r in rows if r.method == method and r.episodes == episodes]
+def _at_size(rows: list[Row], method: str) -> list[Row]:
+    return [r for r in rows if r.method == method and r.episodes == PREDICTIVE_EPISODES]
 
 
 def _entry(rows: list[Row], method: str) -> dict | None:

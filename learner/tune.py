@@ -317,8 +317,7 @@ class Support:
 
     def episodes(self, config: TPSRConfig) -> int:
         """Episodes ``config`` cuts from the training part."""
-        span = config.history_length + 1 + config.test_length
-        return int(episode_starts(self.train, span, config.episode_stride).size)
+        return int(episode_starts(self.train, config.window_steps, config.episode_stride).size)
 
     def refusal(self, config: TPSRConfig) -> str | None:
         """Why the data cannot carry ``config`` (one short phrase), or None."""

@@ -189,9 +189,15 @@ class TPSRConfig:
             )
 
     @property
+    def window_steps(self) -> int:
+        """Steps of one episode's window, ``m + 1 + n``: its history, the current step and
+        its test."""
+        return self.history_length + 1 + self.test_length
+
+    @property
     def episode_stride(self) -> int:
         """Steps between the starts of consecutive episodes (1 when they overlap)."""
-        return 1 if self.overlapping_episodes else self.history_length + 1 + self.test_length
+        return 1 if self.overlapping_episodes else self.window_steps
 
     @property
     def uses_actions(self) -> bool:

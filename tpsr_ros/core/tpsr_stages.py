@@ -195,7 +195,7 @@ def centre_stride(cfg: TPSRConfig, rows: int) -> int:
     if not cfg.overlapping_episodes:
         return 1
     needed = max(cfg.ht_centers, cfg.obs_centers, 1)
-    return max(1, min(cfg.history_length + 1 + cfg.test_length, rows // needed))
+    return max(1, min(cfg.window_steps, rows // needed))
 
 
 def kernel_centres(
@@ -262,8 +262,7 @@ def independent_episodes(n_train: int, cfg: TPSRConfig) -> int:
     one in every ``m + 1 + n`` of overlapping windows (a window at every step). The rank
     rule and the data's adequacy count these: a window shifted by a step adds one new image,
     not a new sample of the whole window."""
-    span = cfg.history_length + 1 + cfg.test_length
-    return max(1, int(n_train) * cfg.episode_stride // span) if n_train else 0
+    return max(1, int(n_train) * cfg.episode_stride // cfg.window_steps) if n_train else 0
 
 
 def singular_value_floor(largest: float, n_train: int) -> float:
