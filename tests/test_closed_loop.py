@@ -1,6 +1,7 @@
-"""The closed loop over the nodes as separate processes (real rclpy and the DDS backend): the
+"""The closed loop over the nodes as separate processes on the Cyclone DDS backend: the
 standard protocol's exact result, the recorded states equal offline tracking, and no process
-outlives a failure.
+outlives a failure. ``test_demo`` checks the same of the transport the demo chooses (real
+rclpy when importable), at the same data sizes.
 
 The model and policy have the default settings, learned from 4000 training steps and 3000 RL
 steps: the robot reaches the reward zone in every trial (score 467; 8000 and 5000 steps give
@@ -19,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from graph_support import BACKENDS, LOOPBACK, fresh_domain, hold_discovery_port
+from graph_support import LOOPBACK, fresh_domain, hold_discovery_port
 
 from learner.cli import main as learner_main
 from learner.closed_loop import ClosedLoopError, run_closed_loop
@@ -92,10 +93,10 @@ def _children_of_this_process() -> list[int]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("backend", BACKENDS)
 def test_closed_loop_equals_the_headless_evaluation_and_the_recorded_states_offline(
-    trained, tmp_path, capsys, backend
+    trained, tmp_path, capsys
 ):
+    backend = "dds"
     policy, model = trained / "policy.npz", trained / "model.npz"
     assert (
         learner_main(["evaluate", str(policy), "--environment", "full", "--model", str(model)]) == 0
