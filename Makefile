@@ -26,12 +26,12 @@ demo: $(STAMP)
 # the project's modules again, and each worker would rewrite every test module's asserts
 unexport PYTHONDONTWRITEBYTECODE
 
-# the whole suite in parallel (pytest-xdist): one worker per core; idle workers steal queued
-# tests; tests/conftest.py pins BLAS to one thread per worker. Not one more worker for the
-# tests that wait on node processes, discovery and real-time replays: their nodes, timers
-# and middleware threads cost CPU for every second they run, and a third worker on two cores
-# stretched those seconds (613 s of CPU and 319 s for the suite; two workers: 506 s and 307 s)
-WORKERS ?= $(shell $(PYTHON) -c "import os; print(os.cpu_count() or 1)")
+# the whole suite in parallel (pytest-xdist): one worker per core and one more; idle workers
+# steal queued tests; tests/conftest.py pins BLAS to one thread per worker. Many tests wait
+# (on node processes, discovery, real-time replays) and the extra worker runs another in
+# that time: on two cores the suite took 273 s with two workers (420 s of CPU, the cores a
+# quarter idle), 199-224 s with three and 213 s with four, for the same CPU time
+WORKERS ?= $(shell $(PYTHON) -c "import os; print((os.cpu_count() or 1) + 1)")
 test: $(STAMP)
 	$(PY) -m pytest -q -n $(WORKERS) --dist worksteal
 
