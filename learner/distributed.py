@@ -59,6 +59,7 @@ from tpsr_ros.io.bag_chunks import BagChunks
 
 __all__ = [
     "MAX_SHIPPED_P_TH_BYTES",
+    "SCHEDULER_HTTP",
     "DaskEngine",
     "check_bags_readable_here",
     "check_bags_visible",
@@ -71,6 +72,10 @@ __all__ = [
 
 MAX_SHIPPED_P_TH_BYTES = 256 * 2**20
 DEFAULT_TIMEOUT = 10.0
+SCHEDULER_HTTP = {"dashboard_address": "127.0.0.1:0"}
+"""The local cluster scheduler's HTTP server (health, metrics; served without a dashboard
+too): on a free loopback port, not Dask's default 8787, where another cluster (a second
+fit, the user's own) would make it warn that the port is in use."""
 
 T = TypeVar("T")
 
@@ -111,7 +116,8 @@ def dask_client(
     A scheduler that does not answer within ``timeout`` seconds (no connection, or a
     connection with no handshake) is a one-line ``ConfigError``. The local cluster has
     ``workers`` processes of one thread each, with worker logs silenced below CRITICAL (a
-    failed task is reported once, by the client, as one line). On exit the client (and the
+    failed task is reported once, by the client, as one line) and its scheduler's HTTP
+    server on a free loopback port (:data:`SCHEDULER_HTTP`). On exit the client (and the
     local cluster) close; a task lost with its worker becomes a one-line ``ConfigError``.
     """
     distributed = _distributed()
@@ -132,6 +138,7 @@ def dask_client(
                     threads_per_worker=1,
                     processes=True,
                     dashboard_address=None,
+                    scheduler_kwargs=SCHEDULER_HTTP,
                     silence_logs=logging.CRITICAL,
                 )
             )

@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import shutil
 import socket
 import types
+import warnings
 
 import numpy as np
 import pytest
 from cli_support import run_entry
 
+from learner.distributed import SCHEDULER_HTTP
 from sim_node import SimConfig
 from sim_node.generate import generate_bag
 from tpsr_ros.core.episodes import make_episodes
@@ -175,7 +178,8 @@ def test_dask_local_cluster_equals_one_process(bags, reference, monkeypatch):
     reader = BagChunks(chunk_steps=512)
     with (
         distributed.LocalCluster(
-            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+            scheduler_kwargs=SCHEDULER_HTTP,
         ) as cluster,
         distributed.Client(cluster, set_as_default=False) as client,
     ):
@@ -316,7 +320,9 @@ def test_a_real_scheduler_passes_the_probe_and_lost_tasks_are_one_line():
     distributed = pytest.importorskip("distributed")
     from learner.distributed import dask_client
 
-    with distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=0, processes=False, dashboard_address=None, scheduler_kwargs=SCHEDULER_HTTP
+    ) as cluster:
         address = cluster.scheduler_address
         with dask_client(scheduler=address, timeout=5) as client:
             assert client.scheduler.address == address
@@ -336,7 +342,9 @@ def test_a_cluster_with_no_workers_left_is_a_one_line_error_not_a_hang():
     from learner.distributed import gather
 
     with (
-        distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster,
+        distributed.LocalCluster(
+            n_workers=0, processes=False, dashboard_address=None, scheduler_kwargs=SCHEDULER_HTTP
+        ) as cluster,
         distributed.Client(cluster, set_as_default=False) as client,
     ):
         future = client.submit(sum, [3, 4], pure=False)  # no worker will ever run it
@@ -352,8 +360,15 @@ def test_workers_option_writes_the_streamed_model(bags, tmp_path, capfd):
     code, _, stderr = run_entry([*common, "-o", str(tmp_path / "s.npz"), "--stream"], capfd)
     assert code == 0, stderr
     argv = [*common, "-o", str(tmp_path / "d.npz"), "--workers", "1"]
-    code, stdout, stderr = run_entry(argv, capfd)
+    # another cluster's HTTP server on Dask's default port (8787) is no concern of the fit's
+    with socket.socket() as other, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with contextlib.suppress(OSError):  # taken already: as good
+            other.bind(("127.0.0.1", 8787))
+            other.listen()
+        code, stdout, stderr = run_entry(argv, capfd)
     assert code == 0, stderr
+    assert not [w for w in caught if "already in use" in str(w.message)]
     assert "connecting to a local cluster of 1 worker(s)" in stderr
     assert "1200 steps, 2 segment(s), 399 episodes" in stdout
     model = load_model(tmp_path / "d.npz")
