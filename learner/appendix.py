@@ -14,6 +14,7 @@ import dataclasses
 import math
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -23,6 +24,10 @@ from learner.camera_study import CAMERA_SECTION
 from learner.competence_section import COMPETENCE_SECTION
 from learner.experiment import preset_tpsr
 from learner.jobs import (
+    BEFORE_CARRY_RULE,
+    BEFORE_MEMBER_REFIT,
+    BEFORE_OVERLAP,
+    BEFORE_TWO_IMAGES,
     BEST_PRESET,
     GUIDE_ENVIRONMENTS,
     SELECTION_SEEDS,
@@ -94,7 +99,7 @@ def _ran_otherwise(section: Section, data: Data, preset: str) -> str:
     neither varies nor sets (it ran before the preset changed): a sentence naming each such
     setting's recorded and current values; empty when they did not."""
     recorded: dict[str, set[str]] = {}
-    current: dict[str, str] = {}
+    current: dict[str, dict[str, str]] = {}  # per environment (a turning robot's own)
     for job in section.jobs:
         name, _ = varied(job)
         fixed = {name} | {
@@ -117,14 +122,38 @@ def _ran_otherwise(section: Section, data: Data, preset: str) -> str:
                         continue
                     key = f"{group}.{field}"
                     recorded.setdefault(key, set()).add(_shown(value))
-                    current[key] = _shown(getattr(config, field))
+                    current.setdefault(key, {})[job.environment] = _shown(getattr(config, field))
     if not recorded:
         return ""
+    def now(key: str) -> str:
+        by_environment = current[key]
+        if len(set(by_environment.values())) == 1:
+            return f"`{next(iter(by_environment.values()))}`"
+        return " and ".join(f"`{value}` in `{env}`" for env, value in by_environment.items())
+
     changes = "; ".join(
-        f"`{key}` {' / '.join(f'`{v}`' for v in sorted(values))} (now `{current[key]}`)"
+        f"`{key}` {' / '.join(f'`{v}`' for v in sorted(values))} (now {now(key)})"
         for key, values in sorted(recorded.items())
     )
     return f"The runs predate the preset's current value of a setting they record: {changes}. "
+
+
+def _set_by_command(section: Section) -> str:
+    """``, but for those its command sets (...)`` naming each ``--set`` of the study's jobs
+    (with the environments that set it, where not all do); empty when none sets any."""
+    sets: dict[str, list[str]] = {}
+    for job in section.jobs:
+        for i, arg in enumerate(job.argv[:-1]):
+            if arg == "--set":
+                sets.setdefault(job.argv[i + 1], []).append(job.environment)
+    if not sets:
+        return ""
+    named = [
+        f"`{assignment}`"
+        + ("" if len(envs) == len(section.jobs) else " in " + ", ".join(f"`{e}`" for e in envs))
+        for assignment, envs in sets.items()
+    ]
+    return f", but for those its command sets ({', '.join(named)})"
 
 
 def _render_study(section: Section, data: Data) -> list[str]:
@@ -142,10 +171,11 @@ def _render_study(section: Section, data: Data) -> list[str]:
     else:  # e.g. a turning robot's own value
         value_text = " and ".join(f"`{value}` in `{env}`" for env, value in shown.items())
     setting = (
-        f"Every other setting is the default's; the default's value is {value_text}. "
+        f"Every other setting is the default's{_set_by_command(section)}; the default's value "
+        f"is {value_text}. "
         if preset == DEFAULT_PRESET
-        else f"Every other setting is `--preset {preset}`'s; its value, the default below, is "
-        f"{value_text}. "
+        else f"Every other setting is `--preset {preset}`'s{_set_by_command(section)}; its "
+        f"value, the default below, is {value_text}. "
     ) + _ran_otherwise(section, data, preset)
     heading = any(
         math.isfinite(r.r2_heading) for job in section.jobs for r in data[job]
@@ -246,11 +276,15 @@ def _study(
     *options: str,
     environments: tuple[str, ...] = GUIDE_ENVIRONMENTS,
     render: Callable[[Section, Data], list[str]] = _render_study,
+    per_environment: Mapping[str, tuple[str, ...]] = MappingProxyType({}),
 ) -> Section:
+    """A one-parameter study on the selection seeds (``per_environment``: options added in
+    one environment only)."""
     jobs = tuple(
         study_job(
             "studies", env, vary, "--episodes", str(SELECTION_EPISODES[env]), *SELECTION_SEEDS,
             *(() if "--preset" in options else BEST_PRESET), *options,
+            *per_environment.get(env, ()),
         )
         for env in environments
     )
@@ -265,11 +299,12 @@ def _predictive_study(
     *options: str,
     environments: tuple[str, ...],
     render: Callable[[Section, Data], list[str]] = _render_study,
+    per_environment: Mapping[str, tuple[str, ...]] = MappingProxyType({}),
 ) -> Section:
     """A study of the ``predictive`` preset's TPSR (:func:`_study`)."""
     return _study(
         key, title, question, vary, "--preset", "predictive", "--methods", "tpsr", *options,
-        environments=environments, render=render,
+        environments=environments, render=render, per_environment=per_environment,
     )  # fmt: skip
 
 
@@ -565,9 +600,10 @@ CARRY_STUDY = _predictive_study(
     "previous image helps: it would drop the carry in `drive`, so these commands, run "
     "before it, set `always`.",
     "tpsr.refine_carry=0,0.3,0.5,0.7",
-    "--set",
-    "tpsr.refine_carry_rule=always",  # the runs predate the rule; it would drop drive's carry
     environments=("partial-strip", "drive"),
+    # the runs predate the carry's rule (which would drop drive's carry), and those in
+    # partial-strip the member refit too
+    per_environment={"partial-strip": BEFORE_MEMBER_REFIT, "drive": BEFORE_OVERLAP},
 )
 """The study behind the ``predictive`` preset's carry, on the selection seeds."""
 
@@ -578,6 +614,7 @@ REFIT_STUDY = _predictive_study(
     "at ten times the ridge (`ensemble`), or only that member (`member`; `fqi.refit`, "
     "`tpsr_ros/core/fqi.py`)? Runs in which no member diverges are the same either way.",
     "fqi.refit=ensemble,member",
+    *BEFORE_OVERLAP,
     environments=("partial-strip", "drive"),
 )
 """The study behind the ``predictive`` preset's refit, on the selection seeds."""
@@ -595,6 +632,7 @@ DISCOUNT_STUDY = _predictive_study(
     "`partial-strip` did not (run 3: 314.1 to 313.4), a check of single runs outside the "
     "committed results; the study asks the selection seeds.",
     "fqi.discount=0.8,0.9",
+    *BEFORE_OVERLAP,
     environments=("drive",),
 )
 """A study of the ``predictive`` preset's discount, on the selection seeds (not adopted)."""
@@ -612,6 +650,7 @@ CENTERS_STUDY = _predictive_study(
     "455.3 to 458.3), "
     "and the trials that earned nothing on the selection seeds stayed at 4 of 100.",
     "fqi.centers=100,200",
+    *BEFORE_TWO_IMAGES,
     environments=("partial-strip",),
 )
 """A study of the ``predictive`` preset's planner resolution, on the selection seeds (not
@@ -637,6 +676,7 @@ RIDGE_STUDY = _predictive_study(
     "the new policy, no longer tell where the robot is (loop position error 5.9-8.3 m "
     "against 1.9-3.2 m on the RL run; one run that scored 433.1 also reads 7.5 m).",
     "fqi.ridge=0.01,0.1",
+    *BEFORE_TWO_IMAGES,
     environments=("partial", "partial-strip"),
 )
 """A study of the ``predictive`` preset's planner ridge, on the selection seeds (not adopted)."""
@@ -671,6 +711,7 @@ SCALING_STUDY = _predictive_study(
     "same seeds outside the committed results), the scaled search scored 368.5 and 358.8 "
     "(weakest runs 182.5 and 125.7), its memory still 0 steps.",
     "tpsr.refine_scaling=none,groups",
+    *BEFORE_TWO_IMAGES,
     "--memory",
     environments=("partial-strip",),
 )
@@ -731,6 +772,7 @@ FIT_SEED_STUDY = _predictive_study(
     "data's, and how much the fit's own? The seed of k-means and of the SVD's start "
     "(`tpsr.seed`) changes only the fit, on the same training and RL data.",
     "tpsr.seed=0,1,2",
+    *BEFORE_TWO_IMAGES,
     environments=("partial-strip",),
     render=_render_fit_seed,
 )
@@ -745,6 +787,7 @@ _PREDICTIVE_FIT = (
         "tell where the robot is its trials that earn nothing stand still near the goal. "
         "Does a larger state (`tpsr.rank`) give the refinement room to carry the past?",
         "tpsr.rank=8,12",
+        *BEFORE_OVERLAP,
         environments=("partial-strip",),
     ),
     _predictive_study(
@@ -754,6 +797,7 @@ _PREDICTIVE_FIT = (
         "(`tpsr.refine_horizon`), so that what the robot did a few steps back matters more "
         "to the objective?",
         "tpsr.refine_horizon=10,20",
+        *BEFORE_OVERLAP,
         environments=("partial-strip",),
     ),
     _predictive_study(
@@ -772,6 +816,7 @@ _PREDICTIVE_FIT = (
         "two pulls' scores differ by up to 115 points on the same data, either way: the "
         "lottery stays.",
         "tpsr.refine_pull=0.001,0.01,0.1,1",
+        *BEFORE_TWO_IMAGES,
         "--memory",
         environments=("partial-strip",),
     ),
@@ -796,6 +841,7 @@ _PREDICTIVE_FIT = (
         "counted data then), so at 8000 episodes one image learned from 24000 recorded "
         "steps, two from 32000 and three from 40000.",
         "tpsr.history_length=1,2,3",
+        *BEFORE_CARRY_RULE,
         "--memory",
         *WINDOW_EPISODES,
         environments=("partial-strip",),
@@ -808,6 +854,7 @@ _PREDICTIVE_FIT = (
         "(`tpsr.test_length`)? Not adopted: the runs score lower, with as many restarts "
         "(a median of 3.5 over the RL run), and their fits take longer.",
         "tpsr.test_length=1,2",
+        *BEFORE_CARRY_RULE,
         "--memory",
         *WINDOW_EPISODES,
         environments=("partial-strip",),
@@ -820,6 +867,7 @@ _PREDICTIVE_FIT = (
         "32 (`tpsr.refine_window`), so that a use for an older past can reach the gradient? "
         "Not adopted: the runs score lower, their memory stays at 0 steps.",
         "tpsr.refine_window=16,32",
+        *BEFORE_CARRY_RULE,
         "--memory",
         *WINDOW_EPISODES,
         environments=("partial-strip",),
@@ -832,6 +880,7 @@ _PREDICTIVE_FIT = (
         "refinement runs over every step. Should a window start at every step "
         "(`tpsr.overlapping_episodes`), so that the spectral start learns from all of them?",
         "tpsr.overlapping_episodes=false,true",
+        *BEFORE_TWO_IMAGES,
         environments=("partial-strip", "drive"),
     ),
     _predictive_study(
@@ -847,6 +896,7 @@ _PREDICTIVE_FIT = (
         "operators depend on the action, so action-blind operators are not what keeps its "
         "memory at 0.",
         "tpsr.action_pooling=0,0.5,1",
+        *BEFORE_CARRY_RULE,
         "--memory",
         *WINDOW_EPISODES,
         environments=("partial-strip",),

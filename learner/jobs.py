@@ -13,6 +13,10 @@ from pathlib import Path
 from sim_node import Environment
 
 __all__ = [
+    "BEFORE_CARRY_RULE",
+    "BEFORE_MEMBER_REFIT",
+    "BEFORE_OVERLAP",
+    "BEFORE_TWO_IMAGES",
     "BEST_PRESET",
     "ENVIRONMENTS",
     "GUIDE_ENVIRONMENTS",
@@ -47,6 +51,18 @@ WINDOW_EPISODES = ("--episode-steps", "window")
 window of the fit (m + 1 + n recorded steps), so at a given number of episodes a longer
 window learned from more steps (by default an experiment records 3 steps per episode
 whatever the fit)."""
+
+# The predictive preset as the studies of it ran, before later studies changed it: each
+# departure from today's preset, oldest last (a study that ran earlier ran without the
+# changes adopted after it). The CSVs' commands name them too, so every row reruns as it ran.
+BEFORE_CARRY_RULE = ("--set", "tpsr.refine_carry_rule=always")
+"""Before the carry applied only where the previous image helps (``aliased``)."""
+BEFORE_TWO_IMAGES = (*BEFORE_CARRY_RULE, "--set", "tpsr.history_length=1")
+"""Before histories held the last two images."""
+BEFORE_OVERLAP = (*BEFORE_TWO_IMAGES, "--set", "tpsr.overlapping_episodes=false")
+"""Before the spectral start took a window at every step."""
+BEFORE_MEMBER_REFIT = (*BEFORE_OVERLAP, "--set", "fqi.refit=ensemble")
+"""Before the planner refitted a diverging member alone."""
 
 
 @dataclass(frozen=True)
