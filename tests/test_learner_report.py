@@ -575,15 +575,24 @@ def test_a_study_run_before_its_preset_changed_says_in_what():
     # as the preset is now (a setting the rows do not record keeps the preset's value)
     current = {job: rows(job, {}, {}) for job in REFIT_STUDY.jobs}
     assert "predate" not in "\n".join(REFIT_STUDY.render(REFIT_STUDY, current))
-    before = {job: rows(job, {"overlapping_episodes": False}, {"centers": 50})
+    before = {job: rows(job, {"refine_horizon": 20, "overlapping_episodes": False},
+                        {"centers": 50})
               for job in REFIT_STUDY.jobs}  # fmt: skip
     text = "\n".join(REFIT_STUDY.render(REFIT_STUDY, before))
     assert (
         "The runs predate the preset's current value of a setting they record: `fqi.centers` "
-        "`50` (now `100`); `tpsr.overlapping_episodes` `false` (now `true`)." in text
+        "`50` (now `100`); `tpsr.refine_horizon` `20` (now `10`)." in text
     )
-    # the varied setting and those the study's command sets are not departures; nor are
-    # the settings of a baseline's rows
+    # the varied setting and those the study's command sets are not departures (the page
+    # names the latter with the command); nor are the settings of a baseline's rows
+    assert (
+        "its command sets (`tpsr.refine_carry_rule=always`, `tpsr.history_length=1`, "
+        "`tpsr.overlapping_episodes=false`)" in text
+    )
+    ranks = {job: rows(job, {"rank": 12}, {}) for job in REFIT_STUDY.jobs}  # 8 and 16 now
+    assert "`tpsr.rank` `12` (now `8` in `partial-strip` and `16` in `drive`)" in "\n".join(
+        REFIT_STUDY.render(REFIT_STUDY, ranks)
+    )
     planner = {job: _rows(job.environment, {"pca": [300.0, 310.0, 320.0]}, (8000,),
                           parameters=json.dumps({"fqi": {"ensemble": 1}}))
                for job in PCA_PLANNER_STUDY.jobs}  # fmt: skip
