@@ -54,7 +54,8 @@ whatever the fit)."""
 
 # The predictive preset as the studies of it ran, before later studies changed it: each
 # departure from today's preset, oldest last (a study that ran earlier ran without the
-# changes adopted after it). The CSVs' commands name them too, so every row reruns as it ran.
+# changes adopted after it). The CSVs' commands name them too: each row's command gives the
+# settings the row recorded.
 BEFORE_CARRY_RULE = ("--set", "tpsr.refine_carry_rule=always")
 """Before the carry applied only where the previous image helps (``aliased``)."""
 BEFORE_TWO_IMAGES = (*BEFORE_CARRY_RULE, "--set", "tpsr.history_length=1")

@@ -1,6 +1,7 @@
-"""The committed results rerun as they ran: every row's command gives the settings the row
+"""The committed results name what they ran: every row's command gives the settings the row
 recorded, and every job on the page gives the commands of its CSV's rows, although the
-presets have changed since many of them ran."""
+presets have changed since many of them ran. (Settings only: a row recorded before a change
+of the code that no setting names can rerun to other figures; the page says where.)"""
 
 from __future__ import annotations
 
