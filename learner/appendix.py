@@ -125,6 +125,7 @@ def _ran_otherwise(section: Section, data: Data, preset: str) -> str:
                     current.setdefault(key, {})[job.environment] = _shown(getattr(config, field))
     if not recorded:
         return ""
+
     def now(key: str) -> str:
         by_environment = current[key]
         if len(set(by_environment.values())) == 1:
@@ -582,6 +583,7 @@ _DRIVE = tuple(
 )
 """One-knob studies of the turning robot's settings, around them."""
 
+
 def _not_rerun(reruns: str) -> str:
     """The sentence of a study whose ``partial-strip`` runs do not rerun to their figures:
     ``reruns`` names run 0's recorded and rerun scores."""
@@ -611,8 +613,10 @@ CARRY_STUDY = _predictive_study(
     "see \"the carry with two images of history\" below, whose rule carries only where the "
     "previous image helps: it would drop the carry in `drive`, so these commands, run "
     "before it, set `always`."
-    + _not_rerun("353.7 for 0 (recorded 426.3), 441.3 for 0.3 (356.9), 291.9 for 0.5 (435.1) "
-                 "and 451.1 for 0.7 (the same)"),
+    + _not_rerun(
+        "353.7 for 0 (recorded 426.3), 441.3 for 0.3 (356.9), 291.9 for 0.5 (435.1) "
+        "and 451.1 for 0.7 (the same)"
+    ),
     "tpsr.refine_carry=0,0.3,0.5,0.7",
     environments=("partial-strip", "drive"),
     # the runs predate the carry's rule (which would drop drive's carry), and those in
