@@ -31,6 +31,7 @@ import operator
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import CancelledError
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any, TypeVar
 
 import numpy as np
@@ -72,7 +73,7 @@ __all__ = [
 
 MAX_SHIPPED_P_TH_BYTES = 256 * 2**20
 DEFAULT_TIMEOUT = 10.0
-SCHEDULER_HTTP = {"dashboard_address": "127.0.0.1:0"}
+SCHEDULER_HTTP = MappingProxyType({"dashboard_address": "127.0.0.1:0"})
 """The local cluster scheduler's HTTP server (health, metrics; served without a dashboard
 too): on a free loopback port, not Dask's default 8787, where another cluster (a second
 fit, the user's own) would make it warn that the port is in use."""
