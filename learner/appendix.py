@@ -102,9 +102,7 @@ def _ran_otherwise(section: Section, data: Data, preset: str) -> str:
     current: dict[str, dict[str, str]] = {}  # per environment (a turning robot's own)
     for job in section.jobs:
         name, _ = varied(job)
-        fixed = {name} | {
-            job.argv[i + 1].split("=", 1)[0] for i, a in enumerate(job.argv[:-1]) if a == "--set"
-        }
+        fixed = {name} | {assignment.split("=", 1)[0] for assignment in job.assignments}
         reference = {
             "tpsr": preset_tpsr(preset, job.environment),
             "fqi": PRESETS[preset].fqi_config(),
@@ -144,9 +142,8 @@ def _set_by_command(section: Section) -> str:
     (with the environments that set it, where not all do); empty when none sets any."""
     sets: dict[str, list[str]] = {}
     for job in section.jobs:
-        for i, arg in enumerate(job.argv[:-1]):
-            if arg == "--set":
-                sets.setdefault(job.argv[i + 1], []).append(job.environment)
+        for assignment in job.assignments:
+            sets.setdefault(assignment, []).append(job.environment)
     if not sets:
         return ""
     named = [
@@ -960,8 +957,7 @@ CARRY_TWO_IMAGES_STUDY = Section(
         study_job(
             "studies/carry-two-images", env, "tpsr.refine_carry=0.3,0", "--episodes",
             str(PREDICTIVE_EPISODES), *SELECTION_SEEDS, "--preset", "predictive",
-            "--methods", "tpsr", "--set", "tpsr.refine_carry_rule=always", *extra,
-            *WINDOW_EPISODES,
+            "--methods", "tpsr", *BEFORE_CARRY_RULE, *extra, *WINDOW_EPISODES,
         )  # fmt: skip
         for env, extra in (("partial-strip", ("--memory",)), ("full", ()))
     ),

@@ -79,6 +79,11 @@ class Job:
         return self.argv[self.argv.index(flag) + 1] if flag in self.argv else default
 
     @property
+    def assignments(self) -> tuple[str, ...]:
+        """The ``NAME=VALUE`` of each ``--set`` in the job's command, in order."""
+        return tuple(self.argv[i + 1] for i, arg in enumerate(self.argv[:-1]) if arg == "--set")
+
+    @property
     def environment(self) -> str:
         """The job's ``--environment``."""
         return str(self.option("--environment"))
