@@ -263,6 +263,7 @@ class _Scored:
     ridge: float
     status: str
     loop_position_error: float = float("nan")
+    goal: str = ""
 
 
 def _plan_and_score(
@@ -288,7 +289,13 @@ def _plan_and_score(
         states[:, :seen], rl.positions[:, :2], result.states[:, :seen], result.positions
     )
     return _Scored(
-        result.score, _trials(result), _trial_ends(result), fqi.ridge, "ok", loop_error
+        result.score,
+        _trials(result),
+        _trial_ends(result),
+        fqi.ridge,
+        "ok",
+        loop_error,
+        _trial_goal(result),
     )
 
 
@@ -328,6 +335,10 @@ def _trial_ends(evaluation: Evaluation) -> str:
     return ";".join(
         f"{t.end[0]:.2f},{t.end[1]:.2f},{t.standing}" for t in evaluation.trials if t.end
     )
+
+
+def _trial_goal(evaluation: Evaluation) -> str:
+    return ";".join(f"{t.goal_step or 0},{t.wall_contacts}" for t in evaluation.trials)
 
 
 def _row(
@@ -378,6 +389,7 @@ def _floor_row(config: ExperimentConfig, method: str, episodes: int, repetition:
         score=evaluation.score,
         trial_rewards=_trials(evaluation),
         trial_ends=_trial_ends(evaluation),
+        trial_goal=_trial_goal(evaluation),
         fit_seconds=round(time.perf_counter() - start, 3),
         fqi_ridge=nan,
         recoveries=0,
@@ -479,6 +491,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 score=scored.score,
                 trial_rewards=scored.trials,
                 trial_ends=scored.ends,
+                trial_goal=scored.goal,
                 fit_seconds=round(fit_seconds, 3),
                 fqi_ridge=scored.ridge,
                 recoveries=recoveries,

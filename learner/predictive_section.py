@@ -19,6 +19,7 @@ import math
 import numpy as np
 
 from learner.experiment import EPISODE_STEPS
+from learner.evaluate import STEPS
 from learner.floors import CONSTANT, RANDOM
 from learner.jobs import (
     BEST_PRESET,
@@ -199,6 +200,38 @@ def failed_trials(rows: list[Row], environment: str) -> str | None:
     )
 
 
+def _trial_goals(row: Row) -> np.ndarray:
+    """``(trials, 2)``: each trial's first step in the goal zone (0: never) and blocked steps."""
+    return np.array([[int(v) for v in trial.split(",")] for trial in row.trial_goal.split(";")])
+
+
+def weakest_at_goal(rows: list[Row], environment: str) -> str | None:
+    """How the weakest run's trials fared at the goal zone against the other runs' trials:
+    how many reached it and when, and how many of their steps a wall blocked (None when
+    the rows do not record it)."""
+    runs = [r for r in rows if math.isfinite(r.score)]
+    if len(runs) < 2 or not all(r.trial_goal for r in runs):
+        return None
+    weakest = min(runs, key=lambda r: r.score)
+    mine = _trial_goals(weakest)
+    others = np.concatenate([_trial_goals(r) for r in runs if r is not weakest])
+
+    def reached(goals: np.ndarray, zone: str) -> str:
+        steps = goals[goals[:, 0] > 0, 0]
+        when = f" (at a median step {float(np.median(steps)):g})" if steps.size else ""
+        return f"{steps.size} of {len(goals)} trials reached {zone}{when}"
+
+    config = SimConfig(environment=environment)
+    return (
+        f"in its weakest run ({weakest.score:.1f}) {reached(mine, 'the goal zone')} and a "
+        f"wall blocked a median {float(np.median(mine[:, 1])):g} of a trial's {STEPS} steps; "
+        f"in the other runs {reached(others, 'it')} and a wall blocked a median "
+        f"{float(np.median(others[:, 1])):g} (a blocked step earns {config.wall_reward:g}, "
+        f"a free step in the zone {config.goal_reward:g}; `learner evaluate` prints each "
+        "trial's)"
+    )
+
+
 LOST_RATIO = 2.0
 """A run whose states place the robot this many times farther off in its scored trials than
 on the random RL run no longer knows, under its policy's actions, where the robot is."""
@@ -314,6 +347,8 @@ def _render(section: Section, data: Data) -> list[str]:
         failures = failed_trials(_at_size(ours, "tpsr"), env)
         if failures is not None:
             verdicts.append(f"- `{env}`, the predictive TPSR: {failures}.")
+        if at_goal := weakest_at_goal(_at_size(ours, "tpsr"), env):
+            verdicts.append(f"- `{env}`, the predictive TPSR: {at_goal}.")
         if grip := loop_grip(_at_size(ours, "tpsr")):
             verdicts.append(f"- `{env}`, the predictive TPSR: {grip}.")
         if raised := raised_ridge(_at_size(ours, "tpsr")):

@@ -91,6 +91,10 @@ class Row:
     filter's grip on where the robot is under the policy's own actions, beside
     ``position_error`` on the random RL run. NaN for the floors and in CSVs written
     before."""
+    trial_goal: str = ""
+    """Per trial, ``s,c``: the step at which the robot first stood in the goal zone (0:
+    never) and how many of its steps a wall blocked (``;``-separated; empty in CSVs
+    written before)."""
 
 
 def score_statistics(scores: np.ndarray) -> dict[str, Any]:

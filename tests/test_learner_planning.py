@@ -291,6 +291,15 @@ def test_experiment_grid_rows_seeds_and_rerun_of_one_row(tmp_path):
     ends = [[float(v) for v in end.split(",")] for end in rows[2].trial_ends.split(";")]
     assert len(ends) == 10 and all(0 <= x <= 45 and 0 <= y <= 45 and 0 <= n <= 50
                                    for x, y, n in ends)  # fmt: skip
+    # and when it first reached the goal zone (0: never) and how many steps a wall blocked:
+    # a trial earns +10 for each free step in the zone and -1 for each blocked one
+    for row in rows:
+        goals = [[int(v) for v in trial.split(",")] for trial in row.trial_goal.split(";")]
+        rewards = [float(v) for v in row.trial_rewards.split(";")]
+        assert len(goals) == len(rewards) == 10
+        for (first, blocked), reward in zip(goals, rewards, strict=True):
+            assert 0 <= first <= 50 and 0 <= blocked <= 50 and (reward + blocked) % 10 == 0
+            assert reward <= 0 if first == 0 else reward <= 10 * (51 - first)
     assert len({r.train_seed for r in rows}) == 2  # one training run per repetition
     # every run records every parameter it used
     params = {r.method: json.loads(r.parameters) for r in rows if r.repetition == 0}

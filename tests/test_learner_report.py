@@ -450,6 +450,29 @@ def test_the_trials_that_earned_nothing_are_told_where_they_ended():
     assert failed_trials([dataclasses.replace(first, trial_ends="")], "partial-strip") is None
 
 
+def test_the_weakest_run_is_told_how_it_fared_at_the_goal_zone():
+    """Three runs: the weakest reaches the goal zone in every trial but is blocked often;
+    the others reach it in 19 trials of 20 and are blocked less."""
+    from learner.predictive_section import weakest_at_goal
+
+    def run(score: float, goals: list[str]) -> Row:
+        return Row("partial-strip", "tpsr", 8000, 0, 1, 100, score, "", 0.0, 0.01, 0, 0.9,
+                   0.9, "ok", trial_goal=";".join(goals))  # fmt: skip
+
+    weakest = run(271.7, ["9,13"] * 5 + ["11,15"] * 5)
+    others = [run(400.0, ["8,1"] * 9 + ["0,4"]), run(430.0, ["10,2"] * 10)]
+    text = weakest_at_goal([others[0], weakest, others[1]], "partial-strip")
+    assert text == (
+        "in its weakest run (271.7) 10 of 10 trials reached the goal zone (at a median step "
+        "10) and a wall blocked a median 14 of a trial's 50 steps; in the other runs 19 of 20 "
+        "trials reached it (at a median step 10) and a wall blocked a median 2 (a blocked "
+        "step earns -1, a free step in the zone 10; `learner evaluate` prints each trial's)"
+    )
+    # rows written before the goal zone was recorded, or a single run, say nothing
+    assert weakest_at_goal([dataclasses.replace(weakest, trial_goal=""), *others], "full") is None
+    assert weakest_at_goal([weakest], "partial-strip") is None
+
+
 def test_runs_whose_fitted_q_needed_a_larger_ridge_are_named():
     from learner.predictive_section import raised_ridge
 
