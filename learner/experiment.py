@@ -4,7 +4,8 @@ For every data size (training episodes of ``--episode-steps`` recorded steps eac
 guide's 3 by default, whatever the method and preset) and repetition: a fresh uniformly
 random training trajectory; a TPSR and the PCA baseline learned from it; states tracked with each
 model's parameters over one separate random RL trajectory (15000 steps in ``full``,
-20000 in ``partial`` and ``distractors``; the same for every run, as in the guide);
+20000 in ``partial`` and ``distractors``; the same for every run, as in the guide, or with
+``--rl-per-run`` one of each run's own);
 fitted Q-iteration on them; the standard evaluation. Beside them stand the floors
 (``constant``: the best of the 25 constant actions; ``random``: uniformly random
 actions, seeded per run; :mod:`learner.floors`) and the ceiling (``true-position``: the
@@ -124,6 +125,10 @@ class ExperimentConfig:
     methods: tuple[str, ...] = DEFAULT_METHODS
     rl_steps: int = 15000
     rl_seed: int = 100
+    rl_per_run: bool = False
+    """Each run plans on its own random RL trajectory, seeded ``rl_seed`` plus its
+    repetition, so that the runs' spread holds the RL data's too (False: every run plans
+    on the one trajectory of ``rl_seed``, as in the guide)."""
     seed: int = 0
     tpsr: TPSRConfig = field(default_factory=TPSRConfig)
     pca: PCAConfig = field(default_factory=PCAConfig)
@@ -181,6 +186,10 @@ class ExperimentConfig:
         """Seed of the training trajectory of one (data size, repetition) cell."""
         sequence = np.random.SeedSequence([self.seed, episodes, repetition])
         return int(sequence.generate_state(1)[0])
+
+    def run_rl_seed(self, repetition: int) -> int:
+        """Seed of the RL trajectory repetition ``repetition`` plans on (:attr:`rl_per_run`)."""
+        return self.rl_seed + repetition if self.rl_per_run else self.rl_seed
 
     def sim_config(self) -> SimConfig:
         """The simulator every run of the grid learns in and is scored in."""
@@ -244,6 +253,8 @@ def experiment_command(config: ExperimentConfig, episodes: Sequence[int] | None 
         parts.append(f"--tune --tune-budget {config.tune_budget:g}")
     if config.tune_candidates is not None:
         parts.append(f"--tune-candidates {config.tune_candidates}")
+    if config.rl_per_run:
+        parts.append("--rl-per-run")
     if config.memory:
         parts.append("--memory")
     if config.criterion:
@@ -312,7 +323,8 @@ _CONFIG_GROUP = {"tpsr": "tpsr", "pca": "pca", "stacked-pca": "stacked", "window
 
 @lru_cache(maxsize=1)
 def _rl_trajectory(environment: str, steps: int, seed: int, sim: SimSettings) -> Trajectory:
-    """The RL trajectory shared by every run of an environment (built once per process)."""
+    """The RL trajectory of a run, shared by every run of an environment unless each has
+    its own (built once per process and seed)."""
     return random_trajectory(environment, steps, seed, sim)
 
 
@@ -359,7 +371,7 @@ def _row(
         episodes=episodes,
         repetition=repetition,
         train_seed=config.train_seed(episodes, repetition),
-        rl_seed=config.rl_seed,
+        rl_seed=config.run_rl_seed(repetition),
         parameters=_parameters(config, method, extra),
         preset=config.preset,
         command=experiment_command(command_config or config),
@@ -443,7 +455,8 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
     learned = [m for m in config.methods if m not in FLOORS]
     if not learned:
         return rows
-    rl = _rl_trajectory(config.environment, config.rl_steps, config.rl_seed, config.sim)
+    rl_seed = config.run_rl_seed(repetition)
+    rl = _rl_trajectory(config.environment, config.rl_steps, rl_seed, config.sim)
     train = random_trajectory(
         config.environment, config.steps_for(episodes), train_seed, config.sim
     )
@@ -613,6 +626,13 @@ def add_grid_options(parser: argparse.ArgumentParser) -> None:
         help="RL trajectory length (default: 15000 full, 20000 otherwise)",
     )
     parser.add_argument("--rl-seed", type=int, default=100)
+    parser.add_argument(
+        "--rl-per-run",
+        action="store_true",
+        help="each run plans on its own random RL trajectory, seeded --rl-seed plus its "
+        "repetition (default: every run plans on the one trajectory of --rl-seed, as in the "
+        "guide)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="base of every training seed")
     parser.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1)
     parser.add_argument("--force", action="store_true", help="overwrite existing outputs")
@@ -699,6 +719,7 @@ def config_from_args(
         "first_repetition": args.first_repetition,
         "methods": tuple(methods),
         "rl_seed": args.rl_seed,
+        "rl_per_run": args.rl_per_run,
         "seed": args.seed,
         "episode_steps": args.episode_steps,
     }

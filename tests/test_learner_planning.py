@@ -394,6 +394,31 @@ def test_a_data_size_means_the_same_recorded_steps_for_every_preset(capsys):
         default_config("full", episode_steps=0)
 
 
+def test_with_rl_per_run_each_run_plans_on_its_own_rl_trajectory():
+    """Run k plans on the trajectory of RL seed ``rl_seed + k``: the rows of repetition 1
+    are those of a grid whose one trajectory has that seed, and the command says so."""
+    from learner.cli import build_parser
+    from learner.experiment import config_from_args, experiment_command
+
+    shared = _small_grid(methods=("true-position",), rl_steps=600, rl_seed=7)
+    own = replace(shared, rl_per_run=True)
+    assert [own.run_rl_seed(k) for k in range(3)] == [7, 8, 9]
+    assert {shared.run_rl_seed(k) for k in range(3)} == {7}
+    (row,) = run_cell(own, 400, 1)
+    (same,) = run_cell(replace(shared, rl_seed=8), 400, 1)
+    (other,) = run_cell(shared, 400, 1)
+    assert row.rl_seed == 8 and same.rl_seed == 8 and other.rl_seed == 7
+    assert (row.score, row.trial_rewards, row.position_error) == (
+        same.score, same.trial_rewards, same.position_error
+    )
+    assert row.position_error != other.position_error  # another trajectory's states
+    command = experiment_command(own)
+    assert "--rl-seed 7 --rl-steps 600 " in command and command.endswith(" --rl-per-run")
+    args = build_parser().parse_args(command.split()[3:])
+    assert config_from_args(args, own.methods, args.assignments).rl_per_run
+    assert "--rl-per-run" not in experiment_command(shared)
+
+
 def test_set_changes_any_fit_or_fitted_q_parameter_and_refuses_bad_ones():
     configs = {"tpsr": TPSRConfig(), "pca": PCAConfig(), "fqi": FQIConfig()}
     changed = apply_overrides(
