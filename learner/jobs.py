@@ -26,6 +26,7 @@ __all__ = [
     "Job",
     "best_job",
     "experiment_job",
+    "guide_job",
     "headline_job",
     "memory_option",
     "study_job",
@@ -137,6 +138,11 @@ def headline_job(environment: str) -> Job:
     """The headline's experiment under the defaults: every method at every data size on the
     fresh seeds, measuring memory where two places look alike."""
     return experiment_job("defaults", environment, *memory_option(environment), *HEADLINE_SEEDS)
+
+
+def guide_job(environment: str) -> Job:
+    """The headline's experiment under ``--preset guide``: the guide's algorithm and planner."""
+    return experiment_job("guide", environment, "--preset", "guide", *HEADLINE_SEEDS)
 
 
 def best_job(environment: str) -> Job:

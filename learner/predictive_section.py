@@ -36,7 +36,14 @@ from sim_node import SimConfig
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.io.policy import TRUE_POSITION
 
-__all__ = ["PREDICTIVE_EPISODES", "PREDICTIVE_SECTION"]
+__all__ = [
+    "PCA_PLANNER",
+    "PCA_PLANNER_ENVIRONMENTS",
+    "PREDICTIVE_EPISODES",
+    "PREDICTIVE_SECTION",
+    "baseline_jobs",
+    "pca_planner_jobs",
+]
 
 PREDICTIVE_EPISODES = 8000
 """The data size compared: the headline's largest."""
@@ -82,7 +89,9 @@ def _fresh_jobs(directory: str, environments: tuple[str, ...], *options: str) ->
     }
 
 
-def _baseline_jobs() -> dict[str, Job]:
+def baseline_jobs() -> dict[str, Job]:
+    """The baselines that carry the past (k = 1, `best`'s planner) on the headline's seeds,
+    by environment."""
     return _fresh_jobs(
         "baselines",
         BASELINE_ENVIRONMENTS,
@@ -99,7 +108,9 @@ PCA_PLANNER = ("fqi.ensemble=1", "fqi.state_scaling=predictive")
 "PCA's own planner" above)."""
 
 
-def _pca_planner_jobs() -> dict[str, Job]:
+def pca_planner_jobs() -> dict[str, Job]:
+    """PCA with its own planner (:data:`PCA_PLANNER`) on the headline's seeds, where one
+    image does not tell the pose, by environment."""
     settings = (arg for setting in PCA_PLANNER for arg in ("--set", setting))
     return _fresh_jobs(
         "pca_planner", PCA_PLANNER_ENVIRONMENTS, *BEST_PRESET, "--methods", "pca", *settings
@@ -285,7 +296,7 @@ def _render(section: Section, data: Data) -> list[str]:
         "|---|---|---|---|---|---|---|",
     ]
     verdicts = []
-    baselines, own_planners = _baseline_jobs(), _pca_planner_jobs()
+    baselines, own_planners = baseline_jobs(), pca_planner_jobs()
     for job in _jobs():
         env = job.environment
         ours, base_rows = data[job], data[best_job(env)]
@@ -356,7 +367,7 @@ def _render(section: Section, data: Data) -> list[str]:
     return [*lines, "", "**Verdict.**", "", *verdicts]
 
 
-_ALL_JOBS = (*_jobs(), *_baseline_jobs().values(), *_pca_planner_jobs().values())
+_ALL_JOBS = (*_jobs(), *baseline_jobs().values(), *pca_planner_jobs().values())
 """Every job the section reads, in the order its commands are listed."""
 
 PREDICTIVE_SECTION = Section(

@@ -30,7 +30,7 @@ from learner.jobs import (
     SELECTION_SEEDS,
     Job,
     best_job,
-    experiment_job,
+    guide_job,
     headline_job,
 )
 from learner.sections import Data, cell
@@ -66,9 +66,7 @@ __all__ = [
 HEADLINE: Mapping[str, tuple[Job, ...]] = {
     "defaults": tuple(headline_job(env) for env in ENVIRONMENTS),
     "best": tuple(best_job(env) for env in ENVIRONMENTS),
-    "guide": tuple(
-        experiment_job("guide", env, "--preset", "guide", *HEADLINE_SEEDS) for env in ENVIRONMENTS
-    ),
+    "guide": tuple(guide_job(env) for env in ENVIRONMENTS),
 }
 """The headline's jobs: every method under the defaults, under ``--preset best`` (what the
 defaults refine) and under ``--preset guide``."""
@@ -536,7 +534,9 @@ def render(data: Data) -> list[str]:
         "their fit at every step, `best` and the guide's settings one window per episode, "
         "as the guide does); each representation learned from the "
         "same data; states tracked with the model's parameters over one separate random RL "
-        "trajectory (15000 steps in `full`, 20000 otherwise); fitted Q-iteration on them; the "
+        "trajectory (15000 steps in `full`, 20000 otherwise), the same for every run, so "
+        "a table's SEMs hold the training data's spread but not the RL data's (the appendix's "
+        "\"The RL trajectory\" runs each with its own); fitted Q-iteration on them; the "
         "standard evaluation (10 fixed starts, 50 greedy steps; score = mean summed reward, at "
         "most about 470; in `drive`, whose robot drives at most 3 m per step, a start also has "
         "a heading). PCA has 2 components in `full`, 4 in `drive` and 3 otherwise, and plans "
