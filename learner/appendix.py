@@ -38,6 +38,7 @@ from learner.jobs import (
 )
 from learner.overrides import convert
 from learner.predictive_section import PREDICTIVE_EPISODES, PREDICTIVE_SECTION
+from learner.rl_trajectory_section import RL_TRAJECTORY_SECTION
 from learner.room_change_section import ROOM_CHANGE_SECTION
 from learner.sections import (
     SELECTION_EPISODES,
@@ -996,6 +997,7 @@ SECTIONS: tuple[Section, ...] = (
     CARRY_TWO_IMAGES_STUDY,
     PCA_PLANNER_STUDY,
     PREDICTIVE_SECTION,
+    RL_TRAJECTORY_SECTION,
     COMPETENCE_SECTION,
     ROOM_CHANGE_SECTION,
     Section(

@@ -633,3 +633,39 @@ def test_the_predictive_section_gives_the_headings_r2_of_a_robot_that_turns():
         "0.60 in the lowest of 3 runs"
     )
     assert _heading(_rows("partial", {"tpsr": [1.0, 2.0]}, (PREDICTIVE_EPISODES,))) is None
+
+
+def test_the_rl_trajectory_section_sets_one_trajectory_beside_one_per_run():
+    """Each arm's runs with one RL trajectory beside those with their own; the TPSR judged
+    against every baseline on the latter."""
+    from learner.rl_trajectory_section import RL_ENVIRONMENTS, RL_TRAJECTORY_SECTION, _arms
+
+    alternating = [1.0, -1.0] * 5  # SEM sqrt(100 / 9) / sqrt(10) * 10 / 10 = 3.33 at +-10
+    own_scores = {"tpsr": 400.0, "pca": 300.0, "stacked-pca": 395.0, "window": 200.0,
+                  "constant": 0.0, "random": 5.0, "true-position": 470.0}  # fmt: skip
+    shifts = {"tpsr": 20.0, "pca": 30.0, "stacked-pca": -10.0, "window": 50.0}  # one trajectory
+    data = {}
+    for env in RL_ENVIRONMENTS:
+        for arm, (fixed, own) in _arms(env).items():
+            after = own.argv[own.argv.index("--methods") + 1 :]
+            methods = list(itertools.takewhile(lambda arg: not arg.startswith("--"), after))
+            data[own] = _rows(env, {m: [own_scores[m] + 10 * a for a in alternating]
+                                    for m in methods}, episodes=(8000,))  # fmt: skip
+            data[fixed] = _rows(env, {m: [own_scores[m] + shifts.get(m, 0.0)] * 10
+                                      for m in methods}, episodes=(2000, 8000))  # fmt: skip
+    lines = RL_TRAJECTORY_SECTION.render(RL_TRAJECTORY_SECTION, data)
+    assert (
+        "| `partial-strip` | TPSR | the defaults' | 420.0 / 420.0 / 0.0 (420.0) | "
+        "400.0 / 400.0 / 3.3 (390.0) | -20.0 |"
+    ) in lines
+    verdict = next(line for line in lines if line.startswith("- `drive`"))
+    assert verdict.startswith(
+        "- `drive`, each run with its own RL trajectory: the TPSR scores 400.0 (SEM 3.3), "
+        "+100.0 (+21.2 SEM, outside the noise) against PCA with the defaults' planner;"
+    )
+    assert "+5.0 (+1.1 SEM, within the noise) against stacked-frame PCA;" in verdict
+    assert verdict.endswith(
+        "+200.0 (+42.4 SEM, outside the noise) against the finite-window predictive state. "
+        "Against one RL trajectory for every run the TPSR's mean moved by -20.0, the "
+        "baselines' by -50.0 to +10.0."
+    )
