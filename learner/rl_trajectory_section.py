@@ -59,9 +59,10 @@ def _arms(environment: str) -> dict[str, tuple[Job, Job]]:
     arms = {
         "defaults": (
             headline_job(environment),
-            _per_run("defaults", environment, "--methods", CONSTANT, RANDOM, "tpsr", "pca",
-                     TRUE_POSITION),
-        ),  # fmt: skip
+            _per_run(
+                "defaults", environment, "--methods", CONSTANT, RANDOM, "tpsr", "pca", TRUE_POSITION
+            ),
+        ),
         "baselines": (
             baseline_jobs()[environment],
             _per_run("baselines", environment, *BEST_PRESET, *carry_past),
@@ -96,6 +97,10 @@ _ROWS = (
      "the true position"),
 )  # fmt: skip
 """The table's rows: (representation, planner, arm, method, name in the verdicts)."""
+_BASELINES = _ROWS[1:6]
+"""The rows the TPSR is judged against: PCA under each planner and the baselines that
+carry the past."""
+_RL_SEED = int(HEADLINE_SEEDS[HEADLINE_SEEDS.index("--rl-seed") + 1])
 
 
 def _entry(rows: list[Row], method: str) -> dict[str, Any] | None:
@@ -113,13 +118,12 @@ def _weakest(rows: list[Row], method: str) -> str:
 def _render(section: Section, data: Data) -> list[str]:
     lines = [
         f"Ten runs per arm at {PREDICTIVE_EPISODES} episodes on the headline's seeds, every "
-        "setting the page's own: one RL trajectory for every run (RL seed 111, the rows of "
-        "the headline and of the predictive section), and one per run (RL seed 111 + k for "
-        "run k, the same training runs). Cells: mean / median / SEM (weakest run); the "
-        "difference of the means.",
+        f"setting the page's own: one RL trajectory for every run (RL seed {_RL_SEED}, the "
+        "rows of the headline and of the predictive section), and one per run (RL seed "
+        f"{_RL_SEED} + k for run k, the same training runs). Cells: mean / median / SEM "
+        "(weakest run); the difference of the means.",
         "",
-        "| environment | representation | planner | one RL trajectory | one per run "
-        "| difference |",
+        "| environment | representation | planner | one RL trajectory | one per run | difference |",
         "|---|---|---|---|---|---|",
     ]
     verdicts = []
@@ -146,12 +150,12 @@ def _render(section: Section, data: Data) -> list[str]:
         if ours is None:
             continue
         against = []
-        for _, _, arm, method, name in _ROWS[1:6]:
+        for _, _, arm, method, name in _BASELINES:
             other = entries.get(f"{arm}/{method}")
             if other is not None:
                 against.append(f"{judged(*comparison(ours, other))} against {name}")
-        baselines = [moved[key] for key in (f"{a}/{m}" for _, _, a, m, _ in _ROWS[1:6])
-                     if key in moved]  # fmt: skip
+        keys = (f"{arm}/{method}" for _, _, arm, method, _ in _BASELINES)
+        baselines = [moved[key] for key in keys if key in moved]
         change = ""
         if "defaults/tpsr" in moved and baselines:
             change = (
@@ -182,9 +186,7 @@ RL_TRAJECTORY_SECTION = Section(
     "8000 episodes of the headline's defaults and guide's settings, of the predictive "
     "section's baselines and of PCA's own planner, whose commands those sections give):"
     "\n\n```sh\n"
-    + "\n".join(
-        own.command for env in RL_ENVIRONMENTS for _, own in _arms(env).values()
-    )
+    + "\n".join(own.command for env in RL_ENVIRONMENTS for _, own in _arms(env).values())
     + "\n```",
 )
 """The section, with its jobs (each arm's with one RL trajectory and with one per run)."""

@@ -640,7 +640,7 @@ def test_the_rl_trajectory_section_sets_one_trajectory_beside_one_per_run():
     against every baseline on the latter."""
     from learner.rl_trajectory_section import RL_ENVIRONMENTS, RL_TRAJECTORY_SECTION, _arms
 
-    alternating = [1.0, -1.0] * 5  # SEM sqrt(100 / 9) / sqrt(10) * 10 / 10 = 3.33 at +-10
+    alternating = [1.0, -1.0] * 5  # +-10 around a mean: SEM sqrt(1000 / 9) / sqrt(10) = 3.33
     own_scores = {"tpsr": 400.0, "pca": 300.0, "stacked-pca": 395.0, "window": 200.0,
                   "constant": 0.0, "random": 5.0, "true-position": 470.0}  # fmt: skip
     shifts = {"tpsr": 20.0, "pca": 30.0, "stacked-pca": -10.0, "window": 50.0}  # one trajectory
