@@ -5,7 +5,8 @@ headline's fresh seeds.
 
 The preset was chosen on the selection seeds in ``partial-strip``; its rows here come from
 ten runs on the headline's seeds in every environment, seeds it was not chosen on. The
-trials that earned nothing are told where they ended (``failed_trials``).
+trials that earned nothing are told where they ended (``failed_trials``), and the weakest
+run how its trials fared at the goal zone (``weakest_at_goal``).
 In every environment the baselines that carry the past
 (:mod:`tpsr_ros.core.window_baselines`) stand beside it, run on the same seeds; where one
 image does not tell where the robot is, so does PCA with its own planner (``PCA_PLANNER``,
