@@ -124,18 +124,20 @@ def _ran_otherwise(section: Section, data: Data, preset: str) -> str:
                     current.setdefault(key, {})[job.environment] = _shown(getattr(config, field))
     if not recorded:
         return ""
-
-    def now(key: str) -> str:
-        by_environment = current[key]
-        if len(set(by_environment.values())) == 1:
-            return f"`{next(iter(by_environment.values()))}`"
-        return " and ".join(f"`{value}` in `{env}`" for env, value in by_environment.items())
-
     changes = "; ".join(
-        f"`{key}` {' / '.join(f'`{v}`' for v in sorted(values))} (now {now(key)})"
+        f"`{key}` {' / '.join(f'`{v}`' for v in sorted(values))} "
+        f"(now {_by_environment(current[key])})"
         for key, values in sorted(recorded.items())
     )
     return f"The runs predate the preset's current value of a setting they record: {changes}. "
+
+
+def _by_environment(values: Mapping[str, Any]) -> str:
+    """``values`` (by environment) as markdown: the value when all are one, else each
+    environment's ("`a` in `full` and `b` in `drive`")."""
+    if len(set(values.values())) == 1:
+        return f"`{next(iter(values.values()))}`"
+    return " and ".join(f"`{value}` in `{env}`" for env, value in values.items())
 
 
 def _set_by_command(section: Section) -> str:
@@ -165,10 +167,7 @@ def _render_study(section: Section, data: Data) -> list[str]:
         env: next((v for v in values if convert(name, v) == value), None)
         for env, value in defaults.items()
     }
-    if len(set(shown.values())) == 1:
-        value_text = f"`{next(iter(shown.values()))}`"
-    else:  # e.g. a turning robot's own value
-        value_text = " and ".join(f"`{value}` in `{env}`" for env, value in shown.items())
+    value_text = _by_environment(shown)  # e.g. a turning robot's own value
     setting = (
         f"Every other setting is the default's{_set_by_command(section)}; the default's value "
         f"is {value_text}. "
