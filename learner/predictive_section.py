@@ -19,8 +19,8 @@ import math
 
 import numpy as np
 
-from learner.experiment import EPISODE_STEPS
 from learner.evaluate import STEPS
+from learner.experiment import EPISODE_STEPS
 from learner.floors import CONSTANT, RANDOM
 from learner.jobs import (
     BEST_PRESET,
@@ -38,12 +38,16 @@ from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.io.policy import TRUE_POSITION
 
 __all__ = [
+    "BASELINE_OPTIONS",
     "PCA_PLANNER",
     "PCA_PLANNER_ENVIRONMENTS",
+    "PCA_PLANNER_OPTIONS",
     "PREDICTIVE_EPISODES",
     "PREDICTIVE_SECTION",
     "baseline_jobs",
+    "entry_at_size",
     "pca_planner_jobs",
+    "weakest_at_size",
 ]
 
 PREDICTIVE_EPISODES = 8000
@@ -90,15 +94,17 @@ def _fresh_jobs(directory: str, environments: tuple[str, ...], *options: str) ->
     }
 
 
+BASELINE_OPTIONS = (
+    *BEST_PRESET,
+    *("--methods", "stacked-pca", "window", "--set", "stacked.k=1", "--set", "window.k=1"),
+)
+"""The baselines that carry the past as their jobs run them: k = 1, `best`'s planner."""
+
+
 def baseline_jobs() -> dict[str, Job]:
-    """The baselines that carry the past (k = 1, `best`'s planner) on the headline's seeds,
+    """The baselines that carry the past (:data:`BASELINE_OPTIONS`) on the headline's seeds,
     by environment."""
-    return _fresh_jobs(
-        "baselines",
-        BASELINE_ENVIRONMENTS,
-        *BEST_PRESET,
-        *("--methods", "stacked-pca", "window", "--set", "stacked.k=1", "--set", "window.k=1"),
-    )
+    return _fresh_jobs("baselines", BASELINE_ENVIRONMENTS, *BASELINE_OPTIONS)
 
 
 PCA_PLANNER_ENVIRONMENTS = ("partial-strip", "drive")
@@ -109,26 +115,32 @@ PCA_PLANNER = ("fqi.ensemble=1", "fqi.state_scaling=predictive")
 "PCA's own planner" above)."""
 
 
+PCA_PLANNER_OPTIONS = (
+    *BEST_PRESET,
+    "--methods",
+    "pca",
+    *(arg for setting in PCA_PLANNER for arg in ("--set", setting)),
+)
+"""PCA with its own planner as its jobs run it."""
+
+
 def pca_planner_jobs() -> dict[str, Job]:
-    """PCA with its own planner (:data:`PCA_PLANNER`) on the headline's seeds, where one
-    image does not tell the pose, by environment."""
-    settings = (arg for setting in PCA_PLANNER for arg in ("--set", setting))
-    return _fresh_jobs(
-        "pca_planner", PCA_PLANNER_ENVIRONMENTS, *BEST_PRESET, "--methods", "pca", *settings
-    )
+    """PCA with its own planner (:data:`PCA_PLANNER_OPTIONS`) on the headline's seeds, where
+    one image does not tell the pose, by environment."""
+    return _fresh_jobs("pca_planner", PCA_PLANNER_ENVIRONMENTS, *PCA_PLANNER_OPTIONS)
 
 
 def _at_size(rows: list[Row], method: str) -> list[Row]:
     return [r for r in rows if r.method == method and r.episodes == PREDICTIVE_EPISODES]
 
 
-def _entry(rows: list[Row], method: str) -> dict | None:
+def entry_at_size(rows: list[Row], method: str) -> dict | None:
     """``method``'s summary at the section's data size, or None."""
     found = summarise(_at_size(rows, method))
     return found[0] if found else None
 
 
-def _weakest(rows: list[Row], method: str, *, pooled: bool = False) -> str:
+def weakest_at_size(rows: list[Row], method: str, *, pooled: bool = False) -> str:
     """The lowest run at the section's data size (``pooled``: at any, as a floor's runs)."""
     runs = [r for r in rows if r.method == method] if pooled else _at_size(rows, method)
     scores = [r.score for r in runs if math.isfinite(r.score)]
@@ -301,8 +313,8 @@ def _render(section: Section, data: Data) -> list[str]:
     for job in _jobs():
         env = job.environment
         ours, base_rows = data[job], data[best_job(env)]
-        base = _entry(base_rows, "tpsr")
-        mine = _entry(ours, "tpsr")
+        base = entry_at_size(base_rows, "tpsr")
+        mine = entry_at_size(ours, "tpsr")
         rows = [
             ("TPSR, `--preset predictive`", ours, "tpsr"),
             ("TPSR, `--preset best`", base_rows, "tpsr"),
@@ -322,25 +334,25 @@ def _render(section: Section, data: Data) -> list[str]:
             ]
         floors = pooled_floors(base_rows)  # blind to the state: one measurement per room
         for name, source, method in rows:
-            entry = floors.get(method) if method in floors else _entry(source, method)
+            entry = floors.get(method) if method in floors else entry_at_size(source, method)
             versus = "-"
             if method == "tpsr" and source is ours and entry and base:
                 versus = judged(*comparison(entry, base))
             restarts = _restarts(source, method) if method == "tpsr" else "-"
             memory = _memory(source, method) if method not in floors else "-"
-            weakest = _weakest(source, method, pooled=method in floors)
+            weakest = weakest_at_size(source, method, pooled=method in floors)
             lines.append(
                 f"| `{env}` | {name} | {cell(entry)} | {weakest} | {restarts} | {memory} "
                 f"| {versus} |"
             )
-        window = _entry(data[baseline], "window") if baseline is not None else None
+        window = entry_at_size(data[baseline], "window") if baseline is not None else None
         if mine and window:
             verdicts.append(
                 f"- `{env}`: the finite-window predictive state (the last image and action "
                 f"mapped to the next images) scores {window['mean']:.1f}, "
                 f"{judged(*comparison(window, mine))} against the predictive TPSR."
             )
-        pca = _entry(data[own], "pca") if own is not None else None
+        pca = entry_at_size(data[own], "pca") if own is not None else None
         if mine and pca:
             verdicts.append(
                 f"- `{env}`: PCA with its own planner scores {pca['mean']:.1f}, the "
@@ -350,8 +362,8 @@ def _render(section: Section, data: Data) -> list[str]:
             difference, sems = comparison(mine, base)
             verdicts.append(
                 f"- `{env}`: {mine['mean']:.1f} against `best`'s {base['mean']:.1f}, "
-                f"{judged(difference, sems)}; weakest run {_weakest(ours, 'tpsr')} against "
-                f"{_weakest(base_rows, 'tpsr')}; median restarts {_restarts(ours, 'tpsr')} "
+                f"{judged(difference, sems)}; weakest run {weakest_at_size(ours, 'tpsr')} against "
+                f"{weakest_at_size(base_rows, 'tpsr')}; median restarts {_restarts(ours, 'tpsr')} "
                 f"against {_restarts(base_rows, 'tpsr')}."
             )
         if heading := _heading(ours):

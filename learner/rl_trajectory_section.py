@@ -12,12 +12,10 @@ their own RL data.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 from learner.floors import CONSTANT, RANDOM
 from learner.jobs import (
-    BEST_PRESET,
     ENVIRONMENTS,
     HEADLINE_SEEDS,
     Job,
@@ -26,14 +24,16 @@ from learner.jobs import (
     headline_job,
 )
 from learner.predictive_section import (
-    PCA_PLANNER,
+    BASELINE_OPTIONS,
     PCA_PLANNER_ENVIRONMENTS,
+    PCA_PLANNER_OPTIONS,
     PREDICTIVE_EPISODES,
     baseline_jobs,
+    entry_at_size,
     pca_planner_jobs,
+    weakest_at_size,
 )
 from learner.sections import Data, Section, cell, comparison, judged
-from learner.tables import Row, summarise
 from tpsr_ros.io.policy import TRUE_POSITION
 
 __all__ = ["RL_TRAJECTORY_SECTION"]
@@ -54,8 +54,6 @@ def _per_run(arm: str, environment: str, *options: str) -> Job:
 def _arms(environment: str) -> dict[str, tuple[Job, Job]]:
     """Each arm's job with one RL trajectory for every run (the page's own) and with one
     per run; PCA's own planner only where it has one (:data:`PCA_PLANNER_ENVIRONMENTS`)."""
-    carry_past = ("--methods", "stacked-pca", "window", "--set", "stacked.k=1", "--set",
-                  "window.k=1")  # fmt: skip
     arms = {
         "defaults": (
             headline_job(environment),
@@ -65,14 +63,13 @@ def _arms(environment: str) -> dict[str, tuple[Job, Job]]:
         ),
         "baselines": (
             baseline_jobs()[environment],
-            _per_run("baselines", environment, *BEST_PRESET, *carry_past),
+            _per_run("baselines", environment, *BASELINE_OPTIONS),
         ),
     }
     if environment in PCA_PLANNER_ENVIRONMENTS:
-        planner = (arg for setting in PCA_PLANNER for arg in ("--set", setting))
         arms["pca_planner"] = (
             pca_planner_jobs()[environment],
-            _per_run("pca_planner", environment, *BEST_PRESET, "--methods", "pca", *planner),
+            _per_run("pca_planner", environment, *PCA_PLANNER_OPTIONS),
         )
     arms["guide"] = (
         guide_job(environment),
@@ -103,18 +100,6 @@ carry the past."""
 _RL_SEED = int(HEADLINE_SEEDS[HEADLINE_SEEDS.index("--rl-seed") + 1])
 
 
-def _entry(rows: list[Row], method: str) -> dict[str, Any] | None:
-    """``method``'s summary at the section's data size, or None."""
-    found = summarise([r for r in rows if r.method == method and r.episodes == PREDICTIVE_EPISODES])
-    return found[0] if found else None
-
-
-def _weakest(rows: list[Row], method: str) -> str:
-    scores = [r.score for r in rows if r.method == method and r.episodes == PREDICTIVE_EPISODES]
-    finite = [s for s in scores if math.isfinite(s)]
-    return f"{min(finite):.1f}" if finite else "-"
-
-
 def _render(section: Section, data: Data) -> list[str]:
     lines = [
         f"Ten runs per arm at {PREDICTIVE_EPISODES} episodes on the headline's seeds, every "
@@ -135,7 +120,8 @@ def _render(section: Section, data: Data) -> list[str]:
             if arm not in arms:
                 continue
             fixed_job, own_job = arms[arm]
-            fixed, own = _entry(data[fixed_job], method), _entry(data[own_job], method)
+            fixed = entry_at_size(data[fixed_job], method)
+            own = entry_at_size(data[own_job], method)
             entries[f"{arm}/{method}"] = own
             difference = "-"
             if fixed is not None and own is not None:
@@ -143,8 +129,8 @@ def _render(section: Section, data: Data) -> list[str]:
                 difference = f"{moved[f'{arm}/{method}']:+.1f}"
             lines.append(
                 f"| `{env}` | {label} | {planner} | {cell(fixed)} "
-                f"({_weakest(data[fixed_job], method)}) | {cell(own)} "
-                f"({_weakest(data[own_job], method)}) | {difference} |"
+                f"({weakest_at_size(data[fixed_job], method)}) | {cell(own)} "
+                f"({weakest_at_size(data[own_job], method)}) | {difference} |"
             )
         ours = entries["defaults/tpsr"]
         if ours is None:
