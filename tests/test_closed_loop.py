@@ -18,20 +18,15 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
+from closed_loop_support import check_recorded_closed_loop
 from graph_support import LOOPBACK, fresh_domain, hold_discovery_port
 
 from learner.cli import main as learner_main
 from learner.closed_loop import ClosedLoopError, run_closed_loop
 from sim_node import SimConfig
 from sim_node.generate import generate_bag
-from tpsr_ros.core.episodes import track_trajectory
 from tpsr_ros.core.errors import TpsrError
-from tpsr_ros.io import messages as m
-from tpsr_ros.io.bag import BagReader
-from tpsr_ros.io.model_io import load_model
-from tpsr_ros.io.trajectory import read_trajectory
 
 pytestmark = pytest.mark.dds
 
@@ -135,24 +130,7 @@ def test_closed_loop_equals_the_headless_evaluation_and_the_recorded_states_offl
     assert any("goal zone at step" in line for line in lines)  # the robot reaches the goal
 
     # the recorded /tpsr/state equals offline tracking of the recorded bag, every step
-    trajectory = read_trajectory([bag], require_ground_truth=True)
-    offline = track_trajectory(load_model(model), trajectory)
-    with BagReader(bag) as reader:
-        published = {}
-        for msg in reader.messages(["/tpsr/state"]):
-            state = msg.decode()
-            published[m.stamp_of(state)] = m.state_to_array(state)
-        commands = sum(1 for _ in reader.messages(["/cmd_vel"]))
-        # ten resets each take a step stamp no camera frame carries: none is a loss
-        missing = reader.custom_data["recorder.missing_by_stamps"]
-        by_topic = reader.custom_data["recorder.by_topic"]
-    assert len(trajectory) == len(published) == 500 and len(trajectory.segment_bounds()) == 10
-    worst = max(
-        np.abs(published[int(s)] - offline.states[i]).max() for i, s in enumerate(trajectory.stamps)
-    )
-    assert worst <= 1e-9
-    assert commands == 510  # 50 per trial and the ignored 51st
-    assert missing == "0", by_topic
+    trajectory = check_recorded_closed_loop(bag, model)
     assert trajectory.rewards.reshape(10, 50).sum(axis=1).mean() == float(lines[-1].split()[1])
 
 
