@@ -35,6 +35,7 @@ from learner.distributed import (
     check_bags_visible,
     dask_client,
 )
+from learner.info import predicted_images
 from learner.inputs import (
     add_stream_options,
     apply_config_inputs,
@@ -770,7 +771,8 @@ def refinement_line(refined: dict[str, Any], fit_seconds: float) -> str:
     share = 100.0 * refined["seconds"] / fit_seconds if fit_seconds > 0 else 0.0
     return (
         f"refinement{start}: {refined['iterations']} iteration(s), {kept}; held-out "
-        f"unexplained variance of the next images {refined['heldout_unexplained_spectral']:.4f}"
+        f"unexplained variance of {predicted_images(refined)} "
+        f"{refined['heldout_unexplained_spectral']:.4f}"
         f" -> {refined['heldout_unexplained']:.4f}{restarts}; {refined['seconds']:.1f} s "
         f"({share:.0f} % of the fit)"
     )

@@ -12,7 +12,7 @@ from learner.inputs import environment_label
 from tpsr_ros.io.model_io import metadata_field, open_model
 from tpsr_ros.io.stream_spec import StreamSpec
 
-__all__ = ["info_lines", "register", "run"]
+__all__ = ["info_lines", "predicted_images", "register", "run"]
 
 
 def register(subparsers: Any) -> None:
@@ -143,8 +143,16 @@ def info_lines(
         lines.append(
             f"refinement: {_num(refined.get('iterations'), 'd')} iteration(s), best "
             f"{_num(refined.get('best_iteration'), 'd')} (0: the spectral model kept); "
-            "held-out unexplained variance of the next images "
+            f"held-out unexplained variance of {predicted_images(refined)} "
             f"{_num(refined.get('heldout_unexplained_spectral'), '.4f')} -> "
             f"{_num(refined.get('heldout_unexplained'), '.4f')}"
         )
     return lines
+
+
+def predicted_images(refined: dict[str, Any]) -> str:
+    """What a refinement's states were fitted to predict (its ``fit_info`` entry): the
+    next images, and the last ones too with a past target (``tpsr.refine_past``)."""
+    past = refined.get("past", 0)
+    valid = isinstance(past, int) and not isinstance(past, bool) and past > 0
+    return "the next images" + (f" and the last {past}" if valid else "")

@@ -40,6 +40,12 @@ restarts wherever the refined operators let the normaliser fall below zero. Its 
 is exact (the read-out is at its optimum, so only the states' dependence on the parameters
 counts) and checked against finite differences in the tests.
 
+The past as a target (``refine_past`` ``q > 0``). The states of the scored steps also
+predict the features of the last ``q`` observations before the current one,
+``y_{t-1} .. y_{t-q}``, in the same read-out and loss. A filter that forgets within a step
+cannot: the target asks the state to carry what it saw forward, which the future alone
+asks for only where places look alike, a small part of a random run.
+
 Memory to start from (``refine_carry`` ``c > 0``). The spectral filter contracts: a change
 of the previous state shrinks to about a tenth in one step, so the gradient through the
 recursion vanishes within a step or two and the refinement cannot find a use for the past
@@ -316,9 +322,10 @@ class RefineProblem:
         bounds: list[tuple[int, int]],
     ) -> None:
         cfg = model.config
-        self.window, self.horizon, self.pull = (
+        self.window, self.horizon, self.past, self.pull = (
             int(cfg.refine_window),
             int(cfg.refine_horizon),
+            int(cfg.refine_past),
             float(cfg.refine_pull),
         )
         self.start = start
@@ -337,7 +344,7 @@ class RefineProblem:
             raise DataError(shortfall)
         n_held = max(1, round(HOLDOUT * starts.size))
         self.train_starts, self.held_starts = starts[:-n_held], starts[-n_held:]
-        # scored rows of every window, and their futures' features (rows x horizon*p)
+        # scored rows of every window, and their targets' features (rows x (horizon+past)*p)
         self._targets = {
             name: self._future(targets, s)
             for name, s in (("train", self.train_starts), ("held", self.held_starts))
@@ -357,9 +364,12 @@ class RefineProblem:
 
     # --- data --------------------------------------------------------------------------
     def _future(self, targets: np.ndarray, starts: np.ndarray) -> np.ndarray:
-        w, h = self.window, self.horizon
+        """Centred features of what the scored steps' states predict: the next ``horizon``
+        observations, then the last ``past`` before the current one (all in the window)."""
+        w = self.window
         scored = (starts[:, None] + w + np.arange(w)).ravel()  # window-major, then step
-        future = targets[scored[:, None] + 1 + np.arange(h)]  # (rows, h, p)
+        offsets = np.concatenate([1 + np.arange(self.horizon), -1 - np.arange(self.past)])
+        future = targets[scored[:, None] + offsets]  # (rows, horizon + past, p)
         future = future.reshape(scored.size, -1)
         return future - future.mean(axis=0)
 
@@ -678,6 +688,7 @@ def _refine(
         **({"history_gain": round(gain, 6)} if gain is not None else {}),
         "carry_mu": mu,
         "scaling": cfg.refine_scaling,
+        **({"past": problem.past} if problem.past else {}),
         "heldout_unexplained_spectral": round(before, 6),
         "heldout_unexplained": round(float(best["held"]), 6),
         "heldout_restarts_allowed": allowed,

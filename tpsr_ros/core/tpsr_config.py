@@ -112,6 +112,12 @@ class TPSRConfig:
     refine_horizon: int = _param(
         10, "refinement: the states predict the next this many observations"
     )
+    refine_past: int = _param(
+        0,
+        "refinement: the states also predict the last this many observations before the "
+        "current one, which a state can only do by carrying its past forward (0: the next "
+        "ones only; at most refine_window; see tpsr_ros.core.refine)",
+    )
     refine_pull: float = _param(
         1e-3, "refinement: weight of the pull toward the spectral parameters"
     )
@@ -173,10 +179,14 @@ class TPSRConfig:
             raise ConfigError(
                 f"normalize_ht_features must be true or false, not {self.normalize_ht_features!r}"
             )
-        for name in ("seed", "refine_epochs"):
+        for name in ("seed", "refine_epochs", "refine_past"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
                 raise ConfigError(f"{name} must be a non-negative integer, not {value!r}")
+        if self.refine_past > self.refine_window:  # a scored step's past lies in its window
+            raise ConfigError(
+                f"refine_past {self.refine_past} exceeds refine_window {self.refine_window}"
+            )
         if self.refine_epochs and self.state_clip_quantile > 0:  # refused before any fit
             raise ConfigError(
                 "refinement does not support the state box (state_clip_quantile > 0): set "
