@@ -219,17 +219,26 @@ def _render_study(section: Section, data: Data) -> list[str]:
                 verdicts.append(
                     _study_verdict(environment, method, values, default_text, entries, base)
                 )
-            remembered = [
-                f"`{value}` {entries[(value, method)]['memory']}"
-                for value in values
-                if entries.get((value, method), {}).get("memory", "-") != "-"
-            ]
+            remembered = _by_value(entries, values, method, "memory")
+            paths = _by_value(entries, values, method, "memory_paths")
             if remembered:  # the runs measured their memory (``--memory``)
+                alone = f" (the paths variant alone: {', '.join(paths)})" if paths else ""
                 verdicts.append(
                     f"- `{environment}`, {method}: `learner memory`, the median over the runs "
-                    f"in steps: {', '.join(remembered)}."
+                    f"in steps: {', '.join(remembered)}{alone}."
                 )
     return [*lines, "", "**Verdict.**", "", *verdicts]
+
+
+def _by_value(
+    entries: Mapping[tuple[str, str], dict[str, Any]], values: list[str], method: str, key: str
+) -> list[str]:
+    """Each value's ``key`` figure for ``method``, as "`value` figure", where it has one."""
+    return [
+        f"`{value}` {entries[(value, method)][key]}"
+        for value in values
+        if entries.get((value, method), {}).get(key, "-") != "-"
+    ]
 
 
 def _study_verdict(

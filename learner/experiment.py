@@ -480,7 +480,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             memory = (
                 memory_of(tracker, config.environment, config.sim)
                 if config.memory
-                else (float("nan"), float("nan"))
+                else (float("nan"),) * 3
             )
             criterion = (
                 criterion_of(run_config.tpsr, train)
@@ -490,7 +490,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             scored = _plan_and_score(config, tracker, rl, states)
         except TpsrError as exc:  # a failed fit is a result, not a crash
             fit_seconds, recoveries, r2 = time.perf_counter() - start, 0, np.full(3, np.nan)
-            position_error, memory = float("nan"), (float("nan"), float("nan"))
+            position_error, memory = float("nan"), (float("nan"),) * 3
             criterion = float("nan")
             scored = _Scored(float("nan"), "", "", config.fqi.ridge, f"error: {exc}")
         rows.append(
@@ -516,6 +516,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 status=scored.status,
                 memory=memory[0],
                 memory_distance=round(memory[1], 6),
+                memory_paths=memory[2],
                 criterion=round(criterion, 6),
             )
         )
@@ -667,7 +668,7 @@ def add_grid_options(parser: argparse.ArgumentParser) -> None:
         "--memory",
         action="store_true",
         help="also measure each learned model's memory (learner memory, in partial): the "
-        "memory and memory_distance columns",
+        "memory, memory_distance and memory_paths columns",
     )
     parser.add_argument(
         "--p-th-tests",

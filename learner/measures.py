@@ -54,12 +54,12 @@ def criterion_of(tpsr: TPSRConfig, train: Trajectory) -> float:
 
 def memory_of(
     tracker: Tracker, environment: str = "partial", sim: SimSettings | None = None
-) -> tuple[float, float]:
-    """Steps a learned model remembers in ``environment`` (camera: ``sim``) and the ``paths``
-    variant's distance at its first identical step (:mod:`learner.memory`); NaN for the true
-    position."""
+) -> tuple[float, float, float]:
+    """Steps a learned model remembers in ``environment`` (camera: ``sim``), the ``paths``
+    variant's distance at its first identical step, and the steps that variant alone
+    remembers (:mod:`learner.memory`); NaN for the true position."""
     if not isinstance(tracker, ModelTracker):
-        return float("nan"), float("nan")
+        return float("nan"), float("nan"), float("nan")
     from learner.memory import EXPERIMENTS, measure, state_spread
 
     spread = state_spread(tracker.model, environment, sim=sim)
@@ -68,4 +68,5 @@ def memory_of(
     return (
         float(min(r.memory for r in results)),
         float(paths.relative_distance[paths.identical_from]),
+        float(paths.memory),
     )

@@ -147,5 +147,6 @@ def study_entries(
             entry["r2"] = r2_text(runs)
             entry["position_error"] = median_text([r.position_error for r in runs], ".2f")
             entry["memory"] = median_text([r.memory for r in runs], "g")
+            entry["memory_paths"] = median_text([r.memory_paths for r in runs], "g")
             by_value[(value, entry["method"])] = entry
     return summarise(reference), by_value

@@ -95,6 +95,10 @@ class Row:
     """Per trial, ``s,c``: the step at which the robot first stood in the goal zone (0:
     never) and how many of its steps a wall blocked (``;``-separated; empty in CSVs
     written before)."""
+    memory_paths: float = float("nan")
+    """Steps the ``paths`` variant of :mod:`learner.memory` alone remembers (``--memory``;
+    ``memory`` is the smaller of both variants), NaN when not measured and in CSVs
+    written before."""
 
 
 def score_statistics(scores: np.ndarray) -> dict[str, Any]:

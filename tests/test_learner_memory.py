@@ -35,14 +35,18 @@ class ShiftRegister:
     memory: int
     n_actions: int = 25
 
+    @property
+    def slot_size(self) -> int:
+        return self.n_actions + 1
+
     def _slot(self, action: int, observation: np.ndarray) -> np.ndarray:
         return np.concatenate([np.eye(self.n_actions)[action], [observation.mean()]])
 
     def initial_state(self) -> np.ndarray:
-        return np.zeros((self.memory + 1) * (self.n_actions + 1))
+        return np.zeros((self.memory + 1) * self.slot_size)
 
     def track(self, actions, observations, initial=None) -> Track:
-        window = [np.zeros(self.n_actions + 1)] * (self.memory + 1)
+        window = [np.zeros(self.slot_size)] * (self.memory + 1)
         states = []
         for action, observation in zip(actions, observations, strict=True):
             window = [*window[1:], self._slot(int(action), observation)]
@@ -58,6 +62,28 @@ def test_the_measure_finds_a_planted_memory(memory):
     for experiment in EXPERIMENTS:
         result = measure(model, experiment, "partial", spread)
         assert result.memory == memory and not result.censored, result.describe()
+
+
+@dataclass(frozen=True)
+class ImageRegister(ShiftRegister):
+    """A shift register of whole observations: blind to the actions, so the stand-still
+    variant (the same image after different actions) finds nothing to remember."""
+
+    @property
+    def slot_size(self) -> int:
+        return 16 * 16 * 3  # the simulator's camera
+
+    def _slot(self, action: int, observation: np.ndarray) -> np.ndarray:
+        return np.asarray(observation, dtype=float)
+
+
+def test_experiments_record_the_smaller_memory_and_the_paths_variants_own():
+    from learner.measures import memory_of
+    from learner.representations import ModelTracker
+
+    steps, distance, paths = memory_of(ModelTracker(ImageRegister(3), "planted"), "partial")
+    assert (steps, paths) == (0.0, 3.0) and distance > 0.1
+    assert memory_of(ModelTracker(ShiftRegister(2), "planted"), "partial")[::2] == (2.0, 2.0)
 
 
 def test_a_memory_longer_than_the_run_is_reported_as_a_lower_bound():

@@ -557,13 +557,14 @@ def test_pca_is_planned_with_its_own_planner_where_one_image_is_ambiguous():
 def test_a_study_shows_the_headings_r2_and_each_environments_own_default():
     from learner.appendix import CARRY_STUDY
 
-    def rows(job, heading, memory=float("nan")):
+    def rows(job, heading, memory=float("nan"), paths=float("nan")):
         out = _rows(job.environment, {"constant": [0.0] * 3, "random": [1.0, 2.0, 3.0]},
                     (8000,))  # fmt: skip
         for value in ("0", "0.3", "0.5", "0.7"):
             parameters = json.dumps({"tpsr": {"refine_carry": float(value)}})
             out += _rows(job.environment, {"tpsr": [400.0, 410.0, 420.0]}, (8000,),
-                         parameters=parameters, r2_heading=heading, memory=memory)  # fmt: skip
+                         parameters=parameters, r2_heading=heading, memory=memory,
+                         memory_paths=paths)  # fmt: skip
         return out
 
     headings = {"partial-strip": float("nan"), "drive": 0.8}
@@ -581,6 +582,12 @@ def test_a_study_shows_the_headings_r2_and_each_environments_own_default():
     assert (
         "- `drive`, tpsr: `learner memory`, the median over the runs in steps: `0` 2, `0.3` 2, "
         "`0.5` 2, `0.7` 2." in CARRY_STUDY.render(CARRY_STUDY, remembered)
+    )
+    both = {job: rows(job, float("nan"), memory=0.0, paths=3.0) for job in CARRY_STUDY.jobs}
+    assert (
+        "- `drive`, tpsr: `learner memory`, the median over the runs in steps: `0` 0, `0.3` 0, "
+        "`0.5` 0, `0.7` 0 (the paths variant alone: `0` 3, `0.3` 3, `0.5` 3, `0.7` 3)."
+        in CARRY_STUDY.render(CARRY_STUDY, both)
     )
 
 
