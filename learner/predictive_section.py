@@ -46,7 +46,9 @@ __all__ = [
     "PREDICTIVE_SECTION",
     "baseline_jobs",
     "entry_at_size",
+    "paths_memory",
     "pca_planner_jobs",
+    "tpsr_job",
     "weakest_at_size",
 ]
 
@@ -75,6 +77,11 @@ def _jobs() -> tuple[Job, ...]:
         )
         for env in ENVIRONMENTS
     )
+
+
+def tpsr_job(environment: str) -> Job:
+    """The section's job of the predictive preset's TPSR in ``environment``."""
+    return next(job for job in _jobs() if job.environment == environment)
 
 
 BASELINE_ENVIRONMENTS = ENVIRONMENTS
@@ -152,10 +159,25 @@ def _restarts(rows: list[Row], method: str) -> str:
     return f"{float(np.median(counts)):.0f}" if counts else "-"
 
 
+def _median_finite(values: list[float]) -> float | None:
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.median(finite)) if finite else None
+
+
+def paths_memory(rows: list[Row], method: str = "tpsr") -> float | None:
+    """The median memory in steps of ``learner memory``'s paths variant alone over the
+    runs that recorded it (None: none did)."""
+    return _median_finite([r.memory_paths for r in _at_size(rows, method)])
+
+
 def _memory(rows: list[Row], method: str) -> str:
-    """The median memory in steps (``learner memory``) of the runs that measured it."""
-    steps = [r.memory for r in _at_size(rows, method) if math.isfinite(r.memory)]
-    return f"{float(np.median(steps)):g}" if steps else "-"
+    """The median memory in steps (``learner memory``) of the runs that measured it, and
+    in brackets its paths variant's alone where the runs recorded it."""
+    steps = _median_finite([r.memory for r in _at_size(rows, method)])
+    if steps is None:
+        return "-"
+    paths = paths_memory(rows, method)
+    return f"{steps:g}" + ("" if paths is None else f" (paths {paths:g})")
 
 
 def _heading(rows: list[Row]) -> str | None:
@@ -300,7 +322,10 @@ def _render(section: Section, data: Data) -> list[str]:
         "episode, whatever the preset). "
         "Cells: mean / median / SEM; weakest: the lowest run; restarts: the median number of "
         "normaliser recoveries over the RL trajectory; memory: the median of `learner "
-        "memory` (in steps; measured where two places look alike); the floors: pooled over "
+        "memory` (in steps; measured where two places look alike), the smaller of its two "
+        "variants, and in brackets its paths variant alone where the runs recorded it (west "
+        "or east, then the same steps north to a wall that looks alike; the other, "
+        "stand-still, differs in one action only); the floors: pooled over "
         "every data size, as in the headline (they use no data); the difference to the "
         "TPSR of `--preset best` in SEMs of the difference.",
         "",

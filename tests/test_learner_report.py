@@ -629,6 +629,29 @@ def test_a_study_run_before_its_preset_changed_says_in_what():
     assert "predate" not in "\n".join(PCA_PLANNER_STUDY.render(PCA_PLANNER_STUDY, planner))
 
 
+def test_the_memory_cells_give_the_paths_variant_alone_where_the_runs_recorded_it():
+    from learner.predictive_section import PREDICTIVE_EPISODES, _memory, tpsr_job
+    from learner.results_page import _memory_bullet
+
+    sizes = (PREDICTIVE_EPISODES,)
+    older = _rows("partial-strip", {"tpsr": [400.0] * 3}, sizes, memory=0.0)
+    recorded = [
+        dataclasses.replace(row, memory_paths=paths)
+        for row, paths in zip(older, (1.0, 2.0, 4.0), strict=True)
+    ]
+    assert _memory(older, "tpsr") == "0"
+    assert _memory(recorded, "tpsr") == "0 (paths 2)"
+    assert _memory(recorded, "pca") == "-"
+    job = tpsr_job("partial-strip")
+    assert "--environment partial-strip" in job.command and "--memory" in job.command
+    assert "paths variant" not in _memory_bullet({job: older})
+    assert _memory_bullet({job: recorded}).endswith(
+        "With the defaults in `partial-strip` (the predictive section) `learner memory`'s "
+        "paths variant alone keeps them apart for a median 2 step(s); in its stand-still "
+        "variant, whose two runs differ in one action only, they merge at once."
+    )
+
+
 def test_the_predictive_section_gives_the_headings_r2_of_a_robot_that_turns():
     from learner.predictive_section import PREDICTIVE_EPISODES, _heading
 
