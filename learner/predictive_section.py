@@ -463,7 +463,10 @@ PREDICTIVE_SECTION = Section(
     "rerun once more when every episode came to be 3 recorded steps whatever the preset "
     "(`--episode-steps`). With 32000 steps the preset scored 469.7 in `full`, 445.4 in "
     "`partial` (weakest 393.3), 456.3 in `distractors` (weakest 445.0), 402.3 in "
-    "`partial-strip` (weakest 299.6) and 387.1 in `drive` (weakest 380.2).",
+    "`partial-strip` (weakest 299.6) and 387.1 in `drive` (weakest 380.2). The runs that "
+    "measure their memory (the TPSR, the baselines and PCA's own planner in `partial` and "
+    "`partial-strip`) were run once more, to the same scores bit for bit, to record the "
+    "memory of `learner memory`'s paths variant alone.",
     _ALL_JOBS,
     _render,
     "**Commands** (the headline's seeds):\n\n```sh\n"
