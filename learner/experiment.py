@@ -43,7 +43,7 @@ import numpy as np
 from learner.evaluate import Evaluation, evaluate
 from learner.floors import CONSTANT, FLOORS, constant_floor, random_floor
 from learner.inputs import robot_turns
-from learner.measures import criterion_of, memory_of, tuned
+from learner.measures import NOT_MEASURED, criterion_of, memory_of, tuned
 from learner.options import add_preset_option
 from learner.overrides import apply_overrides
 from learner.plots import affine_r2, loop_position_error, neighbour_position_error
@@ -480,7 +480,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             memory = (
                 memory_of(tracker, config.environment, config.sim)
                 if config.memory
-                else (float("nan"),) * 3
+                else NOT_MEASURED
             )
             criterion = (
                 criterion_of(run_config.tpsr, train)
@@ -490,7 +490,7 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
             scored = _plan_and_score(config, tracker, rl, states)
         except TpsrError as exc:  # a failed fit is a result, not a crash
             fit_seconds, recoveries, r2 = time.perf_counter() - start, 0, np.full(3, np.nan)
-            position_error, memory = float("nan"), (float("nan"),) * 3
+            position_error, memory = float("nan"), NOT_MEASURED
             criterion = float("nan")
             scored = _Scored(float("nan"), "", "", config.fqi.ridge, f"error: {exc}")
         rows.append(
@@ -514,9 +514,9 @@ def run_cell(config: ExperimentConfig, episodes: int, repetition: int) -> list[R
                 position_error=round(position_error, 3),
                 loop_position_error=round(scored.loop_position_error, 3),
                 status=scored.status,
-                memory=memory[0],
-                memory_distance=round(memory[1], 6),
-                memory_paths=memory[2],
+                memory=memory.steps,
+                memory_distance=round(memory.paths_distance, 6),
+                memory_paths=memory.paths_steps,
                 criterion=round(criterion, 6),
             )
         )

@@ -8,14 +8,14 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 from learner.representations import ModelTracker, Tracker
 from learner.simulated import SimSettings
 from tpsr_ros.core.episodes import Trajectory
 from tpsr_ros.core.tpsr import TPSRConfig
 
-__all__ = ["criterion_of", "memory_of", "tuned"]
+__all__ = ["NOT_MEASURED", "MemoryFigures", "criterion_of", "memory_of", "tuned"]
 
 
 def tuned(
@@ -52,21 +52,35 @@ def criterion_of(tpsr: TPSRConfig, train: Trajectory) -> float:
     return float(score.value)
 
 
+class MemoryFigures(NamedTuple):
+    """What ``--memory`` records of one model (:mod:`learner.memory`)."""
+
+    steps: float
+    """Steps remembered: the smaller of both variants."""
+    paths_distance: float
+    """The ``paths`` variant's relative distance at its first identical step."""
+    paths_steps: float
+    """Steps the ``paths`` variant alone remembers."""
+
+
+NOT_MEASURED = MemoryFigures(float("nan"), float("nan"), float("nan"))
+"""The figures of a run that did not measure its memory."""
+
+
 def memory_of(
     tracker: Tracker, environment: str = "partial", sim: SimSettings | None = None
-) -> tuple[float, float, float]:
-    """Steps a learned model remembers in ``environment`` (camera: ``sim``), the ``paths``
-    variant's distance at its first identical step, and the steps that variant alone
-    remembers (:mod:`learner.memory`); NaN for the true position."""
+) -> MemoryFigures:
+    """How long a learned model remembers in ``environment`` (camera: ``sim``;
+    :mod:`learner.memory`); not measured for the true position."""
     if not isinstance(tracker, ModelTracker):
-        return float("nan"), float("nan"), float("nan")
+        return NOT_MEASURED
     from learner.memory import EXPERIMENTS, measure, state_spread
 
     spread = state_spread(tracker.model, environment, sim=sim)
     results = [measure(tracker.model, e, environment, spread, sim=sim) for e in EXPERIMENTS]
     paths = results[0]
-    return (
-        float(min(r.memory for r in results)),
-        float(paths.relative_distance[paths.identical_from]),
-        float(paths.memory),
+    return MemoryFigures(
+        steps=float(min(r.memory for r in results)),
+        paths_distance=float(paths.relative_distance[paths.identical_from]),
+        paths_steps=float(paths.memory),
     )

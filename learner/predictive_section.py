@@ -31,7 +31,15 @@ from learner.jobs import (
     experiment_job,
     memory_option,
 )
-from learner.sections import Data, Section, cell, comparison, judged, row_parameters
+from learner.sections import (
+    Data,
+    Section,
+    cell,
+    comparison,
+    finite_median,
+    judged,
+    row_parameters,
+)
 from learner.tables import Row, pooled_floors, summarise
 from sim_node import SimConfig
 from tpsr_ros.core.fqi import FQIConfig
@@ -159,21 +167,16 @@ def _restarts(rows: list[Row], method: str) -> str:
     return f"{float(np.median(counts)):.0f}" if counts else "-"
 
 
-def _median_finite(values: list[float]) -> float | None:
-    finite = [v for v in values if math.isfinite(v)]
-    return float(np.median(finite)) if finite else None
-
-
 def paths_memory(rows: list[Row], method: str = "tpsr") -> float | None:
     """The median memory in steps of ``learner memory``'s paths variant alone over the
     runs that recorded it (None: none did)."""
-    return _median_finite([r.memory_paths for r in _at_size(rows, method)])
+    return finite_median([r.memory_paths for r in _at_size(rows, method)])
 
 
 def _memory(rows: list[Row], method: str) -> str:
     """The median memory in steps (``learner memory``) of the runs that measured it, and
     in brackets its paths variant's alone where the runs recorded it."""
-    steps = _median_finite([r.memory for r in _at_size(rows, method)])
+    steps = finite_median([r.memory for r in _at_size(rows, method)])
     if steps is None:
         return "-"
     paths = paths_memory(rows, method)

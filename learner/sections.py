@@ -26,6 +26,7 @@ __all__ = [
     "Section",
     "cell",
     "comparison",
+    "finite_median",
     "judged",
     "mean_text",
     "median_text",
@@ -95,10 +96,16 @@ def mean_text(values: Sequence[float], fmt: str) -> str:
     return format(float(np.mean(finite)), fmt) if finite else "-"
 
 
+def finite_median(values: Sequence[float]) -> float | None:
+    """The median of the finite ``values``, None when there are none."""
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.median(finite)) if finite else None
+
+
 def median_text(values: Sequence[float], fmt: str) -> str:
     """The median of the finite ``values`` formatted with ``fmt``, ``-`` when there are none."""
-    finite = [v for v in values if math.isfinite(v)]
-    return format(float(np.median(finite)), fmt) if finite else "-"
+    median = finite_median(values)
+    return "-" if median is None else format(median, fmt)
 
 
 def comparison(entry: Mapping[str, Any], base: Mapping[str, Any]) -> tuple[float, float]:

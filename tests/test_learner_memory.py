@@ -81,9 +81,10 @@ def test_experiments_record_the_smaller_memory_and_the_paths_variants_own():
     from learner.measures import memory_of
     from learner.representations import ModelTracker
 
-    steps, distance, paths = memory_of(ModelTracker(ImageRegister(3), "planted"), "partial")
-    assert (steps, paths) == (0.0, 3.0) and distance > 0.1
-    assert memory_of(ModelTracker(ShiftRegister(2), "planted"), "partial")[::2] == (2.0, 2.0)
+    figures = memory_of(ModelTracker(ImageRegister(3), "planted"), "partial")
+    assert (figures.steps, figures.paths_steps) == (0.0, 3.0) and figures.paths_distance > 0.1
+    both = memory_of(ModelTracker(ShiftRegister(2), "planted"), "partial")
+    assert (both.steps, both.paths_steps) == (2.0, 2.0)
 
 
 def test_a_memory_longer_than_the_run_is_reported_as_a_lower_bound():
