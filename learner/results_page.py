@@ -412,7 +412,9 @@ def _memory_bullet(data: Data) -> str:
     return text + (
         f" With the defaults in `partial-strip` (the predictive section) `learner memory`'s "
         f"paths variant alone keeps them apart for a median {paths:g} step(s); in its "
-        "stand-still variant, whose two runs differ in one action only, they merge at once."
+        "stand-still variant, whose two runs differ in one action only, they merge at once, "
+        "and from that uninformed start an exact belief over the robot's position stays "
+        "under the threshold there too (appendix, Memory)."
     )
 
 

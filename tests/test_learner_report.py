@@ -648,7 +648,9 @@ def test_the_memory_cells_give_the_paths_variant_alone_where_the_runs_recorded_i
     assert _memory_bullet({job: recorded}).endswith(
         "With the defaults in `partial-strip` (the predictive section) `learner memory`'s "
         "paths variant alone keeps them apart for a median 2 step(s); in its stand-still "
-        "variant, whose two runs differ in one action only, they merge at once."
+        "variant, whose two runs differ in one action only, they merge at once, and from "
+        "that uninformed start an exact belief over the robot's position stays under the "
+        "threshold there too (appendix, Memory)."
     )
 
 
