@@ -128,7 +128,7 @@ class PlaceStates:
         order = np.argsort(flat)[::-1]
         kept = order[: int(np.searchsorted(np.cumsum(flat[order]), MASS)) + 1]
         weights = flat[kept] / flat[kept].sum()
-        return np.sum([w * self.of_cell(int(c)) for w, c in zip(weights, kept)], axis=0)
+        return weights @ np.array([self.of_cell(int(c)) for c in kept])
 
     def spread(self) -> float:
         """RMS distance from their mean of the states of a random run's places."""

@@ -34,7 +34,6 @@ from learner.jobs import (
     WINDOW_EPISODES,
     Job,
     experiment_job,
-    memory_option,
     study_job,
 )
 from learner.overrides import convert
@@ -976,7 +975,7 @@ CARRY_TWO_IMAGES_STUDY = Section(
 """Whether the predictive preset still needs its carry with two images of history, and what
 the carry costs where one image tells the position."""
 
-PAST_TARGET_STUDY = Section(
+PAST_TARGET_STUDY = _predictive_study(
     "past-target",
     "A predictive state: the past as a target",
     "The refined states are fitted to predict the next 10 images, and the past helps to "
@@ -1001,15 +1000,9 @@ PAST_TARGET_STUDY = Section(
     "but planned far worse, 320.6 / 348.4 / 32.5, and so did four images back with the "
     "search scaled by group (`tpsr.refine_scaling` `groups`: 337.8 / 373.5 / 32.7, its "
     "stand-still variant still at 0 steps).",
-    tuple(
-        study_job(
-            "studies", env, f"tpsr.refine_past={values}", "--episodes",
-            str(PREDICTIVE_EPISODES), *SELECTION_SEEDS, "--preset", "predictive",
-            "--methods", "tpsr", *memory_option(env),
-        )  # fmt: skip
-        for env, values in (("partial-strip", "0,1,2"),)
-    ),
-    _render_study,
+    "tpsr.refine_past=0,1,2",
+    "--memory",
+    environments=("partial-strip",),
 )
 """Whether the refined states should also predict the images before the current one."""
 
