@@ -35,7 +35,7 @@ from learner.distributed import (
     check_bags_visible,
     dask_client,
 )
-from learner.info import predicted_images
+from learner.info import kernel_line, predicted_images
 from learner.inputs import (
     add_stream_options,
     apply_config_inputs,
@@ -732,6 +732,8 @@ def summary_lines(
             "whitening explained variance: "
             + ", ".join(f"{key} {val.sum():.3f} ({val.size} dims)" for key, val in ev.items())
         )
+        if kernel := model.fit_info.get("obs_kernel"):
+            lines.append(kernel_line(kernel, model.obs_centers.shape[0]))
         if refined := model.fit_info.get("refinement"):
             lines.append(refinement_line(refined, timings["fit"]))
         stages = model.fit_info.get("timings", {})

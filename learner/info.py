@@ -139,6 +139,9 @@ def info_lines(
         lines.append(
             "fit timing: " + "; ".join(f"{k} {_num(v, '.3f')} s" for k, v in timings.items())
         )
+    if kernel := _mapping(summary.get("obs_kernel")):
+        centres = metadata_field(metadata, "parameters", "obs_centers")
+        lines.append(kernel_line(kernel, centres))
     if refined := _mapping(summary.get("refinement")):
         lines.append(
             f"refinement: {_num(refined.get('iterations'), 'd')} iteration(s), best "
@@ -148,6 +151,18 @@ def info_lines(
             f"{_num(refined.get('heldout_unexplained'), '.4f')}"
         )
     return lines
+
+
+def kernel_line(kernel: dict[str, Any], n_centres: int) -> str:
+    """The observation kernel a fit used (its ``fit_info["obs_kernel"]``): the width, and
+    how many of the centres an image's weights spread over (:mod:`tpsr_ros.core.kernel_width`)."""
+    given = kernel.get("sigma_given")
+    widened = f" (widened from {_num(given, 'g')})" if given is not None else ""
+    return (
+        f"observation kernel: sigma^O {_num(kernel.get('sigma'), 'g')}{widened}; an image's "
+        f"weights spread over a median {_num(kernel.get('effective_centres'), '.2f')} "
+        f"effective centres of {n_centres}"
+    )
 
 
 def predicted_images(refined: dict[str, Any]) -> str:

@@ -5,7 +5,8 @@ From episodes (history, current action-observation pair, test; guide section 3.1
 1. whitens histories, tests and current observations (Algorithm 1, :mod:`tpsr_ros.core.whitened`),
 2. chooses kernel centres and computes the feature matrices (Algorithm 2,
    :mod:`tpsr_ros.core.features`): ``phi_H`` and ``phi_T`` with the constant feature, ``phi_O``
-   normalised,
+   normalised (with ``obs_effective_centres``, ``sigma^O`` widened first until the median
+   observation's weights spread over that many centres: :mod:`tpsr_ros.core.kernel_width`),
 3. estimates ``P_H`` (eq. 3.1) and ``P_TH`` (eq. 3.2), normalised by ``1/t``,
 4. takes the compact rank-``r`` SVD ``P_TH ~ U S V^T``,
 5. computes ``b_* = S V^T e`` (eq. 3.5), ``b_inf^T = P_H^T V S^-1`` (eq. 3.6) and every
@@ -55,6 +56,7 @@ import numpy as np
 from tpsr_ros.core.action_features import standardised_codes
 from tpsr_ros.core.errors import ConfigError, DataError
 from tpsr_ros.core.fit_basis import FitBasis, Sketch
+from tpsr_ros.core.kernel_width import median_effective_centres, widened_sigma
 from tpsr_ros.core.sizing import Sizing, size_to_data
 from tpsr_ros.core.state_box import box_episodes, episode_states, state_box
 from tpsr_ros.core.tpsr_config import TPSRConfig
@@ -220,6 +222,7 @@ def run_fit(
     if basis is None:
         rows = engine.centre_rows()
         centres = Centres(*kernel_centres(rows.history, rows.test, rows.observation, cfg))
+        cfg, kernel = _observation_kernel(cfg, rows.observation, centres.observation)
         chosen = replace(cfg, obs_dim=whitenings.obs.n_components)  # obs_variance's choice
         basis = FitBasis(chosen, whitenings.history, whitenings.test, whitenings.obs, centres)
     else:
@@ -262,6 +265,7 @@ def run_fit(
         **({"supported_rank": supported} if sizing is not None else {}),
         "timings": {name: round(sec, 6) for name, sec in watch.timings.items()},
         **engine.info(),
+        **({"obs_kernel": kernel} if first_fit else {}),
     }
     if sized:
         fit_info["sized"] = {name: list(change) for name, change in sized.items()}
@@ -424,6 +428,23 @@ class MemoryEngine:
     def info(self) -> dict[str, Any]:
         """Nothing beyond the shared entries."""
         return {}
+
+
+def _observation_kernel(
+    cfg: TPSRConfig, rows: np.ndarray, centres: np.ndarray
+) -> tuple[TPSRConfig, dict[str, Any]]:
+    """The fit's observation kernel: ``cfg`` with ``sigma_obs`` widened where
+    ``obs_effective_centres`` asks (:mod:`tpsr_ros.core.kernel_width`), and what
+    ``fit_info["obs_kernel"]`` records of it: the width and the median effective number of
+    centres an observation's weights spread over (and the width given, where widened)."""
+    if cfg.obs_effective_centres == 0:
+        spread = median_effective_centres(rows, centres, cfg.sigma_obs)
+        return cfg, {"sigma": cfg.sigma_obs, "effective_centres": round(spread, 3)}
+    width, spread = widened_sigma(rows, centres, cfg.sigma_obs, cfg.obs_effective_centres)
+    kernel: dict[str, Any] = {"sigma": width, "effective_centres": round(spread, 3)}
+    if width != cfg.sigma_obs:
+        kernel["sigma_given"] = cfg.sigma_obs
+    return replace(cfg, sigma_obs=width), kernel
 
 
 def _box_actions(

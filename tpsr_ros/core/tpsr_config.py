@@ -31,6 +31,7 @@ _NUMBER_RULES: tuple[tuple[tuple[str, ...], Callable[[float], bool], str], ...] 
     (("obs_variance",), lambda v: v == 0 or 0 < v < 1, "0 or in (0, 1)"),
     (("refine_pull",), lambda v: np.isfinite(v) and v >= 0, "a non-negative finite number"),
     (("refine_carry",), lambda v: 0 <= v < 1, "a number in [0, 1)"),
+    (("obs_effective_centres",), lambda v: v == 0 or 1 <= v < np.inf, "0 or a number >= 1"),
 )
 """The real-valued parameters of :class:`TPSRConfig`: names, the rule, and how it reads."""
 
@@ -55,6 +56,13 @@ class TPSRConfig:
     obs_centers: int = _param(500, "l^O: number of observation kernel centres")
     ht_centers: int = _param(1000, "l^H = l^T: number of history and test kernel centres")
     sigma_obs: float = _param(1.0, "sigma^O: kernel width of observation features")
+    obs_effective_centres: float = _param(
+        0.0,
+        "widen sigma^O where needed so that the median observation's kernel weights spread "
+        "over at least this many effective centres, 1 / sum w^2 (0: sigma^O as given, the "
+        "guide; the fitted model's sigma_obs records the width used; see "
+        "tpsr_ros.core.kernel_width)",
+    )
     sigma_ht: float = _param(2.0, "sigma^H = sigma^T: kernel width of history/test features")
     rank: int = _param(5, "r: dimension of the TPSR state (singular values kept; guide dim)")
     center_selection: Literal["first", "kmeans"] = _param(
