@@ -17,6 +17,7 @@ __all__ = [
     "BEFORE_MEMBER_REFIT",
     "BEFORE_OVERLAP",
     "BEFORE_TWO_IMAGES",
+    "BEFORE_WIDE_KERNEL",
     "BEST_PRESET",
     "ENVIRONMENTS",
     "GUIDE_ENVIRONMENTS",
@@ -65,6 +66,9 @@ BEFORE_OVERLAP = (*BEFORE_TWO_IMAGES, "--set", "tpsr.overlapping_episodes=false"
 """Before the spectral start took a window at every step."""
 BEFORE_MEMBER_REFIT = (*BEFORE_OVERLAP, "--set", "fqi.refit=ensemble")
 """Before the planner refitted a diverging member alone."""
+BEFORE_WIDE_KERNEL = ("--set", "tpsr.obs_effective_centres=0")
+"""Before a robot that turns widened its observation kernel (``drive``'s runs only: the
+other rooms' kernels are as they were)."""
 
 
 @dataclass(frozen=True)

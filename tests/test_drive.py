@@ -223,7 +223,7 @@ def test_fit_policy_and_closed_loop_on_drive_bags(tmp_path, monkeypatch, capsys)
     small = ["--obs-centers", "60", "--ht-centers", "120"]
     assert learner_main(["fit", str(tmp_path / "train"), "-o", str(model), *small]) == 0
     said = capsys.readouterr().err
-    turning = "ht_dim=20 rank=16 action_pooling=0.5 refine_carry=0.0"  # carries nothing
+    turning = "ht_dim=20 rank=16 action_pooling=0.5 refine_carry=0.0 obs_effective_centres=2.0"
     assert f"with its turning robot's settings ({turning})" in said
     opened = open_model(model)
     config = opened.model.config

@@ -81,3 +81,12 @@ def test_a_fit_widens_its_kernel_and_its_filter_weighs_with_the_width_it_records
     assert np.median(effective_centres(weights)) == pytest.approx(4.0, rel=0.15)
     assert widened.config.obs_effective_centres == 4.0  # a refit keeps the width it recorded
 
+
+def test_only_the_turning_robot_of_the_default_preset_widens_its_kernel() -> None:
+    """The rule was chosen in ``drive`` (docs/results.md, "the observation kernel's width");
+    every other preset and robot keeps the width given, so their models are unchanged."""
+    predictive = get_preset("predictive")
+    assert predictive.tpsr_config(turning=True).obs_effective_centres == 2.0
+    assert predictive.tpsr_config().obs_effective_centres == 0.0
+    for name in ("best", "guide"):
+        assert get_preset(name).tpsr_config(turning=True).obs_effective_centres == 0.0

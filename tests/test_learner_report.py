@@ -617,7 +617,7 @@ def test_a_study_run_before_its_preset_changed_says_in_what():
     # names the latter with the command); nor are the settings of a baseline's rows
     assert (
         "its command sets (`tpsr.refine_carry_rule=always`, `tpsr.history_length=1`, "
-        "`tpsr.overlapping_episodes=false`)" in text
+        "`tpsr.overlapping_episodes=false`, `tpsr.obs_effective_centres=0` in `drive`)" in text
     )
     ranks = {job: rows(job, {"rank": 12}, {}) for job in REFIT_STUDY.jobs}  # 8 and 16 now
     assert "`tpsr.rank` `12` (now `8` in `partial-strip` and `16` in `drive`)" in "\n".join(

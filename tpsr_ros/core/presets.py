@@ -159,7 +159,11 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
                 "refine_carry_rule": "aliased",
             },
             fqi={**_BEST.fqi, "refit": "member"},
-            turning_tpsr={**_BEST.turning_tpsr, "refine_carry": 0.0},
+            turning_tpsr={
+                **_BEST.turning_tpsr,
+                "refine_carry": 0.0,
+                "obs_effective_centres": 2.0,
+            },
         ),
         "guide": Preset(
             "guide",
