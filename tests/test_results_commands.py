@@ -21,19 +21,13 @@ from learner.results_page import all_jobs
 from learner.study import parse_values
 from tpsr_ros.core.fqi import FQIConfig
 from tpsr_ros.core.tpsr import TPSRConfig
+from tpsr_ros.core.tpsr_config import chosen_by_the_fit
 
 REPOSITORY = Path(__file__).resolve().parents[1]
 EXPERIMENT = "python -m learner experiment "
 NEWER_FIELDS = {"tpsr": TPSRConfig(), "fqi": FQIConfig()}
 """A setting a row does not record is newer than the row: the field's default, which is the
 behaviour before the field existed, is what the row ran with."""
-CHOSEN_BY_THE_DATA = {"obs_dim"}  # the d^O that obs_variance chose, recorded by the fit
-
-
-def _chosen_by_the_data(recorded: dict) -> set[str]:
-    """The fields a fit chose and recorded: d^O, and sigma^O where obs_effective_centres
-    widened it."""
-    return CHOSEN_BY_THE_DATA | ({"sigma_obs"} if recorded.get("obs_effective_centres") else set())
 
 
 @cache
@@ -80,7 +74,7 @@ def test_every_committed_row_reruns_with_the_settings_it_recorded():
             if group not in recorded:
                 continue
             ran = {**dataclasses.asdict(newer), **recorded[group]}
-            chosen = _chosen_by_the_data(ran)
+            chosen = chosen_by_the_fit(ran) if group == "tpsr" else frozenset()
             for name, value in dataclasses.asdict(getattr(config, group)).items():
                 checked += 1
                 if name not in chosen and not _same(value, ran[name]):

@@ -31,7 +31,11 @@ section 4.3; the fitted Q of section 4.1), the reference path of the algorithm:
   next ones (``refine_carry_rule`` ``aliased``, :mod:`tpsr_ros.core.history_gain`: not in
   ``full``, whose image tells the place); a robot that turns carries nothing (the carried
   start loses its heading: in ``drive`` the heading's R² falls from 0.89 at 0 to 0.63 at
-  0.7, the score from 353.7 to 145.5); a fitted-Q member that diverges is refitted alone
+  0.7, the score from 353.7 to 145.5), and its observation kernel is widened until the
+  median image's weights spread over two effective centres (``obs_effective_centres``,
+  :mod:`tpsr_ros.core.kernel_width`: whitened to 95 % of the variance its camera keeps about
+  50 dimensions, where the guide's width gives each image to one centre; "A predictive
+  state: the observation kernel's width"); a fitted-Q member that diverges is refitted alone
   (``fqi.refit member``), not the whole ensemble, which rescued every run where refitting
   the whole ensemble collapsed ("A predictive state: refitting a diverged planner"). On
   the headline's fresh seeds, from the same 24000 recorded steps, it is at least level with
@@ -148,7 +152,8 @@ PRESETS: Mapping[str, Preset] = MappingProxyType(
             "refined through its filter (at most 30 L-BFGS iterations on predicting the next "
             "10 images) from a start that carries 0.3 of the state forward at a typical step "
             "where the previous image helps to predict the next ones (a robot that turns: "
-            "none); a diverged fitted-Q member is refitted alone",
+            "none, and an observation kernel widened to two effective centres); a diverged "
+            "fitted-Q member is refitted alone",
             tpsr={
                 **_BEST.tpsr,
                 "p_th_tests": "from-current",

@@ -16,7 +16,7 @@ import numpy as np
 from tpsr_ros.core.errors import ConfigError
 from tpsr_ros.core.fields import option as _param
 
-__all__ = ["TPSRConfig"]
+__all__ = ["TPSRConfig", "chosen_by_the_fit"]
 
 
 _NUMBER_RULES: tuple[tuple[tuple[str, ...], Callable[[float], bool], str], ...] = (
@@ -233,3 +233,10 @@ class TPSRConfig:
         if unknown := sorted(set(values) - known):
             raise ConfigError(f"unknown TPSR parameters {unknown}")
         return cls(**values)
+
+
+def chosen_by_the_fit(values: dict[str, Any]) -> frozenset[str]:
+    """The fields a fit records as it chose them from the data, not as they were given: d^O
+    (``obs_variance``'s choice) and, where ``obs_effective_centres`` is set, sigma^O."""
+    widened = bool(values.get("obs_effective_centres"))
+    return frozenset({"obs_dim", "sigma_obs"} if widened else {"obs_dim"})
