@@ -38,7 +38,9 @@ CASES = (  # (label, generator options, fit options)
 
 
 DRIVE = ["--environment", "drive", "--timeline", "step-start", "--steps", "24000"]
-PLANAR_SETTINGS = ["--rank", "8", "--ht-dim", "10", "--action-pooling", "1"]
+PLANAR_SETTINGS = [
+    "--rank", "8", "--ht-dim", "10", "--action-pooling", "1", "--obs-effective-centres", "0",
+]  # fmt: skip
 DRIVE_CASES = (  # (label, generator options, fit options, target)
     ("drive, 300° camera", [*DRIVE, "--field-of-view", "300"], [], 0.8),
     ("drive, 90° camera", [*DRIVE, "--field-of-view", "90"], [], 0.6),
