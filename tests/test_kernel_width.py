@@ -79,7 +79,7 @@ def test_a_fit_widens_its_kernel_and_its_filter_weighs_with_the_width_it_records
     assert kernel["effective_centres"] >= 4.0
     weights = observation_weights(widened, observations)
     assert np.median(effective_centres(weights)) == pytest.approx(4.0, rel=0.15)
-    assert widened.config.obs_effective_centres == 4.0  # a refit keeps the width it recorded
+    assert widened.config.obs_effective_centres == 4.0  # the target beside the width it gave
 
 
 def test_only_the_turning_robot_of_the_default_preset_widens_its_kernel() -> None:
