@@ -22,7 +22,7 @@ import math
 import numpy as np
 
 from tpsr_ros.core.errors import DataError
-from tpsr_ros.core.features import squared_distances
+from tpsr_ros.core.features import rbf_features
 
 __all__ = ["SAMPLE_ROWS", "effective_centres", "median_effective_centres", "widened_sigma"]
 
@@ -40,24 +40,13 @@ def effective_centres(weights: np.ndarray) -> np.ndarray:
     return 1.0 / np.einsum("ti,ti->t", w, w)
 
 
-def _shifted_distances(rows: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """Squared distances of a sample of ``rows`` to ``centres``, each row's smallest at 0."""
-    step = max(1, rows.shape[0] // SAMPLE_ROWS)
-    sq = squared_distances(np.asarray(rows, dtype=np.float64)[::step], centres)
-    sq -= sq.min(axis=1, keepdims=True)
-    return sq
-
-
-def _median_at(shifted: np.ndarray, sigma: float) -> float:
-    weights = np.exp(shifted * (-1.0 / (2.0 * sigma * sigma)))
-    weights /= weights.sum(axis=1, keepdims=True)
-    return float(np.median(effective_centres(weights)))
-
-
 def median_effective_centres(rows: np.ndarray, centres: np.ndarray, sigma: float) -> float:
     """The median effective number of centres of whitened observations ``rows`` ``(t, d)``
-    under the kernel ``(centres, sigma)`` (of at most :data:`SAMPLE_ROWS` of them)."""
-    return _median_at(_shifted_distances(rows, centres), float(sigma))
+    under the kernel ``(centres, sigma)`` (of at most :data:`SAMPLE_ROWS` of them), with the
+    filter's own weights (:func:`~tpsr_ros.core.features.rbf_features`)."""
+    sample = np.asarray(rows, dtype=np.float64)[:: max(1, len(rows) // SAMPLE_ROWS)]
+    weights = rbf_features(sample, centres, float(sigma), normalize=True)
+    return float(np.median(effective_centres(weights)))
 
 
 def widened_sigma(
@@ -73,18 +62,21 @@ def widened_sigma(
             "the target must be at least 1 and below the number of observation centres "
             "(lower obs_effective_centres or raise obs_centers)"
         )
-    shifted = _shifted_distances(rows, centres)
+
+    def spread(width: float) -> float:
+        return median_effective_centres(rows, centres, width)
+
     low = float(sigma)
-    reached = _median_at(shifted, low)
+    reached = spread(low)
     if reached >= target:
         return low, reached
     high = 2.0 * low
-    while _median_at(shifted, high) < target:  # the spread tends to n_centres > target
+    while spread(high) < target:  # the spread tends to n_centres > target
         low, high = high, 2.0 * high
     while high / low > 1.0 + 10.0 ** -(_DIGITS + 1):  # bisect in the logarithm
         middle = math.sqrt(low * high)
-        low, high = (middle, high) if _median_at(shifted, middle) < target else (low, middle)
+        low, high = (middle, high) if spread(middle) < target else (low, middle)
     scale = 10.0 ** (math.floor(math.log10(high)) - _DIGITS + 1)
     width = math.ceil(high / scale - 1e-9) * scale
     width = float(f"{width:.{_DIGITS}g}")  # the decimal the config shows
-    return width, _median_at(shifted, width)
+    return width, spread(width)
